@@ -1,0 +1,153 @@
+"""A machine's link: its data channel and optional control channel, as one object.
+
+Events flow up: every line either channel reads, and the loss of the link,
+arrive in one inbox in the order they happened, read in batches by the one
+task that owns the link. Bytes flow down: lines on the data channel, realtime
+bytes and queries on the control channel (the data channel when there is only
+one). Losing either channel loses the link: the machine is gone.
+
+The inbox is bounded: past `INBOX_HIGH` unread events the link stops reading
+the device (the controller's own output then blocks, as on a real USB
+endpoint), and reads again once the owner has caught up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from dataclasses import dataclass
+from enum import StrEnum
+from functools import partial
+
+from hostd.link.serial import SerialChannel
+
+INBOX_HIGH = 4096
+INBOX_LOW = 1024
+
+
+class Channel(StrEnum):
+    DATA = "data"
+    CONTROL = "control"
+
+
+@dataclass(frozen=True, slots=True)
+class LineReceived:
+    channel: Channel
+    line: bytes
+    at: float  # time.monotonic()
+
+
+@dataclass(frozen=True, slots=True)
+class LinkLost:
+    channel: Channel
+    reason: str
+
+
+LinkEvent = LineReceived | LinkLost
+
+
+class Link:
+    """`await Link.open(...)`, then `await link.read()` in one task; `await link.close()`."""
+
+    def __init__(self) -> None:
+        self._inbox: deque[LinkEvent] = deque()
+        self._wakeup = asyncio.Event()
+        self._channels: dict[Channel, SerialChannel] = {}
+        self._paused = False
+        self.lost: LinkLost | None = None
+
+    @classmethod
+    async def open(
+        cls, data_path: str, control_path: str | None = None, baudrate: int = 115200
+    ) -> Link:
+        """Open the control port first, then the data port (g2core assigns roles by open order).
+
+        Raises LinkError with the device and the reason; nothing stays open on failure.
+        """
+        link = cls()
+        order = [(Channel.DATA, data_path)]
+        if control_path is not None:
+            order.insert(0, (Channel.CONTROL, control_path))
+        try:
+            for name, path in order:
+                link._channels[name] = await SerialChannel.open(
+                    path,
+                    baudrate,
+                    on_line=partial(link._on_line, name),
+                    on_lost=partial(link._on_lost, name),
+                )
+        except BaseException:
+            await link.close()
+            raise
+        return link
+
+    @property
+    def dual(self) -> bool:
+        return Channel.CONTROL in self._channels
+
+    def path(self, channel: Channel) -> str:
+        return self._channel(channel).path
+
+    # reading
+
+    async def read(self) -> list[LinkEvent]:
+        """Every event since the last read, waiting for at least one.
+
+        After the link is lost this keeps returning the `LinkLost` event.
+        """
+        while not self._inbox:
+            if self.lost is not None:
+                return [self.lost]
+            self._wakeup.clear()
+            await self._wakeup.wait()
+        events = list(self._inbox)
+        self._inbox.clear()
+        if self._paused:
+            self._set_reading(True)
+        return events
+
+    def _on_line(self, channel: Channel, line: bytes) -> None:
+        self._inbox.append(LineReceived(channel, line, time.monotonic()))
+        self._wakeup.set()
+        if len(self._inbox) >= INBOX_HIGH and not self._paused:
+            self._set_reading(False)
+
+    def _on_lost(self, channel: Channel, reason: str) -> None:
+        if self.lost is None:
+            self.lost = LinkLost(channel, reason)
+            self._inbox.append(self.lost)
+            self._wakeup.set()
+
+    def _set_reading(self, on: bool) -> None:
+        self._paused = not on
+        for ch in self._channels.values():
+            ch.set_reading(on)
+
+    # writing
+
+    def write_line(self, data: bytes) -> bool:
+        """A whole encoded line (ending in LF) on the data channel."""
+        return self._write(Channel.DATA, data)
+
+    def write_control(self, data: bytes) -> bool:
+        """A whole encoded line or realtime byte on the control channel (or the only one)."""
+        return self._write(Channel.CONTROL if self.dual else Channel.DATA, data)
+
+    def _write(self, channel: Channel, data: bytes) -> bool:
+        # Whole lines only: a realtime byte must never land inside a partial line.
+        if not data.endswith(b"\n") or b"\n" in data[:-1]:
+            raise ValueError(f"not exactly one terminated line: {data!r}")
+        return self._channel(channel).write(data)
+
+    def write_backlog(self, channel: Channel = Channel.DATA) -> int:
+        return self._channel(channel).write_backlog
+
+    def _channel(self, channel: Channel) -> SerialChannel:
+        return self._channels[channel if channel in self._channels else Channel.DATA]
+
+    async def close(self) -> None:
+        """Release every port (data first, the reverse of opening)."""
+        for name in (Channel.DATA, Channel.CONTROL):
+            if name in self._channels:
+                await self._channels[name].close()

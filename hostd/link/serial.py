@@ -1,0 +1,141 @@
+"""One serial channel: a device opened exclusively, in raw mode, moving lines.
+
+The serial library is chosen here and nowhere else. It is serialx, Home
+Assistant's maintained successor of pyserial-asyncio: its writes are eager
+(no loop iteration of delay for a realtime byte), EAGAIN is "0 bytes
+written" rather than a busy loop, it opens and closes off the event loop,
+and it passed every write-path test in ../shared/notes/python-stack.md
+where pyserial-asyncio-fast 0.16 spun at 100% CPU after a partial write and
+blocked the loop when the peer stopped reading (tests/link pins both cases).
+
+Failures of the device while open (EOF, EIO, unplug) never surface as an
+exception: the channel reports them once, as a `lost` callback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import os
+from collections.abc import Callable
+
+import serialx
+from serialx.common import SerialException
+
+from hostd.protocol.framing import LineBuffer
+
+# The 1200-baud "touch" resets native-USB boards into their bootloader, and
+# on some boards that erases the firmware (g2core.md section 1).
+BOOTLOADER_BAUD = 1200
+_CLOSE_GRACE = 1.0
+
+
+class LinkError(Exception):
+    """A port could not be opened; the message says which and why."""
+
+
+LineSink = Callable[[bytes], None]
+LostSink = Callable[[str], None]
+
+
+class SerialChannel(asyncio.Protocol):
+    """A device path opened through serialx, split into lines with `LineBuffer`."""
+
+    def __init__(self, path: str, on_line: LineSink, on_lost: LostSink) -> None:
+        self.path = path
+        self._on_line = on_line
+        self._on_lost = on_lost
+        self._framer = LineBuffer()
+        self._transport: asyncio.Transport | None = None
+        self._closed = asyncio.get_running_loop().create_future()
+        self.lost = False
+
+    @classmethod
+    async def open(
+        cls, path: str, baudrate: int, on_line: LineSink, on_lost: LostSink
+    ) -> SerialChannel:
+        if baudrate == BOOTLOADER_BAUD:
+            raise LinkError(f"{path}: refusing {BOOTLOADER_BAUD} baud, the bootloader touch")
+        channel = cls(path, on_line, on_lost)
+        loop = asyncio.get_running_loop()
+        try:
+            await serialx.create_serial_connection(
+                loop, lambda: channel, url=path, baudrate=baudrate, exclusive=True
+            )
+        except FileNotFoundError as exc:
+            raise LinkError(f"{path}: no such device") from exc
+        except (OSError, SerialException) as exc:
+            raise LinkError(f"{path}: cannot open: {_describe(exc)}") from exc
+        return channel
+
+    # asyncio.Protocol
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self._transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        for line in self._framer.feed(data):
+            self._on_line(line)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self._closed.done():
+            self._closed.set_result(None)
+        self._report_lost(_describe(exc) if exc else "closed")
+
+    def set_reading(self, on: bool) -> None:
+        """Stop or restart taking bytes from the device (backpressure)."""
+        transport = self._transport
+        if transport is not None and not transport.is_closing():
+            if on:
+                transport.resume_reading()
+            else:
+                transport.pause_reading()
+
+    # writing
+
+    def write(self, data: bytes) -> bool:
+        """Queue bytes; False if the channel is gone (the lost report says why)."""
+        if self.lost or self._transport is None:
+            return False
+        try:
+            self._transport.write(data)
+        except (OSError, SerialException) as exc:
+            self._report_lost(_describe(exc))
+            self._transport.abort()
+            return False
+        return True
+
+    @property
+    def write_backlog(self) -> int:
+        """Bytes accepted but not yet taken by the device (it may have stopped reading)."""
+        return self._transport.get_write_buffer_size() if self._transport else 0
+
+    # closing
+
+    async def close(self) -> None:
+        """Close and wait until the device is released; unsent bytes are dropped."""
+        self.lost = True  # asked for: no lost report
+        transport = self._transport
+        if transport is not None and not self._closed.done():
+            if transport.get_write_buffer_size():
+                transport.abort()  # a peer that stopped reading would hold close() forever
+            else:
+                transport.close()
+            done, _ = await asyncio.wait({self._closed}, timeout=_CLOSE_GRACE)
+            if not done:
+                transport.abort()
+                await self._closed
+
+    def _report_lost(self, reason: str) -> None:
+        if not self.lost:
+            self.lost = True
+            self._on_lost(reason)
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.errno is not None:
+        if exc.errno == errno.EIO:
+            return "device disconnected (I/O error)"
+        return f"{os.strerror(exc.errno)} (errno {exc.errno})"
+    return str(exc) or type(exc).__name__

@@ -1,0 +1,111 @@
+"""Line-mode flow control: at most `window` lines unanswered, each answer matched to its line.
+
+Pure bookkeeping, no I/O: the engine asks `has_room`, records what it wrote
+with `sent`, hands every `{r}` to `answered`, and calls `dropped` after `%`
+or 0x04, when the board discards buffered lines without answering them.
+
+Matching answers to lines needs care, because the board does not answer in
+the order it was written to. It runs a *control* line (one starting with
+`{`) as soon as it has read it, ahead of *data* lines (G-code, `$`, `?`)
+still waiting in its buffer for planner room (g2core.md section 7.1). Within
+each kind the order holds. So there are two queues, and an answer belongs to
+the only non-empty one; when both wait, the footer count decides (a data line
+of L bytes is answered with L+1, a control line with L+2: its LF counts), and
+if that is ambiguous, the body does (at jv 4 a data line's body holds nothing
+but `n`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from hostd.protocol.messages import Response
+
+
+class SenderError(Exception):
+    """The sender's bookkeeping was asked to do something impossible: a daemon bug."""
+
+
+@dataclass(slots=True)
+class InFlight:
+    """One line written and not yet answered."""
+
+    line: bytes  # as written, with its LF
+    source: Any = None  # whoever sent it: a job, a client request
+    file_line: int | None = None  # for a job's line, its line number in the file
+    sent_at: float = field(default_factory=time.monotonic)
+
+    @property
+    def control(self) -> bool:
+        """The board runs it out of order, as soon as it is read."""
+        return self.line.startswith(b"{")
+
+    def expected_count(self) -> int:
+        length = len(self.line) - 1
+        return length + 2 if self.control else length + 1
+
+
+class LineModeSender:
+    def __init__(self, window: int = 4) -> None:
+        if window < 1:
+            raise ValueError("window must be at least 1")
+        self.window = window
+        self._data: deque[InFlight] = deque()
+        self._control: deque[InFlight] = deque()
+
+    def __len__(self) -> int:
+        return len(self._data) + len(self._control)
+
+    @property
+    def has_room(self) -> bool:
+        return len(self) < self.window
+
+    def sent(self, entry: InFlight, *, urgent: bool = False) -> None:
+        """Record a written line. An urgent one (a client query) may go past the window.
+
+        The board still answers it with an `{r}`, so it still takes a slot;
+        the count goes above `window` only until that answer arrives.
+        """
+        if not urgent and not self.has_room:
+            raise SenderError(f"window of {self.window} exceeded")
+        (self._control if entry.control else self._data).append(entry)
+
+    def answered(self, response: Response) -> InFlight:
+        """The line this `{r}` answers, removed from the books."""
+        queue = self._queue_for(response)
+        if not queue:
+            raise SenderError(f"an answer with no line waiting: {response.raw!r}")
+        return queue.popleft()
+
+    def dropped(self) -> list[InFlight]:
+        """After `%` or 0x04: the data lines the board discarded unanswered, oldest first.
+
+        Control lines were run on arrival and are still answered.
+        """
+        lost = list(self._data)
+        self._data.clear()
+        return lost
+
+    def pending(self) -> list[InFlight]:
+        """Everything unanswered, for accounting when the link is lost."""
+        return [*self._data, *self._control]
+
+    def clear(self) -> list[InFlight]:
+        lost = self.pending()
+        self._data.clear()
+        self._control.clear()
+        return lost
+
+    def _queue_for(self, response: Response) -> deque[InFlight]:
+        if not self._control:
+            return self._data
+        if not self._data:
+            return self._control
+        data_match = self._data[0].expected_count() == response.count
+        control_match = self._control[0].expected_count() == response.count
+        if data_match != control_match:
+            return self._data if data_match else self._control
+        return self._data if response.body.keys() <= {"n"} else self._control

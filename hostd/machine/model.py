@@ -1,0 +1,86 @@
+"""The machine model: what the daemon knows of one controller, updated from what it says.
+
+Pure: status reports, requested reports and exception reports go in,
+`snapshot()` (the api.md machine snapshot, less the parts owned by the
+supervisor, the faults and the jobs) comes out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from hostd.protocol.messages import ExceptionReport, JsonObject
+from hostd.protocol.states import MachineState, state_from_code
+from hostd.protocol.status import Status
+
+AXES = ("x", "y", "z", "a", "b", "c")
+_UNITS = {0: "in", 1: "mm"}
+# A limit switch unhomes the machine (seed 000); so does SHUTDOWN.
+_UNHOMING_STATUS = frozenset({Status.LIMIT_SWITCH_HIT})
+
+
+@dataclass(slots=True)
+class MachineModel:
+    id: str
+    state: MachineState | None = None
+    position: dict[str, float] = field(default_factory=dict)
+    line: int | None = None
+    velocity: float | None = None
+    feed: float | None = None
+    units: str | None = None
+    homed: bool | None = None
+    last_exception: JsonObject | None = None
+
+    def apply_status(self, fields: JsonObject) -> MachineState | None:
+        """Take one status report (automatic or requested); return the new state if it changed."""
+        before = self.state
+        for key, value in fields.items():
+            if key == "stat":
+                self.state = state_from_code(value) or self.state
+            elif key.startswith("pos") and key[3:] in AXES and _is_number(value):
+                self.position[key[3:]] = float(value)
+            elif key == "line" and _is_number(value):
+                self.line = int(value)
+            elif key == "vel" and _is_number(value):
+                self.velocity = float(value)
+            elif key == "feed" and _is_number(value):
+                self.feed = float(value)
+            elif key == "unit":
+                self.units = _UNITS.get(value, self.units) if _is_number(value) else self.units
+            elif key == "home" and _is_number(value):
+                self.homed = bool(value)
+        if self.state is MachineState.SHUTDOWN:
+            self.homed = False
+        return self.state if self.state is not before else None
+
+    def apply_exception(self, report: ExceptionReport) -> None:
+        self.last_exception = report.fields
+        if report.status in _UNHOMING_STATUS:
+            self.homed = False
+
+    def reset(self) -> None:
+        """Forget everything the controller said: it rebooted or went away."""
+        self.state = None
+        self.position.clear()
+        self.line = self.velocity = self.feed = None
+        self.units = None
+        self.homed = None
+
+    def snapshot(self) -> dict[str, Any]:
+        state = self.state
+        return {
+            "id": self.id,
+            "state": None if state is None else {"code": int(state), "name": state.name},
+            "position": dict(self.position),
+            "line": self.line,
+            "velocity": self.velocity,
+            "feed": self.feed,
+            "units": self.units,
+            "homed": self.homed,
+            "last_exception": self.last_exception,
+        }
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)

@@ -1,0 +1,113 @@
+"""What a command is, and whether it may reach a controller in ALARM, SHUTDOWN or PANIC.
+
+Everything that decides "may this be written now?" lives here, in one
+table. The first rule: nothing that moves the machine or changes its
+settings reaches a locked-out controller, except what the controller itself
+accepts to clear the lockout (g2core's alarm page; behaviour.md).
+
+Two rows go beyond the table in behaviour.md, both decided for safety and
+written down in docs/protocol.md:
+- HALT (`!`, `%`, 0x04) only ever stops things, so it is always forwarded.
+- `~` (cycle start) resumes motion, so it is an ACTION and refused.
+"""
+
+from __future__ import annotations
+
+import re
+from enum import Enum
+
+from hostd.protocol.commands import Realtime
+from hostd.protocol.relaxed import is_get, parse_relaxed
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
+
+
+class CommandClass(Enum):
+    QUERY = "query"
+    CLEAR = "clear"
+    PROGRAM_END = "program-end"
+    RESET = "reset"
+    HALT = "halt"
+    ACTION = "action"
+
+
+FORWARD = None
+_ALARM = Status.COMMAND_REJECTED_BY_ALARM
+_SHUTDOWN = Status.COMMAND_REJECTED_BY_SHUTDOWN
+_PANIC = Status.COMMAND_REJECTED_BY_PANIC
+
+# class -> (ALARM, SHUTDOWN, PANIC): None forwards, a status code refuses.
+# In every other state everything is forwarded.
+ADMISSION: dict[CommandClass, tuple[Status | None, Status | None, Status | None]] = {
+    CommandClass.QUERY: (FORWARD, FORWARD, FORWARD),
+    CommandClass.CLEAR: (FORWARD, FORWARD, _PANIC),
+    CommandClass.PROGRAM_END: (FORWARD, _SHUTDOWN, _PANIC),
+    CommandClass.RESET: (FORWARD, FORWARD, FORWARD),
+    CommandClass.HALT: (FORWARD, FORWARD, FORWARD),
+    CommandClass.ACTION: (_ALARM, _SHUTDOWN, _PANIC),
+}
+_COLUMN = {MachineState.ALARM: 0, MachineState.SHUTDOWN: 1, MachineState.PANIC: 2}
+
+# Which admitted classes take the controller out of which lockout.
+CLEARS: dict[CommandClass, frozenset[MachineState]] = {
+    CommandClass.CLEAR: frozenset({MachineState.ALARM, MachineState.SHUTDOWN}),
+    CommandClass.PROGRAM_END: frozenset({MachineState.ALARM}),
+    CommandClass.RESET: frozenset({MachineState.ALARM, MachineState.SHUTDOWN, MachineState.PANIC}),
+}
+
+_REALTIME_CLASS = {
+    Realtime.FEEDHOLD: CommandClass.HALT,
+    Realtime.QUEUE_FLUSH: CommandClass.HALT,
+    Realtime.JOB_KILL: CommandClass.HALT,
+    Realtime.CYCLE_START: CommandClass.ACTION,
+    Realtime.RESET: CommandClass.RESET,
+    Realtime.ENQUIRY: CommandClass.QUERY,
+}
+_CLEAR_KEYS = frozenset({"clear", "clr"})
+_TEXT_CLEARS = frozenset({"$clear", "$clr"})
+# Exactly M2 or M30, as g2core matches it: an N word or anything else defeats it.
+_PROGRAM_END = re.compile(r"[mM](?:2|30)")
+
+
+def admit(command: CommandClass, state: MachineState | None) -> Status | None:
+    """None if the command may be written in this state, else the rejection status."""
+    column = _COLUMN.get(state) if state is not None else None
+    if column is None:
+        return FORWARD
+    return ADMISSION[command][column]
+
+
+def classify_realtime(command: Realtime) -> CommandClass:
+    return _REALTIME_CLASS[command]
+
+
+def classify(line: str) -> CommandClass:
+    """The class of one (already validated) line, as the board will read it.
+
+    Anything not recognised as harmless is an ACTION: unknown is unsafe.
+    """
+    text = line.strip()
+    if text.startswith("{"):
+        return _classify_json(text)
+    if text == "?":
+        return CommandClass.QUERY
+    if text.startswith("$"):
+        lowered = text.lower()
+        if lowered in _TEXT_CLEARS:
+            return CommandClass.CLEAR
+        return CommandClass.ACTION if "=" in text else CommandClass.QUERY
+    if _PROGRAM_END.fullmatch(text):
+        return CommandClass.PROGRAM_END
+    return CommandClass.ACTION
+
+
+def _classify_json(text: str) -> CommandClass:
+    obj = parse_relaxed(text)
+    if not obj:
+        return CommandClass.ACTION
+    if not all(is_get(v) for v in obj.values()):
+        return CommandClass.ACTION  # a SET, gc, gc2, or a SET-form clear
+    if obj.keys() & _CLEAR_KEYS:
+        return CommandClass.CLEAR
+    # GETs; {alarm:n}, {shutd:n}, {panic:n} are GET-form too and only raise a lockout.
+    return CommandClass.QUERY

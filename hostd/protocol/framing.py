@@ -1,0 +1,63 @@
+"""Split a byte stream from the board into lines, without trusting it.
+
+g2core ends every line with one LF. A board that goes mad may send no LF at
+all, so a line is never allowed to grow past `max_line`: the excess is cut
+off and handed on as its own (over-long) line, to be reported, not to
+exhaust memory.
+"""
+
+from __future__ import annotations
+
+# g2core's output buffer is 512 bytes; anything much longer is noise.
+MAX_LINE = 4096
+
+
+class LineBuffer:
+    """Bytes in, complete lines out (without the terminator, trailing CR stripped)."""
+
+    __slots__ = ("_buf", "_discarding", "max_line")
+
+    def __init__(self, max_line: int = MAX_LINE) -> None:
+        self.max_line = max_line
+        self._buf = bytearray()
+        self._discarding = False
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Take received bytes; return every line they complete, in order.
+
+        An over-long line is returned once, cut at `max_line` bytes, and the
+        rest of it up to the next LF is dropped.
+        """
+        lines: list[bytes] = []
+        buf = self._buf
+        buf += data
+        start = 0
+        while True:
+            end = buf.find(b"\n", start)
+            if end < 0:
+                break
+            if self._discarding:
+                self._discarding = False
+            else:
+                lines.append(_strip_cr(bytes(buf[start:end])))
+            start = end + 1
+        del buf[:start]
+        if len(buf) > self.max_line:
+            if not self._discarding:
+                lines.append(bytes(buf[: self.max_line]))
+                self._discarding = True
+            buf.clear()
+        return lines
+
+    @property
+    def pending(self) -> int:
+        """Bytes of an unfinished line."""
+        return len(self._buf)
+
+    def clear(self) -> None:
+        self._buf.clear()
+        self._discarding = False
+
+
+def _strip_cr(line: bytes) -> bytes:
+    return line[:-1] if line.endswith(b"\r") else line

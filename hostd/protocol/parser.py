@@ -1,0 +1,132 @@
+"""Parse one line from a g2core board into a typed message.
+
+`parse_line` never raises: whatever the bytes (invalid UTF-8, NULs, broken
+or absurdly nested JSON), the answer is a message, at worst `Unparseable`
+carrying the raw bytes. The daemon decides what a bad line means; the
+parser only says what it is.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, TypeGuard
+
+from hostd.protocol.messages import (
+    Ack,
+    Banner,
+    ExceptionReport,
+    JsonObject,
+    Message,
+    Notice,
+    QueueReport,
+    Response,
+    StatusReport,
+    TextLine,
+    Unparseable,
+)
+
+_BANNER_MSG = "SYSTEM READY"
+# Printable text may carry TAB; any other C0 control byte (or DEL) is line noise.
+_NOISE = frozenset(range(0x20)) - {0x09} | {0x7F}
+
+
+def parse_line(raw: bytes) -> Message:
+    """Classify one line (terminator already removed)."""
+    if raw[:1] == b"{":
+        return _parse_json(raw)
+    return _parse_text(raw)
+
+
+def _parse_text(raw: bytes) -> Message:
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return Unparseable("not valid UTF-8", raw)
+    if any(ord(c) in _NOISE for c in text):
+        return Unparseable("control characters in a text line", raw)
+    return TextLine(text, raw)
+
+
+def _parse_json(raw: bytes) -> Message:
+    try:
+        obj = json.loads(raw)
+    except (ValueError, RecursionError):  # UnicodeDecodeError is a ValueError
+        return Unparseable("malformed JSON", raw)
+    if not isinstance(obj, dict):
+        return Unparseable("JSON that is not an object", raw)
+    if "r" in obj:
+        return _parse_response(obj, raw)
+    if len(obj) == 1:
+        if "sr" in obj:
+            sr = obj["sr"]
+            if isinstance(sr, dict):
+                return StatusReport(sr, raw)
+            return Unparseable("status report that is not an object", raw)
+        if "er" in obj:
+            return _parse_exception(obj["er"], raw)
+        if obj.get("ack") is True:
+            return Ack(raw)
+    if "qr" in obj and obj.keys() <= {"qr", "qi", "qo"}:
+        return _parse_queue_report(obj, raw)
+    return Notice(obj, raw)
+
+
+def _parse_response(obj: JsonObject, raw: bytes) -> Message:
+    body = obj["r"]
+    if not isinstance(body, dict):
+        return Unparseable("response body that is not an object", raw)
+    # Some TinyG builds nest the footer inside the body.
+    footer = obj.get("f", body.get("f"))
+    if not isinstance(footer, list) or len(footer) < 3 or not all(_is_int(v) for v in footer[:3]):
+        return Unparseable("response without a valid footer", raw)
+    if body.get("msg") == _BANNER_MSG:
+        return Banner(
+            fv=_number(body.get("fv")),
+            fb=_number(body.get("fb")),
+            hp=_scalar(body.get("hp")),
+            hv=_scalar(body.get("hv")),
+            id=body["id"] if isinstance(body.get("id"), str) else None,
+            body=body,
+            raw=raw,
+        )
+    return Response(body, footer[1], footer[2], raw)
+
+
+def _parse_exception(er: Any, raw: bytes) -> Message:
+    if not isinstance(er, dict):
+        return Unparseable("exception report that is not an object", raw)
+    st = er.get("st")
+    msg = er.get("msg")
+    return ExceptionReport(
+        status=st if _is_int(st) else None,
+        message=msg if isinstance(msg, str) else "",
+        fields=er,
+        raw=raw,
+    )
+
+
+def _parse_queue_report(obj: JsonObject, raw: bytes) -> Message:
+    qr, qi, qo = obj.get("qr"), obj.get("qi"), obj.get("qo")
+    if not _is_int(qr) or not all(v is None or _is_int(v) for v in (qi, qo)):
+        return Unparseable("queue report with non-integer counts", raw)
+    return QueueReport(qr, qi, qo, raw)
+
+
+def _is_int(v: Any) -> TypeGuard[int]:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _number(v: Any) -> float | None:
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        return float(v)
+    return None
+
+
+def _scalar(v: Any) -> str | int | None:
+    if isinstance(v, str):
+        return v
+    if _is_int(v):
+        return v
+    if isinstance(v, float):
+        return int(v) if v.is_integer() else str(v)
+    return None

@@ -1,0 +1,222 @@
+"""The link over real pseudo-terminal pairs: lines both ways, loss as an event, no blocking."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from hostd.link import Channel, LineReceived, Link, LinkError, LinkLost
+from hostd.protocol.commands import Realtime, encode_line, encode_realtime
+from tests.link.conftest import PtyPeer
+
+pytestmark = pytest.mark.asyncio
+
+
+async def read_lines(link: Link, count: int) -> list[LineReceived]:
+    got: list[LineReceived] = []
+    async with asyncio.timeout(2):
+        while len(got) < count:
+            for event in await link.read():
+                assert isinstance(event, LineReceived), event
+                got.append(event)
+    return got
+
+
+async def test_lines_from_the_device_arrive_in_order(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        peer.write(b'{"r":{},"f":[1,0,4]}\n{"sr":{"stat":5}}\r\npartial')
+        got = await read_lines(link, 2)
+        assert [e.line for e in got] == [b'{"r":{},"f":[1,0,4]}', b'{"sr":{"stat":5}}']
+        assert all(e.channel is Channel.DATA for e in got)
+        peer.write(b" line\n")
+        assert [e.line for e in await read_lines(link, 1)] == [b"partial line"]
+    finally:
+        await link.close()
+
+
+async def test_lines_written_reach_the_device_exactly(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    peer.start_reading()
+    try:
+        assert link.write_line(encode_line("G1 X10 F3000"))
+        assert link.write_control(encode_realtime(Realtime.FEEDHOLD))
+        await peer.wait_received(b"G1 X10 F3000\n!\n")
+        assert bytes(peer.received) == b"G1 X10 F3000\n!\n"
+    finally:
+        await link.close()
+
+
+async def test_only_whole_lines_can_be_written(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        for bad in (b"G1 X1", b"!", b"G1\nG2\n"):
+            with pytest.raises(ValueError):
+                link.write_line(bad)
+    finally:
+        await link.close()
+
+
+async def test_dual_port_routes_lines_to_data_and_realtime_to_control(
+    peers: Iterator[PtyPeer],
+) -> None:
+    data, control = next(peers), next(peers)
+    link = await Link.open(str(data.path), str(control.path))
+    data.start_reading()
+    control.start_reading()
+    try:
+        assert link.dual
+        link.write_line(encode_line("G0 X1"))
+        link.write_control(encode_realtime(Realtime.FEEDHOLD))
+        link.write_control(b'{"sr":null}\n')
+        await data.wait_received(b"G0 X1\n")
+        await control.wait_received(b'!\n{"sr":null}\n')
+        assert bytes(data.received) == b"G0 X1\n"
+        assert bytes(control.received) == b'!\n{"sr":null}\n'
+        control.write(b'{"r":{},"f":[1,0,1]}\n')
+        (event,) = await read_lines(link, 1)
+        assert event.channel is Channel.CONTROL
+    finally:
+        await link.close()
+
+
+async def test_unplugged_device_is_a_lost_event_not_an_exception(
+    peers: Iterator[PtyPeer],
+) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        peer.write(b"last words\n")
+        await read_lines(link, 1)
+        peer.unplug()
+        async with asyncio.timeout(1):  # seen within 1 s
+            events = await link.read()
+        assert len(events) == 1 and isinstance(events[0], LinkLost)
+        assert "disconnected" in events[0].reason
+        assert link.lost is events[0]
+        # Reading again keeps saying so; writing is refused quietly.
+        assert await link.read() == [events[0]]
+        assert link.write_line(b"G0 X1\n") is False
+    finally:
+        await link.close()
+
+
+async def test_lost_on_the_control_port_loses_the_link(peers: Iterator[PtyPeer]) -> None:
+    data, control = next(peers), next(peers)
+    link = await Link.open(str(data.path), str(control.path))
+    try:
+        control.unplug()
+        async with asyncio.timeout(1):
+            (event,) = await link.read()
+        assert isinstance(event, LinkLost)
+        assert event.channel is Channel.CONTROL
+    finally:
+        await link.close()
+
+
+async def test_a_peer_that_stops_reading_never_blocks_the_loop(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """pyserial-asyncio-fast 0.16 spun inside write() here; then spammed the handler."""
+    peer = next(peers)  # never reads until told to
+    link = await Link.open(str(peer.path))
+    loop = asyncio.get_running_loop()
+    handler_calls: list[dict[str, Any]] = []
+    loop.set_exception_handler(lambda _loop, ctx: handler_calls.append(ctx))
+    try:
+        ticks = 0
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                ticks += 1
+                await asyncio.sleep(0)
+
+        tick_task = asyncio.create_task(ticker())
+        line = b"G1 X" + b"1" * 506 + b"\n"  # 512 bytes: fills a pty exactly
+        for _ in range(200):  # 100 KB against a 17 KB kernel buffer
+            assert link.write_line(line)
+            await asyncio.sleep(0)
+        assert link.write_backlog() > 0  # the rest waits in user space
+        before = ticks
+        await asyncio.sleep(0.01)
+        assert ticks > before  # the loop keeps turning
+        tick_task.cancel()
+
+        peer.start_reading()  # the controller wakes up: everything arrives, in order
+        await peer.wait_received(line * 200, timeout=5)
+        assert bytes(peer.received) == line * 200
+        async with asyncio.timeout(1):
+            while link.write_backlog():
+                await asyncio.sleep(0.001)
+        await asyncio.sleep(0.02)  # idle: a writer left registered would spin here
+        assert handler_calls == []
+    finally:
+        loop.set_exception_handler(None)
+        await link.close()
+
+
+async def test_close_does_not_hang_on_unsent_bytes(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    for _ in range(100):
+        link.write_line(b"G1 X" + b"2" * 506 + b"\n")
+    assert link.write_backlog() > 0
+    async with asyncio.timeout(2):
+        await link.close()
+
+
+async def test_1200_baud_is_refused_before_anything_is_opened(
+    peers: Iterator[PtyPeer],
+) -> None:
+    peer = next(peers)
+    with pytest.raises(LinkError, match="1200"):
+        await Link.open(str(peer.path), baudrate=1200)
+    # The device was never touched: it can be opened normally.
+    link = await Link.open(str(peer.path))
+    await link.close()
+
+
+async def test_a_port_is_opened_exclusively(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        with pytest.raises(LinkError, match=str(peer.path)):
+            await Link.open(str(peer.path))
+    finally:
+        await link.close()
+    again = await Link.open(str(peer.path))  # released on close
+    await again.close()
+
+
+async def test_missing_device_is_a_clear_error(tmp_path: os.PathLike[str]) -> None:
+    with pytest.raises(LinkError, match="no such device"):
+        await Link.open(os.path.join(tmp_path, "ttyACM9"))
+
+
+async def test_failed_second_port_releases_the_first(
+    peers: Iterator[PtyPeer], tmp_path: os.PathLike[str]
+) -> None:
+    control = next(peers)
+    with pytest.raises(LinkError):
+        await Link.open(os.path.join(tmp_path, "missing"), str(control.path))
+    link = await Link.open(str(control.path))  # not left locked
+    await link.close()
+
+
+async def test_runaway_output_is_cut_not_hoarded(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        peer.write(b"x" * 10_000 + b"\nok\n")
+        got = await read_lines(link, 2)
+        assert [len(e.line) for e in got] == [4096, 2]
+    finally:
+        await link.close()

@@ -1,0 +1,94 @@
+"""Line-mode bookkeeping: the window, and answers matched to the right line."""
+
+from __future__ import annotations
+
+import pytest
+
+from hostd.machine.linemode import InFlight, LineModeSender, SenderError
+from hostd.protocol.messages import Response
+
+
+def answer(count: int, body: dict[str, object] | None = None, status: int = 0) -> Response:
+    return Response(body or {}, status, count, b"")
+
+
+def data(line: str, n: int | None = None) -> InFlight:
+    return InFlight(line.encode() + b"\n", source="job", file_line=n)
+
+
+def control(line: str) -> InFlight:
+    return InFlight(line.encode() + b"\n", source="client")
+
+
+def test_window_limits_lines_in_flight() -> None:
+    sender = LineModeSender(window=2)
+    sender.sent(data("G1 X1"))
+    sender.sent(data("G1 X2"))
+    assert not sender.has_room
+    with pytest.raises(SenderError):
+        sender.sent(data("G1 X3"))
+    sender.answered(answer(6))
+    assert sender.has_room
+
+
+def test_answers_come_back_in_order_with_their_file_lines() -> None:
+    sender = LineModeSender(window=4)
+    for n in (3, 5, 6):
+        sender.sent(data(f"G1 X{n}", n))
+    assert [sender.answered(answer(6)).file_line for _ in range(3)] == [3, 5, 6]
+    assert len(sender) == 0
+
+
+def test_json_lines_count_against_the_window_too() -> None:
+    sender = LineModeSender(window=1)
+    sender.sent(control('{"xvm":null}'))
+    assert not sender.has_room
+
+
+def test_urgent_query_goes_past_a_full_window_and_still_takes_a_slot() -> None:
+    sender = LineModeSender(window=2)
+    sender.sent(data("G1 X1"))
+    sender.sent(data("G1 X2"))
+    sender.sent(control('{"sr":null}'), urgent=True)
+    assert len(sender) == 3
+    sender.answered(answer(13, {"sr": {"stat": 5}}))
+    assert not sender.has_room  # two job lines still out
+
+
+def test_control_answer_that_overtakes_waiting_data_lines_is_matched_by_count() -> None:
+    # G-code waits for planner room; the query is run at once and answered first.
+    sender = LineModeSender(window=8)
+    sender.sent(data("G1 X10 Y10", 1))  # 10 bytes: answered with 11
+    sender.sent(control('{"sr":null}'))  # 11 bytes + LF: answered with 13
+    got = sender.answered(answer(13, {"sr": {"stat": 5}}))
+    assert got.line == b'{"sr":null}\n'
+    assert sender.answered(answer(11, {"n": 0})).file_line == 1
+
+
+def test_equal_counts_are_told_apart_by_the_body() -> None:
+    sender = LineModeSender(window=8)
+    sender.sent(data("G1 X1 Y2 Z3 "))  # 12 bytes: answered with 13
+    sender.sent(control('{"sr":null}'))  # 11 bytes and its LF: also 13
+    assert sender.answered(answer(13, {"sr": {}})).control
+    assert not sender.answered(answer(13, {"n": 7})).control
+
+
+def test_flush_drops_the_data_lines_the_board_discarded() -> None:
+    sender = LineModeSender(window=4)
+    sender.sent(data("G1 X1", 1))
+    sender.sent(data("G1 X2", 2))
+    sender.sent(control('{"sr":null}'))
+    lost = sender.dropped()
+    assert [e.file_line for e in lost] == [1, 2]
+    assert len(sender) == 1  # the query is still answered
+    assert sender.has_room
+
+
+def test_an_answer_with_nothing_waiting_is_an_error() -> None:
+    with pytest.raises(SenderError):
+        LineModeSender().answered(answer(1))
+
+
+def test_window_below_one_is_refused() -> None:
+    with pytest.raises(ValueError):
+        LineModeSender(window=0)
