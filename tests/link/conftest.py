@@ -52,8 +52,8 @@ class PtyPeer:
             self.stop_reading()
         self._arrived.set()
 
-    async def wait_received(self, data: bytes, timeout: float = 2.0) -> None:
-        async with asyncio.timeout(timeout):
+    async def wait_received(self, data: bytes) -> None:
+        async with asyncio.timeout(5):
             while data not in self.received:
                 self._arrived.clear()
                 await self._arrived.wait()
