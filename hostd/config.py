@@ -1,0 +1,127 @@
+"""The configuration file (TOML), validated whole before anything starts.
+
+Keys fixed by running.md: `[daemon] socket, state_dir`; per `[[machines]]`:
+`id, dialect, data_port, control_port, baudrate, window, auto_connect`.
+The rest (timings) is the project's, documented in docs/operations.md.
+Invalid config is one `ConfigError` naming the file, the key and the problem.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from hostd.link import BOOTLOADER_BAUD
+
+SIM_PORT = "sim"
+
+
+class ConfigError(Exception):
+    """Start-up stops here: the message names the file, the key and what is wrong."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DaemonConfig(_Strict):
+    socket: str = "/run/hostd/hostd.sock"
+    state_dir: str = "/var/lib/hostd"
+
+
+class MachineConfig(_Strict):
+    id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+    dialect: Literal["g2core"] = "g2core"
+    data_port: Annotated[str, Field(min_length=1)]
+    control_port: str | None = None
+    baudrate: Annotated[int, Field(gt=0)] = 115200
+    window: Annotated[int, Field(ge=1, le=32)] = 4
+    auto_connect: bool = True
+    # Seconds of silence before the board is asked for a status report; as
+    # long again without an answer and the link is taken for dead.
+    heartbeat: Annotated[float, Field(gt=0)] = 2.0
+    # Seconds to wait for the SYSTEM READY banner and the settings after opening.
+    handshake_timeout: Annotated[float, Field(gt=0)] = 5.0
+    # Status report interval asked of the board, seconds (g2core's minimum is 0.1).
+    status_interval: Annotated[float, Field(ge=0.1)] = 0.25
+
+    @field_validator("baudrate")
+    @classmethod
+    def _not_the_bootloader_touch(cls, v: int) -> int:
+        if v == BOOTLOADER_BAUD:
+            raise ValueError(f"{BOOTLOADER_BAUD} baud resets the board into its bootloader")
+        return v
+
+    @model_validator(mode="after")
+    def _sim_is_single_port(self) -> MachineConfig:
+        if self.control_port == SIM_PORT and self.data_port != SIM_PORT:
+            raise ValueError('control_port = "sim" needs data_port = "sim"')
+        return self
+
+    @property
+    def simulated(self) -> bool:
+        return self.data_port == SIM_PORT
+
+
+class Config(_Strict):
+    daemon: DaemonConfig = DaemonConfig()
+    machines: list[MachineConfig] = []
+
+    @field_validator("machines")
+    @classmethod
+    def _unique_ids(cls, machines: list[MachineConfig]) -> list[MachineConfig]:
+        seen: set[str] = set()
+        for m in machines:
+            if m.id in seen:
+                raise ValueError(f"duplicate machine id {m.id!r}")
+            seen.add(m.id)
+        return machines
+
+    def machine(self, machine_id: str) -> MachineConfig | None:
+        return next((m for m in self.machines if m.id == machine_id), None)
+
+
+def load_config(path: str | Path) -> Config:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text") from exc
+    return parse_config(data, source=str(path))
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> Config:
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_describe(exc, data, source)) from exc
+
+
+def _describe(exc: ValidationError, data: dict[str, Any], source: str) -> str:
+    """One line a problem: `file: machines[1].window (id 'mill'): must be >= 1`."""
+    lines = []
+    for err in exc.errors():
+        loc = err["loc"]
+        key = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")
+        where = _machine_hint(loc, data)
+        problem = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        problem = problem.removeprefix("Value error, ")
+        lines.append(f"{source}: {key or '(top level)'}{where}: {problem}")
+    return "\n".join(lines)
+
+
+def _machine_hint(loc: tuple[int | str, ...], data: dict[str, Any]) -> str:
+    if len(loc) >= 2 and loc[0] == "machines" and isinstance(loc[1], int):
+        machines = data.get("machines")
+        if isinstance(machines, list) and loc[1] < len(machines):
+            entry = machines[loc[1]]
+            if isinstance(entry, dict) and isinstance(entry.get("id"), str):
+                return f" (machine {entry['id']!r})"
+    return ""

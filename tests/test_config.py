@@ -1,0 +1,77 @@
+"""Config files: what loads, and the one clear message for what does not."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hostd.config import ConfigError, load_config
+
+GOOD = """
+[daemon]
+socket = "/run/hostd/hostd.sock"
+state_dir = "/var/lib/hostd"
+
+[[machines]]
+id = "laser1"
+dialect = "g2core"
+data_port = "/dev/ttyACM0"
+control_port = "/dev/ttyACM1"
+baudrate = 115200
+window = 4
+auto_connect = true
+
+[[machines]]
+id = "demo"
+data_port = "sim"
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "hostd.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, GOOD))
+    laser, demo = config.machines
+    assert (laser.id, laser.control_port, laser.window) == ("laser1", "/dev/ttyACM1", 4)
+    assert demo.simulated and demo.window == 4 and demo.auto_connect
+    assert config.machine("demo") is demo
+    assert config.machine("nope") is None
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (GOOD.replace("window = 4", "window = 0"), "machines[0].window (machine 'laser1'):"),
+        (GOOD.replace("window = 4", 'window = "four"'), "machines[0].window"),
+        (GOOD.replace("auto_connect = true", "auto_conect = true"), "auto_conect"),
+        (GOOD.replace('id = "demo"', 'id = "laser1"'), "duplicate machine id 'laser1'"),
+        (GOOD.replace("baudrate = 115200", "baudrate = 1200"), "bootloader"),
+        (GOOD.replace("[daemon]", "[deamon]"), "deamon: unknown key"),
+        (GOOD.replace('dialect = "g2core"', 'dialect = "grbl"'), "machines[0].dialect"),
+        (GOOD.replace('data_port = "sim"', ""), "machines[1].data_port"),
+        ("[[machines]\nid=", "not valid TOML"),
+    ],
+)
+def test_bad_config_names_file_key_and_problem(tmp_path: Path, text: str, expected: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    message = str(err.value)
+    assert message.startswith(str(path))
+    assert expected in message
+
+
+def test_unknown_key_is_called_that(tmp_path: Path) -> None:
+    path = write(tmp_path, GOOD.replace("auto_connect = true", "auto_conect = true"))
+    with pytest.raises(ConfigError, match="unknown key"):
+        load_config(path)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "absent.toml")
