@@ -1,0 +1,57 @@
+"""`python -m hostd.sim --data PATH [--control PATH]`: run a simulated board until stopped.
+
+For tests and demos that need the board in another process. It prints the
+port paths once they exist, then runs until SIGINT or SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+
+import structlog
+
+from hostd.sim.config import SimConfig
+from hostd.sim.controller import SimController
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m hostd.sim", description=__doc__)
+    parser.add_argument("--data", required=True, help="symlink path of the data port")
+    parser.add_argument("--control", help="symlink path of a second (control) port")
+    parser.add_argument(
+        "--speed-factor", type=float, default=1.0, help="moves run this much faster"
+    )
+    parser.add_argument("--instant", action="store_true", help="moves finish at once")
+    return parser.parse_args(argv)
+
+
+async def _serve(args: argparse.Namespace) -> None:
+    config = SimConfig(speed_factor=args.speed_factor, instant=args.instant)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    async with SimController(args.data, control_path=args.control, config=config) as sim:
+        print(f"data {sim.data_path}", flush=True)
+        if sim.control_path is not None:
+            print(f"control {sim.control_path}", flush=True)
+        await stop.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse(argv)
+    # stdout carries only the paths, for whoever started us; logs go to stderr.
+    structlog.configure(
+        logger_factory=structlog.PrintLoggerFactory(sys.stderr),
+        wrapper_class=structlog.make_filtering_bound_logger(logging.INFO),
+    )
+    asyncio.run(_serve(args))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,832 @@
+"""The simulated g2core: settings, machine state, planner, and every answer it gives.
+
+This is the firmware's main loop without the hardware: the controller feeds
+it scanned input (controls at once, data lines into per-port RX queues) and
+calls `tick()` until it reports no progress, then sleeps until
+`next_deadline()` or new input. Output leaves as text lines through `emit`.
+No I/O and no asyncio here; the clock is injected.
+
+Which g2core behaviour each part follows is cited from ../shared/spec/g2core.md
+(sections in brackets).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from collections.abc import Callable, Mapping
+from enum import IntEnum
+from typing import Any
+
+import structlog
+
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status, message
+from hostd.sim import gcode, relaxed, reports
+from hostd.sim.config import AXES, SimConfig
+from hostd.sim.gcode import Block, Home, Interpreter, Move, ProgramEnd, SetPosition
+from hostd.sim.motion import Active, start_block
+from hostd.sim.scanner import DataLine
+from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
+
+log = structlog.get_logger(__name__)
+
+ENQ, JOB_KILL, RESET = 0x05, 0x04, 0x18
+RX_REPORT = 254  # `{rx:n}` is a constant on ARM [7.1]
+INPUTS = {"x": 1, "y": 3, "z": 5}  # limit switch input numbers, for `er` details
+ESTOP_INPUT, PANIC_INPUT = 7, 9
+_EPS = 1e-6
+
+_REJECTED_BY = {
+    MachineState.ALARM: Status.COMMAND_REJECTED_BY_ALARM,
+    MachineState.SHUTDOWN: Status.COMMAND_REJECTED_BY_SHUTDOWN,
+    MachineState.PANIC: Status.COMMAND_REJECTED_BY_PANIC,
+}
+# cmMachineState (`macs`) for each combined state [4].
+_MACS = {
+    MachineState.INITIALIZING: 0,
+    MachineState.READY: 1,
+    MachineState.ALARM: 2,
+    MachineState.PROGRAM_STOP: 3,
+    MachineState.PROGRAM_END: 4,
+    MachineState.INTERLOCK: 6,
+    MachineState.SHUTDOWN: 7,
+    MachineState.PANIC: 8,
+}
+
+
+class Hold(IntEnum):
+    """g2core's `hold` values the simulator passes through [4]."""
+
+    OFF = 0
+    DECEL = 4  # decelerating to zero
+    HOLD = 10  # standing in the hold
+
+
+class Board:
+    """One g2core board; see the module docstring for how it is driven."""
+
+    def __init__(
+        self,
+        config: SimConfig,
+        *,
+        emit: Callable[[str], None],
+        clock: Callable[[], float],
+        reset: Callable[[], None],
+    ) -> None:
+        self.config = config
+        self._emit_line = emit
+        self._clock = clock
+        self._request_reset = reset
+        self.rx: dict[str, deque[DataLine]] = {}
+        self._rx_bytes: dict[str, int] = {}
+        self.output_blocked = False  # the host stopped reading; the main loop stalls
+        self.ack_delay = 0.0
+        self.power_on()
+
+    # --- power and connection
+
+    def power_on(self) -> None:
+        """The state after a reset: READY, unhomed, nothing queued, default settings."""
+        self.settings = Settings(self.config)
+        self.state = MachineState.READY
+        self.interp = Interpreter()
+        self.planner: deque[Block] = deque()
+        self.active: Active | None = None
+        self.position = dict.fromkeys(AXES, 0.0)
+        self.homed = dict.fromkeys(AXES, False)
+        self.hold = Hold.OFF
+        self._pending_exit: str | None = None  # what to do once a hold has stopped
+        self._hold_point: dict[str, float] | None = None
+        self._p2: Interpreter | None = None  # the in-hold (secondary) planner's model
+        self.interlock_input = False
+        self.interlocked = False
+        self._ack: tuple[float, dict[str, Any]] | None = None
+        self._sr_last: dict[str, float | int] = {}
+        self._sr_requested = False
+        self._sr_now = False
+        self._sr_next = 0.0
+        self._qr_last: int | None = None
+        self._qi = self._qo = 0
+        for port in self.rx:
+            self.discard_rx(port)
+
+    def connected(self) -> None:
+        """A host opened the board: per-open settings back to their defaults [10]."""
+        self.settings.reset_per_open()
+        self._sr_last = {}
+        self._qr_last = None
+
+    def disconnected(self) -> None:
+        """The last host closed the board."""
+        self.settings.reset_per_open()
+
+    def banner(self) -> None:
+        """SYSTEM READY, the first line after every open [10]."""
+        fb = self.config.fb
+        if fb >= 400:  # TinyG's shape, four-element footer with a checksum [2]
+            body = {"fv": 0.97, "fb": fb, "hp": 1, "hv": 8, "id": BOARD_ID}
+            body["msg"] = "SYSTEM READY"
+            head = _dumps({"r": body})[:-1] + ',"f":[1,0,1,'
+            self._emit_line(f"{head}{_tinyg_checksum(head)}]}}")
+            return
+        body = self.settings.identity | {"msg": "SYSTEM READY"}
+        self._emit({"r": body, "f": [1, 0, 1]})
+
+    # --- input: the controller feeds scanned events here
+
+    def percent_is_control(self) -> bool:
+        """`%` is a queue flush only while there is a hold (cm_has_hold) [8]."""
+        return self.hold != Hold.OFF
+
+    def open_rx(self, port: str) -> None:
+        self.rx[port] = deque()
+        self._rx_bytes[port] = 0
+
+    def close_rx(self, port: str) -> None:
+        self.rx.pop(port, None)
+        self._rx_bytes.pop(port, None)
+
+    def rx_bytes(self, port: str) -> int:
+        """Bytes of data lines waiting in `port`'s RX buffer."""
+        return self._rx_bytes.get(port, 0)
+
+    def queue_line(self, port: str, line: DataLine) -> None:
+        queue = self.rx.get(port)
+        if queue is not None:
+            queue.append(line)
+            self._rx_bytes[port] += line.size
+
+    def discard_rx(self, port: str | None = None) -> None:
+        """Drop data lines not yet read: they never get a response [7.1]."""
+        for name in [port] if port is not None else list(self.rx):
+            if name in self.rx:
+                self.rx[name].clear()
+                self._rx_bytes[name] = 0
+
+    def realtime(self, port: str, char: int) -> None:
+        """A single-character control [8]."""
+        now = self._clock()
+        if char == ord("!"):
+            self._feedhold(now)
+        elif char == ord("~"):
+            self._cycle_start()
+        elif char == ord("%"):
+            self.discard_rx(port)  # everything before the % on its port is skipped
+            self._queue_flush(now)
+        elif char == JOB_KILL:
+            self._job_kill(now)
+        elif char == ENQ:
+            self._emit({"ack": True})
+        elif char == RESET:
+            self._request_reset()
+        self._flush_sr()
+
+    def control(self, text: bytes, linelen: int) -> None:
+        """A `{...}` control line, run ahead of queued data lines [7.1]."""
+        self._json(text.decode("latin-1"), linelen, data=False)
+        self._flush_sr()
+
+    # --- injections (hardware inputs)
+
+    def limit_switch(self, axis: str) -> None:
+        if self.settings["lim"]:
+            detail = f"input {INPUTS.get(axis, 1)}"
+            self._lockout(MachineState.ALARM, Status.LIMIT_SWITCH_HIT, detail, unhome=True)
+        self._flush_sr()
+
+    def estop(self, active: bool) -> None:
+        if active:
+            detail = f"input {ESTOP_INPUT}"
+            self._lockout(MachineState.SHUTDOWN, Status.SHUTDOWN, detail, unhome=True)
+        self._flush_sr()
+
+    def panic(self) -> None:
+        self._lockout(MachineState.PANIC, Status.PANIC, f"input {PANIC_INPUT}")
+        self._flush_sr()
+
+    def interlock(self, active: bool) -> None:
+        """Safety interlock input: a halt ending in state 11, no exception report [5]."""
+        self.interlock_input = active
+        now = self._clock()
+        if active and self.settings["saf"] and not self.interlocked:
+            self.interlocked = True
+            if self.state.is_lockout:
+                pass  # the lockout has stopped everything already
+            elif self.active is not None and self.active.decelerating:
+                self._enter_hold(now, at=now)  # a halt cuts the deceleration short
+                if self.hold == Hold.HOLD:
+                    self._set_state(MachineState.INTERLOCK)
+            elif self.active is not None:
+                self._halt(now)
+                self._set_state(MachineState.INTERLOCK)
+            elif self.hold == Hold.HOLD:
+                self._set_state(MachineState.INTERLOCK)
+        elif not active and self.interlocked:
+            self.interlocked = False
+            if self.state == MachineState.INTERLOCK:
+                if self.hold != Hold.OFF:
+                    self._set_state(MachineState.HOLD)
+                elif self.planner:
+                    self._set_state(MachineState.RUN)
+                else:
+                    self._set_state(MachineState.PROGRAM_STOP)
+        self._flush_sr()
+
+    def set_homed(self, homed: bool) -> None:
+        self.homed = dict.fromkeys(AXES, homed)
+        self._sr_requested = True
+
+    # --- the main loop
+
+    def tick(self) -> bool:
+        """Do one thing that is due; False when nothing is."""
+        now = self._clock()
+        progressed = self._step(now)
+        self._flush_sr()
+        return progressed
+
+    def next_deadline(self) -> float | None:
+        """When `tick` has something to do next without new input (None: not until input)."""
+        times: list[float] = []
+        if self.active is not None:
+            times.append(self.active.end)
+        if not self.output_blocked:
+            if self._ack is not None:
+                times.append(self._ack[0])
+            if self._sr_requested or self._moving:
+                times.append(self._sr_next)
+        return min(times) if times else None
+
+    def _step(self, now: float) -> bool:
+        if self._ack is not None and not self.output_blocked and now >= self._ack[0]:
+            self._emit(self._ack[1])
+            self._ack = None
+            return True
+        return self._advance(now) or self._dispatch() or self._timed_reports(now)
+
+    def _advance(self, now: float) -> bool:
+        active = self.active
+        if active is not None:
+            if now < active.end:
+                return False
+            if active.decelerating:
+                self._hold_reached(now)
+            else:
+                self._finish(active)
+            return True
+        if self.hold != Hold.OFF or self.state.is_lockout:
+            return False
+        if self.planner:
+            if self.interlocked:
+                if self.state == MachineState.INTERLOCK:
+                    return False
+                self._set_state(MachineState.INTERLOCK)
+                return True
+            self._start(now)
+            return True
+        if self.state in (MachineState.RUN, MachineState.HOMING) and not self._dispatchable():
+            self._set_state(MachineState.PROGRAM_STOP)
+            return True
+        return False
+
+    def _start(self, now: float) -> None:
+        block = self.planner[0]
+        if isinstance(block, ProgramEnd):
+            self._pop()
+            self._set_state(MachineState.PROGRAM_END)
+            return
+        if isinstance(block, SetPosition):
+            self._pop()
+            self.position.update(block.values)
+            for axis in block.values:
+                self.homed[axis] = True
+            self._sr_requested = True
+            return
+        cfg = self.config
+        self.active = start_block(
+            block,
+            self.position,
+            now,
+            speed_factor=cfg.speed_factor,
+            rapid_rate=cfg.rapid_rate,
+            instant=cfg.instant,
+        )
+        homing = isinstance(block, Home)
+        self._set_state(MachineState.HOMING if homing else MachineState.RUN)
+
+    def _finish(self, active: Active) -> None:
+        self.active = None
+        if active.move is not None:
+            self.position = dict(active.move.target)
+        block = self._pop()
+        if isinstance(block, Home):
+            for axis in block.axes:
+                self.homed[axis] = True
+        self._sr_requested = True
+
+    def _pop(self) -> Block:
+        self._qo += 1
+        return self.planner.popleft()
+
+    def _halt(self, now: float) -> None:
+        """Stop the active block where the tool is; what is left of it stays queued."""
+        active = self.active
+        if active is None:
+            return
+        self.active = None
+        self.position = active.position(now)
+        rest = active.rest(now)
+        self.planner.popleft()
+        if rest is not None:
+            self.planner.appendleft(rest)
+        self._sr_requested = True
+
+    @property
+    def _moving(self) -> bool:
+        return self.active is not None and self.active.move is not None
+
+    # --- data lines: read in order, only when the planner has room [7.1]
+
+    def _dispatchable(self) -> bool:
+        if self._ack is not None or self.output_blocked:
+            return False
+        if not self.state.is_lockout and len(self.planner) >= self.config.planner_depth:
+            return False  # in a lockout lines are drained and rejected regardless [10]
+        return any(self.rx.values())
+
+    def _dispatch(self) -> bool:
+        if not self._dispatchable():
+            return False
+        for port, queue in self.rx.items():
+            if queue:
+                line = queue.popleft()
+                self._rx_bytes[port] -= line.size
+                self._data_line(line.text.decode("latin-1"))
+                return True
+        return False
+
+    def _data_line(self, text: str) -> None:
+        linelen = len(text)
+        stripped = text.lstrip(" \t")
+        first = stripped[:1]
+        if first == "%":
+            return  # swallowed by the single-character branch, no response [2.2]
+        if first and first in "!~\x04\x05\x18":
+            self.realtime("", ord(first))
+            return
+        if first == "{":
+            self._json(stripped, linelen, data=True)
+        elif first == "?":
+            self._respond({"sr": self._sr_full()}, Status.OK, linelen, data=True)
+        elif first == "$":
+            self._text(stripped, linelen)
+        else:
+            status, n = self._gcode(text)
+            body: dict[str, Any] = {"gc": text} if self._jv >= 5 else {}
+            self._respond(body, status, linelen, data=True, n=n)
+            self._sr_requested = True
+
+    # --- JSON and text commands
+
+    def _json(self, text: str, linelen: int, *, data: bool) -> None:
+        try:
+            pairs = relaxed.parse(text)
+        except relaxed.RelaxedJsonError:
+            body: dict[str, Any] = {"err": text} if self._jv >= 2 else {}
+            self._respond(body, Status.JSON_SYNTAX_ERROR, linelen, data=data)
+            return
+        body = {}
+        status, n = Status.OK, 0
+        for key, value in pairs.items():
+            status, line = self._pair(key, value, body)
+            n = n or line
+            if status != Status.OK:
+                break
+        self._respond(body, status, linelen, data=data, n=n)
+        self._sr_requested = True
+
+    def _text(self, text: str, linelen: int) -> None:
+        """`$key`, `$key=value`, `$clear`: text-mode commands, answered in JSON [11]."""
+        command = relaxed.normalize(text[1:])
+        body: dict[str, Any] = {}
+        if command in ("", "$"):
+            body["sys"] = self.settings.system_group()
+            self._respond(body, Status.OK, linelen, data=True)
+            return
+        key, eq, raw = command.partition("=")
+        value = _text_value(raw) if eq else None
+        status, n = self._pair(key, value, body)
+        self._respond(body, status, linelen, data=True, n=n)
+        self._sr_requested = True
+
+    def _pair(self, key: str, value: relaxed.Value, body: dict[str, Any]) -> tuple[Status, int]:
+        """One name/value pair: a GET (value None) or a SET; returns status and N word."""
+        if value is None:
+            return self._get(key, body), 0
+        if isinstance(value, str) and gcode.is_program_end(value):
+            self._parse_clear()
+        rejected = self._rejection()
+        if rejected is not None:  # SETs are actions: drained and rejected [10]
+            body[key] = _echo(value)
+            return rejected, 0
+        if key in ("gc", "gc2"):
+            if not isinstance(value, str):
+                body[key] = _echo(value)
+                return Status.VALUE_TYPE_ERROR, 0
+            if self._jv >= 5:
+                body[key] = value
+            return self._gcode(value, in_hold=key == "gc2")
+        if key == "sr":
+            return self._set_sr(value, body), 0
+        return self._set(key, value, body), 0
+
+    def _get(self, key: str, body: dict[str, Any]) -> Status:
+        body[key] = None
+        if key == "sr":
+            body[key] = self._sr_full()
+        elif key in ("clear", "clr"):
+            self._clear()
+        elif key == "alarm":
+            self._lockout(MachineState.ALARM, Status.ALARM, "sent by host")
+        elif key == "shutd":
+            self._lockout(MachineState.SHUTDOWN, Status.SHUTDOWN, "sent by host", unhome=True)
+        elif key == "panic":
+            self._lockout(MachineState.PANIC, Status.PANIC, "sent by host")
+        elif key == "er":
+            self._exception(Status.GENERIC_EXCEPTION_REPORT, "bogus exception report")
+        elif key == "sys":
+            body[key] = self.settings.system_group()
+        elif key == "qr":
+            body[key] = self._free
+        elif key in ("qi", "qo"):
+            body[key] = self._qi if key == "qi" else self._qo
+            setattr(self, f"_{key}", 0)
+        elif key == "rx":
+            body[key] = RX_REPORT
+        elif key in self.settings:
+            body[key] = self.settings.get(key)
+        elif key in reports.SR_KEYS:
+            body[key] = self._values(self._clock())[key]
+        else:
+            return Status.UNRECOGNIZED_NAME
+        return Status.OK
+
+    def _set(self, key: str, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        body[key] = _echo(value)
+        if key in ("clear", "clr", "alarm", "shutd", "panic"):
+            return self._get(key, body)  # functions run the same either way
+        if key in reports.SR_KEYS:
+            return Status.PARAMETER_IS_READ_ONLY
+        if key not in self.settings:
+            return Status.UNRECOGNIZED_NAME
+        status = self.settings.set(key, value)
+        if status == Status.OK:
+            body[key] = self.settings.get(key)
+        return status
+
+    def _set_sr(self, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        """`{sr:{...}}` replaces the report list; the answer is a full report [4]."""
+        body["sr"] = _echo(value)
+        status = self.settings.set_status_report(value)
+        if status == Status.OK:
+            self._sr_last = {}
+            body["sr"] = self._sr_full()
+        return status
+
+    # --- G-code
+
+    def _gcode(self, text: str, *, in_hold: bool = False) -> tuple[Status, int]:
+        if gcode.is_program_end(text):
+            self._parse_clear()
+        rejected = self._rejection()
+        if rejected is not None:
+            return rejected, 0
+        if in_hold and self.hold == Hold.HOLD:
+            return self._gcode_in_hold(text)
+        outcome = self.interp.execute(text, self._soft_limits)
+        self._soft_limit_alarm(outcome.status)
+        for block in outcome.blocks:
+            self.planner.append(block)
+            self._qi += 1
+        return outcome.status, outcome.n
+
+    def _gcode_in_hold(self, text: str) -> tuple[Status, int]:
+        """`{gc2:...}` in a hold: the secondary planner runs it at once [8, seed 002]."""
+        if self._p2 is None:
+            self._p2 = self.interp.copy()
+            self._p2.sync(self.position)
+        outcome = self._p2.execute(text, self._soft_limits)
+        self._soft_limit_alarm(outcome.status)
+        for block in outcome.blocks:
+            if isinstance(block, Move):
+                self.position = dict(block.target)
+            elif isinstance(block, Home):
+                for axis in block.axes:
+                    self.position[axis] = 0.0
+                    self.homed[axis] = True
+            elif isinstance(block, SetPosition):
+                self.position.update(block.values)
+                for axis in block.values:
+                    self.homed[axis] = True
+            self._sr_requested = True
+        return outcome.status, outcome.n
+
+    def _soft_limits(self, target: Mapping[str, float]) -> Status:
+        """Soft limits apply to homed axes while `sl` is on [10, seed 000]."""
+        if not self.settings["sl"]:
+            return Status.OK
+        for i, axis in enumerate(AXES):
+            if not self.homed[axis]:
+                continue
+            if target[axis] < self.settings[f"{axis}tn"] - _EPS:
+                return Status(Status.SOFT_LIMIT_EXCEEDED_XMIN + 2 * i)
+            if target[axis] > self.settings[f"{axis}tm"] + _EPS:
+                return Status(Status.SOFT_LIMIT_EXCEEDED_XMAX + 2 * i)
+        return Status.OK
+
+    def _soft_limit_alarm(self, status: Status) -> None:
+        if Status.SOFT_LIMIT_EXCEEDED <= status <= Status.SOFT_LIMIT_EXCEEDED_ARC:
+            self._lockout(MachineState.ALARM, status, "soft_limits")
+
+    # --- feedhold, resume, flush, kill [8, seed 002]
+
+    def _feedhold(self, now: float) -> None:
+        active = self.active
+        if self.hold != Hold.OFF or self.state != MachineState.RUN or active is None:
+            return  # ignored unless moving
+        active.begin_hold(now, self.config.feedhold_decel)
+        self.hold = Hold.DECEL
+        self._set_state(MachineState.HOLD)
+
+    def _hold_reached(self, now: float) -> None:
+        assert self.active is not None
+        self._enter_hold(now, at=self.active.end)
+
+    def _enter_hold(self, now: float, *, at: float) -> None:
+        """The tool stands still (at time `at`): the hold is in place, deferred exits run."""
+        self._halt(at)
+        self.hold = Hold.HOLD
+        self._hold_point = dict(self.position)
+        self._sr_now = True
+        pending, self._pending_exit = self._pending_exit, None
+        if pending == "resume":
+            self._cycle_start()
+        elif pending == "flush":
+            self._queue_flush(now)
+        elif pending == "kill":
+            self._job_kill(now)
+
+    def _leave_hold(self) -> None:
+        if self._hold_point is not None:
+            self.position = self._hold_point  # the return move to the hold point
+        self.hold = Hold.OFF
+        self._hold_point = None
+        self._p2 = None
+
+    def _cycle_start(self) -> None:
+        if self.hold == Hold.DECEL:
+            self._pending_exit = "resume"
+            return
+        if self.hold != Hold.HOLD or self.interlocked:
+            return
+        self._leave_hold()
+        self._set_state(MachineState.RUN if self.planner else MachineState.PROGRAM_STOP)
+
+    def _queue_flush(self, now: float) -> None:
+        if self.hold == Hold.DECEL:
+            self._pending_exit = "flush"
+            return
+        if self.hold != Hold.HOLD:
+            return
+        self._leave_hold()
+        self._flush_motion(now)
+        self.discard_rx()
+        self._set_state(MachineState.PROGRAM_STOP)
+
+    def _job_kill(self, now: float) -> None:
+        if self.state.is_lockout:
+            return
+        if self.hold == Hold.DECEL:
+            self._pending_exit = "kill"
+            return
+        if self.hold == Hold.OFF and self._moving and self.state == MachineState.RUN:
+            self._feedhold(now)
+            self._pending_exit = "kill"
+            return
+        if self.hold == Hold.HOLD:
+            self._leave_hold()
+        self._flush_motion(now)
+        self.discard_rx()
+        self.interp.program_end()
+        self._exception(Status.KILL_JOB, "Job killed by ^d")
+        self._set_state(MachineState.PROGRAM_END)
+        self._sr_now = True  # reported even when the board already was at program end
+
+    def _flush_motion(self, now: float) -> None:
+        """Empty the planner; the model continues from where the tool stands."""
+        if self.active is not None:
+            self.position = self.active.position(now)
+            self.active = None
+        self._qo += len(self.planner)
+        self.planner.clear()
+        self.interp.sync(self.position)
+        self._sr_requested = True
+
+    # --- ALARM, SHUTDOWN, PANIC [10, seed 000]
+
+    def _rejection(self) -> Status | None:
+        return _REJECTED_BY.get(self.state)
+
+    def _lockout(
+        self, state: MachineState, status: Status, detail: str, *, unhome: bool = False
+    ) -> None:
+        if self.state == MachineState.PANIC:
+            return
+        if self.state == state or (state == MachineState.ALARM and self.state.is_lockout):
+            return  # no alarm while already in an alarm state
+        self._flush_motion(self._clock())
+        self.hold = Hold.OFF
+        self._pending_exit = None
+        self._hold_point = None
+        self._p2 = None
+        if unhome:
+            self.homed = dict.fromkeys(AXES, False)
+        log.info("sim board lockout", state=state.name, status=int(status), detail=detail)
+        self._exception(status, detail)
+        self._set_state(state)
+
+    def _clear(self) -> None:
+        """ALARM -> PROGRAM_STOP, SHUTDOWN -> PROGRAM_END; PANIC stays [10]."""
+        if self.state == MachineState.ALARM:
+            self._set_state(MachineState.PROGRAM_STOP)
+        elif self.state == MachineState.SHUTDOWN:
+            self._set_state(MachineState.PROGRAM_END)
+
+    def _parse_clear(self) -> None:
+        """A block that is exactly M2/M30 clears ALARM, and (per the code) SHUTDOWN [10]."""
+        if self.state in (MachineState.ALARM, MachineState.SHUTDOWN):
+            self._clear()
+
+    def _exception(self, status: Status, detail: str) -> None:
+        msg = f"{message(status)} - {detail}"
+        self._emit({"er": {"fb": self.config.fb, "st": int(status), "msg": msg}})
+
+    # --- reports [2, 4, 6]
+
+    @property
+    def _jv(self) -> int:
+        return int(self.settings["jv"])
+
+    def _respond(
+        self,
+        body: dict[str, Any],
+        status: Status,
+        linelen: int,
+        *,
+        data: bool,
+        n: int = 0,
+    ) -> None:
+        jv = self._jv
+        if jv == 0 or (jv == JV_MAX and status == Status.OK):
+            return
+        if n and jv >= 4:
+            body["n"] = n
+        obj = {"r": body, "f": [1, int(status), linelen + 1]}
+        if data and self.ack_delay > 0:
+            self._ack = (self._clock() + self.ack_delay, obj)
+            return
+        self._emit(obj)
+
+    def _set_state(self, state: MachineState) -> None:
+        if state != self.state:
+            log.debug("sim board state", state=state.name)
+            self.state = state
+            self._sr_now = True
+
+    def _flush_sr(self) -> None:
+        """State changes are reported at once, after the command that made them."""
+        if self._sr_now:
+            self._sr_now = False
+            self._send_sr(self._clock())
+
+    def _timed_reports(self, now: float) -> bool:
+        if self.output_blocked:
+            return False
+        sent = False
+        qv = int(self.settings["qv"])
+        free = self._free
+        if qv and self._jv and free != self._qr_last:
+            self._qr_last = free
+            report: dict[str, int] = {"qr": free}
+            if qv == 2:
+                report |= {"qi": self._qi, "qo": self._qo}
+                self._qi = self._qo = 0
+            self._emit(report)
+            sent = True
+        if (self._sr_requested or self._moving) and now >= self._sr_next:
+            self._sr_requested = False
+            self._sr_next = now + self.settings["si"] / 1000.0
+            self._send_sr(now)
+            sent = True
+        return sent
+
+    def _send_sr(self, now: float) -> None:
+        sv = int(self.settings["sv"])
+        if not sv:
+            return
+        values = self._values(now)
+        body = reports.filtered(self.settings.sr_keys, values, self._sr_last, verbose=sv == 2)
+        if body:
+            self._emit({"sr": body})
+
+    def _sr_full(self) -> dict[str, float | int]:
+        values = self._values(self._clock())
+        return {key: values[key] for key in self.settings.sr_keys}
+
+    @property
+    def _free(self) -> int:
+        return max(self.config.planner_depth - len(self.planner), 0)
+
+    def tool_position(self, now: float) -> dict[str, float]:
+        return self.active.position(now) if self.active is not None else dict(self.position)
+
+    def _values(self, now: float) -> dict[str, float | int]:
+        """Every status report key's current value, rounded as reported."""
+        interp = self.interp
+        scale = interp.scale
+        machine = self.tool_position(now)
+        active = self.active
+        velocity = active.velocity(now) if active is not None else 0.0
+        running = active.block.n if active is not None else interp.line
+        state = self.state
+        cycle = 0
+        if state in (MachineState.RUN, MachineState.HOLD, MachineState.INTERLOCK):
+            cycle = 1
+        elif state == MachineState.HOMING:
+            cycle = 2
+        values: dict[str, float | int] = {
+            "line": running,
+            "n": interp.line,
+            "feed": (interp.feed or 0.0) / scale,
+            "vel": velocity / scale,
+            "unit": 1 if interp.metric else 0,
+            "stat": int(state),
+            "macs": _MACS.get(state, 5),
+            "cycs": cycle,
+            "mots": 1 if velocity > 0 else 0,
+            "hold": int(self.hold),
+            "coor": interp.coord,
+            "dist": 0 if interp.absolute else 1,
+            "admo": 1,
+            "frmo": 0 if interp.inverse_time else 1,
+            "momo": interp.motion if interp.motion is not None else 4,
+            "plan": interp.plane - 17,
+            "path": interp.path,
+            "tool": 0,
+            "g92e": 1 if any(interp.offsets.values()) else 0,
+            "home": 1 if all(self.homed.values()) else 0,
+            "qr": self._free,
+        }
+        for axis in AXES:
+            values[f"pos{axis}"] = (machine[axis] - interp.offsets[axis]) / scale
+            values[f"mpo{axis}"] = machine[axis]
+            values[f"ofs{axis}"] = interp.offsets[axis] / scale
+            values[f"hom{axis}"] = 1 if self.homed[axis] else 0
+        return {key: reports.number(v, reports.places(key)) for key, v in values.items()}
+
+    def _emit(self, obj: dict[str, Any]) -> None:
+        self._emit_line(_dumps(obj))
+
+
+def _dumps(obj: dict[str, Any]) -> str:
+    return json.dumps(obj, separators=(",", ":"))
+
+
+def _echo(value: relaxed.Value) -> Any:
+    if isinstance(value, float):
+        return reports.number(value, 5)
+    if isinstance(value, dict):
+        return {k: _echo(v) for k, v in value.items()}
+    return value
+
+
+def _text_value(raw: str) -> relaxed.Value:
+    """The value of `$key=value`: a number, t/f, or the text itself."""
+    if not raw or raw.startswith("n"):
+        return None
+    try:
+        return float(raw)
+    except ValueError:
+        pass
+    if raw in ("t", "true", "f", "false"):
+        return raw.startswith("t")
+    return raw
+
+
+def _tinyg_checksum(text: str) -> int:
+    """TinyG 440's footer checksum: a Java-style string hash, mod 9999."""
+    h = 0
+    for ch in text:
+        h = (31 * h + ord(ch)) & 0xFFFFFFFF
+    return h % 9999

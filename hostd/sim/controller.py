@@ -1,0 +1,472 @@
+"""`SimController`: a simulated g2core board on one or two pseudo-terminals.
+
+It glues the pieces together and is the API that tests, `make demo` and a
+machine configured with `data_port = "sim"` use: ports (ptyport.py) bring
+bytes in, the scanner (scanner.py) splits them as the board's RX buffer
+does, the board model (board.py) answers; this file routes the answers to
+the port that has the control role, runs the board's main loop as one owned
+task, and offers injections (limit switch, e-stop, unplug, ...) and ways to
+wait for what the board saw or did.
+
+Roles follow g2core's dual-endpoint USB (g2core.md section 9): the first
+port a host opens is control and data and receives all output; a second one
+opened while it is open is data only and never receives anything. Closing
+the control port while the other stays open leaves that other one inactive
+(not read, never written) until it is closed and opened again, as
+g2core's `connectedStateChanged` does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+from types import TracebackType
+
+import structlog
+
+from hostd.protocol.states import MachineState
+from hostd.sim.board import Board
+from hostd.sim.config import Kind, Received, SimConfig
+from hostd.sim.ptyport import PtyPort
+from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
+
+log = structlog.get_logger(__name__)
+
+BANNER_FALLBACK = 0.05  # s to wait for the opener's tcflush before sending the banner anyway
+MAX_STEPS = 512  # board steps per loop iteration before yielding to I/O
+DATA, CONTROL = "data", "control"
+
+
+class SimController:
+    """A simulated g2core; `async with SimController(path) as sim:` plugs it in."""
+
+    def __init__(
+        self,
+        data_path: str,
+        control_path: str | None = None,
+        config: SimConfig | None = None,
+    ) -> None:
+        self.config = config if config is not None else SimConfig()
+        self._paths = {DATA: data_path}
+        if control_path is not None:
+            self._paths[CONTROL] = control_path
+        self.received: list[Received] = []
+        self.sent: list[Received] = []
+        self._board = Board(self.config, emit=self._emit, clock=time.monotonic, reset=self._reboot)
+        self._ports: dict[str, PtyPort] = {}
+        self._scanners = {name: LineScanner(self._board.percent_is_control) for name in self._paths}
+        self._active: set[str] = set()  # attached ports the board reads
+        self._flushed: set[str] = set()  # ports whose opener has flushed since attaching
+        self._primary: str | None = None  # the port with the control role
+        self._banner = "done"  # for the current open: pending, fallback or done
+        self._banner_timer: asyncio.TimerHandle | None = None
+        self._reading = True
+        self._silent = False
+        self._resetting = False
+        self._closed = False
+        self._wake: asyncio.Event | None = None
+        self._changed: asyncio.Event | None = None
+        self._main_task: asyncio.Task[None] | None = None
+        self._reset_task: asyncio.Task[None] | None = None
+
+    # --- lifecycle
+
+    async def __aenter__(self) -> SimController:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def start(self) -> None:
+        """Create the pty pairs and symlinks and start the board."""
+        if self._main_task is not None:
+            return
+        self._wake = asyncio.Event()
+        self._changed = asyncio.Event()
+        self._ports = {name: PtyPort(name, path, self) for name, path in self._paths.items()}
+        try:
+            for port in self._ports.values():
+                port.plug()
+        except BaseException:
+            for port in self._ports.values():
+                port.unplug()
+            raise
+        self._main_task = asyncio.get_running_loop().create_task(
+            self._run(), name=f"sim-board {self.data_path}"
+        )
+        log.info("sim board started", data=self.data_path, control=self.control_path)
+
+    async def close(self) -> None:
+        """Stop the board, close every pty and remove the symlinks."""
+        if self._closed:
+            return
+        self._closed = True
+        tasks = [t for t in (self._main_task, self._reset_task) if t is not None]
+        for task in tasks:
+            task.cancel()
+        try:
+            results = await asyncio.gather(*tasks, return_exceptions=True)
+        finally:
+            self._cancel_banner()
+            for port in self._ports.values():
+                port.unplug()
+            log.info("sim board closed", data=self.data_path)
+        crash = next((r for r in results if isinstance(r, Exception)), None)
+        if crash is not None:
+            raise RuntimeError("the simulated board crashed") from crash
+
+    # --- what tests look at
+
+    @property
+    def data_path(self) -> str:
+        return self._paths[DATA]
+
+    @property
+    def control_path(self) -> str | None:
+        return self._paths.get(CONTROL)
+
+    @property
+    def state(self) -> MachineState:
+        return self._board.state
+
+    @property
+    def position(self) -> dict[str, float]:
+        """Machine position in mm, where the tool is right now."""
+        return self._board.tool_position(time.monotonic())
+
+    @property
+    def homed(self) -> bool:
+        return all(self._board.homed.values())
+
+    @property
+    def planner_len(self) -> int:
+        """Blocks in the planner, the one being executed included."""
+        return len(self._board.planner)
+
+    def attached(self, port: str | None = None) -> bool:
+        """Whether a host has `port` (default: any port) open."""
+        ports = [self._ports[port]] if port is not None else list(self._ports.values())
+        return any(p.attached for p in ports)
+
+    # --- waiting, without sleeping
+
+    async def wait_for(self, predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+        """Return once `predicate()` is true; it is re-checked after every board event."""
+        try:
+            async with asyncio.timeout(timeout):
+                while not predicate():
+                    self._check_running()
+                    assert self._changed is not None
+                    await self._changed.wait()
+        except TimeoutError:
+            name = getattr(predicate, "__qualname__", repr(predicate))
+            raise TimeoutError(
+                f"simulated board: {name} still false after {timeout} s "
+                f"(state {self.state.name}, planner {self.planner_len}, "
+                f"{len(self.received)} received, {len(self.sent)} sent)"
+            ) from None
+
+    async def wait_attached(self, timeout: float = 5.0, port: str | None = None) -> None:
+        await self.wait_for(lambda: self.attached(port), timeout)
+
+    async def wait_received(self, what: bytes | Callable[[], bool], timeout: float = 5.0) -> None:
+        """Wait for a line (or realtime byte) equal to `what`, or for a predicate."""
+        if isinstance(what, bytes):
+            wanted = what
+            await self.wait_for(lambda: any(r.data == wanted for r in self.received), timeout)
+        else:
+            await self.wait_for(what, timeout)
+
+    async def wait_state(self, state: MachineState, timeout: float = 5.0) -> None:
+        await self.wait_for(lambda: self.state == state, timeout)
+
+    def _check_running(self) -> None:
+        task = self._main_task
+        if task is None:
+            raise RuntimeError("the simulated board is not started")
+        if task.done() and not task.cancelled() and task.exception() is not None:
+            raise RuntimeError("the simulated board crashed") from task.exception()
+
+    # --- injections
+
+    def limit_switch(self, axis: str = "x") -> None:
+        """A limit switch trips: ALARM 203, the machine is unhomed (if `lim` is on)."""
+        self._board.limit_switch(axis)
+        self._kick()
+
+    def interlock(self, active: bool) -> None:
+        """The safety interlock input: a halt into state 11 while active."""
+        self._board.interlock(active)
+        self._kick()
+
+    def estop(self, active: bool) -> None:
+        """The e-stop input: SHUTDOWN 5 when it becomes active; releasing clears nothing."""
+        self._board.estop(active)
+        self._kick()
+
+    def panic(self) -> None:
+        self._board.panic()
+        self._kick()
+
+    def set_homed(self, homed: bool) -> None:
+        self._board.set_homed(homed)
+        self._kick()
+
+    def inject_garbage(self, data: bytes) -> None:
+        """Write `data` raw to the port with the control role, as a broken board might."""
+        port = self._output_port()
+        if port is not None and port.write(data):
+            self.sent.append(Received(time.monotonic(), port.name, data, "raw"))
+            self._pulse()
+
+    def set_ack_delay(self, seconds: float) -> None:
+        """Each data line's response goes out this much later (the board reads on after it)."""
+        self._board.ack_delay = max(seconds, 0.0)
+        self._kick()
+
+    def stop_reading(self) -> None:
+        """Take no more bytes from the host: its writes back up in the kernel."""
+        self._reading = False
+        self._kick()
+
+    def resume_reading(self) -> None:
+        self._reading = True
+        self._kick()
+
+    def go_silent(self, silent: bool) -> None:
+        """Hang (True): send nothing, read nothing, run nothing, but keep the ports."""
+        self._silent = silent
+        self._kick()
+
+    async def unplug(self) -> None:
+        """Pull the USB cable: the host reads EOF/EIO, the symlinks go away."""
+        for port in self._ports.values():
+            port.unplug()
+        self._kick()
+
+    async def replug(self) -> None:
+        """Plug the cable back: new ptys behind the same paths, a banner on the next open."""
+        if self._closed:
+            return
+        for port in self._ports.values():
+            port.plug()
+        self._kick()
+
+    async def reset(self) -> None:
+        """Reset the board as 0x18 does: it goes away, boots, and comes back fresh."""
+        self._reboot()
+        if self._reset_task is not None:
+            await asyncio.shield(self._reset_task)
+
+    # --- the port listener (called by PtyPort from the event loop)
+
+    def port_attached(self, port: PtyPort) -> None:
+        name = port.name
+        self._flushed.discard(name)
+        self._scanners[name].reset()
+        self._board.open_rx(name)
+        if not self._active:
+            # The first port opened becomes control and data [9].
+            self._primary = name
+            self._board.connected()
+            self._cancel_banner()
+            self._banner = "pending"
+            loop = asyncio.get_running_loop()
+            self._banner_timer = loop.call_later(BANNER_FALLBACK, self._banner_fallback)
+        self._active.add(name)
+        self._kick()
+
+    def port_detached(self, port: PtyPort) -> None:
+        name = port.name
+        self._flushed.discard(name)
+        self._scanners[name].reset()
+        self._board.close_rx(name)
+        self._active.discard(name)
+        if name == self._primary:
+            self._primary = None
+            self._cancel_banner()
+            for other in self._active:  # the other port, if open, is deactivated [9]
+                self._board.close_rx(other)
+            self._active.clear()
+        if self._board.output_blocked and self._output_port() is None:
+            self._board.output_blocked = False
+        if not any(p.attached for p in self._ports.values()):
+            self._board.disconnected()
+        self._kick()
+
+    def port_flushed(self, port: PtyPort) -> None:
+        """The opener's tcflush: it discarded what was written before, so now the banner."""
+        name = port.name
+        if name not in self._active:
+            return
+        if name in self._flushed:
+            # serialx ends every open with a flush, so a second one means the host closed
+            # and reopened faster than the hangup could be seen: treat it as a new open.
+            log.debug("sim port reopened by host", port=name)
+            self.port_detached(port)
+            self.port_attached(port)
+        self._flushed.add(name)
+        if name != self._primary or self._banner == "done":
+            return
+        self._cancel_banner()
+        self._banner = "done"
+        # After a fallback banner this sends it again: the flush threw the first away.
+        self._board.banner()
+        self._kick()
+
+    def port_data(self, port: PtyPort, data: bytes) -> None:
+        name = port.name
+        if name not in self._active or self._resetting:
+            return
+        board = self._board
+        for event in self._scanners[name].feed(data):
+            now = time.monotonic()
+            if isinstance(event, Realtime):
+                self._record(now, name, bytes([event.char]), "realtime")
+                board.realtime(name, event.char)
+            elif isinstance(event, ControlLine):
+                self._record(now, name, event.text, "line")
+                board.control(event.text, event.linelen)
+            elif isinstance(event, DataLine):
+                self._record(now, name, event.text, "line")
+                board.queue_line(name, event)
+            elif isinstance(event, NulFlush):
+                board.discard_rx(name)
+            if self._resetting or name not in self._active:
+                break
+        self._kick()
+
+    def port_drained(self, port: PtyPort) -> None:
+        if port.name == self._primary:
+            self._board.output_blocked = False
+        self._kick()
+
+    # --- internals
+
+    def _record(self, t: float, port: str, data: bytes, kind: Kind) -> None:
+        self.received.append(Received(t, port, data, kind))
+
+    def _output_port(self) -> PtyPort | None:
+        if self._silent or self._resetting or self._primary is None:
+            return None
+        if self._banner == "pending":
+            return None  # nothing goes out before the banner (nothing the opener would keep)
+        port = self._ports.get(self._primary)
+        return port if port is not None and port.attached else None
+
+    def _emit(self, line: str) -> None:
+        port = self._output_port()
+        if port is None:
+            return
+        data = line.encode("ascii", "backslashreplace")
+        if port.write(data + b"\n"):
+            self.sent.append(Received(time.monotonic(), port.name, data, "line"))
+            if port.backlog:
+                self._board.output_blocked = True
+            self._pulse()
+
+    def _banner_fallback(self) -> None:
+        """An opener that does not flush (a plain open) still gets its banner."""
+        self._banner_timer = None
+        if self._banner == "pending" and self._primary is not None:
+            self._banner = "fallback"
+            self._board.banner()
+            self._kick()
+
+    def _cancel_banner(self) -> None:
+        if self._banner_timer is not None:
+            self._banner_timer.cancel()
+            self._banner_timer = None
+
+    def _reboot(self) -> None:
+        """0x18 or `reset()`: unplug now, come back after the boot time."""
+        if self._resetting or self._closed:
+            return
+        self._resetting = True
+        log.info("sim board reset", data=self.data_path)
+        self._reset_task = asyncio.get_running_loop().create_task(
+            self._boot(), name=f"sim-board reset {self.data_path}"
+        )
+
+    async def _boot(self) -> None:
+        try:
+            for port in self._ports.values():
+                port.unplug()
+            await asyncio.sleep(self.config.boot_time)
+            self._board.power_on()
+            for scanner in self._scanners.values():
+                scanner.reset()
+        finally:
+            self._resetting = False
+        if not self._closed:
+            for port in self._ports.values():
+                port.plug()
+        self._kick()
+
+    def _update_reading(self) -> None:
+        """Read from each open port as much as its RX budget allows (0 = stop)."""
+        budget = self.config.rx_budget
+        for name, port in self._ports.items():
+            if not port.attached:
+                continue
+            limit = 0
+            if self._reading and not self._silent and not self._resetting and name in self._active:
+                used = self._board.rx_bytes(name) + self._scanners[name].partial
+                limit = budget - used
+            port.set_read_limit(limit)
+
+    def _kick(self) -> None:
+        """Something happened: let the main loop look, re-plan reading, wake waiters."""
+        if self._wake is not None:
+            self._wake.set()
+        self._update_reading()
+        self._pulse()
+
+    def _pulse(self) -> None:
+        if self._changed is not None:
+            self._changed.set()
+            self._changed = asyncio.Event()
+
+    async def _run(self) -> None:
+        """The board's main loop; a crash is logged and wakes every waiter."""
+        try:
+            await self._loop()
+        except Exception:
+            log.exception("sim board crashed", data=self.data_path)
+            self._pulse()
+            raise
+
+    async def _loop(self) -> None:
+        """Tick while there is work, then sleep until the next deadline or new input."""
+        assert self._wake is not None
+        board = self._board
+        while True:
+            self._wake.clear()
+            steps = 0
+            halted = self._silent or self._resetting
+            if not halted:
+                while steps < MAX_STEPS and board.tick():
+                    steps += 1
+            if steps:
+                self._update_reading()
+                self._pulse()
+            if steps >= MAX_STEPS:
+                await asyncio.sleep(0)  # let the ports in
+                continue
+            deadline = None if halted else board.next_deadline()
+            if deadline is None:
+                await self._wake.wait()
+                continue
+            # A due deadline means work for the next round; never spin on one.
+            delay = max(deadline - time.monotonic(), 0.0005)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(delay):
+                    await self._wake.wait()

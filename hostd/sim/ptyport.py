@@ -1,0 +1,253 @@
+"""One simulated USB serial port: a pseudo-terminal pair behind a stable symlink.
+
+The board side holds the pty master; the host opens the slave through the
+symlink, as it would open a /dev/serial/by-id link. What this file knows
+about Linux ptys (measured, see ../shared/notes/python-stack.md section 2):
+
+- The slave is put in raw mode at once and our copy of it closed: while any
+  slave fd is open the master never sees the host hang up.
+- In packet mode (TIOCPKT) every master read is one packet: a zero byte then
+  data, or a single status byte; a host's tcflush (serialx ends its open
+  with TCIOFLUSH) arrives as a status byte with the flush bits set.
+- While no host has the slave open the master polls POLLHUP and reads EIO.
+  Registering it with the event loop then would spin, so attachment is
+  polled with a short timer, and the reader is added only once a host is
+  there. A host closing shows as EIO (after any data it wrote).
+- The pty buffers about 17 KB each way: when the host stops reading, our
+  writes are kept in a backlog and finished when it reads again.
+
+Unplugging closes the master and removes the symlink, so the host reads
+EOF/EIO; plugging again makes a new pair and atomically replaces the link.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import fcntl
+import os
+import select
+import struct
+import termios
+import tty
+from typing import Protocol
+
+import structlog
+
+log = structlog.get_logger(__name__)
+
+ATTACH_POLL = 0.005  # s between looks at the master while no reader is registered
+_FLUSH_BITS = 0x01 | 0x02  # TIOCPKT_FLUSHREAD | TIOCPKT_FLUSHWRITE
+
+
+class PortListener(Protocol):
+    """What a port reports to its board (all called from the event loop)."""
+
+    def port_attached(self, port: PtyPort) -> None: ...
+    def port_detached(self, port: PtyPort) -> None: ...
+    def port_flushed(self, port: PtyPort) -> None: ...
+    def port_data(self, port: PtyPort, data: bytes) -> None: ...
+    def port_drained(self, port: PtyPort) -> None: ...
+
+
+class PtyPort:
+    """A pty master whose slave is reachable at `path`; `name` is its configured name."""
+
+    def __init__(self, name: str, path: str, listener: PortListener) -> None:
+        self.name = name
+        self.path = path
+        self._listener = listener
+        self._loop = asyncio.get_running_loop()
+        self._fd: int | None = None
+        self._tty: str | None = None
+        self._poller: select.poll | None = None
+        self._poll_handle: asyncio.TimerHandle | None = None
+        self._reader_on = False
+        self._writer_on = False
+        self._read_limit = 0
+        self._backlog = bytearray()
+        self.attached = False
+
+    @property
+    def plugged(self) -> bool:
+        return self._fd is not None
+
+    @property
+    def tty_name(self) -> str | None:
+        """The slave device the symlink points at (None while unplugged)."""
+        return self._tty
+
+    @property
+    def backlog(self) -> int:
+        """Bytes written that the host has not taken yet."""
+        return len(self._backlog)
+
+    # --- plugging
+
+    def plug(self) -> None:
+        """Create the pty pair and point the symlink at its slave."""
+        if self._fd is not None:
+            return
+        master, slave = os.openpty()
+        try:
+            tty.setraw(slave)
+            name = os.ttyname(slave)
+        finally:
+            os.close(slave)
+        try:
+            fcntl.ioctl(master, termios.TIOCPKT, struct.pack("i", 1))
+            os.set_blocking(master, False)
+            _replace_symlink(name, self.path)
+        except BaseException:
+            os.close(master)
+            raise
+        self._fd, self._tty = master, name
+        self._poller = select.poll()
+        self._poller.register(master, select.POLLIN)
+        self._refresh()
+        log.debug("sim port plugged", port=self.name, path=self.path, tty=name)
+
+    def unplug(self) -> None:
+        """Close the master (the host reads EOF/EIO) and remove the symlink."""
+        fd = self._fd
+        if fd is None:
+            return
+        was_attached = self.attached
+        self._stop_io()
+        self._fd = None
+        self._poller = None
+        self.attached = False
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            if os.readlink(self.path) == self._tty:
+                os.unlink(self.path)
+        log.debug("sim port unplugged", port=self.name, path=self.path)
+        self._tty = None
+        if was_attached:
+            self._listener.port_detached(self)
+
+    # --- reading
+
+    def set_read_limit(self, limit: int) -> None:
+        """Take at most `limit` more bytes from the host for now; 0 stops reading."""
+        self._read_limit = max(limit, 0)
+        self._refresh()
+
+    def _refresh(self) -> None:
+        fd = self._fd
+        if fd is None:
+            return
+        want = self.attached and self._read_limit > 0
+        if want and not self._reader_on:
+            self._loop.add_reader(fd, self._on_readable)
+            self._reader_on = True
+        elif not want and self._reader_on:
+            self._loop.remove_reader(fd)
+            self._reader_on = False
+        if not want and self._poll_handle is None:
+            # Not reading: poll for the host opening (or, if attached, closing).
+            self._poll_handle = self._loop.call_later(ATTACH_POLL, self._poll)
+
+    def _poll(self) -> None:
+        self._poll_handle = None
+        if self._poller is None:
+            return
+        hangup = any(ev & select.POLLHUP for _, ev in self._poller.poll(0))
+        if not self.attached and not hangup:
+            self.attached = True
+            log.debug("sim port opened by host", port=self.name)
+            self._listener.port_attached(self)
+        elif self.attached and hangup:
+            self._detach()
+            return
+        self._refresh()
+
+    def _on_readable(self) -> None:
+        fd = self._fd
+        if fd is None:
+            return
+        try:
+            packet = os.read(fd, self._read_limit + 1)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            if exc.errno != errno.EIO:
+                log.warning("sim port read failed", port=self.name, error=str(exc))
+            self._detach()
+            return
+        if not packet:
+            self._detach()
+            return
+        if packet[0] == 0:
+            if len(packet) > 1:
+                self._read_limit = max(self._read_limit - (len(packet) - 1), 0)
+                self._listener.port_data(self, packet[1:])
+        elif packet[0] & _FLUSH_BITS:
+            self._listener.port_flushed(self)
+
+    def _detach(self) -> None:
+        self._stop_io()
+        self.attached = False
+        log.debug("sim port closed by host", port=self.name)
+        self._listener.port_detached(self)
+        self._refresh()
+
+    # --- writing
+
+    def write(self, data: bytes) -> bool:
+        """Send bytes to the host; False if no host has the port open."""
+        fd = self._fd
+        if fd is None or not self.attached:
+            return False
+        if self._backlog:
+            self._backlog += data
+            return True
+        try:
+            written = os.write(fd, data)
+        except BlockingIOError:
+            written = 0
+        except OSError:
+            return False  # the host just went; the reader or the poll will notice
+        if written < len(data):
+            self._backlog += data[written:]
+            self._loop.add_writer(fd, self._on_writable)
+            self._writer_on = True
+        return True
+
+    def _on_writable(self) -> None:
+        fd = self._fd
+        if fd is None:
+            return
+        try:
+            written = os.write(fd, self._backlog)
+        except BlockingIOError:
+            return
+        except OSError:
+            written = len(self._backlog)
+        del self._backlog[:written]
+        if not self._backlog:
+            self._loop.remove_writer(fd)
+            self._writer_on = False
+            self._listener.port_drained(self)
+
+    def _stop_io(self) -> None:
+        fd = self._fd
+        if self._poll_handle is not None:
+            self._poll_handle.cancel()
+            self._poll_handle = None
+        if fd is not None and self._reader_on:
+            self._loop.remove_reader(fd)
+        if fd is not None and self._writer_on:
+            self._loop.remove_writer(fd)
+        self._reader_on = self._writer_on = False
+        self._backlog.clear()
+
+
+def _replace_symlink(target: str, path: str) -> None:
+    """Point `path` at `target` in one step, as udev does when a device comes back."""
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)
+    os.symlink(target, tmp)
+    os.replace(tmp, path)

@@ -1,0 +1,86 @@
+"""Status report keys and g2core's filtered reporting (g2core.md section 4).
+
+The board knows each key's current value (board.py fills a snapshot); this
+module decides what a report contains: with `sv` 1 only the values that
+changed since they were last reported, except `stat`, which is always
+included when it is 3 (stop) or 4 (end); with `sv` 2 everything listed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+# Keys a status report may list (leaf keys only, as on the board).
+SR_KEYS: tuple[str, ...] = (
+    "line",
+    "n",
+    "posx",
+    "posy",
+    "posz",
+    "mpox",
+    "mpoy",
+    "mpoz",
+    "ofsx",
+    "ofsy",
+    "ofsz",
+    "feed",
+    "vel",
+    "unit",
+    "stat",
+    "macs",
+    "cycs",
+    "mots",
+    "hold",
+    "coor",
+    "dist",
+    "admo",
+    "frmo",
+    "momo",
+    "plan",
+    "path",
+    "tool",
+    "g92e",
+    "homx",
+    "homy",
+    "homz",
+    "home",
+    "qr",
+)
+DEFAULT_SR: tuple[str, ...] = ("line", "posx", "posy", "posz", "feed", "vel", "unit", "stat")
+MAX_SR_KEYS = 39  # NV_MAX_OBJECTS
+
+# Decimal places a value is reported (and compared) with.
+_PLACES = {"vel": 2, "feed": 2}
+_POSITION_PLACES = 3
+_ALWAYS_REPORTED_STATS = (3, 4)
+
+
+def number(value: float, places: int) -> float | int:
+    """A value as g2core prints it: rounded, and without a fraction when it has none."""
+    rounded = round(value, places)
+    if rounded == int(rounded):
+        return int(rounded)
+    return rounded
+
+
+def places(key: str) -> int:
+    if key.startswith(("pos", "mpo", "ofs")):
+        return _POSITION_PLACES
+    return _PLACES.get(key, 0)
+
+
+def filtered(
+    keys: Iterable[str],
+    values: Mapping[str, float | int],
+    last: dict[str, float | int],
+    verbose: bool,
+) -> dict[str, float | int]:
+    """The report for `keys`; `last` (what was reported before) is updated."""
+    out: dict[str, float | int] = {}
+    for key in keys:
+        value = values[key]
+        always = key == "stat" and value in _ALWAYS_REPORTED_STATS
+        if verbose or always or last.get(key) != value:
+            out[key] = value
+            last[key] = value
+    return out

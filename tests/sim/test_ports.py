@@ -1,0 +1,260 @@
+"""The board as a device: opening, banners, dual ports, unplug, reset, backpressure."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+
+from hostd.protocol.states import MachineState
+from hostd.sim import Received, SimConfig, SimController
+
+from .conftest import INSTANT, Host, RawHost, is_link
+
+pytestmark = pytest.mark.asyncio
+
+
+def banners(sim: SimController) -> int:
+    return sum(b"SYSTEM READY" in s.data for s in sim.sent)
+
+
+async def test_one_banner_per_open_and_another_after_reopening(sim: SimController) -> None:
+    host = await Host.open(sim.data_path)
+    assert (await host.ask(b"{xvm:n}\n"))["f"] == [1, 0, 9]  # no second banner before it
+    await host.close()
+    await sim.wait_for(lambda: not sim.attached())
+    host = await Host.open(sim.data_path)
+    try:
+        assert (await host.ask(b"{xvm:n}\n"))["f"] == [1, 0, 9]
+        assert banners(sim) == 2
+    finally:
+        await host.close()
+
+
+async def test_a_host_reopening_at_once_still_gets_a_banner_each_time(
+    sim: SimController,
+) -> None:
+    for _ in range(20):  # faster than the board may notice the close in between
+        host = await Host.open(sim.data_path)
+        await host.close()
+    assert banners(sim) == 20
+
+
+async def test_an_opener_that_does_not_flush_still_gets_its_banner(sim: SimController) -> None:
+    raw = RawHost(sim.data_path)
+    try:
+        banner = await raw.message()
+        assert banner["r"]["msg"] == "SYSTEM READY"
+        assert banner["f"] == [1, 0, 1]
+        assert banner["r"]["fb"] == 101.06
+    finally:
+        raw.close()
+
+
+async def test_a_tinyg_build_number_gives_a_tinyg_banner(tmp_path: Path) -> None:
+    config = SimConfig(instant=True, fb=440.21)
+    async with SimController(str(tmp_path / "tty"), config=config) as sim:
+        host = await Host.open(sim.data_path, banner=False)
+        try:
+            banner = await host.message()
+            assert banner["r"]["fb"] == 440.21
+            assert len(banner["f"]) == 4
+        finally:
+            await host.close()
+
+
+async def test_dual_port_output_goes_only_to_the_port_opened_first(tmp_path: Path) -> None:
+    async with SimController(
+        str(tmp_path / "data"), control_path=str(tmp_path / "ctrl"), config=INSTANT
+    ) as sim:
+        assert sim.control_path is not None
+        control = await Host.open(sim.control_path)
+        data = RawHost(sim.data_path)
+        try:
+            await sim.wait_attached(port="data")
+            data.write(b"G0 X1\n{yvm:n}\n")
+            first = await control.response()
+            second = await control.response()
+            assert {first["f"][2], second["f"][2]} == {6, 9}  # both answered on control
+            assert (await control.ask(b"{xvm:n}\n"))["r"] == {"xvm": 6000}
+            assert data.pending() == b""  # the data port never receives anything
+            assert {s.port for s in sim.sent} == {"control"}
+            assert {(r.port, r.data) for r in sim.received} == {
+                ("data", b"G0 X1"),
+                ("data", b"{yvm:n}"),
+                ("control", b"{xvm:n}"),
+            }
+        finally:
+            data.close()
+            await control.close()
+
+
+async def test_roles_follow_open_order_not_port_names(tmp_path: Path) -> None:
+    async with SimController(
+        str(tmp_path / "data"), control_path=str(tmp_path / "ctrl"), config=INSTANT
+    ) as sim:
+        assert sim.control_path is not None
+        first = await Host.open(sim.data_path)
+        second = RawHost(sim.control_path)
+        try:
+            await sim.wait_attached(port="control")
+            second.write(b"{xvm:n}\n")
+            assert (await first.response())["r"] == {"xvm": 6000}
+            assert second.pending() == b""
+        finally:
+            second.close()
+            await first.close()
+
+
+async def test_unplug_is_seen_by_the_host_and_replug_brings_a_banner(
+    sim: SimController, host: Host
+) -> None:
+    await sim.unplug()
+    await host.hangup()
+    assert not is_link(sim.data_path)
+    await host.close()
+    await sim.replug()
+    assert is_link(sim.data_path)
+    again = await Host.open(sim.data_path)
+    try:
+        assert (await again.ask(b"{xvm:n}\n"))["r"] == {"xvm": 6000}
+    finally:
+        await again.close()
+
+
+async def test_reset_reboots_the_board_with_fresh_state(sim: SimController, host: Host) -> None:
+    sim.set_homed(True)
+    await host.ask(b"G0 X5\n")
+    host.send(b"\x18")
+    await host.hangup()
+    await host.close()
+    await sim.wait_for(lambda: is_link(sim.data_path))
+    assert sim.state == MachineState.READY
+    assert not sim.homed
+    assert sim.position["x"] == 0
+    again = await Host.open(sim.data_path)
+    await again.close()
+    await sim.reset()  # the same from the test's side
+    again = await Host.open(sim.data_path)
+    await again.close()
+    assert banners(sim) == 3
+
+
+async def test_stopping_reading_backs_up_the_hosts_writes(sim: SimController, host: Host) -> None:
+    sim.stop_reading()
+    host.send(b"\n" * 65536)  # empty lines: the board will answer nothing
+    assert host.writer.transport.get_write_buffer_size() > 0
+    sim.resume_reading()
+    async with asyncio.timeout(5):
+        await host.writer.drain()
+    assert (await host.ask(b"$xvm\n"))["r"] == {"xvm": 6000}
+
+
+async def test_a_plain_writer_sees_eagain_while_the_board_does_not_read(
+    sim: SimController,
+) -> None:
+    raw = RawHost(sim.data_path)
+    try:
+        await raw.message()
+        sim.stop_reading()
+        with pytest.raises(BlockingIOError):
+            for _ in range(1000):
+                raw.write(b"\n" * 512)
+        sim.resume_reading()
+        await raw.writable()
+        raw.write(b"$xvm\n")
+        assert (await raw.message())["r"] == {"xvm": 6000}
+    finally:
+        raw.close()
+
+
+async def test_the_rx_budget_stops_reading_when_the_planner_is_full(tmp_path: Path) -> None:
+    config = SimConfig(planner_depth=1, rx_budget=256)
+    async with SimController(str(tmp_path / "tty"), config=config) as sim:
+        host = await Host.open(sim.data_path)
+        try:
+            host.send(b"G1 X10 F60\n")  # ten seconds: the planner stays full
+            line = b"G1 Y1 (padding padding padding)\n"
+            host.send(line * 100)
+            await sim.wait_for(lambda: len(sim.received) > 256 // len(line))
+            got = sum(len(r.data) + 1 for r in sim.received[1:])
+            assert got <= 256
+        finally:
+            await host.close()
+
+
+async def test_garbage_arrives_raw(sim: SimController, host: Host) -> None:
+    garbage = b'\xff\xfe\x00{"r":{"x"\n'
+    sim.inject_garbage(garbage)
+    assert await host.line() == garbage[:-1]
+    assert sim.sent[-1] == Received(sim.sent[-1].t, "data", garbage, "raw")
+
+
+async def test_a_silent_board_answers_nothing_until_it_wakes(
+    sim: SimController, host: Host
+) -> None:
+    sim.go_silent(True)
+    host.send(b"$xvm\n")
+    assert b"$xvm" not in [r.data for r in sim.received]  # a hung board reads nothing
+    sim.go_silent(False)
+    assert (await host.response())["r"] == {"xvm": 6000}
+
+
+async def test_received_records_exact_bytes_kinds_and_ports(sim: SimController, host: Host) -> None:
+    host.send(b"G0 X1\r\n!\r{sr:n}\n\x05")
+    await sim.wait_for(lambda: len(sim.received) == 4)
+    assert [(r.port, r.data, r.kind) for r in sim.received] == [
+        ("data", b"G0 X1", "line"),
+        ("data", b"!", "realtime"),
+        ("data", b"{sr:n}", "line"),
+        ("data", b"\x05", "realtime"),
+    ]
+    times = [r.t for r in sim.received]
+    assert times == sorted(times)
+
+
+async def test_closing_the_simulator_leaves_no_descriptors_or_links(tmp_path: Path) -> None:
+    before = set(os.listdir("/proc/self/fd"))
+    sim = SimController(str(tmp_path / "a"), control_path=str(tmp_path / "b"), config=INSTANT)
+    await sim.start()
+    host = await Host.open(sim.data_path)
+    host.send(b"\x18")
+    await host.hangup()
+    await host.close()
+    await sim.close()
+    assert set(os.listdir("/proc/self/fd")) <= before
+    assert not is_link(tmp_path / "a")
+    assert not is_link(tmp_path / "b")
+
+
+async def test_the_simulator_runs_standalone(tmp_path: Path) -> None:
+    path = str(tmp_path / "tty")
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "hostd.sim",
+        "--data",
+        path,
+        "--instant",
+        stdout=asyncio.subprocess.PIPE,
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+    )
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(10):
+            printed = await proc.stdout.readline()
+        assert printed.decode().split() == ["data", path]
+        host = await Host.open(path)
+        try:
+            assert (await host.ask(b"{stat:n}\n"))["r"] == {"stat": 1}
+        finally:
+            await host.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(10):
+            assert await proc.wait() == 0
+    assert not is_link(path)
