@@ -1,0 +1,1 @@
+"""`make demo`: the simulated controller, a sample job, a live progress display."""
