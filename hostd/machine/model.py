@@ -59,6 +59,10 @@ class MachineModel:
         if report.status in _UNHOMING_STATUS:
             self.homed = False
 
+    def last_exception_message(self) -> str | None:
+        msg = (self.last_exception or {}).get("msg")
+        return msg if isinstance(msg, str) and msg else None
+
     def reset(self) -> None:
         """Forget everything the controller said: it rebooted or went away."""
         self.state = None

@@ -1,0 +1,834 @@
+"""One machine's engine: its link, the handshake, and every byte written to the board.
+
+`serve()` owns the connection for the life of the daemon: it opens the link
+when asked (or at once with `auto_connect`), runs one session (a TaskGroup:
+the reader and the poller) until the link is lost or a disconnect is asked,
+tears it down as one, and reconnects with back-off.
+
+Every write goes through `_pump` or `_write`, and every one is decided by
+the state the board last reported, applied before the write:
+- lines pass the command class table (`hostd.protocol.classes`) in ALARM,
+  SHUTDOWN and PANIC; job lines are not written at all then;
+- an exception report stops job lines until a status report says where the
+  board is (an `er` may announce an alarm before its status report does);
+- after `%` or 0x04 no data line is written until the board shows the flush
+  happened (stat 3/4, or `er` 207): until then its answers to lines read
+  before the flush still arrive and are matched; then the rest, which it
+  discarded, are dropped from the books and accounted;
+- a clear is sent only when none of our data lines is unanswered: the board
+  runs a `{`-line ahead of waiting G-code, and a stale line must not run
+  after the alarm is cleared.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from enum import StrEnum
+from functools import partial
+from typing import Any
+
+import structlog
+
+from hostd.config import MachineConfig
+from hostd.link import Channel, LineReceived, Link, LinkError
+from hostd.machine.errors import (
+    Busy,
+    ControllerError,
+    ControllerTimeout,
+    MachineError,
+    NotConnected,
+    Rejected,
+)
+from hostd.machine.events import Console, ExceptionRaised, Hub, LinkChanged, StatusChanged
+from hostd.machine.linemode import InFlight, LineModeSender, SenderError
+from hostd.machine.model import MachineModel
+from hostd.machine.stream import JobStream, StreamEnd
+from hostd.protocol.classes import CommandClass, admit, classify, classify_realtime
+from hostd.protocol.commands import (
+    Realtime,
+    encode_clear,
+    encode_get,
+    encode_in_hold,
+    encode_line,
+    encode_realtime,
+    encode_set,
+    validate_line,
+)
+from hostd.protocol.messages import (
+    Banner,
+    ExceptionReport,
+    Message,
+    Response,
+    StatusReport,
+    Unparseable,
+)
+from hostd.protocol.parser import parse_line
+from hostd.protocol.relaxed import parse_relaxed
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status, message
+
+log = structlog.get_logger(__name__)
+
+STATUS_KEYS = ("stat", "line", "posx", "posy", "posz", "vel", "feed", "unit")
+FLUSH_CONFIRM_TIMEOUT = 2.0
+RECONNECT_BACKOFF = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+# Exception reports that announce a lockout before the status report does.
+_LOCKOUT_BY_STATUS: dict[int, MachineState] = {
+    Status.ALARM: MachineState.ALARM,
+    Status.LIMIT_SWITCH_HIT: MachineState.ALARM,
+    **{code: MachineState.ALARM for code in range(220, 234)},  # soft limits
+    Status.SHUTDOWN: MachineState.SHUTDOWN,
+    Status.PANIC: MachineState.PANIC,
+    **{code: MachineState.PANIC for code in range(86, 100)},  # assertion failures
+}
+_LOCKOUT_REJECTIONS = frozenset(
+    {
+        Status.COMMAND_REJECTED_BY_ALARM,
+        Status.COMMAND_REJECTED_BY_SHUTDOWN,
+        Status.COMMAND_REJECTED_BY_PANIC,
+    }
+)
+_MOVING = frozenset(
+    {
+        MachineState.RUN,
+        MachineState.PROBE,
+        MachineState.CYCLE,
+        MachineState.HOMING,
+        MachineState.JOG,
+    }
+)
+
+
+class LinkState(StrEnum):
+    DOWN = "down"
+    OPENING = "opening"
+    HANDSHAKE = "handshake"
+    READY = "ready"
+
+
+Source = asyncio.Future[Response] | JobStream
+
+
+@dataclass(slots=True)
+class _Queued:
+    """A client line waiting for a window slot."""
+
+    encoded: bytes
+    cls: CommandClass
+    future: asyncio.Future[Response]
+
+
+@dataclass(slots=True)
+class _Flush:
+    kind: Realtime  # QUEUE_FLUSH or JOB_KILL
+    timer: asyncio.TimerHandle
+
+
+class _SessionEnd(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class Engine:
+    def __init__(
+        self,
+        config: MachineConfig,
+        hub: Hub | None = None,
+        *,
+        ports: Callable[[], Awaitable[tuple[str, str | None]]] | None = None,
+    ) -> None:
+        self.config = config
+        self.id = config.id
+        self.hub = hub or Hub()
+        self.model = MachineModel(config.id)
+        self.sender = LineModeSender(config.window)
+        self.link: Link | None = None
+        self.link_state = LinkState.DOWN
+        self.stream: JobStream | None = None
+        self.last_error: str | None = None
+        self._ports = ports
+        self._outbox: deque[_Queued] = deque()
+        self._flush: _Flush | None = None
+        self._await_report = False  # an `er` came: job lines wait for a status report
+        self._hold_requested = False
+        self._awaiting_rest = False  # the job is answered: waiting for the board to stop
+        self._settings_pending = False  # refused in a lockout: sent again when it ends
+        self._restart_deadline: float | None = None  # a reset is under way until then
+        self._last_rx = 0.0
+        self._banner: asyncio.Future[Banner] | None = None
+        self._want = asyncio.Event()
+        self._stop = asyncio.Event()
+        self._ready = asyncio.Event()
+        self._down = asyncio.Event()
+        self._down.set()
+        self._changed = asyncio.Event()  # pulsed on every answer and status report
+        self._attempt_failed: asyncio.Future[str] | None = None
+        self._log = log.bind(machine=config.id)
+
+    # -- lifecycle ---------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Own this machine's connection until cancelled."""
+        if self.config.auto_connect:
+            self._want.set()
+        failures = 0
+        while True:
+            await self._want.wait()
+            if not self.config.auto_connect:
+                self._want.clear()  # this request is being served; a later one sets it again
+            reason, was_ready = await self._session()
+            self._publish_link(False, reason)
+            if self._stop.is_set():  # a disconnect was asked for
+                self._stop.clear()
+                continue
+            failures = 0 if was_ready else failures + 1
+            if self._restarting():
+                # The board is rebooting: its device comes back in a moment.
+                self._want.set()
+                await asyncio.sleep(RECONNECT_BACKOFF[0])
+            elif self._want.is_set():
+                await asyncio.sleep(RECONNECT_BACKOFF[min(failures, len(RECONNECT_BACKOFF) - 1)])
+
+    def _restarting(self) -> bool:
+        deadline = self._restart_deadline
+        if deadline is not None and time.monotonic() >= deadline:
+            self._restart_deadline = deadline = None
+        return deadline is not None
+
+    async def connect(self) -> None:
+        """Open the link and handshake; NotConnected with the reason if that fails."""
+        if self.ready:
+            return
+        failed = self._attempt_failed
+        if failed is None or failed.done():
+            failed = self._attempt_failed = asyncio.get_running_loop().create_future()
+        self._want.set()
+        ready = asyncio.ensure_future(self._ready.wait())
+        waiting: list[asyncio.Future[Any]] = [ready, failed]
+        try:
+            await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            ready.cancel()
+        if not self.ready:
+            reason = failed.result() if failed.done() else "not connected"
+            raise NotConnected(f"{self.id}: {reason}")
+
+    @property
+    def ready(self) -> bool:
+        return self.link_state is LinkState.READY
+
+    async def disconnect(self) -> None:
+        self._want.clear()
+        if self.link_state is not LinkState.DOWN:
+            self._stop.set()
+            await self._down.wait()
+
+    async def _session(self) -> tuple[str, bool]:
+        """One connection, from opening to teardown. Never raises but for cancellation."""
+        self.link_state = LinkState.OPENING
+        self._down.clear()
+        was_ready = False
+        reason = "closed"
+        try:
+            data, control = await self._port_paths()
+            self.link = await Link.open(data, control, self.config.baudrate)
+        except LinkError as exc:
+            self._end_attempt(str(exc))
+            self._teardown(str(exc))
+            return str(exc), False
+        try:
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(self._read_loop(self.link))
+                await self._handshake()
+                was_ready = True
+                self._set_ready()
+                tg.create_task(self._poll_loop())
+                await self._stop.wait()
+                raise _SessionEnd("disconnected")
+        except* _SessionEnd as group:
+            reason = str(group.exceptions[0])
+        except* NotConnected as group:
+            reason = group.exceptions[0].message
+        except* Exception as group:
+            self._log.error("engine failure", exc_info=group.exceptions[0])
+            reason = f"internal error: {group.exceptions[0]!r}"
+        finally:
+            link, self.link = self.link, None
+            self._end_attempt(reason)
+            self._teardown(reason)
+            await link.close()
+        return reason, was_ready
+
+    async def _port_paths(self) -> tuple[str, str | None]:
+        if self._ports is not None:
+            return await self._ports()
+        return self.config.data_port, self.config.control_port
+
+    def _set_ready(self) -> None:
+        self._restart_deadline = None
+        self.link_state = LinkState.READY
+        self.last_error = None
+        self._ready.set()
+        self._publish_link(True, "ready")
+        self._log.info("machine ready", state=self.model.state)
+
+    def _end_attempt(self, reason: str) -> None:
+        self.last_error = reason
+        if self._attempt_failed is not None and not self._attempt_failed.done():
+            self._attempt_failed.set_result(reason)
+
+    def _teardown(self, reason: str) -> None:
+        """The link is gone: settle every line and request it carried."""
+        restarted = self._restart_deadline is not None
+        self.link_state = LinkState.DOWN
+        self._ready.clear()
+        if self._flush is not None:
+            self._flush.timer.cancel()
+            self._flush = None
+        for entry in self.sender.clear():
+            self._settle_unanswered(entry, NotConnected(f"link lost: {reason}"))
+        while self._outbox:
+            self._fail(self._outbox.popleft().future, NotConnected(f"link lost: {reason}"))
+        if self.stream is not None and not self.stream.done:
+            if restarted:
+                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            else:
+                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+        self._await_report = self._hold_requested = self._awaiting_rest = False
+        self._settings_pending = False
+        self.model.reset()
+        self._down.set()
+        self._changed.set()
+        self._log.info("link down", reason=reason)
+
+    # -- reading -----------------------------------------------------------
+
+    async def _read_loop(self, link: Link) -> None:
+        while True:
+            for event in await link.read():
+                if not isinstance(event, LineReceived):
+                    raise _SessionEnd(event.reason)
+                self._last_rx = event.at
+                self._receive(event.channel, event.line)
+            self._pump()
+
+    def _receive(self, channel: Channel, line: bytes) -> None:
+        msg = parse_line(line)
+        if self.hub.active:
+            self._publish_console("rx", channel, line)
+        if isinstance(msg, Response):
+            self._on_response(msg)
+        elif isinstance(msg, StatusReport):
+            self._on_status(msg.fields)
+        elif isinstance(msg, ExceptionReport):
+            self._on_exception(msg)
+        elif isinstance(msg, Banner):
+            self._on_banner(msg)
+        elif isinstance(msg, Unparseable):
+            self._log.warning("unparseable controller output", reason=msg.reason, raw=msg.raw)
+        else:
+            self._log.debug("controller said", message=_kind(msg))
+        self._changed.set()
+
+    def _on_response(self, response: Response) -> None:
+        try:
+            entry = self.sender.answered(response)
+        except SenderError:
+            self._log.warning("answer with no line waiting", raw=response.raw)
+            return
+        report = response.status_report
+        if report is not None:
+            self._on_status(report)
+        source = entry.source
+        if isinstance(source, JobStream):
+            self._on_job_answer(source, entry, response)
+        elif not source.done():
+            source.set_result(response)
+
+    def _on_job_answer(self, stream: JobStream, entry: InFlight, response: Response) -> None:
+        if response.ok:
+            stream.acknowledged(entry.file_line)
+            self._check_stream_complete()
+            return
+        stream.rejected += 1
+        if stream.done:
+            return  # already ended (an alarm, a cancel): this answer is accounted, no more
+        status = response.status
+        text = message(status)
+        if status in (204, 205, 206):
+            stream.finish(StreamEnd.FAILED, status, text)
+        else:
+            stream.finish(
+                StreamEnd.FAILED,
+                ControllerError.code,
+                f"line {entry.file_line}: controller answered {status}: {text}",
+            )
+            # Lines already sent behind the bad one must not run: kill the job on the board.
+            self._write_realtime(Realtime.JOB_KILL)
+
+    def _on_status(self, fields: dict[str, Any]) -> None:
+        changed = self.model.apply_status(fields)
+        if "stat" in fields:
+            self._await_report = False
+            self._confirm_flush()
+            if self._awaiting_rest:
+                self._check_stream_complete()
+        if changed is not None:
+            self._on_state(changed)
+        if self.hub.active:
+            self.hub.publish(StatusChanged(self.id, fields, self.model.snapshot()))
+
+    def _on_exception(self, report: ExceptionReport) -> None:
+        self.model.apply_exception(report)
+        self._log.warning("controller exception", status=report.status, msg=report.message)
+        if self.hub.active:
+            self.hub.publish(ExceptionRaised(self.id, report.fields))
+        lockout = _LOCKOUT_BY_STATUS.get(report.status or -1)
+        if lockout is not None:
+            self.model.state = lockout
+            self._on_state(lockout)
+        elif report.status == Status.KILL_JOB and self._flush is not None:
+            self._confirm_flush(kill_seen=True)
+        else:
+            self._await_report = True
+            self._query_status()
+
+    def _on_banner(self, banner: Banner) -> None:
+        if self._banner is not None and not self._banner.done():
+            self._banner.set_result(banner)
+            return
+        # SYSTEM READY mid-session: the board restarted under us.
+        raise _SessionEnd("controller restarted (unexpected SYSTEM READY)")
+
+    def _on_state(self, state: MachineState) -> None:
+        self._log.info("controller state", state=state.name)
+        if state not in _MOVING and state is not MachineState.HOLD:
+            self._hold_requested = False
+        if not state.is_lockout:
+            if self._settings_pending and self.link_state is LinkState.READY:
+                self._reapply_settings()
+            return
+        refusal = admit(CommandClass.ACTION, state)
+        assert refusal is not None
+        text = self.model.last_exception_message() or message(refusal)
+        if self.stream is not None and not self.stream.done:
+            # Drain: the job's remaining lines are dropped on the host at once.
+            self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+        kept: deque[_Queued] = deque()
+        for queued in self._outbox:
+            verdict = admit(queued.cls, state)
+            if verdict is None:
+                kept.append(queued)
+            else:
+                self._fail(queued.future, Rejected(verdict, self._locked_message()))
+        self._outbox = kept
+
+    # -- writing -----------------------------------------------------------
+
+    def _pump(self) -> None:
+        """Fill the window: client lines first, then the job's lines."""
+        if self.link is None or self.link_state is not LinkState.READY or self._flush is not None:
+            return
+        state = self.model.state
+        while self.sender.has_room:
+            if self._outbox:
+                queued = self._outbox.popleft()
+                verdict = admit(queued.cls, state)
+                if verdict is not None:
+                    self._fail(queued.future, Rejected(verdict, self._locked_message()))
+                elif not self._write(queued.encoded, queued.future, Channel.DATA):
+                    self._fail(queued.future, NotConnected(f"{self.id}: link lost"))
+                continue
+            stream = self.stream
+            if (
+                stream is None
+                or stream.done
+                or self._await_report
+                or (state is not None and state.is_lockout)
+            ):
+                return
+            nxt = stream.peek()
+            if nxt is None:
+                self._check_stream_complete()
+                return
+            number, encoded = nxt
+            if not self._write(encoded, stream, Channel.DATA, file_line=number):
+                return
+            stream.take()
+
+    def _write(
+        self,
+        encoded: bytes,
+        source: Source,
+        channel: Channel,
+        *,
+        file_line: int | None = None,
+        urgent: bool = False,
+    ) -> bool:
+        link = self.link
+        if link is None:
+            return False
+        written = (
+            link.write_line(encoded) if channel is Channel.DATA else link.write_control(encoded)
+        )
+        if not written:
+            return False
+        self.sender.sent(InFlight(encoded, source, file_line), urgent=urgent)
+        if self.hub.active:
+            self._publish_console("tx", channel if link.dual else Channel.DATA, encoded)
+        return True
+
+    def _write_realtime(self, command: Realtime) -> None:
+        link = self.link
+        if link is None or not link.write_control(encode_realtime(command)):
+            raise NotConnected(f"{self.id}: not connected")
+        if self.hub.active:
+            channel = Channel.CONTROL if link.dual else Channel.DATA
+            self._publish_console("tx", channel, encode_realtime(command))
+        state = self.model.state
+        if command is Realtime.FEEDHOLD:
+            self._hold_requested = state in _MOVING or state is MachineState.HOLD
+        elif command is Realtime.CYCLE_START:
+            self._hold_requested = False
+        elif command is Realtime.QUEUE_FLUSH:
+            # Honoured only in a hold, or right after `!` while moving.
+            if state is MachineState.HOLD or self._hold_requested:
+                self._begin_flush(command)
+        elif command is Realtime.JOB_KILL and not (state is not None and state.is_lockout):
+            self._begin_flush(command)
+
+    def _query_status(self) -> asyncio.Future[Response]:
+        """Ask for a full status report, ahead of anything queued."""
+        future = _future()
+        if not self._write(encode_get("sr"), future, Channel.CONTROL, urgent=True):
+            future.set_exception(NotConnected(f"{self.id}: not connected"))
+        return future
+
+    # -- flushes -----------------------------------------------------------
+
+    def _begin_flush(self, kind: Realtime) -> None:
+        if self._flush is not None:
+            self._flush.timer.cancel()
+        timer = asyncio.get_running_loop().call_later(
+            FLUSH_CONFIRM_TIMEOUT, self._flush_unconfirmed
+        )
+        self._flush = _Flush(kind, timer)
+        if self.stream is not None and not self.stream.done:
+            reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
+            self.stream.finish(StreamEnd.CANCELLED, None, reason)
+
+    def _confirm_flush(self, *, kill_seen: bool = False) -> None:
+        flush = self._flush
+        if flush is None:
+            return
+        if not kill_seen and self.model.state not in (
+            MachineState.PROGRAM_STOP,
+            MachineState.PROGRAM_END,
+        ):
+            return
+        flush.timer.cancel()
+        self._flush = None
+        for entry in self.sender.dropped():
+            self._settle_unanswered(entry, _discarded(flush.kind))
+        self._pump()
+
+    def _flush_unconfirmed(self) -> None:
+        """The board did not flush (not in a hold): its lines will be answered as usual."""
+        self._log.warning("flush not confirmed by the controller")
+        self._flush = None
+        self._pump()
+
+    def _settle_unanswered(self, entry: InFlight, error: MachineError) -> None:
+        source = entry.source
+        if isinstance(source, JobStream):
+            source.discarded += 1
+        else:
+            self._fail(source, error)
+
+    # -- stream completion -------------------------------------------------
+
+    def _check_stream_complete(self) -> None:
+        """{r} means queued, not run: a job is done when all is answered and the board rests."""
+        stream = self.stream
+        if stream is None or stream.done or not stream.exhausted:
+            return
+        if stream.acked < stream.sent:
+            return
+        if not self._awaiting_rest:
+            self._awaiting_rest = True
+            self._query_status()  # its answer, or any later report, tells whether it rests
+            return
+        if self.model.state in (MachineState.PROGRAM_STOP, MachineState.PROGRAM_END):
+            self._awaiting_rest = False
+            stream.finish(StreamEnd.COMPLETED)
+
+    # -- the handshake -----------------------------------------------------
+
+    async def _handshake(self) -> None:
+        self.link_state = LinkState.HANDSHAKE
+        self._banner = asyncio.get_running_loop().create_future()
+        timeout = self.config.handshake_timeout
+        banner: Banner | None = None
+        try:
+            async with asyncio.timeout(timeout):
+                banner = await self._banner
+                if banner.is_tinyg:
+                    raise NotConnected(
+                        f"TinyG firmware (build {banner.fb}) is not supported: "
+                        "its status codes differ from g2core's"
+                    )
+                for setting in self._settings():
+                    response = await self._ask(encode_set(setting))
+                    if response.status in _LOCKOUT_REJECTIONS:
+                        # A board in ALARM refuses every SET: sent again once it is cleared.
+                        self._settings_pending = True
+                    elif not response.ok:
+                        raise NotConnected(
+                            f"controller refused {setting}: {response.status} "
+                            f"({message(response.status)})"
+                        )
+                await self._ask(encode_get("sr"))
+        except TimeoutError:
+            step = "SYSTEM READY banner" if banner is None else "answer to its settings"
+            raise NotConnected(f"no {step} from the controller within {timeout:g} s") from None
+        finally:
+            self._banner = None
+
+    def _settings(self) -> list[dict[str, Any]]:
+        return [
+            {"ej": 1},
+            {"jv": 4},
+            {"sv": 1},
+            {"qv": 0},
+            {"si": round(self.config.status_interval * 1000)},
+            {"sr": dict.fromkeys(STATUS_KEYS, True)},
+        ]
+
+    def _reapply_settings(self) -> None:
+        self._settings_pending = False
+        for setting in self._settings():
+            future = _future()
+            future.add_done_callback(partial(self._setting_answered, setting))
+            if not self._write(encode_set(setting), future, Channel.CONTROL, urgent=True):
+                return
+
+    def _setting_answered(self, setting: dict[str, Any], future: asyncio.Future[Response]) -> None:
+        if future.cancelled() or future.exception() is not None:
+            return
+        if not future.result().ok:
+            self._log.error("controller refused a setting", setting=setting)
+
+    async def _ask(self, encoded: bytes) -> Response:
+        """A daemon line outside any job, answered before the next is sent."""
+        future = _future()
+        if not self._write(encoded, future, Channel.CONTROL, urgent=True):
+            raise NotConnected(f"{self.id}: link lost")
+        return await future
+
+    # -- the poller --------------------------------------------------------
+
+    async def _poll_loop(self) -> None:
+        """A silent board is asked for a report; one that stays silent is gone."""
+        heartbeat = self.config.heartbeat
+        while True:
+            quiet_until = self._last_rx + heartbeat
+            now = time.monotonic()
+            if now < quiet_until:
+                await asyncio.sleep(quiet_until - now)
+                continue
+            probe = self._query_status()
+            try:
+                async with asyncio.timeout(heartbeat):
+                    await asyncio.shield(probe)
+            except TimeoutError:
+                raise _SessionEnd(
+                    f"controller silent for {2 * heartbeat:g} s (no answer to a status request)"
+                ) from None
+
+    # -- requests ----------------------------------------------------------
+
+    def _require_ready(self) -> None:
+        if self.link_state is not LinkState.READY:
+            raise NotConnected(f"{self.id} is not connected")
+
+    async def send(self, line: str, timeout: float = 10.0) -> Response:
+        """One line from a client, answered by the board (ControllerError for a non-zero status)."""
+        self._require_ready()
+        validate_line(line)
+        cls = classify(line)
+        text = line.strip()
+        state = self.model.state
+        verdict = admit(cls, state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        holding = state is MachineState.HOLD
+        moves = cls in (CommandClass.ACTION, CommandClass.PROGRAM_END)
+        if moves and self._job_running() and not holding:
+            raise Busy(f"{self.id} is running a job")
+        future = _future()
+        if cls is CommandClass.QUERY:
+            # As a JSON GET it is run on arrival: it never waits behind queued G-code.
+            if not self._write(_as_json_query(text), future, Channel.CONTROL, urgent=True):
+                raise NotConnected(f"{self.id}: link lost")
+        else:
+            encoded = encode_in_hold(text) if holding and _is_gcode(text) else encode_line(text)
+            queued = _Queued(encoded, cls, future)
+            self._outbox.append(queued)
+            self._pump()
+        return await self._answer(future, timeout)
+
+    async def _answer(self, future: asyncio.Future[Response], timeout: float) -> Response:
+        try:
+            async with asyncio.timeout(timeout):
+                response = await asyncio.shield(future)
+        except TimeoutError:
+            self._outbox = deque(q for q in self._outbox if q.future is not future)
+            future.cancel()
+            raise ControllerTimeout(f"no answer from {self.id} within {timeout:g} s") from None
+        if not response.ok:
+            raise ControllerError(response.status, message(response.status))
+        return response
+
+    def realtime(self, command: Realtime) -> None:
+        """Write a realtime byte now (it never waits), if the state admits it."""
+        if self.link is None or self.link_state is LinkState.DOWN:
+            raise NotConnected(f"{self.id} is not connected")
+        state = self.model.state
+        verdict = admit(classify_realtime(command), state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        self._write_realtime(command)
+
+    async def clear(self, timeout: float = 5.0) -> None:
+        """Leave ALARM or SHUTDOWN with `{clear:n}`; PANIC is refused; otherwise a no-op."""
+        self._require_ready()
+        state = self.model.state
+        if state is MachineState.PANIC:
+            raise Rejected(Status.COMMAND_REJECTED_BY_PANIC, "PANIC is left only by a reset")
+        if state not in (MachineState.ALARM, MachineState.SHUTDOWN):
+            return
+        try:
+            async with asyncio.timeout(timeout):
+                await self.wait_for(self._no_data_in_flight)
+        except TimeoutError:
+            raise ControllerTimeout(
+                f"{self.id}: lines still unanswered in the controller; not clearing"
+            ) from None
+        future = _future()
+        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, future))
+        self._pump()
+        await self._answer(future, timeout)
+        try:
+            async with asyncio.timeout(timeout):
+                await self.wait_for(lambda: not _locked(self.model.state))
+        except TimeoutError:
+            raise ControllerTimeout(f"{self.id} did not leave {state.name}") from None
+
+    async def reset(self, timeout: float = 10.0) -> None:
+        """0x18: the board reboots; reconnect, handshake again, and return once ready."""
+        if self.link is None:
+            raise NotConnected(f"{self.id} is not connected")
+        self._restart_deadline = time.monotonic() + timeout
+        self._ready.clear()
+        self._write_realtime(Realtime.RESET)
+        try:
+            async with asyncio.timeout(timeout):
+                await self._down.wait()
+                await self._ready.wait()
+        except TimeoutError:
+            raise ControllerTimeout(f"{self.id} did not come back after reset") from None
+
+    def start_stream(self, stream: JobStream) -> None:
+        self._require_ready()
+        if self._job_running():
+            raise Busy(f"{self.id} is running a job")
+        state = self.model.state
+        verdict = admit(CommandClass.ACTION, state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        self.stream = stream
+        self._awaiting_rest = False
+        self._pump()
+
+    def _job_running(self) -> bool:
+        return self.stream is not None and not self.stream.done
+
+    def _no_data_in_flight(self) -> bool:
+        return not any(not e.control for e in self.sender.pending())
+
+    async def wait_for(self, predicate: Callable[[], bool]) -> None:
+        """Until the predicate holds, re-checked after every answer and report.
+
+        NotConnected if the link goes down first.
+        """
+        while not predicate():
+            if self.link_state is LinkState.DOWN:
+                raise NotConnected(f"{self.id}: link lost")
+            self._changed.clear()
+            await self._changed.wait()
+
+    # -- helpers -------------------------------------------------------------
+
+    def _locked_message(self) -> str:
+        state = self.model.state
+        name = state.name if state is not None else "an unknown state"
+        detail = self.model.last_exception_message()
+        return f"{self.id} is in {name}" + (f": {detail}" if detail else "")
+
+    def _fail(self, future: asyncio.Future[Response], error: MachineError) -> None:
+        if not future.done():
+            future.set_exception(error)
+
+    def _publish_console(self, direction: str, channel: Channel, line: bytes) -> None:
+        text = line.rstrip(b"\n").decode("utf-8", "backslashreplace")
+        self.hub.publish(Console(self.id, direction, str(channel), text))
+
+    def _publish_link(self, up: bool, reason: str) -> None:
+        if self.hub.active:
+            self.hub.publish(LinkChanged(self.id, up, reason))
+
+
+def _future() -> asyncio.Future[Response]:
+    """A future for an answer. Its outcome counts as seen even if its asker is gone."""
+    future: asyncio.Future[Response] = asyncio.get_running_loop().create_future()
+    future.add_done_callback(_seen)
+    return future
+
+
+def _seen(future: asyncio.Future[Response]) -> None:
+    if not future.cancelled():
+        future.exception()
+
+
+def _discarded(kind: Realtime) -> MachineError:
+    status = Status.KILL_JOB if kind is Realtime.JOB_KILL else Status.NOOP
+    what = "job kill" if kind is Realtime.JOB_KILL else "queue flush"
+    return ControllerError(int(status), f"discarded by the controller's {what} before it ran")
+
+
+def _locked(state: MachineState | None) -> bool:
+    return state is not None and state.is_lockout
+
+
+def _is_gcode(text: str) -> bool:
+    return not text.startswith(("{", "$", "?"))
+
+
+def _as_json_query(text: str) -> bytes:
+    """Every query as a strict JSON GET, which the board runs at once on any port."""
+    if text == "?":
+        return encode_get("sr")
+    if text.startswith("$"):
+        return encode_get(text[1:].strip().lower())
+    obj = parse_relaxed(text)
+    return encode_get(*obj) if obj else encode_line(text)
+
+
+def _kind(msg: Message) -> str:
+    return type(msg).__name__

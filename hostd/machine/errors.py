@@ -1,0 +1,48 @@
+"""Errors a machine request can end in, each with its api.md error code."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class MachineError(Exception):
+    """A request could not be done; `code` and `data` go to the client as they are."""
+
+    code = 1000
+
+    def __init__(self, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.data = data
+
+
+class Rejected(MachineError):
+    """Refused by the command class table: the controller is in ALARM, SHUTDOWN or PANIC."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.code = status  # 204, 205 or 206
+
+
+class NotConnected(MachineError):
+    code = 1002
+
+
+class Busy(MachineError):
+    code = 1003
+
+
+class ControllerError(MachineError):
+    """The controller answered with a non-zero status."""
+
+    code = 1005
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(
+            f"controller answered {status}: {message}", {"status": status, "msg": message}
+        )
+        self.status = status
+
+
+class ControllerTimeout(MachineError):
+    code = 1006

@@ -1,0 +1,72 @@
+"""What a machine publishes, and the hub that hands it to subscribers.
+
+Publishing is synchronous and must stay cheap: a subscriber's callback only
+queues (the API's per-client queues are bounded; what happens at the bound
+is theirs to decide). A failing callback is logged and dropped, never
+allowed to break the machine that published.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import structlog
+
+from hostd.protocol.messages import JsonObject
+
+log = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class StatusChanged:
+    machine: str
+    report: JsonObject
+    snapshot: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class ExceptionRaised:
+    machine: str
+    report: JsonObject
+
+
+@dataclass(frozen=True, slots=True)
+class Console:
+    machine: str
+    direction: str  # "tx" | "rx"
+    channel: str  # "data" | "control"
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class LinkChanged:
+    machine: str
+    up: bool
+    reason: str
+
+
+Event = StatusChanged | ExceptionRaised | Console | LinkChanged
+Listener = Callable[[Event], None]
+
+
+class Hub:
+    def __init__(self) -> None:
+        self._listeners: list[Listener] = []
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener)
+
+    @property
+    def active(self) -> bool:
+        return bool(self._listeners)
+
+    def publish(self, event: Event) -> None:
+        for listener in list(self._listeners):
+            try:
+                listener(event)
+            except Exception:
+                log.exception("listener failed; removed", event=type(event).__name__)
+                self._listeners.remove(listener)

@@ -1,0 +1,82 @@
+"""A job's lines on their way to the board, and how the job ended.
+
+The engine pulls lines with `peek`/`take` only when the window has room, so
+the source (a file, streamed) is read no faster than the board takes it.
+Counts only move forward: `sent` when a line is written, `acked` when the
+board answers it with status 0. Every sent line ends in exactly one of
+`acked`, `rejected`, `discarded`, or is still unanswered when the link is
+lost. The outcome is set once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from dataclasses import dataclass
+from enum import StrEnum
+
+from hostd.protocol.commands import InvalidCommand, encode_line
+
+
+class StreamEnd(StrEnum):
+    COMPLETED = "completed"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+    INTERRUPTED = "interrupted"
+
+
+@dataclass(frozen=True, slots=True)
+class StreamResult:
+    end: StreamEnd
+    code: int | None = None
+    message: str | None = None
+
+
+class JobStream:
+    def __init__(self, lines: Iterator[tuple[int, str]]) -> None:
+        self._lines = lines
+        self._next: tuple[int, bytes] | None = None
+        self.exhausted = False
+        self.sent = 0
+        self.acked = 0  # answered with status 0
+        self.rejected = 0  # answered with a non-zero status
+        self.discarded = 0  # dropped unanswered by the board's flush or kill
+        self.last_acked_line: int | None = None
+        self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
+
+    @property
+    def done(self) -> bool:
+        return self.result.done()
+
+    def peek(self) -> tuple[int, bytes] | None:
+        """The next line to write (file line number, encoded), or None when there is none.
+
+        A line the board must never receive ends the stream as failed, unsent.
+        """
+        if self._next is None and not self.exhausted and not self.done:
+            try:
+                number, text = next(self._lines)
+            except StopIteration:
+                self.exhausted = True
+                return None
+            try:
+                self._next = (number, encode_line(text))
+            except InvalidCommand as exc:
+                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {exc.message}")
+                return None
+        return self._next
+
+    def take(self) -> None:
+        """The peeked line was written."""
+        assert self._next is not None
+        self._next = None
+        self.sent += 1
+
+    def acknowledged(self, file_line: int | None) -> None:
+        self.acked += 1
+        self.last_acked_line = file_line
+
+    def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
+        if not self.done:
+            self._next = None
+            self.result.set_result(StreamResult(end, code, message))

@@ -1,0 +1,131 @@
+"""An engine connected to the simulated board over a real pseudo-terminal pair."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest_asyncio
+
+from hostd.config import MachineConfig
+from hostd.machine.engine import Engine
+from hostd.machine.events import Console, Event, ExceptionRaised, Hub, StatusChanged
+from hostd.machine.stream import JobStream
+from hostd.protocol.program import program_lines
+from hostd.sim import SimConfig, SimController
+
+FAST = SimConfig(speed_factor=50.0, status_interval=0.02, feedhold_decel=0.02, boot_time=0.02)
+
+
+@dataclass
+class Recorder:
+    """Every event the engine published, in order."""
+
+    events: list[Event] = field(default_factory=list)
+    _arrived: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def __call__(self, event: Event) -> None:
+        self.events.append(event)
+        self._arrived.set()
+
+    async def wait_for(self, predicate: Callable[[Event], bool]) -> Event:
+        """The first event, past or future, that satisfies the predicate."""
+        seen = 0
+        async with asyncio.timeout(5):
+            while True:
+                for event in self.events[seen:]:
+                    if predicate(event):
+                        return event
+                seen = len(self.events)
+                self._arrived.clear()
+                await self._arrived.wait()
+
+    def tx(self) -> list[str]:
+        return [e.text for e in self.events if isinstance(e, Console) and e.direction == "tx"]
+
+    def index_of(self, predicate: Callable[[Event], bool]) -> int:
+        return next(i for i, e in enumerate(self.events) if predicate(e))
+
+    def lockout_read_at(self) -> int:
+        """Where the engine first read that the board locked out."""
+
+        def locked(e: Event) -> bool:
+            if isinstance(e, ExceptionRaised):
+                return True
+            return isinstance(e, StatusChanged) and e.report.get("stat") in (2, 12, 13)
+
+        return self.index_of(locked)
+
+    def max_in_flight(self) -> int:
+        """Unanswered lines at the worst moment, counted from the engine's own traffic."""
+        out = worst = 0
+        for e in self.events:
+            if not isinstance(e, Console):
+                continue
+            if e.direction == "tx" and len(e.text) > 1:  # realtime bytes take no slot
+                out += 1
+                worst = max(worst, out)
+            elif (
+                e.direction == "rx"
+                and e.text.startswith('{"r":')
+                and '"SYSTEM READY"' not in e.text
+            ):
+                out -= 1
+        return worst
+
+
+@dataclass
+class Rig:
+    sim: SimController
+    engine: Engine
+    recorder: Recorder
+
+    def job(self, lines: Iterable[str]) -> JobStream:
+        stream = JobStream(program_lines(lines))
+        self.engine.start_stream(stream)
+        return stream
+
+    def received_lines(self) -> list[bytes]:
+        return [r.data for r in self.sim.received if r.kind == "line"]
+
+
+@contextlib.asynccontextmanager
+async def running(engine: Engine) -> AsyncIterator[asyncio.Task[None]]:
+    task = asyncio.create_task(engine.serve())
+    try:
+        yield task
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+def machine_config(path: str, control: str | None = None, **overrides: object) -> MachineConfig:
+    values: dict[str, object] = {
+        "id": "m1",
+        "data_port": path,
+        "control_port": control,
+        "window": 4,
+        "auto_connect": False,
+        "heartbeat": 1.0,
+        "handshake_timeout": 2.0,
+        "status_interval": 0.1,
+    }
+    values.update(overrides)
+    return MachineConfig.model_validate(values)
+
+
+@pytest_asyncio.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=FAST) as sim:
+        hub = Hub()
+        recorder = Recorder()
+        hub.subscribe(recorder)
+        engine = Engine(machine_config(path), hub)
+        async with running(engine):
+            await engine.connect()
+            yield Rig(sim, engine, recorder)
