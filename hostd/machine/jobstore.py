@@ -1,0 +1,188 @@
+"""Job history in SQLite: one row per job, in `state_dir`, surviving any crash.
+
+The standard library's sqlite3, off the event loop (`asyncio.to_thread`),
+one connection behind a lock. WAL mode with synchronous=NORMAL: a committed
+row survives a killed daemon (the WAL is on disk; only a power cut may lose
+the last commits). Ids come from AUTOINCREMENT, so an id is never reused for
+the life of the state directory, even after rows are deleted.
+
+A row's `lines_acked` is written by the job runner as progress is made (see
+`hostd.machine.jobs` for how often); it is never more than the controller
+answered, because it is only ever copied from the engine's count.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+import threading
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel
+
+JobKind = Literal["make", "jog", "settings"]
+JobState = Literal["running", "paused", "completed", "failed", "cancelled", "interrupted"]
+ACTIVE_STATES = ("running", "paused")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    machine TEXT NOT NULL,
+    file TEXT,
+    kind TEXT NOT NULL,
+    state TEXT NOT NULL,
+    lines_total INTEGER,
+    lines_sent INTEGER NOT NULL DEFAULT 0,
+    lines_acked INTEGER NOT NULL DEFAULT 0,
+    started_at TEXT,
+    ended_at TEXT,
+    error_code INTEGER,
+    error_message TEXT
+);
+CREATE INDEX IF NOT EXISTS jobs_machine ON jobs (machine, id);
+"""
+_COLUMNS = (
+    "id, machine, file, kind, state, lines_total, lines_sent, lines_acked, "
+    "started_at, ended_at, error_code, error_message"
+)
+
+
+class JobError(BaseModel):
+    code: int
+    message: str
+
+
+class Job(BaseModel):
+    """The api.md job object."""
+
+    id: int
+    machine: str
+    file: str | None
+    kind: JobKind
+    state: JobState
+    lines_total: int | None
+    lines_sent: int
+    lines_acked: int
+    started_at: str | None
+    ended_at: str | None
+    error: JobError | None
+
+    @classmethod
+    def from_row(cls, row: tuple[Any, ...]) -> Job:
+        (id_, machine, file, kind, state, total, sent, acked, start, end, code, msg) = row
+        error = JobError(code=code, message=msg or "") if code is not None else None
+        return cls(
+            id=id_,
+            machine=machine,
+            file=file,
+            kind=kind,
+            state=state,
+            lines_total=total,
+            lines_sent=sent,
+            lines_acked=acked,
+            started_at=start,
+            ended_at=end,
+            error=error,
+        )
+
+
+def now() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class JobStore:
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        self._lock = threading.Lock()
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    # Each public coroutine runs its statement in a worker thread.
+
+    async def recover(self) -> list[Job]:
+        """Rows a dead daemon left running or paused become `interrupted`; returns them."""
+        return await asyncio.to_thread(self._recover)
+
+    async def create(
+        self, machine: str, kind: JobKind, file: str | None, lines_total: int | None
+    ) -> Job:
+        return await asyncio.to_thread(self._create, machine, kind, file, lines_total)
+
+    async def update(self, job_id: int, **fields: Any) -> Job:
+        return await asyncio.to_thread(self._update, job_id, fields)
+
+    async def get(self, job_id: int) -> Job | None:
+        return await asyncio.to_thread(self._get, job_id)
+
+    async def list_jobs(self, machine: str | None = None, limit: int = 50) -> list[Job]:
+        return await asyncio.to_thread(self._list, machine, limit)
+
+    # The blocking halves.
+
+    def _recover(self) -> list[Job]:
+        with self._lock:
+            rows = self._db.execute(
+                f"SELECT {_COLUMNS} FROM jobs WHERE state IN (?, ?)", ACTIVE_STATES
+            ).fetchall()
+            self._db.execute(
+                "UPDATE jobs SET state = 'interrupted', ended_at = ?, "
+                "error_code = COALESCE(error_code, 1002), "
+                "error_message = COALESCE(error_message, 'the daemon stopped during the job') "
+                "WHERE state IN (?, ?)",
+                (now(), *ACTIVE_STATES),
+            )
+        return [Job.from_row(r).model_copy(update={"state": "interrupted"}) for r in rows]
+
+    def _create(self, machine: str, kind: str, file: str | None, total: int | None) -> Job:
+        with self._lock:
+            cur = self._db.execute(
+                "INSERT INTO jobs (machine, file, kind, state, lines_total, started_at) "
+                "VALUES (?, ?, ?, 'running', ?, ?)",
+                (machine, file, kind, total, now()),
+            )
+            job_id = cur.lastrowid
+        job = self._get(int(job_id or 0))
+        assert job is not None
+        return job
+
+    def _update(self, job_id: int, fields: dict[str, Any]) -> Job:
+        error = fields.pop("error", None)
+        if isinstance(error, JobError):
+            fields["error_code"], fields["error_message"] = error.code, error.message
+        names = ", ".join(f"{name} = ?" for name in fields)
+        with self._lock:
+            if names:
+                self._db.execute(
+                    f"UPDATE jobs SET {names} WHERE id = ?", (*fields.values(), job_id)
+                )
+        job = self._get(job_id)
+        if job is None:
+            raise KeyError(job_id)
+        return job
+
+    def _get(self, job_id: int) -> Job | None:
+        with self._lock:
+            row = self._db.execute(
+                f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (job_id,)
+            ).fetchone()
+        return Job.from_row(row) if row else None
+
+    def _list(self, machine: str | None, limit: int) -> list[Job]:
+        query = f"SELECT {_COLUMNS} FROM jobs"
+        args: tuple[Any, ...] = ()
+        if machine is not None:
+            query += " WHERE machine = ?"
+            args = (machine,)
+        query += " ORDER BY id DESC LIMIT ?"
+        with self._lock:
+            rows = self._db.execute(query, (*args, limit)).fetchall()
+        return [Job.from_row(r) for r in rows]
