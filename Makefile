@@ -20,8 +20,8 @@ demo: $(STAMP)
 	$(BIN)/python -m hostd.demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check hostd tests bench
-	$(BIN)/ruff format --check hostd tests bench
+	$(BIN)/ruff check hostd tests $(wildcard bench)
+	$(BIN)/ruff format --check hostd tests $(wildcard bench)
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
