@@ -93,15 +93,6 @@ _LOCKOUT_REJECTIONS = frozenset(
         Status.COMMAND_REJECTED_BY_PANIC,
     }
 )
-_MOVING = frozenset(
-    {
-        MachineState.RUN,
-        MachineState.PROBE,
-        MachineState.CYCLE,
-        MachineState.HOMING,
-        MachineState.JOG,
-    }
-)
 
 
 class LinkState(StrEnum):
@@ -156,7 +147,6 @@ class Engine:
         self._outbox: deque[_Queued] = deque()
         self._flush: _Flush | None = None
         self._await_report = False  # an `er` came: job lines wait for a status report
-        self._hold_requested = False
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._settings_pending = False  # refused in a lockout: sent again when it ends
         self._restart_deadline: float | None = None  # a reset is under way until then
@@ -300,7 +290,7 @@ class Engine:
                 self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
             else:
                 self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
-        self._await_report = self._hold_requested = self._awaiting_rest = False
+        self._await_report = self._awaiting_rest = False
         self._settings_pending = False
         self.model.reset()
         self._down.set()
@@ -408,8 +398,6 @@ class Engine:
 
     def _on_state(self, state: MachineState) -> None:
         self._log.info("controller state", state=state.name)
-        if state not in _MOVING and state is not MachineState.HOLD:
-            self._hold_requested = False
         if not state.is_lockout:
             if self._settings_pending and self.link_state is LinkState.READY:
                 self._reapply_settings()
@@ -491,16 +479,10 @@ class Engine:
         if self.hub.active:
             channel = Channel.CONTROL if link.dual else Channel.DATA
             self._publish_console("tx", channel, encode_realtime(command))
-        state = self.model.state
-        if command is Realtime.FEEDHOLD:
-            self._hold_requested = state in _MOVING or state is MachineState.HOLD
-        elif command is Realtime.CYCLE_START:
-            self._hold_requested = False
-        elif command is Realtime.QUEUE_FLUSH:
-            # Honoured only in a hold, or right after `!` while moving.
-            if state is MachineState.HOLD or self._hold_requested:
-                self._begin_flush(command)
-        elif command is Realtime.JOB_KILL and not (state is not None and state.is_lockout):
+        if command in (Realtime.QUEUE_FLUSH, Realtime.JOB_KILL):
+            # Whether the board flushes depends on its state *now*, which the last
+            # report may not show yet: expect a flush, and let the confirmation
+            # (or its absence) decide what happened to the lines in flight.
             self._begin_flush(command)
 
     def _query_status(self) -> asyncio.Future[Response]:
@@ -761,6 +743,10 @@ class Engine:
 
     def _no_data_in_flight(self) -> bool:
         return not any(not e.control for e in self.sender.pending())
+
+    def quiet(self) -> bool:
+        """Nothing of the host's queued or unanswered, but for queries."""
+        return not self._outbox and self._no_data_in_flight() and not self._job_running()
 
     async def wait_for(self, predicate: Callable[[], bool]) -> None:
         """Until the predicate holds, re-checked after every answer and report.
