@@ -47,7 +47,21 @@ class LinkChanged:
     reason: str
 
 
-Event = StatusChanged | ExceptionRaised | Console | LinkChanged
+@dataclass(frozen=True, slots=True)
+class SupervisorChanged:
+    machine: str
+    source: str
+    target: str
+    event: str
+
+
+@dataclass(frozen=True, slots=True)
+class JobChanged:
+    machine: str
+    job: dict[str, Any]
+
+
+Event = StatusChanged | ExceptionRaised | Console | LinkChanged | SupervisorChanged | JobChanged
 Listener = Callable[[Event], None]
 
 
@@ -68,5 +82,5 @@ class Hub:
             try:
                 listener(event)
             except Exception:
-                log.exception("listener failed; removed", event=type(event).__name__)
+                log.exception("listener failed; removed", kind=type(event).__name__)
                 self._listeners.remove(listener)

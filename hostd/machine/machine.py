@@ -1,0 +1,374 @@
+"""One configured machine: its engine, its supervisor, its operations and their job rows.
+
+The supervisor follows the engine: the link coming up is `connect`, going
+down `disconnected` (or `disconnect` when asked for), and every status
+report settles busy against idle. Operations (`make`, `jog`, `settings`)
+start only from idle, each recorded as a job row; `make` streams a file
+from the jobs directory and is the only pausable one.
+
+Progress is persisted at most `PERSIST_EVERY` seconds or `PERSIST_LINES`
+answered lines apart, so a crash loses at most that much of a row's
+`lines_acked`; it is only ever copied from the engine's count of lines the
+controller answered, so it never claims more. `job` events are published
+on every state change and at most every `PUBLISH_EVERY` seconds while a
+job runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+import structlog
+
+from hostd.config import MachineConfig
+from hostd.machine.engine import Engine
+from hostd.machine.errors import Busy, MachineError
+from hostd.machine.events import (
+    Event,
+    Hub,
+    JobChanged,
+    LinkChanged,
+    StatusChanged,
+    SupervisorChanged,
+)
+from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, now
+from hostd.machine.stream import JobStream, StreamEnd, StreamResult
+from hostd.machine.supervisor import Event as SupEvent
+from hostd.machine.supervisor import Refused, Supervisor, Transition
+from hostd.machine.supervisor import State as SupState
+from hostd.protocol.commands import Realtime
+from hostd.protocol.program import program_lines
+
+log = structlog.get_logger(__name__)
+
+PERSIST_EVERY = 1.0
+PERSIST_LINES = 100
+PUBLISH_EVERY = 0.1
+_JOB_STATE = {
+    StreamEnd.COMPLETED: "completed",
+    StreamEnd.FAILED: "failed",
+    StreamEnd.CANCELLED: "cancelled",
+    StreamEnd.INTERRUPTED: "interrupted",
+}
+
+
+class NoSuchFile(MachineError):
+    code = 1004
+
+
+class Machine:
+    def __init__(
+        self,
+        config: MachineConfig,
+        store: JobStore,
+        jobs_dir: Path,
+        *,
+        hub: Hub | None = None,
+    ) -> None:
+        self.config = config
+        self.id = config.id
+        self.store = store
+        self.jobs_dir = jobs_dir
+        self.hub = hub or Hub()
+        self.engine = Engine(config, self.hub)
+        self.supervisor = Supervisor(self._on_transition)
+        self.job: Job | None = None  # the current or last operation's row
+        self._stream: JobStream | None = None
+        self._runners: set[asyncio.Task[None]] = set()
+        self._writes: set[asyncio.Task[Job]] = set()  # row updates not awaited by anyone
+        self._disconnect_asked = False
+        self.hub.subscribe(self._on_event)
+        self._log = log.bind(machine=self.id)
+
+    # -- lifecycle ---------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Run the engine and every operation's runner until cancelled."""
+        try:
+            await self.engine.serve()
+        finally:
+            for task in list(self._runners):
+                task.cancel()
+            pending = [*self._runners, *self._writes]
+            if pending:
+                await asyncio.gather(*pending, return_exceptions=True)
+
+    async def connect(self) -> None:
+        self._disconnect_asked = False
+        await self.engine.connect()
+
+    async def disconnect(self) -> None:
+        self._disconnect_asked = True
+        await self.engine.disconnect()
+
+    # -- the supervisor follows the engine --------------------------------
+
+    def _on_event(self, event: Event) -> None:
+        if isinstance(event, LinkChanged):
+            if event.up and self.supervisor.can(SupEvent.CONNECT):
+                self.supervisor.fire(SupEvent.CONNECT)
+            elif not event.up and self.supervisor.state is not SupState.DISCONNECTED:
+                asked = self._disconnect_asked
+                self.supervisor.fire(SupEvent.DISCONNECT if asked else SupEvent.DISCONNECTED)
+            self._settle()
+        elif isinstance(event, StatusChanged):
+            self._settle()
+
+    def _settle(self) -> None:
+        """Busy against idle, from what the board says and what the host has queued."""
+        state = self.engine.model.state
+        resting = (
+            self.engine.ready and state is not None and state.is_resting and self.engine.quiet()
+        )
+        if self.supervisor.state is SupState.BUSY and resting:
+            self.supervisor.fire(SupEvent.WENT_IDLE)
+        elif self.supervisor.state is SupState.IDLE and not resting:
+            self.supervisor.fire(SupEvent.WENT_BUSY)
+
+    def _on_transition(self, t: Transition) -> None:
+        self._log.info("supervisor", source=t.source.value, target=t.target.value, on=t.event.value)
+        self.hub.publish(SupervisorChanged(self.id, t.source.value, t.target.value, t.event.value))
+
+    # -- operations ----------------------------------------------------------
+
+    async def start_make(self, file: str, start_line: int = 1) -> Job:
+        """Stream a file of the jobs directory (its name is checked by the API layer)."""
+        path = self.jobs_dir / file
+        if not await asyncio.to_thread(path.is_file):
+            raise NoSuchFile(f"no file {file!r} in the jobs directory")
+        total = await asyncio.to_thread(_count_lines, path, start_line)
+        handle = path.open(encoding="utf-8", errors="replace")
+        try:
+            return await self._start("make", file, total, program_lines(handle, start_line), handle)
+        except BaseException:
+            handle.close()
+            raise
+
+    async def jog(self, axes: dict[str, float], feed: float) -> Job:
+        words = " ".join(f"{axis.upper()}{distance:.4f}" for axis, distance in axes.items())
+        lines = [f"G91 G1 {words} F{feed:g}", "G90"]
+        return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
+
+    async def settings(self, lines: list[str]) -> tuple[Job, list[dict[str, Any]]]:
+        """A batch of settings lines run as one operation; the bodies the board answered."""
+        job = await self._begin("settings", None, len(lines))
+        bodies: list[dict[str, Any]] = []
+        error: MachineError | None = None
+        try:
+            for line in lines:
+                response = await self.engine.send(line)
+                bodies.append(response.body)
+                job = await self._progress(job, sent=len(bodies), acked=len(bodies))
+        except MachineError as exc:
+            error = exc
+        finally:
+            end = StreamEnd.COMPLETED if error is None else StreamEnd.FAILED
+            code = None if error is None else error.code
+            await self._end(job, StreamResult(end, code, None if error is None else error.message))
+        if error is not None:
+            raise error
+        return job, bodies
+
+    async def _start(
+        self,
+        kind: JobKind,
+        file: str | None,
+        total: int | None,
+        lines: Iterator[tuple[int, str]],
+        handle: TextIO | None,
+    ) -> Job:
+        job = await self._begin(kind, file, total)
+        stream = JobStream(lines)
+        try:
+            self.engine.start_stream(stream)
+        except MachineError as exc:
+            await self._end(job, StreamResult(StreamEnd.FAILED, exc.code, exc.message))
+            raise
+        self._stream = stream
+        runner = asyncio.create_task(self._run(job, stream, handle), name=f"job-{job.id}")
+        self._runners.add(runner)
+        runner.add_done_callback(self._runners.discard)
+        return job
+
+    async def _begin(self, kind: JobKind, file: str | None, total: int | None) -> Job:
+        """Take the supervisor to `operation` first, then write the row: never half-applied."""
+        self.supervisor.fire(SupEvent.START_OPERATION)  # Refused (1003) unless idle
+        try:
+            job = await self.store.create(self.id, kind, file, total)
+        except BaseException:
+            self._operation_stopped()
+            raise
+        self.job = job
+        self._publish_job(job)
+        return job
+
+    async def _run(self, job: Job, stream: JobStream, handle: TextIO | None) -> None:
+        """Follow a streaming operation to its end, persisting and publishing progress."""
+        persisted_at = published_at = time.monotonic()
+        persisted = (0, 0)
+        try:
+            while not stream.done:
+                await asyncio.wait({stream.result}, timeout=PUBLISH_EVERY)
+                counts = (stream.sent, stream.acked)
+                if counts == persisted:
+                    continue
+                clock = time.monotonic()
+                due = clock - persisted_at >= PERSIST_EVERY
+                if due or stream.acked - persisted[1] >= PERSIST_LINES:
+                    job = await self._progress(job, sent=counts[0], acked=counts[1])
+                    persisted, persisted_at = counts, clock
+                elif clock - published_at >= PUBLISH_EVERY:
+                    self._publish_job(self._with_counts(job, stream))
+                published_at = clock
+            job = self._with_counts(job, stream)
+            if job.kind == "jog" and stream.result.result().end is not StreamEnd.COMPLETED:
+                await self._restore_absolute_mode()
+        finally:
+            if handle is not None:
+                handle.close()
+            result = stream.result.result() if stream.done else _interrupted()
+            await asyncio.shield(self._end(self._with_counts(job, stream), result))
+
+    async def _progress(self, job: Job, *, sent: int, acked: int) -> Job:
+        job = await self.store.update(job.id, lines_sent=sent, lines_acked=acked)
+        self.job = job
+        self._publish_job(job)
+        return job
+
+    async def _end(self, job: Job, result: StreamResult) -> None:
+        error = None
+        if result.code is not None or result.end is StreamEnd.FAILED:
+            error = JobError(code=result.code or 1005, message=result.message or result.end.value)
+        job = await self.store.update(
+            job.id,
+            state=_JOB_STATE[result.end],
+            lines_sent=job.lines_sent,
+            lines_acked=job.lines_acked,
+            ended_at=now(),
+            error=error,
+        )
+        self.job = job
+        self._stream = None
+        self._publish_job(job)
+        self._log.info("job ended", job=job.id, state=job.state, acked=job.lines_acked)
+        self._operation_stopped()
+
+    def _operation_stopped(self) -> None:
+        if self.supervisor.can(SupEvent.OPERATION_STOPPED):
+            self.supervisor.fire(SupEvent.OPERATION_STOPPED)
+        self._settle()
+
+    async def _restore_absolute_mode(self) -> None:
+        """A jog stopped mid-way may have left the board in G91: put G90 back."""
+        try:
+            await self.engine.send("G90")
+        except MachineError as exc:
+            self._log.warning("could not restore G90 after a jog", error=exc.message)
+
+    # -- pause, resume, cancel ---------------------------------------------
+
+    def jog_stop(self) -> None:
+        """Feedhold, then queue flush (seed 002's jog stop): the rest of the move is dropped."""
+        self.engine.realtime(Realtime.FEEDHOLD)
+        self.engine.realtime(Realtime.QUEUE_FLUSH)
+
+    def feedhold(self) -> None:
+        """`!`; during a make job it is the job's pause."""
+        self.engine.realtime(Realtime.FEEDHOLD)
+        if self._pausable():
+            self.supervisor.fire(SupEvent.PAUSE_OPERATION)
+            self._set_job_state("paused")
+
+    def cycle_start(self) -> None:
+        """`~`; while paused it is the job's resume."""
+        self.engine.realtime(Realtime.CYCLE_START)
+        if self.supervisor.state is SupState.PAUSED:
+            self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
+            self._set_job_state("running")
+
+    def pause(self) -> Job:
+        if not self._pausable():
+            raise Refused(self.supervisor.state, SupEvent.PAUSE_OPERATION)
+        self.feedhold()
+        assert self.job is not None
+        return self.job
+
+    def resume(self) -> Job:
+        if self.supervisor.state is not SupState.PAUSED:
+            raise Refused(self.supervisor.state, SupEvent.UNPAUSE_OPERATION)
+        self.cycle_start()
+        assert self.job is not None
+        return self.job
+
+    async def cancel(self) -> Job:
+        """0x04: the board kills the job; the host drops what it had not sent."""
+        if self._stream is None or self._stream.done or self.job is None:
+            raise Busy(f"{self.id} has no running job to cancel")
+        stream = self._stream
+        self.engine.realtime(Realtime.JOB_KILL)
+        async with asyncio.timeout(5):
+            await asyncio.shield(stream.result)
+        for runner in list(self._runners):  # let the row reach its end state
+            await asyncio.wait({runner}, timeout=5)
+        return self.job
+
+    def _pausable(self) -> bool:
+        return (
+            self.supervisor.state is SupState.OPERATION
+            and self.job is not None
+            and self.job.kind == "make"
+        )
+
+    def _set_job_state(self, state: str) -> None:
+        if self.job is None:
+            return
+        self.job = self.job.model_copy(update={"state": state})
+        self._publish_job(self.job)
+        task = asyncio.create_task(self.store.update(self.job.id, state=state))
+        self._writes.add(task)
+        task.add_done_callback(self._writes.discard)
+
+    # -- views -------------------------------------------------------------
+
+    def current_job(self) -> Job | None:
+        if self.job is None or self._stream is None:
+            return self.job
+        return self._with_counts(self.job, self._stream)
+
+    def snapshot(self) -> dict[str, Any]:
+        snap = self.engine.model.snapshot()
+        job = self.current_job()
+        snap.update(
+            dialect=self.config.dialect,
+            supervisor=self.supervisor.state.value,
+            indicator="normal",
+            faults=[],
+            job=None if job is None else job.model_dump(mode="json"),
+        )
+        return snap
+
+    def _with_counts(self, job: Job, stream: JobStream) -> Job:
+        return job.model_copy(update={"lines_sent": stream.sent, "lines_acked": stream.acked})
+
+    def _publish_job(self, job: Job) -> None:
+        if self.hub.active:
+            self.hub.publish(JobChanged(self.id, job.model_dump(mode="json")))
+
+
+def _count_lines(path: Path, start_line: int) -> int:
+    with path.open(encoding="utf-8", errors="replace") as f:
+        return sum(1 for _ in program_lines(f, start_line))
+
+
+def _interrupted() -> StreamResult:
+    return StreamResult(StreamEnd.INTERRUPTED, 1002, "the daemon stopped during the job")
+
+
+def setting_lines(values: dict[str, Any]) -> list[str]:
+    """One SET line a setting: the board answers each with the value it stored."""
+    return [json.dumps({key: value}, separators=(",", ":")) for key, value in values.items()]

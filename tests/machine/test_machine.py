@@ -1,0 +1,255 @@
+"""A machine's operations, supervisor and job rows, against the simulated board."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from hostd.machine.events import Event, JobChanged, SupervisorChanged
+from hostd.machine.jobstore import Job, JobStore
+from hostd.machine.machine import Machine, NoSuchFile, setting_lines
+from hostd.machine.supervisor import Refused
+from hostd.machine.supervisor import State as Sup
+from hostd.protocol.states import MachineState as S
+from hostd.sim import SimController
+from tests.machine.conftest import FAST, Recorder, machine_config
+
+pytestmark = pytest.mark.asyncio
+
+PROGRAM = "%\n(part)\nG21 G90\n\n" + "".join(f"G1 X{i % 40} Y{i % 9} F3000\n" for i in range(60))
+PROGRAM += "M30\n%\n"
+
+
+@dataclass
+class Bench:
+    sim: SimController
+    machine: Machine
+    store: JobStore
+    recorder: Recorder
+    jobs: Path
+
+    def write(self, name: str, text: str) -> None:
+        (self.jobs / name).write_text(text)
+
+    async def job_ended(self, job_id: int) -> Job:
+        def ended(e: Event) -> bool:
+            if not isinstance(e, JobChanged) or e.job["id"] != job_id:
+                return False
+            return e.job["state"] not in ("running", "paused")
+
+        await self.recorder.wait_for(ended)
+        row = await self.store.get(job_id)
+        assert row is not None
+        return row
+
+    async def supervisor(self, state: Sup) -> None:
+        """Until the supervisor is in `state` (re-checked on each transition published)."""
+        if self.machine.supervisor.state is not state:
+            await self.recorder.wait_for(
+                lambda e: (
+                    isinstance(e, SupervisorChanged)
+                    and e.target == state.value
+                    and self.machine.supervisor.state is state
+                )
+            )
+
+    def transitions(self) -> list[tuple[str, str, str]]:
+        return [
+            (e.source, e.event, e.target)
+            for e in self.recorder.events
+            if isinstance(e, SupervisorChanged)
+        ]
+
+
+@contextlib.asynccontextmanager
+async def bench_for(tmp_path: Path, name: str = "m1", **overrides: object) -> AsyncIterator[Bench]:
+    path = str(tmp_path / f"tty-{name}")
+    jobs = tmp_path / "jobs"
+    jobs.mkdir(exist_ok=True)
+    store = JobStore(tmp_path / f"{name}.db")
+    async with SimController(path, config=FAST) as sim:
+        machine = Machine(machine_config(path, id=name, **overrides), store, jobs)
+        recorder = Recorder()
+        machine.hub.subscribe(recorder)
+        task = asyncio.create_task(machine.serve())
+        try:
+            await machine.connect()
+            bench = Bench(sim, machine, store, recorder, jobs)
+            await bench.supervisor(Sup.IDLE)
+            yield bench
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            store.close()
+
+
+@pytest_asyncio.fixture
+async def bench(tmp_path: Path) -> AsyncIterator[Bench]:
+    async with bench_for(tmp_path) as b:
+        yield b
+
+
+async def test_connecting_goes_busy_then_idle(bench: Bench) -> None:
+    assert bench.transitions() == [
+        ("disconnected", "connect", "busy"),
+        ("busy", "went-idle", "idle"),
+    ]
+    assert bench.machine.snapshot()["supervisor"] == "idle"
+
+
+async def test_a_make_job_streams_a_file_and_is_recorded(bench: Bench) -> None:
+    bench.write("part.gcode", PROGRAM)
+    job = await bench.machine.start_make("part.gcode")
+    assert (job.kind, job.state, job.file, job.lines_total) == ("make", "running", "part.gcode", 62)
+    assert bench.machine.supervisor.state is Sup.OPERATION
+    row = await bench.job_ended(job.id)
+    assert row.state == "completed"
+    assert row.lines_sent == row.lines_acked == row.lines_total == 62
+    assert row.ended_at is not None and row.error is None
+    await bench.supervisor(Sup.IDLE)
+    assert bench.transitions()[2:] == [
+        ("idle", "start-operation", "operation"),
+        ("operation", "operation-stopped", "busy"),
+        ("busy", "went-idle", "idle"),
+    ]
+    sent = [r.data for r in bench.sim.received if r.kind == "line" and not r.data.startswith(b"{")]
+    assert sent[0] == b"G21 G90" and sent[-1] == b"M30" and len(sent) == 62
+
+
+async def test_start_line_skips_the_lines_before_it(bench: Bench) -> None:
+    bench.write("part.gcode", PROGRAM)
+    job = await bench.machine.start_make("part.gcode", start_line=60)
+    row = await bench.job_ended(job.id)
+    assert row.state == "completed"
+    assert row.lines_total == row.lines_acked == 6  # file lines 60..63 and M30
+
+
+async def test_missing_file_is_1004(bench: Bench) -> None:
+    with pytest.raises(NoSuchFile) as err:
+        await bench.machine.start_make("nope.gcode")
+    assert err.value.code == 1004
+    assert bench.machine.supervisor.state is Sup.IDLE
+
+
+async def test_operations_start_only_from_idle(bench: Bench) -> None:
+    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    job = await bench.machine.start_make("slow.gcode")
+    with pytest.raises(Refused) as err:
+        await bench.machine.start_make("slow.gcode")
+    assert err.value.code == 1003
+    with pytest.raises(Refused):
+        await bench.machine.jog({"x": 1.0}, 600)
+    assert len(await bench.store.list_jobs()) == 1  # nothing half-started
+    await bench.machine.cancel()
+    assert (await bench.job_ended(job.id)).state == "cancelled"
+
+
+async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
+    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F1200\n" for i in range(60)))
+    job = await bench.machine.start_make("slow.gcode")
+    await bench.sim.wait_state(S.RUN)
+    paused = bench.machine.pause()
+    assert paused.state == "paused"
+    assert bench.machine.supervisor.state is Sup.PAUSED
+    await bench.sim.wait_state(S.HOLD)
+    row = await bench.store.get(job.id)
+    async with asyncio.timeout(2):
+        while row is not None and row.state != "paused":
+            row = await bench.store.get(job.id)
+    resumed = bench.machine.resume()
+    assert resumed.state == "running"
+    assert bench.machine.supervisor.state is Sup.OPERATION
+    assert (await bench.job_ended(job.id)).state == "completed"
+
+
+async def test_cancel_kills_the_job_on_the_board(bench: Bench) -> None:
+    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    await bench.machine.start_make("slow.gcode")
+    await bench.sim.wait_state(S.RUN)
+    ended = await bench.machine.cancel()
+    assert ended.state == "cancelled"
+    assert ended.lines_acked <= ended.lines_sent < 200
+    assert any(r.data == b"\x04" for r in bench.sim.received)
+    await bench.supervisor(Sup.IDLE)
+
+
+async def test_a_jog_moves_relative_and_restores_absolute(bench: Bench) -> None:
+    job = await bench.machine.jog({"x": 1.5, "y": -0.5}, 600)
+    row = await bench.job_ended(job.id)
+    assert (row.kind, row.state, row.lines_acked) == ("jog", "completed", 2)
+    assert bench.sim.position["x"] == pytest.approx(1.5)
+    lines = [r.data for r in bench.sim.received if r.kind == "line" and r.data[:1] != b"{"]
+    assert lines[-2:] == [b"G91 G1 X1.5000 Y-0.5000 F600", b"G90"]
+
+
+async def test_jog_stop_drops_the_rest_and_still_restores_absolute(bench: Bench) -> None:
+    job = await bench.machine.jog({"x": 200}, 300)
+    await bench.sim.wait_state(S.RUN)
+    bench.machine.jog_stop()
+    row = await bench.job_ended(job.id)
+    assert row.state == "cancelled"
+    await bench.sim.wait_received(lambda: bench.sim.received[-1].data == b"G90")
+    assert bench.sim.position["x"] < 200
+
+
+async def test_settings_are_read_and_written_as_one_operation(bench: Bench) -> None:
+    job, bodies = await bench.machine.settings(setting_lines({"xvm": 12000, "yvm": 11000}))
+    assert bodies == [{"xvm": 12000}, {"yvm": 11000}]
+    assert (job.kind, job.lines_total) == ("settings", 2)
+    row = await bench.store.get(job.id)
+    assert row is not None and (row.state, row.lines_acked) == ("completed", 2)
+    _, bodies = await bench.machine.settings(["{xvm:n}"])
+    assert bodies == [{"xvm": 12000}]
+
+
+async def test_an_alarm_mid_job_fails_the_row_and_keeps_the_machine_busy(bench: Bench) -> None:
+    bench.write("long.gcode", "".join(f"G1 X{i % 20} F3000\n" for i in range(400)))
+    job = await bench.machine.start_make("long.gcode")
+    await bench.sim.wait_for(lambda: len(bench.sim.received) > 30)
+    bench.sim.limit_switch("x")
+    row = await bench.job_ended(job.id)
+    assert row.state == "failed" and row.error is not None and row.error.code == 204
+    assert row.lines_acked <= row.lines_sent < 400
+    await bench.supervisor(Sup.BUSY)
+    await bench.machine.engine.clear()
+    await bench.supervisor(Sup.IDLE)
+
+
+async def test_unplug_mid_job_interrupts_it_and_replug_brings_the_machine_back(
+    tmp_path: Path,
+) -> None:
+    async with bench_for(tmp_path, auto_connect=True) as bench:
+        bench.write("long.gcode", "".join(f"G1 X{i % 20} F1200\n" for i in range(400)))
+        job = await bench.machine.start_make("long.gcode")
+        await bench.sim.wait_for(lambda: len(bench.sim.received) > 30)
+        await bench.sim.unplug()
+        row = await bench.job_ended(job.id)
+        assert row.state == "interrupted"
+        answered = sum(1 for r in bench.sim.sent if r.data.startswith(b'{"r":{'))
+        assert 0 < row.lines_acked <= row.lines_sent
+        assert row.lines_acked <= answered  # never more than the controller answered
+        await bench.supervisor(Sup.DISCONNECTED)
+        await bench.sim.replug()
+        await bench.supervisor(Sup.IDLE)  # auto_connect: back through connect
+
+
+async def test_two_machines_are_independent(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    async with bench_for(tmp_path / "a", "a") as a, bench_for(tmp_path / "b", "b") as b:
+        text = "".join(f"G1 X{i % 20} F3000\n" for i in range(150))
+        a.write("a.gcode", text)
+        b.write("b.gcode", text)
+        job_a = await a.machine.start_make("a.gcode")
+        job_b = await b.machine.start_make("b.gcode")
+        await a.sim.wait_for(lambda: len(a.sim.received) > 20)
+        await a.sim.unplug()
+        assert (await a.job_ended(job_a.id)).state == "interrupted"
+        assert (await b.job_ended(job_b.id)).state == "completed"
