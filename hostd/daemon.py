@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import structlog
@@ -42,8 +42,8 @@ class Daemon:
     def stop(self) -> None:
         self._stop.set()
 
-    async def run(self, ready: Callable[[], object] | None = None) -> None:
-        """Serve every machine until `stop()`; `ready` is called once all are set up."""
+    async def run(self, ready: Callable[[], Awaitable[None]] | None = None) -> None:
+        """Serve every machine until `stop()`; `ready` is awaited once all are set up."""
         await asyncio.to_thread(self._make_dirs)
         self.store = await asyncio.to_thread(JobStore, self.state_dir / DB_NAME)
         try:
@@ -58,7 +58,7 @@ class Daemon:
                     for m in self.machines.values()
                 ]
                 if ready is not None:
-                    ready()
+                    await ready()
                 await self._stop.wait()
                 for task in tasks:
                     task.cancel()

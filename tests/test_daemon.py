@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,13 @@ from hostd.daemon import Daemon
 from hostd.machine.supervisor import State as Sup
 
 pytestmark = pytest.mark.asyncio
+
+
+def _setter(event: asyncio.Event) -> Callable[[], Awaitable[None]]:
+    async def ready() -> None:
+        event.set()
+
+    return ready
 
 
 def config_for(tmp_path: Path) -> dict[str, object]:
@@ -25,7 +33,7 @@ async def test_a_simulated_machine_connects_streams_and_is_remembered(tmp_path: 
     config = parse_config(config_for(tmp_path))
     daemon = Daemon(config)
     ready = asyncio.Event()
-    runner = asyncio.create_task(daemon.run(ready.set))
+    runner = asyncio.create_task(daemon.run(_setter(ready)))
     async with asyncio.timeout(10):
         await ready.wait()
         machine = daemon.machine("sim1")
@@ -41,7 +49,7 @@ async def test_a_simulated_machine_connects_streams_and_is_remembered(tmp_path: 
 
     again = Daemon(config)
     ready = asyncio.Event()
-    runner = asyncio.create_task(again.run(ready.set))
+    runner = asyncio.create_task(again.run(_setter(ready)))
     async with asyncio.timeout(10):
         await ready.wait()
         assert again.store is not None

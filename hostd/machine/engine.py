@@ -173,7 +173,6 @@ class Engine:
             if not self.config.auto_connect:
                 self._want.clear()  # this request is being served; a later one sets it again
             reason, was_ready = await self._session()
-            self._publish_link(False, reason)
             if self._stop.is_set():  # a disconnect was asked for
                 self._stop.clear()
                 continue
@@ -250,9 +249,11 @@ class Engine:
             reason = f"internal error: {group.exceptions[0]!r}"
         finally:
             link, self.link = self.link, None
-            self._end_attempt(reason)
-            self._teardown(reason)
-            await link.close()
+            try:
+                await link.close()  # released before anyone hears it is down
+            finally:
+                self._end_attempt(reason)
+                self._teardown(reason)
         return reason, was_ready
 
     async def _port_paths(self) -> tuple[str, str | None]:
@@ -293,9 +294,10 @@ class Engine:
         self._await_report = self._awaiting_rest = False
         self._settings_pending = False
         self.model.reset()
+        self._log.info("link down", reason=reason)
+        self._publish_link(False, reason)
         self._down.set()
         self._changed.set()
-        self._log.info("link down", reason=reason)
 
     # -- reading -----------------------------------------------------------
 
@@ -726,14 +728,17 @@ class Engine:
         except TimeoutError:
             raise ControllerTimeout(f"{self.id} did not come back after reset") from None
 
+    def admit_action(self) -> None:
+        """Rejected (204/205/206) if an action may not reach the board now."""
+        verdict = admit(CommandClass.ACTION, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+
     def start_stream(self, stream: JobStream) -> None:
         self._require_ready()
         if self._job_running():
             raise Busy(f"{self.id} is running a job")
-        state = self.model.state
-        verdict = admit(CommandClass.ACTION, state)
-        if verdict is not None:
-            raise Rejected(verdict, self._locked_message())
+        self.admit_action()
         self.stream = stream
         self._awaiting_rest = False
         self._pump()

@@ -196,7 +196,11 @@ class Machine:
         return job
 
     async def _begin(self, kind: JobKind, file: str | None, total: int | None) -> Job:
-        """Take the supervisor to `operation` first, then write the row: never half-applied."""
+        """Take the supervisor to `operation` first, then write the row: never half-applied.
+
+        A locked-out board is the first thing to say (204/205/206), before "busy".
+        """
+        self.engine.admit_action()
         self.supervisor.fire(SupEvent.START_OPERATION)  # Refused (1003) unless idle
         try:
             job = await self.store.create(self.id, kind, file, total)
