@@ -1,0 +1,345 @@
+"""JSON-RPC 2.0 without I/O: one line of bytes in, one line of bytes (or nothing) out.
+
+Everything the protocol says lives here, so that every rule can be pinned with
+plain function calls; `server.py` only moves lines between sockets and this
+module.
+
+The method table (`Methods`) is generic: a name maps to an async handler and
+the pydantic model its params are validated with. The API layer registers the
+real methods; this module knows nothing about machines.
+
+How a handler learns who called it: `dispatch` takes a `context` (the server
+passes its `Client`) and makes it available, for the duration of each handler
+call, through `current_context()` (a contextvar, so concurrent requests each
+see their own caller). Handlers keep a one-argument signature and only the few
+that care (subscriptions) ask; `hostd.api.server.current_client()` is the typed
+way to do so. A task a handler spawns inherits the value as it was at spawn
+time; it must not rely on it later.
+
+Decisions beyond JSON-RPC 2.0 itself:
+
+- `"params": null` is treated like absent params (lenient; some clients send it).
+- A method with a params model takes params by name only: an object, or
+  nothing/null/`[]`/`{}` (validated as `{}`). A non-empty array is -32602.
+- Requests are parsed as strict JSON: UTF-8 only, no NaN/Infinity. Results are
+  written as strict JSON too: a NaN in a result is a bug (-32603, logged).
+- A batch holds at most `MAX_BATCH` (1000) requests; a longer one is one -32600.
+- Invalid requests (-32600) and parse errors (-32700) are answered even when
+  the request had no `id`, with `id: null`, as the JSON-RPC examples do. Once a
+  request is valid and has no `id`, it is a notification: it runs and nothing
+  is answered, whatever happens.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Awaitable, Callable, Iterator, Mapping
+from contextvars import ContextVar
+from dataclasses import dataclass
+from typing import Any, Final, TypeVar, overload
+
+import structlog
+from pydantic import BaseModel, ValidationError
+from pydantic_core import to_jsonable_python
+
+log = structlog.get_logger(__name__)
+
+PARSE_ERROR: Final = -32700
+INVALID_REQUEST: Final = -32600
+METHOD_NOT_FOUND: Final = -32601
+INVALID_PARAMS: Final = -32602
+INTERNAL_ERROR: Final = -32603
+
+# Batch elements run concurrently, outside the server's per-client in-flight
+# bound: a cap keeps one line from starting an unbounded number of handlers.
+MAX_BATCH: Final = 1000
+
+P = TypeVar("P", bound=BaseModel)
+
+Id = str | int | float | None
+Handler = Callable[..., Awaitable[Any]]
+
+
+class RpcError(Exception):
+    """An error answer: raised by handlers (or by this module) with the code to send.
+
+    Handlers may also raise any exception with an integer `code` and a string
+    `message` (the machine layer's errors): it is answered the same way.
+    """
+
+    def __init__(self, code: int, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.data = data
+
+
+@dataclass(frozen=True, slots=True)
+class Method:
+    """One entry of the table: the handler and what its params must look like.
+
+    `params_model` None means the method takes no params and the handler is
+    called with no argument; otherwise it is called with the validated model.
+    """
+
+    handler: Handler
+    params_model: type[BaseModel] | None
+
+
+class Methods(Mapping[str, Method]):
+    """The method table: name -> `Method`. Filled once at start-up, then read-only in use."""
+
+    def __init__(self) -> None:
+        self._table: dict[str, Method] = {}
+
+    @overload
+    def register(
+        self, name: str, params_model: type[P], handler: Callable[[P], Awaitable[Any]]
+    ) -> None: ...
+
+    @overload
+    def register(
+        self, name: str, params_model: None, handler: Callable[[], Awaitable[Any]]
+    ) -> None: ...
+
+    def register(self, name: str, params_model: type[BaseModel] | None, handler: Handler) -> None:
+        """Add a method. Refuses duplicates and params models that would accept unknown fields."""
+        if name in self._table:
+            raise ValueError(f"method {name!r} is already registered")
+        if params_model is not None and params_model.model_config.get("extra") != "forbid":
+            # A typo'd field name must be an error for the client, not silently ignored.
+            raise ValueError(f"params model of {name!r} must set model_config extra='forbid'")
+        self._table[name] = Method(handler, params_model)
+
+    def __getitem__(self, name: str) -> Method:
+        return self._table[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._table)
+
+    def __len__(self) -> int:
+        return len(self._table)
+
+
+_context: ContextVar[object] = ContextVar("hostd_rpc_context")
+
+
+def current_context() -> object:
+    """The `context` given to `dispatch` for the request being handled.
+
+    Raises LookupError outside a handler call.
+    """
+    return _context.get()
+
+
+# --- encoding ---------------------------------------------------------------
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, BaseModel):
+        return obj.model_dump(mode="json")
+    # Dataclasses, enums, datetimes, sets...: pydantic's own rules; raises on anything else.
+    return to_jsonable_python(obj)
+
+
+def encode(message: Any) -> bytes:
+    """Compact, strict JSON as UTF-8 bytes, without the line terminator."""
+    return json.dumps(
+        message, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_default
+    ).encode()
+
+
+def encode_error(code: int, message: str, id: Id = None, data: Any = None) -> bytes:
+    """An error response. `data` is left out when None, as JSON-RPC allows."""
+    error: dict[str, Any] = {"code": code, "message": message}
+    if data is not None:
+        error["data"] = data
+    return encode({"jsonrpc": "2.0", "error": error, "id": id})
+
+
+def encode_notification(method: str, params: Any = None) -> bytes:
+    """A server-to-client notification (no `id`). `params` is left out when None."""
+    message: dict[str, Any] = {"jsonrpc": "2.0", "method": method}
+    if params is not None:
+        message["params"] = params
+    return encode(message)
+
+
+def _encode_result(result: Any, id: Id, method: str) -> bytes:
+    try:
+        return encode({"jsonrpc": "2.0", "result": result, "id": id})
+    except Exception:
+        log.exception("result is not JSON-serialisable", method=method, id=id)
+        return encode_error(INTERNAL_ERROR, "internal error", id)
+
+
+def _encode_failure(exc: RpcError, id: Id, method: str) -> bytes:
+    try:
+        return encode_error(exc.code, exc.message, id, exc.data)
+    except Exception:
+        log.exception("error data is not JSON-serialisable", method=method, id=id)
+        return encode_error(exc.code, exc.message, id)
+
+
+# --- decoding and validation ------------------------------------------------
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _parse(line: bytes) -> Any:
+    """The JSON value on the line, or RpcError(-32700)."""
+    try:
+        text = line.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise RpcError(PARSE_ERROR, f"parse error: not UTF-8 at byte {e.start}") from None
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as e:
+        raise RpcError(PARSE_ERROR, f"parse error: {e.msg} at column {e.colno}") from None
+    except (ValueError, RecursionError) as e:
+        # NaN/Infinity, an integer over the interpreter's digit limit, nesting too deep.
+        raise RpcError(PARSE_ERROR, f"parse error: {e}") from None
+
+
+def _valid_id(value: Any) -> bool:
+    return value is None or (isinstance(value, str | int | float) and not isinstance(value, bool))
+
+
+@dataclass(frozen=True, slots=True)
+class _Request:
+    method: str
+    params: dict[str, Any] | list[Any] | None
+    id: Id
+    notification: bool
+
+
+def _check_request(obj: Any) -> _Request:
+    """The JSON-RPC 2.0 shape of one request, or RpcError(-32600) carrying the id if readable."""
+    if not isinstance(obj, dict):
+        raise RpcError(INVALID_REQUEST, "invalid request: expected a JSON object")
+    raw_id = obj.get("id")
+    id: Id = raw_id if _valid_id(raw_id) else None
+    if obj.get("jsonrpc") != "2.0":
+        raise _InvalidRequest('invalid request: "jsonrpc" must be "2.0"', id)
+    if not _valid_id(raw_id):
+        raise _InvalidRequest('invalid request: "id" must be a string, a number or null', None)
+    method = obj.get("method")
+    if not isinstance(method, str):
+        raise _InvalidRequest('invalid request: "method" must be a string', id)
+    params = obj.get("params")
+    if params is not None and not isinstance(params, dict | list):
+        raise _InvalidRequest('invalid request: "params" must be an object or an array', id)
+    return _Request(method, params, id, notification="id" not in obj)
+
+
+class _InvalidRequest(RpcError):
+    """-32600 with the request's id, when it could be read."""
+
+    def __init__(self, message: str, id: Id) -> None:
+        super().__init__(INVALID_REQUEST, message)
+        self.id = id
+
+
+def _describe(errors: list[Any]) -> str:
+    parts = []
+    for error in errors:
+        where = ".".join(str(part) for part in error["loc"]) or "params"
+        parts.append(f"{where}: {error['msg']}")
+    return "invalid params: " + "; ".join(parts)
+
+
+def _bind_params(name: str, method: Method, params: dict[str, Any] | list[Any] | None) -> Any:
+    """The handler's arguments: () or (model,), or RpcError(-32602)."""
+    empty = params is None or params == [] or params == {}
+    if method.params_model is None:
+        if not empty:
+            raise RpcError(INVALID_PARAMS, f"invalid params: {name} takes no params")
+        return ()
+    if isinstance(params, list) and params:
+        raise RpcError(INVALID_PARAMS, "invalid params: params must be an object (by name)")
+    try:
+        return (method.params_model.model_validate(params or {}),)
+    except ValidationError as e:
+        errors = e.errors(include_url=False, include_context=False, include_input=False)
+        data = [{"loc": list(err["loc"]), "msg": err["msg"], "type": err["type"]} for err in errors]
+        raise RpcError(INVALID_PARAMS, _describe(data), data) from None
+
+
+def _as_rpc_error(exc: Exception) -> RpcError | None:
+    """RpcError itself, or any exception that carries an integer code and a string message."""
+    if isinstance(exc, RpcError):
+        return exc
+    code = getattr(exc, "code", None)
+    message = getattr(exc, "message", None)
+    if isinstance(code, int) and not isinstance(code, bool) and isinstance(message, str):
+        return RpcError(code, message, getattr(exc, "data", None))
+    return None
+
+
+# --- dispatch ---------------------------------------------------------------
+
+
+async def _call(request: _Request, methods: Mapping[str, Method], context: object) -> bytes | None:
+    """Run one valid request; its encoded response, or None for a notification."""
+    try:
+        method = methods.get(request.method)
+        if method is None:
+            raise RpcError(METHOD_NOT_FOUND, f"method not found: {request.method}")
+        args = _bind_params(request.method, method, request.params)
+        token = _context.set(context)
+        try:
+            result = await method.handler(*args)
+        finally:
+            _context.reset(token)
+    except Exception as exc:
+        error = _as_rpc_error(exc)
+        if error is None:
+            log.exception("internal error", method=request.method, id=request.id)
+            error = RpcError(INTERNAL_ERROR, "internal error")
+        if request.notification:
+            log.debug("notification failed", method=request.method, code=error.code)
+            return None
+        return _encode_failure(error, request.id, request.method)
+    if request.notification:
+        return None
+    return _encode_result(result, request.id, request.method)
+
+
+async def _one(obj: Any, methods: Mapping[str, Method], context: object) -> bytes | None:
+    try:
+        request = _check_request(obj)
+    except _InvalidRequest as e:
+        return encode_error(e.code, e.message, e.id)
+    except RpcError as e:
+        return encode_error(e.code, e.message, None)
+    return await _call(request, methods, context)
+
+
+async def dispatch(line: bytes, methods: Mapping[str, Method], context: object) -> bytes | None:
+    """Answer one line: the response (single or batch array) as bytes without a newline,
+    or None when nothing is to be sent (a notification, a batch of only notifications).
+
+    Never raises for anything the client sent or a handler did; cancellation passes through.
+    Batch elements run concurrently; the array is sent once all of them are done.
+    """
+    try:
+        message = _parse(line)
+    except RpcError as e:
+        return encode_error(e.code, e.message, None)
+    if not isinstance(message, list):
+        return await _one(message, methods, context)
+    if not message:
+        return encode_error(INVALID_REQUEST, "invalid request: empty batch", None)
+    if len(message) > MAX_BATCH:
+        return encode_error(
+            INVALID_REQUEST, f"invalid request: batch over {MAX_BATCH} requests", None
+        )
+    async with asyncio.TaskGroup() as tg:
+        tasks = [tg.create_task(_one(element, methods, context)) for element in message]
+    answers = [answer for task in tasks if (answer := task.result()) is not None]
+    if not answers:
+        return None
+    return b"[" + b",".join(answers) + b"]"

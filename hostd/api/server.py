@@ -1,0 +1,509 @@
+"""The control API's Unix socket: newline-framed JSON-RPC, one task tree per client.
+
+This file only moves lines between sockets and `rpc.dispatch`; what a line
+means is `rpc.py`'s business, what a method does is the API layer's.
+
+Per client (a `Client`, which is also the `context` handlers can ask for with
+`current_client()`):
+
+- One connection task owns everything the client causes: a reader loop, a
+  writer task, and one task per request (requests are handled concurrently,
+  so a slow one never holds up the next; answers go out as they complete).
+  At most `max_inflight` requests run at once; past that the reader stops
+  reading and the socket pushes back on the client.
+- Everything sent to the client (answers and notifications) goes through one
+  bounded queue emptied by the writer task. A full queue, or a write that
+  cannot drain within `write_timeout`, disconnects the client: one that stops
+  reading must never slow the daemon or anyone else.
+- When the client goes away, requests it already started run to completion
+  (their answers are dropped): cancelling a machine operation half-way because
+  a CLI was closed would be worse. Closing the server cancels them.
+
+Lines longer than `max_line` are answered with -32600 and the connection is
+closed; a client that ends its side (EOF) gets the answers to the requests it
+sent before the connection is closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import itertools
+import os
+import socket
+import stat
+from collections.abc import Callable, Mapping
+from types import TracebackType
+from typing import Any, Final, Self, cast
+
+import structlog
+
+from hostd.api import rpc
+from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
+
+log = structlog.get_logger(__name__)
+
+MAX_LINE: Final = 1 << 20
+QUEUE_SIZE: Final = 1000
+WRITE_TIMEOUT: Final = 10.0
+MAX_INFLIGHT: Final = 128
+SOCKET_MODE: Final = 0o660
+
+
+class SocketPathError(Exception):
+    """The socket path cannot be used: not a socket, or another process listens on it."""
+
+
+class _End(enum.Enum):
+    """Queued after the last message: how the writer ends the connection once it is sent."""
+
+    HALF_CLOSE = "half-close"  # send EOF, keep reading (so unread input does not reset us)
+    CLOSE = "close"
+
+
+class Client:
+    """One connected peer: its credentials, its outbound queue, its disconnect hooks.
+
+    `on_disconnect` callables (no arguments) run once each, from the event
+    loop, soon after the connection is dropped: never inside the call that
+    dropped it (e.g. a `notify` made from the machine's event fan-out, which
+    the hook may then modify). A hook appended by one of this client's own
+    requests runs even if the client left while the request ran (hooks run
+    again once its last request is done); one appended from elsewhere after
+    `closed` became true does not.
+    """
+
+    def __init__(
+        self,
+        id: int,
+        peer: PeerCred,
+        writer: asyncio.StreamWriter,
+        *,
+        queue_size: int,
+        write_timeout: float,
+    ) -> None:
+        self.id = id
+        self.peer = peer
+        self.on_disconnect: list[Callable[[], object]] = []
+        self.log = log.bind(client=id, pid=peer.pid, uid=peer.uid)
+        self._writer = writer
+        self._queue: asyncio.Queue[bytes | _End] = asyncio.Queue(queue_size)
+        self._queue_size = queue_size
+        self._write_timeout = write_timeout
+        self._closed = False
+        self._ending = False  # an _End is queued: nothing more goes in
+        self._writer_task: asyncio.Task[None] | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.peer.pid
+
+    @property
+    def uid(self) -> int:
+        return self.peer.uid
+
+    @property
+    def gid(self) -> int:
+        return self.peer.gid
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def notify(self, method: str, params: Any = None) -> None:
+        """Queue a JSON-RPC notification; never blocks, never raises. Event loop thread only.
+
+        Dropped when the client is gone (or goes now, its queue being full) and
+        when the params are not JSON-serialisable (logged). Check `closed` to
+        stop producing for a client that left. Notifications queued while a
+        request runs go out before that request's answer.
+        """
+        if self._closed or self._ending:
+            return
+        try:
+            line = rpc.encode_notification(method, params)
+        except Exception:
+            self.log.exception("notification is not JSON-serialisable", method=method)
+            return
+        self.send_line(line)
+
+    def send_line(self, line: bytes) -> bool:
+        """Queue one already-encoded message (without its newline); False if dropped.
+
+        For fan-out: encode once with `rpc.encode_notification`, send to many.
+        """
+        if self._closed or self._ending:
+            return False
+        try:
+            self._queue.put_nowait(line + b"\n")
+        except asyncio.QueueFull:
+            self.log.warning("api client not reading; disconnected", bound=self._queue_size)
+            self.close(f"outbound queue over {self._queue_size} messages")
+            return False
+        return True
+
+    def close(self, reason: str = "closed") -> None:
+        """Drop the connection now, discarding anything not yet sent. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.log.info("api client disconnected", reason=reason)
+        self._writer.transport.abort()
+        if self._writer_task is not None and self._writer_task is not asyncio.current_task():
+            self._writer_task.cancel()
+        asyncio.get_running_loop().call_soon(self._run_hooks)
+
+    def _finish(self, end: _End) -> None:
+        """Let the writer send what is queued, then end the connection as `end` says."""
+        if self._closed or self._ending:
+            return
+        try:
+            self._queue.put_nowait(end)
+        except asyncio.QueueFull:
+            self.close(f"outbound queue over {self._queue_size} messages")
+            return
+        self._ending = True
+
+    def _run_hooks(self) -> None:
+        while self.on_disconnect:
+            hook = self.on_disconnect.pop(0)
+            try:
+                hook()
+            except Exception:
+                self.log.exception("disconnect hook failed")
+
+    async def _write_loop(self) -> None:
+        """The only writer of this socket: sends queued messages in batches, one drain each."""
+        try:
+            while True:
+                batch: list[bytes] = []
+                end: _End | None = None
+                item = await self._queue.get()
+                while True:
+                    if isinstance(item, _End):
+                        end = item
+                        break
+                    batch.append(item)
+                    if self._queue.empty():
+                        break
+                    item = self._queue.get_nowait()
+                if batch:
+                    self._writer.write(b"".join(batch))
+                    async with asyncio.timeout(self._write_timeout):
+                        await self._writer.drain()
+                if end is _End.HALF_CLOSE:
+                    self._writer.write_eof()
+                    return
+                if end is _End.CLOSE:
+                    self._writer.close()
+                    async with asyncio.timeout(self._write_timeout):
+                        await self._writer.wait_closed()
+                    self.close("client ended the connection")
+                    return
+        except TimeoutError:
+            self.close(f"write did not drain within {self._write_timeout} s")
+        except OSError as e:
+            self.close(f"write failed: {e}")
+
+
+def current_client() -> Client:
+    """The client whose request is being handled (for subscriptions and the like).
+
+    Raises LookupError outside a request handler.
+    """
+    context = rpc.current_context()
+    if not isinstance(context, Client):
+        raise LookupError("the RPC context is not an API client")
+    return context
+
+
+class ApiServer:
+    """Serves a method table on a Unix socket until `close()`.
+
+    Usage::
+
+        async with ApiServer(methods, policy=AccessPolicy.default("hostd")) as server:
+            await server.start("/run/hostd/hostd.sock")
+            ...  # serve until shutdown; leaving the block closes everything
+    """
+
+    def __init__(
+        self,
+        methods: Mapping[str, rpc.Method],
+        *,
+        policy: AccessPolicy | None = None,
+        socket_gid: int | None = None,
+        max_line: int = MAX_LINE,
+        queue_size: int = QUEUE_SIZE,
+        write_timeout: float = WRITE_TIMEOUT,
+        max_inflight: int = MAX_INFLIGHT,
+    ) -> None:
+        """`policy` defaults to root and the daemon's own user; `socket_gid`, when
+        given, becomes the socket file's group (0660 lets that group connect,
+        the policy must still allow them)."""
+        self._methods = methods
+        self._policy = policy if policy is not None else AccessPolicy.default()
+        self._socket_gid = socket_gid
+        self._max_line = max_line
+        self._queue_size = queue_size
+        self._write_timeout = write_timeout
+        self._max_inflight = max_inflight
+        self._server: asyncio.Server | None = None
+        self._path: str | None = None
+        self._inode: tuple[int, int] | None = None
+        self._closing = False
+        self._ids = itertools.count(1)
+        self._clients: set[Client] = set()
+        self._connections: set[asyncio.Task[None]] = set()
+
+    @property
+    def path(self) -> str | None:
+        return self._path
+
+    @property
+    def clients(self) -> list[Client]:
+        """The clients connected now."""
+        return [c for c in self._clients if not c.closed]
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def start(self, path: str | os.PathLike[str]) -> None:
+        """Listen on `path`. Raises SocketPathError if the path is taken by
+        something that is not a stale socket."""
+        if self._server is not None or self._closing:
+            raise RuntimeError("ApiServer.start() called twice")
+        where = os.fspath(path)
+        _remove_stale_socket(where)
+        sock, self._inode = _bind(where, self._socket_gid)
+        try:
+            self._server = await asyncio.start_unix_server(
+                self._accept, sock=sock, limit=self._max_line
+            )
+        except BaseException:
+            sock.close()
+            self._unlink_own_socket(where)
+            raise
+        self._path = where
+        log.info("api listening", path=where, gid=self._socket_gid, max_line=self._max_line)
+
+    async def close(self) -> None:
+        """Stop accepting, drop every client (cancelling their requests), remove the socket file."""
+        self._closing = True
+        if self._server is not None:
+            self._server.close()
+        tasks = list(self._connections)
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+        if self._server is not None:
+            await self._server.wait_closed()
+            self._server = None
+        if self._path is not None:
+            self._unlink_own_socket(self._path)
+            log.info("api closed", path=self._path)
+            self._path = None
+
+    def _unlink_own_socket(self, path: str) -> None:
+        """Remove the socket file, unless someone replaced it with another since we bound it."""
+        try:
+            st = os.lstat(path)
+        except FileNotFoundError:
+            return
+        if (st.st_dev, st.st_ino) != self._inode:
+            log.warning("socket path no longer ours; left in place", path=path)
+            return
+        os.unlink(path)
+
+    # --- per connection -----------------------------------------------------
+
+    def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        transport = cast(asyncio.Transport, writer.transport)
+        # Nothing is read from a peer before the policy has let it in.
+        transport.pause_reading()
+        if self._closing:
+            transport.abort()
+            return
+        task = asyncio.create_task(self._serve(reader, writer))
+        self._connections.add(task)
+        task.add_done_callback(self._connections.discard)
+
+    async def _admit(self, writer: asyncio.StreamWriter) -> PeerCred | None:
+        try:
+            peer = peer_credentials(writer.get_extra_info("socket"))
+        except OSError as e:
+            log.warning("api peer credentials unavailable; closed", error=str(e))
+            return None
+        # The policy may ask NSS (possibly LDAP): keep the event loop free meanwhile.
+        try:
+            allowed = await asyncio.to_thread(self._policy.allows, peer)
+        except Exception:
+            log.exception("api access check failed; closed", pid=peer.pid, uid=peer.uid)
+            return None
+        if not allowed:
+            log.warning("api client denied", pid=peer.pid, uid=peer.uid, gid=peer.gid)
+            return None
+        return peer
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        transport = cast(asyncio.Transport, writer.transport)
+        try:
+            peer = await self._admit(writer)
+        except BaseException:
+            transport.abort()
+            raise
+        if peer is None:
+            transport.abort()
+            return
+        client = Client(
+            next(self._ids),
+            peer,
+            writer,
+            queue_size=self._queue_size,
+            write_timeout=self._write_timeout,
+        )
+        self._clients.add(client)
+        client.log.info("api client connected", gid=peer.gid)
+        transport.resume_reading()
+        try:
+            async with asyncio.TaskGroup() as tg:
+                client._writer_task = tg.create_task(client._write_loop())
+                await self._read_loop(client, reader, tg)
+        except asyncio.CancelledError:
+            client.close("server closing")
+            raise
+        finally:
+            client.close("connection ended")
+            client._run_hooks()
+            self._clients.discard(client)
+
+    async def _read_loop(
+        self, client: Client, reader: asyncio.StreamReader, tg: asyncio.TaskGroup
+    ) -> None:
+        slots = asyncio.Semaphore(self._max_inflight)
+        pending: set[asyncio.Task[None]] = set()
+        while not client.closed:
+            try:
+                line = await reader.readline()
+            except ValueError:  # over the StreamReader's limit, i.e. max_line
+                await self._refuse_long_line(client, reader)
+                return
+            except OSError as e:
+                client.close(f"read failed: {e}")
+                return
+            if not line:
+                # EOF: the client is done sending; answer what it asked, then close.
+                if pending:
+                    await asyncio.wait(pending)
+                client._finish(_End.CLOSE)
+                return
+            if not line.strip():
+                continue
+            await slots.acquire()
+            task = tg.create_task(self._handle(client, line, slots))
+            pending.add(task)
+            task.add_done_callback(pending.discard)
+
+    async def _handle(self, client: Client, line: bytes, slots: asyncio.Semaphore) -> None:
+        try:
+            response = await rpc.dispatch(line, self._methods, client)
+        except Exception:
+            # dispatch answers everything itself; reaching here is a bug in rpc.py.
+            client.log.exception("dispatch failed")
+            response = rpc.encode_error(rpc.INTERNAL_ERROR, "internal error")
+        finally:
+            slots.release()
+        if response is not None:
+            client.send_line(response)
+
+    async def _refuse_long_line(self, client: Client, reader: asyncio.StreamReader) -> None:
+        """Answer -32600, then close without resetting the connection under the answer.
+
+        Closing a Unix socket with unread input makes the peer's next read fail
+        with ECONNRESET, possibly before it reads our answer. So: send the answer
+        and EOF, discard whatever the client still sends until it closes its end
+        (or `write_timeout` passes), then close.
+        """
+        client.log.warning("api request line too long; closing", max_line=self._max_line)
+        message = f"request line over {self._max_line} bytes"
+        client.send_line(rpc.encode_error(rpc.INVALID_REQUEST, message))
+        client._finish(_End.HALF_CLOSE)
+        with contextlib.suppress(TimeoutError, OSError):
+            async with asyncio.timeout(self._write_timeout):
+                while not client.closed and await reader.read(1 << 16):
+                    pass
+        client.close("request line too long")
+
+
+def _remove_stale_socket(path: str) -> None:
+    """Make room for our socket: remove a socket nobody listens on; refuse anything else."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(st.st_mode):
+        raise SocketPathError(f"{path} exists and is not a socket; refusing to remove it")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    probe.setblocking(False)
+    try:
+        probe.connect(path)
+    except ConnectionRefusedError:
+        pass  # stale: left behind by a daemon that died
+    except FileNotFoundError:
+        return
+    except BlockingIOError:
+        raise SocketPathError(f"{path} is in use: another process listens on it") from None
+    except OSError as e:
+        raise SocketPathError(f"cannot tell whether {path} is in use: {e}") from None
+    else:
+        raise SocketPathError(f"{path} is in use: another process listens on it")
+    finally:
+        probe.close()
+    os.unlink(path)
+    log.info("removed stale socket", path=path)
+
+
+def _bind(path: str, gid: int | None) -> tuple[socket.socket, tuple[int, int]]:
+    """A socket bound at `path`, mode 0660, group `gid`, not yet listening.
+
+    The file is born 0600 (umask), given its group, then opened to the group:
+    it is never wider than 0660 and never open to the wrong group, and nobody
+    can connect before start_unix_server calls listen(). The umask is
+    process-wide: a file another thread creates in this instant is born
+    stricter than it asked for, never wider.
+    """
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    bound = False
+    try:
+        old = os.umask(0o177)
+        try:
+            sock.bind(path)
+            bound = True
+        finally:
+            os.umask(old)
+        if gid is not None:
+            try:
+                os.chown(path, -1, gid, follow_symlinks=False)
+            except OSError as e:
+                raise SocketPathError(f"cannot give {path} group {gid}: {e.strerror}") from e
+        st = os.lstat(path)
+        if not stat.S_ISSOCK(st.st_mode):  # chmod follows symlinks: do not let a swap redirect it
+            raise SocketPathError(f"{path} was replaced while binding")
+        os.chmod(path, SOCKET_MODE)
+    except BaseException:
+        sock.close()
+        if bound:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+        raise
+    return sock, (st.st_dev, st.st_ino)

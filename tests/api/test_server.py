@@ -1,0 +1,456 @@
+"""The API socket end to end: real connections, real framing, real peers."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import stat
+from pathlib import Path
+from typing import Any
+
+import pytest
+from structlog.testing import capture_logs
+
+from hostd.api.peer import AccessPolicy
+from hostd.api.server import ApiServer, SocketPathError
+
+from .conftest import TIMEOUT, Conn, Harness, serving
+
+pytestmark = pytest.mark.asyncio
+
+MiB = 1 << 20
+
+
+def by_id(responses: list[dict[str, Any]]) -> dict[Any, dict[str, Any]]:
+    return {r["id"]: r for r in responses}
+
+
+# --- answers ----------------------------------------------------------------
+
+
+async def test_a_request_is_answered_with_its_result_and_id(conn: Conn) -> None:
+    assert await conn.call("echo", {"text": "hi"}, id="abc") == {
+        "jsonrpc": "2.0",
+        "result": {"text": "hi"},
+        "id": "abc",
+    }
+    assert (await conn.call("add", {"a": 2, "b": 3}, id=7))["result"] == 5
+
+
+async def test_the_handler_sees_the_calling_client_from_its_credentials(conn: Conn) -> None:
+    assert (await conn.call("whoami"))["result"] == {
+        "pid": os.getpid(),
+        "uid": os.getuid(),
+        "gid": os.getgid(),
+    }
+
+
+async def test_empty_lines_are_ignored(conn: Conn) -> None:
+    await conn.send_raw(b"\n\r\n   \n")
+    assert (await conn.call("count", id=1))["id"] == 1
+
+
+async def test_a_notification_runs_but_gets_no_answer(conn: Conn, harness: Harness) -> None:
+    await conn.send({"jsonrpc": "2.0", "method": "count"})
+    await conn.send({"jsonrpc": "2.0", "method": "no.such.method"})
+    await conn.send({"jsonrpc": "2.0", "method": "boom"})
+    await conn.send({"jsonrpc": "2.0", "method": "add", "params": {"a": "x"}})
+    # Requests run concurrently, so only the answers' order on the wire is pinned:
+    # the first line back is the answer to the first request that has an id.
+    assert (await conn.call("count", id=2))["id"] == 2
+    assert await conn.call("count", id=3) == {"jsonrpc": "2.0", "result": 3, "id": 3}
+
+
+async def test_notifications_sent_while_handling_go_out_before_the_answer(conn: Conn) -> None:
+    await conn.send({"jsonrpc": "2.0", "method": "flood", "params": {"count": 3}, "id": 1})
+    ticks = [await conn.recv() for _ in range(3)]
+    assert ticks == [
+        {"jsonrpc": "2.0", "method": "tick", "params": {"i": i, "pad": ""}} for i in range(3)
+    ]
+    assert await conn.recv() == {"jsonrpc": "2.0", "result": 3, "id": 1}
+
+
+# --- error codes --------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "line",
+    [b"this is not json\n", b'{"jsonrpc": "2.0", "method": \n', b"\xff\xfe{}\n", b"NaN\n"],
+    ids=["garbage", "truncated", "invalid-utf8", "nan"],
+)
+async def test_a_line_that_is_not_json_is_a_parse_error(conn: Conn, line: bytes) -> None:
+    await conn.send_raw(line)
+    answer = await conn.recv()
+    assert answer["id"] is None
+    assert answer["error"]["code"] == -32700
+    assert answer["error"]["message"].startswith("parse error")
+
+
+@pytest.mark.parametrize(
+    ("request_", "id"),
+    [
+        (42, None),
+        ("echo", None),
+        ({"jsonrpc": "1.0", "method": "count", "id": 5}, 5),
+        ({"method": "count", "id": "x"}, "x"),
+        ({"jsonrpc": "2.0", "method": "count", "id": {"no": 1}}, None),
+        ({"jsonrpc": "2.0", "method": "count", "id": True}, None),
+        ({"jsonrpc": "2.0", "method": 12, "id": 6}, 6),
+        ({"jsonrpc": "2.0", "method": "echo", "params": "hi", "id": 7}, 7),
+        ({"jsonrpc": "2.0", "params": {}}, None),
+    ],
+    ids=[
+        "number",
+        "string",
+        "wrong-version",
+        "no-version",
+        "object-id",
+        "bool-id",
+        "method-not-string",
+        "params-scalar",
+        "no-method-no-id",
+    ],
+)
+async def test_a_malformed_request_is_an_invalid_request(
+    conn: Conn, request_: Any, id: Any
+) -> None:
+    await conn.send(request_)
+    answer = await conn.recv()
+    assert answer["error"]["code"] == -32600
+    assert answer["id"] == id
+
+
+async def test_an_empty_batch_is_one_invalid_request_not_an_array(conn: Conn) -> None:
+    await conn.send([])
+    answer = await conn.recv()
+    assert answer["error"] == {"code": -32600, "message": "invalid request: empty batch"}
+    assert answer["id"] is None
+
+
+async def test_an_unknown_method_is_method_not_found(conn: Conn) -> None:
+    answer = await conn.call("machine.fly", id=3)
+    assert answer["id"] == 3
+    assert answer["error"] == {"code": -32601, "message": "method not found: machine.fly"}
+
+
+@pytest.mark.parametrize(
+    ("method", "params", "message"),
+    [
+        ("add", {"a": 1}, "invalid params: b: Field required"),
+        ("add", {"a": 1, "b": "two"}, "invalid params: b: Input should be a valid integer"),
+        ("echo", {"text": "x", "loud": True}, "invalid params: loud: Extra inputs are not"),
+        ("echo", None, "invalid params: text: Field required"),
+        ("echo", ["x"], "invalid params: params must be an object"),
+        ("count", {"n": 1}, "invalid params: count takes no params"),
+        ("count", [1], "invalid params: count takes no params"),
+    ],
+    ids=[
+        "missing",
+        "wrong-type",
+        "extra-field",
+        "absent",
+        "by-position",
+        "params-for-none",
+        "array-for-none",
+    ],
+)
+async def test_bad_params_are_invalid_params_naming_the_field(
+    conn: Conn, method: str, params: Any, message: str
+) -> None:
+    answer = await conn.call(method, params, id=4)
+    assert answer["id"] == 4
+    assert answer["error"]["code"] == -32602
+    assert answer["error"]["message"].startswith(message)
+
+
+async def test_invalid_params_carry_pydantics_errors_as_data(conn: Conn) -> None:
+    answer = await conn.call("add", {"b": "two"})
+    assert answer["error"]["data"] == [
+        {"loc": ["a"], "msg": "Field required", "type": "missing"},
+        {
+            "loc": ["b"],
+            "msg": "Input should be a valid integer, unable to parse string as an integer",
+            "type": "int_parsing",
+        },
+    ]
+
+
+@pytest.mark.parametrize("params", [None, {}, []])
+async def test_a_method_without_params_accepts_empty_or_absent_params(
+    conn: Conn, params: Any
+) -> None:
+    request: dict[str, Any] = {"jsonrpc": "2.0", "method": "count", "id": 1, "params": params}
+    await conn.send(request)
+    assert (await conn.recv())["result"] == 1
+
+
+async def test_a_crashing_handler_is_an_internal_error_logged_and_serving_goes_on(
+    conn: Conn,
+) -> None:
+    with capture_logs() as logs:
+        answer = await conn.call("boom", id=9)
+    assert answer == {
+        "jsonrpc": "2.0",
+        "error": {"code": -32603, "message": "internal error"},
+        "id": 9,
+    }
+    [entry] = [e for e in logs if e["event"] == "internal error"]
+    assert entry["log_level"] == "error"
+    assert entry["exc_info"] is True
+    assert entry["method"] == "boom"
+    assert (await conn.call("echo", {"text": "still here"}, id=10))["result"] == {
+        "text": "still here"
+    }
+
+
+async def test_a_machine_error_passes_through_with_its_code_and_data(conn: Conn) -> None:
+    assert (await conn.call("refuse", id=11))["error"] == {
+        "code": 1003,
+        "message": "machine busy",
+        "data": {"supervisor": "operation"},
+    }
+
+
+# --- batches and pipelining ------------------------------------------------------
+
+
+async def test_a_mixed_batch_is_answered_as_one_array_without_the_notifications(
+    conn: Conn, harness: Harness
+) -> None:
+    await conn.send(
+        [
+            {"jsonrpc": "2.0", "method": "echo", "params": {"text": "a"}, "id": 1},
+            {"jsonrpc": "1.0", "method": "echo", "id": 2},
+            {"jsonrpc": "2.0", "method": "count"},
+            {"jsonrpc": "2.0", "method": "add", "params": {"a": 1, "b": "x"}, "id": 3},
+            {"jsonrpc": "2.0", "method": "nope", "id": 4},
+            7,
+        ]
+    )
+    answer = await conn.recv()
+    assert isinstance(answer, list)
+    assert len(answer) == 5
+    assert harness.counted == 1  # the notification ran before the array was sent
+    answers = by_id([a for a in answer if a["id"] is not None])
+    assert answers[1]["result"] == {"text": "a"}
+    assert answers[2]["error"]["code"] == -32600
+    assert answers[3]["error"]["code"] == -32602
+    assert answers[4]["error"]["code"] == -32601
+    assert [a["error"]["code"] for a in answer if a["id"] is None] == [-32600]
+
+
+async def test_a_batch_of_only_notifications_gets_no_answer(conn: Conn, harness: Harness) -> None:
+    await conn.send([{"jsonrpc": "2.0", "method": "count"}, {"jsonrpc": "2.0", "method": "count"}])
+    assert (await conn.call("count", id=5))["id"] == 5
+    assert await conn.call("count", id=6) == {"jsonrpc": "2.0", "result": 4, "id": 6}
+
+
+async def test_pipelined_requests_are_answered_as_they_complete(
+    conn: Conn, harness: Harness
+) -> None:
+    await conn.send({"jsonrpc": "2.0", "method": "slow", "id": "slow"})
+    async with asyncio.timeout(TIMEOUT):
+        await harness.slow_started.wait()
+    await conn.send({"jsonrpc": "2.0", "method": "echo", "params": {"text": "fast"}, "id": "fast"})
+    assert (await conn.recv())["id"] == "fast"
+    harness.release.set()
+    assert await conn.recv() == {"jsonrpc": "2.0", "result": "slow done", "id": "slow"}
+
+
+async def test_a_client_that_ends_its_side_still_gets_its_answers(conn: Conn) -> None:
+    await conn.send({"jsonrpc": "2.0", "method": "add", "params": {"a": 1, "b": 1}, "id": 1})
+    conn.writer.write_eof()
+    assert (await conn.recv())["result"] == 2
+    assert await conn.closed_by_server()
+
+
+# --- limits -------------------------------------------------------------------
+
+
+async def test_a_line_over_the_limit_is_refused_and_closed_while_others_are_served(
+    server: ApiServer, conn: Conn
+) -> None:
+    assert server.path is not None
+    other = await Conn.open(server.path)
+    try:
+        assert (await other.call("count", id=1))["result"] == 1
+        text = "x" * (2 * MiB)
+        await conn.send({"jsonrpc": "2.0", "method": "echo", "params": {"text": text}, "id": 1})
+        assert await conn.recv() == {
+            "jsonrpc": "2.0",
+            "error": {"code": -32600, "message": "request line over 1048576 bytes"},
+            "id": None,
+        }
+        assert await conn.closed_by_server()
+        assert (await other.call("count", id=2))["result"] == 2
+    finally:
+        await other.close()
+
+
+async def test_the_limit_counts_the_line_without_its_newline(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_line=64) as server:
+        assert server.path is not None
+        request = b'{"jsonrpc":"2.0","method":"count","id":1}'
+        at_limit = request.ljust(64)
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send_raw(at_limit + b"\n")
+            assert (await conn.recv())["result"] == 1
+            await conn.send_raw(at_limit + b" \n")
+            assert (await conn.recv())["error"] == {
+                "code": -32600,
+                "message": "request line over 64 bytes",
+            }
+            assert await conn.closed_by_server()
+        finally:
+            await conn.close()
+
+
+async def test_a_client_that_stops_reading_is_disconnected_at_its_bound(
+    server: ApiServer, harness: Harness
+) -> None:
+    assert server.path is not None
+    deaf = await Conn.open(server.path)
+    deaf.stop_reading()
+    other = await Conn.open(server.path)
+    try:
+        await other.call("count")  # admitted and served before the flood
+        with capture_logs() as logs:
+            await deaf.send(
+                {"jsonrpc": "2.0", "method": "flood", "params": {"count": 10**6, "size": 100}}
+            )
+            async with asyncio.timeout(TIMEOUT):
+                await harness.disconnected.wait()
+        [entry] = [e for e in logs if e["event"] == "api client not reading; disconnected"]
+        assert entry["bound"] == 1000
+        assert entry["pid"] == os.getpid()
+        assert entry["uid"] == os.getuid()
+        assert len(server.clients) == 1
+        assert (await other.call("echo", {"text": "unaffected"}))["result"] == {
+            "text": "unaffected"
+        }
+    finally:
+        await deaf.close()
+        await other.close()
+
+
+async def test_a_write_that_does_not_drain_in_time_disconnects(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", write_timeout=0.2) as server:
+        assert server.path is not None
+        deaf = await Conn.open(server.path)
+        deaf.stop_reading()
+        try:
+            with capture_logs() as logs:
+                big = {
+                    "count": 64,
+                    "size": 64 * 1024,
+                }  # 4 MiB in 64 messages: the queue never fills
+                await deaf.send({"jsonrpc": "2.0", "method": "flood", "params": big})
+                async with asyncio.timeout(TIMEOUT):
+                    await harness.disconnected.wait()
+            reasons = [e["reason"] for e in logs if e["event"] == "api client disconnected"]
+            assert reasons == ["write did not drain within 0.2 s"]
+            assert server.clients == []
+        finally:
+            await deaf.close()
+
+
+# --- the socket file and its peers -------------------------------------------
+
+
+async def test_the_socket_file_is_0660(server: ApiServer) -> None:
+    assert server.path is not None
+    st = os.stat(server.path)
+    assert stat.S_ISSOCK(st.st_mode)
+    assert stat.S_IMODE(st.st_mode) == 0o660
+
+
+async def test_the_socket_gets_the_configured_group_and_the_umask_is_restored(
+    harness: Harness, tmp_path: Path
+) -> None:
+    umask = os.umask(0o022)
+    try:
+        async with serving(harness, tmp_path / "s", socket_gid=os.getgid()) as server:
+            assert server.path is not None
+            assert os.stat(server.path).st_gid == os.getgid()
+            assert stat.S_IMODE(os.stat(server.path).st_mode) == 0o660
+            assert os.umask(0o022) == 0o022
+    finally:
+        os.umask(umask)
+
+
+async def test_a_regular_file_at_the_path_is_not_deleted(harness: Harness, tmp_path: Path) -> None:
+    path = tmp_path / "precious"
+    path.write_text("keep me")
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="exists and is not a socket; refusing to remove"):
+        await server.start(path)
+    assert path.read_text() == "keep me"
+    await server.close()
+    assert path.read_text() == "keep me"
+
+
+async def test_a_stale_socket_is_replaced(harness: Harness, tmp_path: Path) -> None:
+    path = tmp_path / "s"
+    leftover = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    leftover.bind(str(path))
+    leftover.close()  # the file stays, nobody listens: what a crashed daemon leaves
+    async with serving(harness, path):
+        conn = await Conn.open(path)
+        assert (await conn.call("count"))["result"] == 1
+        await conn.close()
+
+
+async def test_a_socket_someone_listens_on_is_not_taken_over(
+    server: ApiServer, harness: Harness
+) -> None:
+    assert server.path is not None
+    second = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="in use"):
+        await second.start(server.path)
+    await second.close()
+    conn = await Conn.open(server.path)
+    assert (await conn.call("count"))["result"] == 1
+    await conn.close()
+
+
+async def test_a_peer_the_policy_denies_is_closed_without_an_answer(
+    harness: Harness, tmp_path: Path
+) -> None:
+    nobody = AccessPolicy(allowed_uids=set(), allowed_gids=set())
+    with capture_logs() as logs:
+        async with serving(harness, tmp_path / "s", policy=nobody) as server:
+            assert server.path is not None
+            conn = await Conn.open(server.path)
+            async with asyncio.timeout(TIMEOUT):
+                data = await conn.reader.read()
+            assert data == b""
+            assert server.clients == []
+            await conn.close()
+    [entry] = [e for e in logs if e["event"] == "api client denied"]
+    assert entry["log_level"] == "warning"
+    assert (entry["pid"], entry["uid"], entry["gid"]) == (os.getpid(), os.getuid(), os.getgid())
+    assert harness.counted == 0
+
+
+async def test_close_drops_clients_runs_their_hooks_and_removes_the_socket_file(
+    server: ApiServer, harness: Harness
+) -> None:
+    assert server.path is not None
+    path = Path(server.path)
+    conn = await Conn.open(path)
+    await conn.call("whoami")
+    await conn.send({"jsonrpc": "2.0", "method": "slow", "id": 2})
+    async with asyncio.timeout(TIMEOUT):
+        await harness.slow_started.wait()
+    await server.close()
+    assert path.name not in os.listdir(path.parent)
+    assert harness.disconnected.is_set()
+    assert server.clients == []
+    assert await conn.closed_by_server()
+    await conn.close()
