@@ -30,6 +30,10 @@ class _Strict(BaseModel):
 class DaemonConfig(_Strict):
     socket: str = "/run/hostd/hostd.sock"
     state_dir: str = "/var/lib/hostd"
+    # Members of this group may use the socket (it is created 0660 with this
+    # group); root and the daemon's own user always may. None: nobody else.
+    group: str | None = None
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
 
 
 class MachineConfig(_Strict):

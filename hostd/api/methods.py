@@ -1,0 +1,467 @@
+"""Every method of the control API (../shared/spec/api.md), wired to the daemon.
+
+Parameters are pydantic models (unknown fields refused: -32602). Errors
+keep their api.md codes: the machine layer's errors carry `code`, `message`
+and `data`; names that cannot be a file or a machine are -32602; a missing
+machine is 1001, a missing job or file 1004.
+
+The one addition to api.md, documented in docs/api.md: `file.upload`
+takes `final` (chunks sent with `final: false` stay hidden until the final
+one), so a half-uploaded program is never started.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from functools import partial
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from hostd import __version__
+from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
+from hostd.api.rpc import Methods
+from hostd.api.server import current_client
+from hostd.daemon import Daemon
+from hostd.machine.events import (
+    Console,
+    Event,
+    ExceptionRaised,
+    JobChanged,
+    StatusChanged,
+    SupervisorChanged,
+)
+from hostd.machine.machine import Machine, setting_lines
+from hostd.protocol.commands import InvalidCommand, Realtime
+
+API_VERSION = 1
+TOPICS = ("status", "exception", "supervisor", "fault", "job", "console")
+Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
+MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+SettingKey = Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Za-z0-9_]+$")]
+AXES = ("x", "y", "z", "a", "b", "c")
+
+
+class ApiError(Exception):
+    """An error with an api.md code, raised by the methods themselves."""
+
+    def __init__(self, code: int, message: str, data: Any = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.data = data
+
+
+class Params(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class MachineParams(Params):
+    machine: MachineId
+
+
+class SendParams(MachineParams):
+    line: str
+    timeout: Annotated[float, Field(gt=0, le=3600)] = 10.0
+
+
+class JogParams(MachineParams):
+    axes: dict[str, float]
+    feed: Annotated[float, Field(gt=0)]
+
+    @field_validator("axes")
+    @classmethod
+    def _known_axes(cls, axes: dict[str, float]) -> dict[str, float]:
+        if not axes:
+            raise ValueError("at least one axis")
+        unknown = sorted(set(axes) - set(AXES))
+        if unknown:
+            raise ValueError(f"unknown axes {unknown}: use {', '.join(AXES)}")
+        return axes
+
+
+class SettingsGetParams(MachineParams):
+    keys: Annotated[list[SettingKey], Field(min_length=1, max_length=100)]
+
+
+class SettingsSetParams(MachineParams):
+    values: Annotated[dict[SettingKey, float | int | bool | str], Field(min_length=1)]
+
+
+class FileName(Params):
+    name: str
+
+    @field_validator("name")
+    @classmethod
+    def _plain(cls, name: str) -> str:
+        return check_name(name)
+
+
+class UploadParams(FileName):
+    data: str
+    encoding: Literal["utf-8", "base64"] = "utf-8"
+    append: bool = False
+    final: bool = True
+
+
+class JobStartParams(MachineParams):
+    file: str
+    start_line: Annotated[int, Field(ge=1)] = 1
+
+    @field_validator("file")
+    @classmethod
+    def _plain(cls, name: str) -> str:
+        return check_name(name)
+
+
+class JobParams(Params):
+    job: Annotated[int, Field(ge=1)]
+
+
+class JobListParams(Params):
+    machine: MachineId | None = None
+    limit: Annotated[int, Field(ge=1, le=1000)] = 50
+
+
+class FaultParams(MachineParams):
+    fault: str
+
+
+class FaultOverrideParams(FaultParams):
+    override: bool
+
+
+class SubscribeParams(Params):
+    topics: Annotated[list[Topic], Field(min_length=1)]
+    machine: MachineId | None = None
+
+
+class UnsubscribeParams(Params):
+    subscription: int
+
+
+Notify = Callable[[str, dict[str, Any]], None]
+
+
+class Subscriptions:
+    """Which client wants which topics of which machine; fan-out never blocks."""
+
+    def __init__(self) -> None:
+        self._next = 1
+        self._subs: dict[int, tuple[Notify, frozenset[str], str | None]] = {}
+
+    def add(self, notify: Notify, topics: list[str], machine: str | None) -> int:
+        sub_id = self._next
+        self._next += 1
+        self._subs[sub_id] = (notify, frozenset(topics), machine)
+        return sub_id
+
+    def remove(self, sub_id: int) -> bool:
+        return self._subs.pop(sub_id, None) is not None
+
+    def remove_all(self, notify: Notify) -> None:
+        for sub_id in [k for k, (n, _, _) in self._subs.items() if n == notify]:
+            del self._subs[sub_id]
+
+    def clients(self) -> list[tuple[Notify, frozenset[str], str | None]]:
+        return list(self._subs.values())
+
+    def wants(self, topic: str, machine: str) -> bool:
+        return any(topic in t and m in (None, machine) for _, t, m in self._subs.values())
+
+    def deliver(self, topic: str, machine: str, params: dict[str, Any]) -> None:
+        sent: set[int] = set()
+        for notify, topics, wanted in list(self._subs.values()):
+            if topic in topics and wanted in (None, machine) and id(notify) not in sent:
+                sent.add(id(notify))
+                notify(topic, params)
+
+
+class Api:
+    def __init__(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        self.jobs = JobsDir(daemon.jobs_dir)
+        self.subscriptions = Subscriptions()
+
+    def attach(self) -> None:
+        """Listen to every machine (call once the daemon has built them)."""
+        for machine in self.daemon.machines.values():
+            machine.hub.subscribe(partial(self._on_event, machine))
+
+    # -- events to topics ------------------------------------------------
+
+    def _on_event(self, machine: Machine, event: Event) -> None:
+        subs = self.subscriptions
+        mid = machine.id
+        if isinstance(event, StatusChanged):
+            if subs.wants("status", mid):
+                snapshot = machine.snapshot()
+                subs.deliver(
+                    "status", mid, {"machine": mid, "report": event.report, "snapshot": snapshot}
+                )
+        elif isinstance(event, ExceptionRaised):
+            subs.deliver("exception", mid, {"machine": mid, "report": event.report})
+        elif isinstance(event, SupervisorChanged):
+            subs.deliver(
+                "supervisor",
+                mid,
+                {"machine": mid, "from": event.source, "to": event.target, "event": event.event},
+            )
+        elif isinstance(event, JobChanged):
+            subs.deliver("job", mid, {"machine": mid, "job": event.job})
+        elif isinstance(event, Console) and subs.wants("console", mid):
+            subs.deliver(
+                "console",
+                mid,
+                {
+                    "machine": mid,
+                    "direction": event.direction,
+                    "channel": event.channel,
+                    "text": event.text,
+                },
+            )
+
+    # -- helpers -----------------------------------------------------------
+
+    def _machine(self, machine_id: str) -> Machine:
+        machine = self.daemon.machine(machine_id)
+        if machine is None:
+            raise ApiError(1001, f"unknown machine {machine_id!r}")
+        return machine
+
+    async def _store(self) -> Any:
+        store = self.daemon.store
+        if store is None:
+            raise ApiError(-32603, "the job store is not open")
+        return store
+
+    # -- daemon and machines ---------------------------------------------
+
+    async def daemon_info(self) -> dict[str, Any]:
+        return {"version": __version__, "api": API_VERSION, "machines": list(self.daemon.machines)}
+
+    async def machine_list(self) -> list[dict[str, Any]]:
+        out = []
+        for machine in self.daemon.machines.values():
+            snap = machine.snapshot()
+            out.append(
+                {
+                    "id": machine.id,
+                    "dialect": machine.config.dialect,
+                    "supervisor": snap["supervisor"],
+                    "state": snap["state"],
+                }
+            )
+        return out
+
+    async def machine_status(self, p: MachineParams) -> dict[str, Any]:
+        return self._machine(p.machine).snapshot()
+
+    async def machine_connect(self, p: MachineParams) -> dict[str, Any]:
+        machine = self._machine(p.machine)
+        await machine.connect()
+        return machine.snapshot()
+
+    async def machine_disconnect(self, p: MachineParams) -> dict[str, Any]:
+        machine = self._machine(p.machine)
+        await machine.disconnect()
+        return machine.snapshot()
+
+    async def machine_send(self, p: SendParams) -> dict[str, Any]:
+        machine = self._machine(p.machine)
+        try:
+            response = await machine.engine.send(p.line, timeout=p.timeout)
+        except InvalidCommand as exc:
+            raise ApiError(-32602, exc.message, {"refusal": exc.refusal.value}) from None
+        return {"status": response.status, "r": response.body}
+
+    async def machine_feedhold(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).feedhold()
+        return {}
+
+    async def machine_cycle_start(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).cycle_start()
+        return {}
+
+    async def machine_queue_flush(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).engine.realtime(Realtime.QUEUE_FLUSH)
+        return {}
+
+    async def machine_job_kill(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).engine.realtime(Realtime.JOB_KILL)
+        return {}
+
+    async def machine_reset(self, p: MachineParams) -> dict[str, Any]:
+        await self._machine(p.machine).engine.reset()
+        return {}
+
+    async def machine_clear(self, p: MachineParams) -> dict[str, Any]:
+        await self._machine(p.machine).engine.clear()
+        return {}
+
+    async def machine_alarm(self, p: MachineParams) -> dict[str, Any]:
+        await self._machine(p.machine).engine.send("{alarm:n}")
+        return {}
+
+    async def machine_shutdown(self, p: MachineParams) -> dict[str, Any]:
+        await self._machine(p.machine).engine.send("{shutd:n}")
+        return {}
+
+    async def machine_jog(self, p: JogParams) -> dict[str, Any]:
+        job = await self._machine(p.machine).jog(p.axes, p.feed)
+        return {"job": job.id}
+
+    async def machine_jog_stop(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).jog_stop()
+        return {}
+
+    async def settings_get(self, p: SettingsGetParams) -> dict[str, Any]:
+        lines = [f'{{"{key}":null}}' for key in p.keys]
+        _, bodies = await self._machine(p.machine).settings(lines)
+        return _merge(bodies)
+
+    async def settings_set(self, p: SettingsSetParams) -> dict[str, Any]:
+        _, bodies = await self._machine(p.machine).settings(setting_lines(dict(p.values)))
+        return _merge(bodies)
+
+    # -- files ---------------------------------------------------------------
+
+    async def file_upload(self, p: UploadParams) -> dict[str, Any]:
+        try:
+            data = decode(p.data, p.encoding)
+        except InvalidData as exc:
+            raise ApiError(-32602, str(exc)) from None
+        size = await asyncio.to_thread(
+            self.jobs.upload, p.name, data, append=p.append, final=p.final
+        )
+        return {"name": p.name, "size": size}
+
+    async def file_list(self) -> list[dict[str, Any]]:
+        files = await asyncio.to_thread(self.jobs.list)
+        return [{"name": f.name, "size": f.size, "modified": f.modified} for f in files]
+
+    async def file_delete(self, p: FileName) -> dict[str, Any]:
+        try:
+            await asyncio.to_thread(self.jobs.delete, p.name)
+        except NoSuchFileError as exc:
+            raise ApiError(1004, str(exc)) from None
+        return {}
+
+    # -- jobs ------------------------------------------------------------------
+
+    async def job_start(self, p: JobStartParams) -> dict[str, Any]:
+        machine = self._machine(p.machine)
+        try:
+            await asyncio.to_thread(self.jobs.resolve, p.file)
+        except NoSuchFileError as exc:
+            raise ApiError(1004, str(exc)) from None
+        job = await machine.start_make(p.file, p.start_line)
+        return {"job": job.id}
+
+    async def job_pause(self, p: MachineParams) -> dict[str, Any]:
+        return self._machine(p.machine).pause().model_dump(mode="json")
+
+    async def job_resume(self, p: MachineParams) -> dict[str, Any]:
+        return self._machine(p.machine).resume().model_dump(mode="json")
+
+    async def job_cancel(self, p: MachineParams) -> dict[str, Any]:
+        job = await self._machine(p.machine).cancel()
+        return job.model_dump(mode="json")
+
+    async def job_get(self, p: JobParams) -> dict[str, Any]:
+        for machine in self.daemon.machines.values():
+            current = machine.current_job()
+            if current is not None and current.id == p.job:
+                return current.model_dump(mode="json")
+        job = await (await self._store()).get(p.job)
+        if job is None:
+            raise ApiError(1004, f"no job {p.job}")
+        return dict(job.model_dump(mode="json"))
+
+    async def job_list(self, p: JobListParams) -> list[dict[str, Any]]:
+        if p.machine is not None:
+            self._machine(p.machine)
+        jobs = await (await self._store()).list_jobs(p.machine, p.limit)
+        live = {
+            job.id: job
+            for m in self.daemon.machines.values()
+            if (job := m.current_job()) is not None
+        }
+        return [live.get(j.id, j).model_dump(mode="json") for j in jobs]
+
+    # -- faults (the fault table arrives with issue 6) -----------------------
+
+    async def fault_list(self, p: MachineParams) -> list[dict[str, Any]]:
+        faults: list[dict[str, Any]] = self._machine(p.machine).snapshot()["faults"]
+        return faults
+
+    async def fault_override(self, p: FaultOverrideParams) -> dict[str, Any]:
+        self._machine(p.machine)
+        raise ApiError(-32602, f"no fault {p.fault!r} on {p.machine}")
+
+    async def fault_clear(self, p: FaultParams) -> dict[str, Any]:
+        self._machine(p.machine)
+        raise ApiError(-32602, f"no fault {p.fault!r} on {p.machine}")
+
+    # -- subscriptions -----------------------------------------------------
+
+    async def subscribe_client(self, p: SubscribeParams) -> dict[str, Any]:
+        """Topics for the calling client, delivered through its bounded queue until it leaves."""
+        if p.machine is not None:
+            self._machine(p.machine)
+        client = current_client()
+        notify: Notify = client.notify
+        if not any(n == notify for n, _, _ in self.subscriptions.clients()):
+            client.on_disconnect.append(lambda: self.subscriptions.remove_all(notify))
+        return {"subscription": self.subscriptions.add(notify, list(p.topics), p.machine)}
+
+    async def unsubscribe(self, p: UnsubscribeParams) -> dict[str, Any]:
+        if not self.subscriptions.remove(p.subscription):
+            raise ApiError(-32602, f"no subscription {p.subscription}")
+        return {}
+
+
+def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:
+    merged: dict[str, Any] = {}
+    for body in bodies:
+        merged.update(body)
+    return merged
+
+
+def build_methods(api: Api) -> Methods:
+    """The api.md method table, name by name."""
+    m = Methods()
+    m.register("daemon.info", None, api.daemon_info)
+    m.register("machine.list", None, api.machine_list)
+    m.register("machine.status", MachineParams, api.machine_status)
+    m.register("machine.connect", MachineParams, api.machine_connect)
+    m.register("machine.disconnect", MachineParams, api.machine_disconnect)
+    m.register("machine.send", SendParams, api.machine_send)
+    m.register("machine.feedhold", MachineParams, api.machine_feedhold)
+    m.register("machine.cycle_start", MachineParams, api.machine_cycle_start)
+    m.register("machine.queue_flush", MachineParams, api.machine_queue_flush)
+    m.register("machine.job_kill", MachineParams, api.machine_job_kill)
+    m.register("machine.reset", MachineParams, api.machine_reset)
+    m.register("machine.clear", MachineParams, api.machine_clear)
+    m.register("machine.alarm", MachineParams, api.machine_alarm)
+    m.register("machine.shutdown", MachineParams, api.machine_shutdown)
+    m.register("machine.jog", JogParams, api.machine_jog)
+    m.register("machine.jog_stop", MachineParams, api.machine_jog_stop)
+    m.register("settings.get", SettingsGetParams, api.settings_get)
+    m.register("settings.set", SettingsSetParams, api.settings_set)
+    m.register("file.upload", UploadParams, api.file_upload)
+    m.register("file.list", None, api.file_list)
+    m.register("file.delete", FileName, api.file_delete)
+    m.register("job.start", JobStartParams, api.job_start)
+    m.register("job.pause", MachineParams, api.job_pause)
+    m.register("job.resume", MachineParams, api.job_resume)
+    m.register("job.cancel", MachineParams, api.job_cancel)
+    m.register("job.get", JobParams, api.job_get)
+    m.register("job.list", JobListParams, api.job_list)
+    m.register("fault.list", MachineParams, api.fault_list)
+    m.register("fault.override", FaultOverrideParams, api.fault_override)
+    m.register("fault.clear", FaultParams, api.fault_clear)
+    m.register("subscribe", SubscribeParams, api.subscribe_client)
+    m.register("unsubscribe", UnsubscribeParams, api.unsubscribe)
+    return m

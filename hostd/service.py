@@ -1,0 +1,114 @@
+"""`hostd serve`: the daemon in the foreground, as systemd runs it.
+
+Start-up: the config is validated whole (a bad one is one message naming
+the file, the key and the problem, and exit status 2), then the machines
+are built, then the socket listens, then systemd is told READY=1. SIGTERM
+or SIGINT: STOPPING=1, the socket stops accepting, every running job ends
+`interrupted` with its counts written, the ports are closed, the socket
+file is removed, exit 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+
+import structlog
+
+from hostd.api.methods import Api, build_methods
+from hostd.api.peer import AccessPolicy, group_id
+from hostd.api.server import ApiServer, SocketPathError
+from hostd.config import Config, ConfigError, load_config
+from hostd.daemon import Daemon
+from hostd.logs import configure_logging
+from hostd.machine.events import Event, SupervisorChanged
+from hostd.notify import Notifier
+
+log = structlog.get_logger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="the TOML config file")
+    parser.add_argument("--socket", help="the API socket path (overrides [daemon] socket)")
+    parser.add_argument("--log-format", choices=("console", "json"), default="console")
+    parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
+
+
+def serve_main(args: argparse.Namespace) -> int:
+    try:
+        config = load_config(args.config)
+        policy, gid = _access(config)
+    except ConfigError as exc:
+        print(f"hostd: {exc}", file=sys.stderr)
+        return 2
+    configure_logging(args.log_level or config.daemon.log_level, args.log_format)
+    socket_path = args.socket or config.daemon.socket
+    try:
+        asyncio.run(serve(config, socket_path, policy, gid))
+    except (OSError, SocketPathError) as exc:
+        log.error("cannot serve", error=str(exc))
+        print(f"hostd: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _access(config: Config) -> tuple[AccessPolicy, int | None]:
+    group = config.daemon.group
+    if group is None:
+        return AccessPolicy.default(), None
+    try:
+        return AccessPolicy.default(group), group_id(group)
+    except (KeyError, ValueError):
+        raise ConfigError(f"[daemon] group: no group named {group!r}") from None
+
+
+async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int | None) -> None:
+    notifier = Notifier()
+    daemon = Daemon(config)
+    api = Api(daemon)
+    server = ApiServer(build_methods(api), policy=policy, socket_gid=gid)
+    loop = asyncio.get_running_loop()
+
+    def stop() -> None:
+        log.info("stopping")
+        notifier.send(STOPPING=1)
+        daemon.stop()
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, stop)
+
+    def status(event: Event) -> None:
+        if isinstance(event, SupervisorChanged):
+            notifier.send(STATUS=_status_line(daemon))
+
+    async def ready() -> None:
+        api.attach()
+        for machine in daemon.machines.values():
+            machine.hub.subscribe(status)
+        await server.start(socket_path)
+        notifier.send(READY=1, STATUS=_status_line(daemon))
+        log.info("hostd ready", socket=socket_path, machines=list(daemon.machines))
+
+    watchdog = asyncio.create_task(notifier.watchdog())
+    try:
+        await daemon.run(ready)
+    finally:
+        watchdog.cancel()
+        await server.close()
+        notifier.close()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(signum)
+        log.info("hostd stopped")
+
+
+def _status_line(daemon: Daemon) -> str:
+    parts = [f"{m.id} {m.supervisor.state.value}" for m in daemon.machines.values()]
+    return ", ".join(parts) or "no machines configured"
+
+
+if __name__ == "__main__":  # `hostd serve` is the way in; this serves tests and debugging
+    _parser = argparse.ArgumentParser(prog="hostd serve")
+    add_arguments(_parser)
+    sys.exit(serve_main(_parser.parse_args()))

@@ -1,0 +1,147 @@
+"""A whole daemon (simulated machine, job store, API socket) and a raw JSON-RPC client."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest_asyncio
+
+from hostd.api.methods import Api, build_methods
+from hostd.api.server import ApiServer
+from hostd.config import parse_config
+from hostd.daemon import Daemon
+
+
+class RpcFailure(Exception):
+    def __init__(self, error: dict[str, Any]) -> None:
+        super().__init__(f"{error['code']}: {error['message']}")
+        self.code: int = error["code"]
+        self.message: str = error["message"]
+        self.data: Any = error.get("data")
+
+
+class Rpc:
+    """One connection: calls matched by id, notifications queued in order."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self._ids = itertools.count(1)
+        self._waiting: dict[int, asyncio.Future[dict[str, Any]]] = {}
+        self.notifications: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
+        self._task = asyncio.create_task(self._read())
+
+    @classmethod
+    async def open(cls, path: str) -> Rpc:
+        reader, writer = await asyncio.open_unix_connection(path, limit=8 * 1024 * 1024)
+        return cls(reader, writer)
+
+    async def _read(self) -> None:
+        while line := await self.reader.readline():
+            msg = json.loads(line)
+            if "id" in msg and msg["id"] in self._waiting:
+                self._waiting.pop(msg["id"]).set_result(msg)
+            elif "method" in msg:
+                self.notifications.put_nowait(msg)
+
+    async def call(self, method: str, **params: Any) -> Any:
+        msg_id = next(self._ids)
+        future = asyncio.get_running_loop().create_future()
+        self._waiting[msg_id] = future
+        request = {"jsonrpc": "2.0", "id": msg_id, "method": method}
+        if params:
+            request["params"] = params
+        self.writer.write(json.dumps(request).encode() + b"\n")
+        async with asyncio.timeout(15):
+            msg = await future
+        if "error" in msg:
+            raise RpcFailure(msg["error"])
+        return msg["result"]
+
+    async def notification(self, predicate: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
+        async with asyncio.timeout(10):
+            while True:
+                msg = await self.notifications.get()
+                if predicate(msg):
+                    return msg
+
+    async def close(self) -> None:
+        self._task.cancel()
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            await self.writer.wait_closed()
+
+
+@dataclass
+class Running:
+    daemon: Daemon
+    socket: str
+    jobs: Path
+
+    async def client(self) -> Rpc:
+        return await Rpc.open(self.socket)
+
+    async def idle(self, rpc: Rpc, machine: str = "sim1") -> None:
+        """Until the machine's supervisor is idle (told by the supervisor topic)."""
+        watcher = await self.client()
+        try:
+            await watcher.call("subscribe", topics=["supervisor"], machine=machine)
+            if (await watcher.call("machine.status", machine=machine))["supervisor"] != "idle":
+                await watcher.notification(lambda n: n["params"]["to"] == "idle")
+        finally:
+            await watcher.close()
+
+
+def config_data(tmp_path: Path, machines: int = 1) -> dict[str, Any]:
+    return {
+        "daemon": {"socket": str(tmp_path / "hostd.sock"), "state_dir": str(tmp_path / "state")},
+        "machines": [
+            {"id": f"sim{i}", "data_port": "sim", "status_interval": 0.1, "auto_connect": True}
+            for i in range(1, machines + 1)
+        ],
+    }
+
+
+@contextlib.asynccontextmanager
+async def running_daemon(tmp_path: Path, machines: int = 1) -> AsyncIterator[Running]:
+    config = parse_config(config_data(tmp_path, machines))
+    daemon = Daemon(config)
+    api = Api(daemon)
+    server = ApiServer(build_methods(api))
+    socket = config.daemon.socket
+    up = asyncio.Event()
+
+    async def ready() -> None:
+        api.attach()
+        await server.start(socket)
+        up.set()
+
+    task = asyncio.create_task(daemon.run(ready))
+    async with asyncio.timeout(10):
+        await up.wait()
+    try:
+        yield Running(daemon, socket, daemon.jobs_dir)
+    finally:
+        daemon.stop()
+        await task
+        await server.close()
+
+
+@pytest_asyncio.fixture
+async def hostd(tmp_path: Path) -> AsyncIterator[Running]:
+    async with running_daemon(tmp_path) as running:
+        yield running
+
+
+@pytest_asyncio.fixture
+async def rpc(hostd: Running) -> AsyncIterator[Rpc]:
+    client = await hostd.client()
+    await hostd.idle(client)
+    yield client
+    await client.close()

@@ -1,0 +1,250 @@
+"""Every api.md method through a real Unix socket, against a daemon with a simulated machine."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+from pathlib import Path
+
+import pytest
+
+from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
+
+pytestmark = pytest.mark.asyncio
+
+SNAPSHOT_KEYS = {
+    "id",
+    "dialect",
+    "supervisor",
+    "state",
+    "position",
+    "line",
+    "velocity",
+    "feed",
+    "units",
+    "homed",
+    "indicator",
+    "faults",
+    "job",
+    "last_exception",
+}
+JOB_KEYS = {
+    "id",
+    "machine",
+    "file",
+    "kind",
+    "state",
+    "lines_total",
+    "lines_sent",
+    "lines_acked",
+    "started_at",
+    "ended_at",
+    "error",
+}
+
+
+async def fails(code: int, call: object) -> RpcFailure:
+    with pytest.raises(RpcFailure) as err:
+        await call  # type: ignore[misc]
+    assert err.value.code == code, err.value
+    assert err.value.message
+    return err.value
+
+
+async def job_end(rpc: Rpc, job_id: int) -> dict[str, object]:
+    note = await rpc.notification(
+        lambda n: (
+            n["method"] == "job"
+            and n["params"]["job"]["id"] == job_id
+            and n["params"]["job"]["state"] not in ("running", "paused")
+        )
+    )
+    job: dict[str, object] = note["params"]["job"]
+    return job
+
+
+async def test_daemon_info_and_machine_list(rpc: Rpc) -> None:
+    info = await rpc.call("daemon.info")
+    assert info["api"] == 1 and info["machines"] == ["sim1"] and info["version"]
+    (entry,) = await rpc.call("machine.list")
+    assert entry["id"] == "sim1" and entry["dialect"] == "g2core"
+    assert entry["supervisor"] == "idle"
+    assert entry["state"]["name"] in ("READY", "PROGRAM_STOP", "PROGRAM_END")
+
+
+async def test_the_snapshot_has_every_field_of_api_md(rpc: Rpc) -> None:
+    snap = await rpc.call("machine.status", machine="sim1")
+    assert set(snap) >= SNAPSHOT_KEYS
+    assert snap["units"] == "mm" and snap["indicator"] == "normal"
+    assert set(snap["position"]) >= {"x", "y", "z"}
+
+
+async def test_machine_ids(rpc: Rpc) -> None:
+    await fails(1001, rpc.call("machine.status", machine="nope"))
+    await fails(-32602, rpc.call("machine.status", machine="../etc"))
+    await fails(-32602, rpc.call("machine.status"))
+
+
+async def test_send_answers_queries_and_gcode(rpc: Rpc) -> None:
+    answer = await rpc.call("machine.send", machine="sim1", line="{xvm:n}")
+    assert answer["status"] == 0 and "xvm" in answer["r"]
+    answer = await rpc.call("machine.send", machine="sim1", line="G0 X3")
+    assert answer == {"status": 0, "r": answer["r"]}
+
+
+async def test_send_errors(rpc: Rpc) -> None:
+    err = await fails(1005, rpc.call("machine.send", machine="sim1", line="G5 X1"))
+    assert err.data["status"] != 0 and err.data["msg"]
+    err = await fails(-32602, rpc.call("machine.send", machine="sim1", line="G0 X1\u0000"))
+    assert "NUL" in err.message
+    await fails(-32602, rpc.call("machine.send", machine="sim1", line="$$"))
+    await fails(-32602, rpc.call("machine.send", machine="sim1", line="G0", timeout=-1))
+
+
+async def test_alarm_rejects_actions_until_clear(rpc: Rpc) -> None:
+    await rpc.call("subscribe", topics=["exception", "status"], machine="sim1")
+    assert await rpc.call("machine.alarm", machine="sim1") == {}
+    await rpc.notification(lambda n: n["method"] == "exception")
+    await rpc.notification(
+        lambda n: n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+    )
+    await fails(204, rpc.call("machine.send", machine="sim1", line="G0 X1"))
+    await fails(204, rpc.call("machine.jog", machine="sim1", axes={"x": 1}, feed=100))
+    assert (await rpc.call("machine.send", machine="sim1", line="{xvm:n}"))["status"] == 0
+    assert await rpc.call("machine.clear", machine="sim1") == {}
+    snap = await rpc.call("machine.status", machine="sim1")
+    assert snap["state"]["name"] == "PROGRAM_STOP"
+    assert snap["last_exception"]["st"] == 18
+
+
+async def test_shutdown_and_reset(rpc: Rpc, hostd: Running) -> None:
+    await rpc.call("machine.shutdown", machine="sim1")
+    await fails(205, rpc.call("machine.send", machine="sim1", line="M30"))
+    assert await rpc.call("machine.reset", machine="sim1") == {}
+    snap = await rpc.call("machine.status", machine="sim1")
+    assert snap["state"]["name"] == "READY"
+
+
+async def test_files(rpc: Rpc, hostd: Running) -> None:
+    assert await rpc.call("file.upload", name="a.gcode", data="G0 X1\n") == {
+        "name": "a.gcode",
+        "size": 6,
+    }
+    raw = base64.b64encode(b"G0 X2\n").decode()
+    await rpc.call("file.upload", name="b.gcode", data=raw, encoding="base64")
+    await rpc.call("file.upload", name="c.gcode", data="G0 X1\n", final=False)
+    await rpc.call("file.upload", name="c.gcode", data="G0 X2\n", append=True)
+    files = await rpc.call("file.list")
+    assert [(f["name"], f["size"]) for f in files] == [
+        ("a.gcode", 6),
+        ("b.gcode", 6),
+        ("c.gcode", 12),
+    ]
+    assert await rpc.call("file.delete", name="a.gcode") == {}
+    await fails(1004, rpc.call("file.delete", name="a.gcode"))
+    for name in ("../x", "/etc/passwd", "a/b", "..", ".hidden"):
+        await fails(-32602, rpc.call("file.upload", name=name, data="x"))
+        await fails(-32602, rpc.call("job.start", machine="sim1", file=name))
+    await fails(-32602, rpc.call("file.upload", name="d.gcode", data="%%%", encoding="base64"))
+    assert not (hostd.jobs.parent / "x").exists()
+
+
+async def test_a_job_runs_and_is_reported(rpc: Rpc, hostd: Running) -> None:
+    program = "(square)\nG21 G90\n" + "".join(f"G1 X{i % 10} Y{i % 3} F6000\n" for i in range(40))
+    await rpc.call("file.upload", name="square.gcode", data=program)
+    await rpc.call("subscribe", topics=["job", "supervisor"], machine="sim1")
+    started = await rpc.call("job.start", machine="sim1", file="square.gcode")
+    job = await job_end(rpc, started["job"])
+    assert job["state"] == "completed"
+    assert job["lines_total"] == job["lines_sent"] == job["lines_acked"] == 41
+    row = await rpc.call("job.get", job=started["job"])
+    assert set(row) == JOB_KEYS
+    assert row["state"] == "completed" and row["error"] is None and row["file"] == "square.gcode"
+    listed = await rpc.call("job.list", machine="sim1")
+    assert listed[0]["id"] == started["job"]
+    await fails(1004, rpc.call("job.get", job=99999))
+    await fails(1004, rpc.call("job.start", machine="sim1", file="missing.gcode"))
+
+
+async def test_job_pause_resume_cancel(rpc: Rpc) -> None:
+    program = "".join(f"G1 X{i % 30} F1200\n" for i in range(200))
+    await rpc.call("file.upload", name="long.gcode", data=program)
+    started = await rpc.call("job.start", machine="sim1", file="long.gcode")
+    await fails(1003, rpc.call("job.start", machine="sim1", file="long.gcode"))
+    await fails(1003, rpc.call("machine.send", machine="sim1", line="G0 X0"))
+    paused = await rpc.call("job.pause", machine="sim1")
+    assert paused["state"] == "paused" and paused["id"] == started["job"]
+    assert (await rpc.call("machine.status", machine="sim1"))["supervisor"] == "paused"
+    resumed = await rpc.call("job.resume", machine="sim1")
+    assert resumed["state"] == "running"
+    cancelled = await rpc.call("job.cancel", machine="sim1")
+    assert cancelled["state"] == "cancelled"
+    await fails(1003, rpc.call("job.resume", machine="sim1"))
+
+
+async def test_jog_and_settings(rpc: Rpc) -> None:
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    jog = await rpc.call("machine.jog", machine="sim1", axes={"x": 2.5}, feed=3000)
+    assert (await job_end(rpc, jog["job"]))["state"] == "completed"
+    await fails(-32602, rpc.call("machine.jog", machine="sim1", axes={"q": 1}, feed=10))
+    assert await rpc.call("settings.set", machine="sim1", values={"xvm": 9000}) == {"xvm": 9000}
+    assert await rpc.call("settings.get", machine="sim1", keys=["xvm", "yvm"]) == {
+        "xvm": 9000,
+        "yvm": await _yvm(rpc),
+    }
+    kinds = [j["kind"] for j in await rpc.call("job.list", machine="sim1")]
+    assert kinds[:3] == ["settings", "settings", "settings"] or "jog" in kinds
+
+
+async def _yvm(rpc: Rpc) -> object:
+    return (await rpc.call("machine.send", machine="sim1", line="{yvm:n}"))["r"]["yvm"]
+
+
+async def test_subscriptions_deliver_topics_and_stop_after_unsubscribe(rpc: Rpc) -> None:
+    sub = await rpc.call("subscribe", topics=["status", "console"], machine="sim1")
+    await rpc.call("machine.send", machine="sim1", line="G0 X4")
+    # In the order they happen: the line goes out, then the board reports the move.
+    console = await rpc.notification(
+        lambda n: n["method"] == "console" and n["params"]["text"] == "G0 X4"
+    )
+    assert console["params"]["direction"] == "tx" and console["params"]["channel"] == "data"
+    status = await rpc.notification(lambda n: n["method"] == "status")
+    assert status["params"]["machine"] == "sim1" and "report" in status["params"]
+    assert await rpc.call("unsubscribe", subscription=sub["subscription"]) == {}
+    await fails(-32602, rpc.call("unsubscribe", subscription=sub["subscription"]))
+    await fails(-32602, rpc.call("subscribe", topics=["weather"]))
+    await fails(1001, rpc.call("subscribe", topics=["status"], machine="nope"))
+
+
+async def test_faults_are_listed(rpc: Rpc) -> None:
+    assert await rpc.call("fault.list", machine="sim1") == []
+    await fails(-32602, rpc.call("fault.clear", machine="sim1", fault="nope"))
+
+
+async def test_connect_and_disconnect(rpc: Rpc) -> None:
+    snap = await rpc.call("machine.disconnect", machine="sim1")
+    assert snap["supervisor"] == "disconnected"
+    await fails(1002, rpc.call("machine.send", machine="sim1", line="{xvm:n}"))
+    snap = await rpc.call("machine.connect", machine="sim1")
+    assert snap["supervisor"] in ("busy", "idle")
+
+
+async def test_a_subscriber_that_never_reads_does_not_slow_a_job_or_others(
+    tmp_path: Path,
+) -> None:
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        await hostd.idle(rpc)
+        sleeper = await hostd.client()
+        await sleeper.call("subscribe", topics=["status", "console", "job"])
+        sleeper._task.cancel()  # it stops reading its socket from here on
+        program = "".join(f"G1 X{i % 20} F60000\n" for i in range(5000))
+        await rpc.call("file.upload", name="big.gcode", data=program)
+        await rpc.call("subscribe", topics=["job"], machine="sim1")
+        started = await rpc.call("job.start", machine="sim1", file="big.gcode")
+        for _ in range(20):  # round trips stay answered while the job streams
+            await asyncio.wait_for(rpc.call("daemon.info"), 2)
+        job = await asyncio.wait_for(job_end(rpc, started["job"]), 60)
+        assert job["state"] == "completed" and job["lines_acked"] == 5000
+        await rpc.close()
+        await sleeper.close()

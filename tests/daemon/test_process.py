@@ -1,0 +1,179 @@
+"""The daemon as a process: systemd notify, SIGTERM, SIGKILL and restart, bad config."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import socket
+import sys
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tests.daemon.conftest import Rpc, config_data
+
+pytestmark = pytest.mark.asyncio
+
+SERVE = [sys.executable, "-m", "hostd.service"]
+
+
+def write_config(tmp_path: Path) -> Path:
+    data = config_data(tmp_path)
+    lines = [
+        "[daemon]",
+        f'socket = "{data["daemon"]["socket"]}"',
+        f'state_dir = "{data["daemon"]["state_dir"]}"',
+        "",
+        "[[machines]]",
+        'id = "sim1"',
+        'data_port = "sim"',
+        "status_interval = 0.1",
+    ]
+    path = tmp_path / "hostd.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@dataclass
+class Process:
+    proc: asyncio.subprocess.Process
+    notify: socket.socket
+    socket_path: str
+
+    async def message(self, want: bytes) -> list[bytes]:
+        """Notify datagrams up to and including the one that contains `want`."""
+        loop = asyncio.get_running_loop()
+        seen = []
+        async with asyncio.timeout(20):
+            while True:
+                datagram = await loop.sock_recv(self.notify, 4096)
+                seen.append(datagram)
+                if want in datagram:
+                    return seen
+
+
+@contextlib.asynccontextmanager
+async def daemon_process(tmp_path: Path, config: Path) -> AsyncIterator[Process]:
+    notify_path = tmp_path / f"notify-{os.getpid()}-{len(os.listdir(tmp_path))}"
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(notify_path))
+    notify.setblocking(False)
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "400000"}
+    proc = await asyncio.create_subprocess_exec(
+        *SERVE,
+        "--config",
+        str(config),
+        "--log-format",
+        "json",
+        env=env,
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    process = Process(proc, notify, str(tmp_path / "hostd.sock"))
+    try:
+        yield process
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+        await proc.wait()
+        notify.close()
+
+
+async def follow_until_acked(rpc: Rpc, job_id: int, lines: int) -> dict[str, object]:
+    note = await rpc.notification(
+        lambda n: (
+            n["method"] == "job"
+            and n["params"]["job"]["id"] == job_id
+            and n["params"]["job"]["lines_acked"] >= lines
+        )
+    )
+    job: dict[str, object] = note["params"]["job"]
+    return job
+
+
+async def start_long_job(rpc: Rpc) -> int:
+    program = "".join(f"G1 X{i % 30} Y{i % 7} F3000\n" for i in range(20000))
+    await rpc.call("file.upload", name="long.gcode", data=program)
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    started = await rpc.call("job.start", machine="sim1", file="long.gcode")
+    job_id: int = started["job"]
+    return job_id
+
+
+async def ready_client(process: Process) -> Rpc:
+    seen = await process.message(b"READY=1")
+    assert any(b"STATUS=" in d for d in seen)
+    rpc = await Rpc.open(process.socket_path)
+    async with asyncio.timeout(10):
+        while (await rpc.call("machine.status", machine="sim1"))["supervisor"] != "idle":
+            await rpc.call("subscribe", topics=["supervisor"], machine="sim1")
+            await rpc.notification(lambda n: n["params"].get("to") == "idle")
+    return rpc
+
+
+async def test_sigterm_mid_job_interrupts_it_and_removes_the_socket(tmp_path: Path) -> None:
+    config = write_config(tmp_path)
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        assert oct(os.stat(process.socket_path).st_mode & 0o777) == oct(0o660)
+        await process.message(b"WATCHDOG=1")
+        job_id = await start_long_job(rpc)
+        await follow_until_acked(rpc, job_id, 50)
+        process.proc.send_signal(signal.SIGTERM)
+        await process.message(b"STOPPING=1")
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
+        await rpc.close()
+        assert not await asyncio.to_thread(os.path.exists, process.socket_path)
+
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        row = await rpc.call("job.get", job=job_id)
+        assert row["state"] == "interrupted"
+        assert 50 <= row["lines_acked"] <= row["lines_sent"] < 20000
+        process.proc.send_signal(signal.SIGTERM)
+        await rpc.close()
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
+
+
+async def test_sigkill_mid_job_then_restart_shows_it_interrupted(tmp_path: Path) -> None:
+    config = write_config(tmp_path)
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        job_id = await start_long_job(rpc)
+        seen = await follow_until_acked(rpc, job_id, 250)
+        process.proc.kill()
+        await process.proc.wait()
+        await rpc.close()
+        assert await asyncio.to_thread(os.path.exists, process.socket_path)  # left stale
+
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)  # the stale socket did not stop it
+        row = await rpc.call("job.get", job=job_id)
+        assert row["state"] == "interrupted"
+        assert row["error"]["code"] == 1002
+        # Persisted at most 100 lines or 1 s apart, and never more than was answered.
+        assert 0 < row["lines_acked"] <= row["lines_sent"] < 20000
+        assert row["lines_acked"] >= int(str(seen["lines_acked"])) - 100
+        process.proc.send_signal(signal.SIGTERM)
+        await rpc.close()
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
+
+
+async def test_bad_config_stops_start_up_with_one_clear_message(tmp_path: Path) -> None:
+    config = tmp_path / "bad.toml"
+    config.write_text('[[machines]]\nid = "m"\ndata_port = "/dev/x"\nwindow = 0\n')
+    proc = await asyncio.create_subprocess_exec(
+        *SERVE, "--config", str(config), stderr=asyncio.subprocess.PIPE
+    )
+    _, stderr = await proc.communicate()
+    assert proc.returncode == 2
+    message = stderr.decode()
+    assert str(config) in message and "machines[0].window" in message
+    assert message.count("\n") == 1
