@@ -75,3 +75,11 @@ def test_unknown_key_is_called_that(tmp_path: Path) -> None:
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "absent.toml")
+
+
+def test_every_example_in_config_loads() -> None:
+    examples = sorted((Path(__file__).resolve().parent.parent / "config").glob("*.toml"))
+    assert len(examples) >= 2
+    for path in examples:
+        config = load_config(path)
+        assert config.machines, path
