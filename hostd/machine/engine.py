@@ -312,6 +312,7 @@ class Engine:
 
     def _receive(self, channel: Channel, line: bytes) -> None:
         msg = parse_line(line)
+        self._log.debug("rx", channel=channel.value, line=line)
         if self.hub.active:
             self._publish_console("rx", channel, line)
         if isinstance(msg, Response):
@@ -470,6 +471,7 @@ class Engine:
         if not written:
             return False
         self.sender.sent(InFlight(encoded, source, file_line), urgent=urgent)
+        self._log.debug("tx", channel=channel.value, line=encoded)
         if self.hub.active:
             self._publish_console("tx", channel if link.dual else Channel.DATA, encoded)
         return True
@@ -478,6 +480,7 @@ class Engine:
         link = self.link
         if link is None or not link.write_control(encode_realtime(command)):
             raise NotConnected(f"{self.id}: not connected")
+        self._log.debug("tx", channel="control", line=command.value)
         if self.hub.active:
             channel = Channel.CONTROL if link.dual else Channel.DATA
             self._publish_console("tx", channel, encode_realtime(command))
