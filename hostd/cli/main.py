@@ -1,26 +1,216 @@
-"""The `hostd` command.
+"""The `hostd` command: `hostd serve` runs the daemon, every other subcommand is a client.
 
-For now it only knows its version; `serve` and the client commands of
-../shared/spec/running.md arrive with the daemon and API issues.
+Clients find the daemon at `--socket PATH`, else `$HOSTD_SOCKET`, else
+/run/hostd/hostd.sock, and talk JSON-RPC to it (../shared/spec/api.md).
+
+Exit status, the same for every client subcommand:
+
+- 0: done (for `run`: the job completed; for `watch`: stopped with Ctrl-C)
+- 1: the daemon refused or failed the request (its message and code on
+  stderr), or the job `run` followed did not complete
+- 2: usage: bad arguments, or a local file that cannot be read
+- 3: the daemon cannot be reached, or it closed the connection
+- 130: interrupted (Ctrl-C outside a question, or `run` stopped following)
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import importlib
+import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 from hostd import __version__
 
+if TYPE_CHECKING:  # the client modules (and rich) load only when a client command runs
+    from hostd.cli.client import Client
+    from hostd.cli.render import Output
+
+EXIT_OK = 0
+EXIT_API = 1
+EXIT_USAGE = 2
+EXIT_UNREACHABLE = 3
+EXIT_INTERRUPTED = 130
+
+Command = Callable[["Client", argparse.Namespace, "Output"], Awaitable[int]]
+
 
 def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        # `serve`'s own options belong to hostd.service (imported only for it): they
+        # come back unparsed, and are an error for every other command.
+        args, rest = parser.parse_known_args(argv)
+        if rest and args.command != "serve":
+            getattr(args, "parser", parser).error(f"unrecognized arguments: {' '.join(rest)}")
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return EXIT_USAGE
+        if args.command == "serve":
+            return _serve(args, rest)
+        handler: Callable[[argparse.Namespace], int] = args.handler
+        return handler(args)
+    except SystemExit as exc:  # --help, --version, usage errors: argparse's own status
+        if exc.code is None:
+            return EXIT_OK
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hostd", description="Host daemon for g2core CNC and laser controllers."
     )
     parser.add_argument("--version", action="version", version=f"hostd {__version__}")
-    parser.parse_args(argv)
-    parser.print_help(sys.stderr)
-    return 2
+    _client_options(parser, default=None)
+    parser.set_defaults(command=None)
+    # The same options after the subcommand; SUPPRESS keeps one given before it.
+    common = argparse.ArgumentParser(add_help=False)
+    _client_options(common, default=argparse.SUPPRESS)
+    sub = parser.add_subparsers(title="commands", metavar="COMMAND")
+
+    serve = sub.add_parser(
+        "serve",
+        add_help=False,  # `hostd serve --help` is hostd.service's help
+        help="run the daemon in the foreground (hostd serve --help for its options)",
+    )
+    serve.set_defaults(command="serve")
+
+    def client(name: str, command: str, help: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, parents=[common], help=help, description=help)
+        p.set_defaults(command=name, handler=_client_handler(command), parser=p)
+        return p
+
+    p = client("status", "status", "all machines, or one machine's snapshot")
+    p.add_argument("machine", nargs="?", metavar="MACHINE")
+
+    p = client("send", "send", "send lines to a machine, one at a time, and print its answers")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("lines", nargs="+", metavar="LINE")
+    p.add_argument("--timeout", type=_positive, help="seconds to wait for each answer")
+
+    p = client("run", "run", "upload a G-code file, run it, follow it to its end")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--machine", "-m", required=True, metavar="M")
+    p.add_argument("--start-line", type=_at_least_one, metavar="N", help="first file line to run")
+    p.add_argument("--name", help="file name in the daemon's jobs directory (default: FILE's)")
+
+    for name, help in (
+        ("hold", "feedhold (!)"),
+        ("resume", "cycle start (~)"),
+        ("clear", "clear an alarm or shutdown"),
+        ("reset", "reset the controller (0x18) and re-synchronise"),
+    ):
+        client(name, "action", help).add_argument("machine", metavar="MACHINE")
+    client("cancel", "cancel", "cancel the running job").add_argument("machine", metavar="MACHINE")
+
+    p = client("jobs", "jobs", "recent jobs, newest first")
+    p.add_argument("--machine", "-m", metavar="M")
+    p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")
+
+    client("faults", "faults", "a machine's active faults").add_argument(
+        "machine", metavar="MACHINE"
+    )
+
+    p = client("watch", "watch", "status, exceptions and supervisor changes live, until Ctrl-C")
+    p.add_argument("machine", nargs="?", metavar="MACHINE")
+    return parser
+
+
+def _client_options(parser: argparse.ArgumentParser, default: Any) -> None:
+    parser.add_argument(
+        "--socket",
+        default=default,
+        metavar="PATH",
+        help="the daemon's socket (default: $HOSTD_SOCKET, else /run/hostd/hostd.sock)",
+    )
+    parser.add_argument(
+        "--json", action="store_true", default=default, help="print results as JSON"
+    )
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be > 0")
+    return value
+
+
+def _at_least_one(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 1")
+    return value
+
+
+def socket_path(arg: str | None) -> str:
+    from hostd.cli.client import DEFAULT_SOCKET, SOCKET_ENV
+
+    return arg or os.environ.get(SOCKET_ENV) or DEFAULT_SOCKET
+
+
+def _serve(args: argparse.Namespace, rest: list[str]) -> int:
+    """`hostd serve`: the daemon lives in hostd.service, imported only when asked for,
+    so that client commands start without loading the daemon's stack."""
+    try:
+        service = importlib.import_module("hostd.service")
+    except ModuleNotFoundError as exc:
+        if exc.name != "hostd.service":
+            raise
+        print("hostd: serve is not available in this build", file=sys.stderr)
+        return EXIT_USAGE
+    parser = argparse.ArgumentParser(prog="hostd serve", description="Run the daemon.")
+    service.add_arguments(parser)
+    serve_args = parser.parse_args(rest)
+    if getattr(serve_args, "socket", None) is None and args.socket is not None:
+        serve_args.socket = args.socket  # `hostd --socket PATH serve ...`
+    status: int = service.serve_main(serve_args)
+    return status
+
+
+def _client_handler(name: str) -> Callable[[argparse.Namespace], int]:
+    def handler(args: argparse.Namespace) -> int:
+        from hostd.cli import commands
+
+        command: Command = getattr(commands, name)
+        return run_client(args, command)
+
+    return handler
+
+
+def run_client(args: argparse.Namespace, command: Command) -> int:
+    """Connect, run one command, and turn every way it can fail into a message and a status."""
+    from hostd.cli.client import Client, ClientError, RpcError
+    from hostd.cli.commands import CliError
+    from hostd.cli.render import json_line, make_output
+
+    out = make_output(json_output=bool(args.json))
+    path = socket_path(args.socket)
+
+    async def session() -> int:
+        async with Client(path) as c:
+            return await command(c, args, out)
+
+    try:
+        return asyncio.run(session())
+    except RpcError as exc:
+        out.message(f"hostd: error {exc.code}: {exc.message}")
+        for note in getattr(exc, "__notes__", ()):
+            out.message(f"hostd: {note}")
+        if exc.data is not None and exc.code not in (-32602, 1005):
+            out.message(f"hostd: details: {json_line(exc.data)}")
+        return EXIT_API
+    except CliError as exc:
+        out.message(f"hostd: {exc.message}")
+        return exc.status
+    except ClientError as exc:
+        out.message(f"hostd: {exc}")
+        return EXIT_UNREACHABLE
+    except KeyboardInterrupt:
+        out.message("hostd: interrupted")
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -1,0 +1,284 @@
+"""The client subcommands of `hostd`: each one coroutine over a connected `Client`.
+
+A command returns its exit status (0 success, 1 the daemon said no or the
+job did not complete) and lets `RpcError` and the connection errors
+propagate: `main.py` turns those into a message on stderr and the exit
+status documented there, the same way for every command.
+
+Results go to stdout (tables, or JSON with `--json`); progress and notes
+go to stderr, so `hostd --json jobs | jq` never sees a progress bar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import json
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, BinaryIO, Final
+
+from rich.console import Console
+
+from hostd.cli import render
+from hostd.cli.client import Client, RpcError
+from hostd.cli.interactive import CtrlC, StdinLines
+from hostd.cli.progress import Detached, JobFollower
+from hostd.cli.render import Output
+from hostd.cli.watch import live_view
+
+OK: Final = 0
+FAILED: Final = 1
+USAGE: Final = 2
+INTERRUPTED: Final = 130
+
+UPLOAD_CHUNK: Final = 512 * 1024
+# A chunk's JSON must stay under the daemon's 1 MiB line limit. Plain text
+# grows a little when escaped (newlines become \n); a text full of control
+# characters could grow sixfold, so past this size a chunk goes as base64.
+MAX_TEXT_JSON: Final = 700 * 1024
+
+
+class CliError(Exception):
+    """A problem on the client's side (a file that cannot be read): exit `status`."""
+
+    def __init__(self, message: str, status: int = USAGE) -> None:
+        super().__init__(message)
+        self.message = message
+        self.status = status
+
+
+# -- status ------------------------------------------------------------------
+
+
+async def status(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """One machine's snapshot, or a row per machine."""
+    if args.machine is not None:
+        snap = await c.call("machine.status", machine=args.machine)
+        if out.json:
+            out.print_json(snap)
+        else:
+            render.snapshot(out.out, snap)
+        return OK
+    listed = await c.call("machine.list")
+    # Pipelined on the one connection: answers come back in whatever order they finish.
+    snaps = await asyncio.gather(*(c.call("machine.status", machine=m["id"]) for m in listed))
+    _listing(out, list(snaps), render.machines, "no machines configured")
+    return OK
+
+
+# -- send ----------------------------------------------------------------------
+
+
+async def send(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """Each line in turn, stopping at the first the daemon or the controller refuses."""
+    params: dict[str, Any] = {"machine": args.machine}
+    if args.timeout is not None:
+        params["timeout"] = args.timeout
+    for line in args.lines:
+        try:
+            result = await c.call("machine.send", line=line, **params)
+        except RpcError as exc:
+            exc.add_note(f"while sending {line!r} to {args.machine}")
+            raise
+        if out.json:
+            out.print_json(result)
+        else:
+            out.out.print(render.json_line(result.get("r")), markup=False, soft_wrap=True)
+    return OK
+
+
+# -- one-shot machine and job actions ---------------------------------------------
+
+
+ACTIONS: Final = {
+    "hold": ("machine.feedhold", "feedhold sent"),
+    "resume": ("machine.cycle_start", "cycle start sent"),
+    "clear": ("machine.clear", "cleared"),
+    "reset": ("machine.reset", "reset and back in sync"),
+}
+
+
+async def action(c: Client, args: argparse.Namespace, out: Output) -> int:
+    method, done = ACTIONS[args.command]
+    result = await c.call(method, machine=args.machine)
+    if out.json:
+        out.print_json(result)
+    else:
+        out.out.print(f"{args.machine}: {done}", markup=False, highlight=False)
+    return OK
+
+
+async def cancel(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """job.cancel returns once the job has ended: show the row it ended with."""
+    job = await c.call("job.cancel", machine=args.machine)
+    if out.json:
+        out.print_json(job)
+    else:
+        render.jobs(out.out, [job])
+    return OK
+
+
+# -- lists ---------------------------------------------------------------------------
+
+
+async def jobs(c: Client, args: argparse.Namespace, out: Output) -> int:
+    params: dict[str, Any] = {"limit": args.limit}
+    if args.machine is not None:
+        params["machine"] = args.machine
+    _listing(out, await c.call("job.list", **params), render.jobs, "no jobs")
+    return OK
+
+
+async def faults(c: Client, args: argparse.Namespace, out: Output) -> int:
+    rows = await c.call("fault.list", machine=args.machine)
+    _listing(out, rows, render.faults, f"{args.machine}: no active faults")
+    return OK
+
+
+def _listing(
+    out: Output,
+    rows: list[dict[str, Any]],
+    show: Callable[[Console, Sequence[dict[str, Any]]], None],
+    empty: str,
+) -> None:
+    """A list result: raw JSON, or a table, or (on stderr) a note that there is nothing."""
+    if out.json:
+        out.print_json(rows)
+    elif not rows:
+        out.message(empty)
+    else:
+        show(out.out, rows)
+
+
+# -- run -----------------------------------------------------------------------------
+
+
+def upload_chunks(f: BinaryIO, size: int = UPLOAD_CHUNK) -> Iterator[tuple[str, str]]:
+    """(data, encoding) pieces of a file of at most `size` bytes each, in order.
+
+    Text goes as UTF-8 (readable in traces, a third smaller than base64);
+    a piece that is not UTF-8, or would escape to a JSON line over the
+    daemon's limit, goes as base64. A multi-byte character is never split
+    between two text pieces. An empty file is one empty piece, so the
+    upload still happens.
+    """
+    carry = b""
+    sent = False
+    while True:
+        block = f.read(size - len(carry))
+        data = carry + block
+        if not block:
+            if data or not sent:
+                yield _piece(data)
+            return
+        cut = _utf8_boundary(data)
+        head, carry = data[:cut], data[cut:]
+        piece = _piece(head)
+        if piece[1] == "base64":  # the carried bytes are not part of a text either
+            piece, carry = _piece(data, force_base64=True), b""
+        sent = True
+        yield piece
+
+
+def _piece(data: bytes, *, force_base64: bool = False) -> tuple[str, str]:
+    if not force_base64:
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError:
+            pass
+        else:
+            if len(json.dumps(text, ensure_ascii=False).encode()) <= MAX_TEXT_JSON:
+                return text, "utf-8"
+    return base64.b64encode(data).decode("ascii"), "base64"
+
+
+def _utf8_boundary(data: bytes) -> int:
+    """Where to cut `data` so that no UTF-8 sequence is split (its length if none is)."""
+    for back in range(1, min(4, len(data)) + 1):
+        byte = data[-back]
+        if byte & 0xC0 == 0x80:  # a continuation byte: keep looking for the lead byte
+            continue
+        if byte < 0x80:
+            return len(data)
+        need = 2 if byte < 0xE0 else 3 if byte < 0xF0 else 4
+        return len(data) - back if need > back else len(data)
+    return len(data)
+
+
+async def upload(c: Client, path: Path, name: str) -> int:
+    """Send the file in pieces; the daemon publishes it only with the last (`final`)."""
+    try:
+        f = path.open("rb")
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror or exc}") from None
+    size = 0
+    with f:
+        pieces = upload_chunks(f)
+        piece: tuple[str, str] | None = next(pieces)
+        first = True
+        while piece is not None:
+            following = next(pieces, None)
+            data, encoding = piece
+            result = await c.call(
+                "file.upload",
+                name=name,
+                data=data,
+                encoding=encoding,
+                append=not first,
+                final=following is None,
+            )
+            size = int(result.get("size", 0))
+            first = False
+            piece = following
+    return size
+
+
+async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """Upload, start, follow to the end; 0 only if the job completed."""
+    path = Path(args.file)
+    name = args.name or path.name
+    # Subscribing first checks the machine id before the upload, and means no
+    # event of the job can slip by between its start and our first read.
+    await c.call("subscribe", topics=["job", "status", "exception"], machine=args.machine)
+    size = await upload(c, path, name)
+    out.message(f"uploaded {name} ({size} bytes)")
+    params: dict[str, Any] = {"machine": args.machine, "file": name}
+    if args.start_line is not None:
+        params["start_line"] = args.start_line
+    # From here on Ctrl-C is a question about the job, not the end of the client; a
+    # press in the instant the job starts is asked about as soon as it is followed.
+    with CtrlC() as ctrl_c:
+        started = await c.call("job.start", **params)
+        job_id = int(started["job"])
+        out.message(f"job #{job_id} started on {args.machine}")
+        follower = JobFollower(
+            c, args.machine, job_id, console=out.err, ctrl_c=ctrl_c, answers=StdinLines()
+        )
+        try:
+            job = await follower.follow()
+        except Detached:
+            out.message(
+                f"stopped following job #{job_id}; it goes on "
+                f"(hostd cancel {args.machine} stops it)"
+            )
+            return INTERRUPTED
+    if out.json:
+        out.print_json(job)
+    else:
+        render.jobs(out.out, [job])
+    if job.get("state") == "completed":
+        return OK
+    error = job.get("error")
+    why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
+    out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
+    return FAILED
+
+
+# -- watch ---------------------------------------------------------------------------
+
+
+async def watch(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """Status, exceptions, supervisor and job changes as they come, until Ctrl-C (exit 0)."""
+    return await live_view(c, args.machine, out)

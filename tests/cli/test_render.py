@@ -1,0 +1,45 @@
+"""How results read when they are not on a terminal (pure: no daemon)."""
+
+from __future__ import annotations
+
+import io
+
+from rich.console import Console
+
+from hostd.cli import render
+
+
+def plain() -> tuple[Console, io.StringIO]:
+    buffer = io.StringIO()
+    return Console(file=buffer, width=40, force_terminal=False), buffer
+
+
+def test_a_table_off_terminal_keeps_every_cell_whole_however_narrow() -> None:
+    console, buffer = plain()
+    long_error = "line 4: controller answered 131: Gcode command unsupported (1005)"
+
+    render.table(console, ["JOB", "ERROR"], [["12", long_error], ["3", "-"]])
+
+    assert buffer.getvalue().splitlines() == [
+        "JOB  ERROR",
+        f"12   {long_error}",
+        "3    -",
+    ]
+
+
+def test_lines_is_acked_of_total_with_a_percentage() -> None:
+    assert render.lines({"lines_acked": 3, "lines_total": 6}) == "3/6 (50%)"
+    assert render.lines({"lines_acked": 0, "lines_total": 0}) == "0/0 (100%)"
+    assert render.lines({"lines_acked": 2, "lines_total": None}) == "2"
+
+
+def test_a_job_error_shows_its_message_and_code() -> None:
+    job = {"error": {"code": 1005, "message": "controller answered 131"}}
+
+    assert render.job_error(job) == "controller answered 131 (1005)"
+    assert render.job_error({"error": None}) == "-"
+
+
+def test_times_of_another_day_keep_their_date() -> None:
+    assert render.when("2020-01-02T03:04:05.678Z").startswith("2020-01-0")
+    assert render.when(None) == "-"
