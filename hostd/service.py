@@ -84,6 +84,8 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
             notifier.send(STATUS=_status_line(daemon))
 
     async def ready() -> None:
+        for name in await asyncio.to_thread(api.jobs.clean):
+            log.warning("removed an unfinished upload", file=name)
         api.attach()
         for machine in daemon.machines.values():
             machine.hub.subscribe(status)

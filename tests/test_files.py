@@ -102,3 +102,11 @@ def test_base64_data() -> None:
     assert decode(base64.b64encode(b"\x00\xff").decode(), "base64") == b"\x00\xff"
     with pytest.raises(InvalidData):
         decode("not base64!", "base64")
+
+
+def test_clean_removes_what_an_unfinished_upload_left(jobs: JobsDir) -> None:
+    jobs.upload("a.gcode", b"G0\n")
+    jobs.upload("b.gcode", b"G0\n", final=False)
+    (jobs.path / ".tmp-abc").write_bytes(b"x")
+    assert sorted(jobs.clean()) == [".b.gcode.upload", ".tmp-abc"]
+    assert os.listdir(jobs.path) == ["a.gcode"]

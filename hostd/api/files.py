@@ -130,6 +130,18 @@ class JobsDir:
     def delete(self, name: str) -> None:
         self.resolve(name).unlink()
 
+    def clean(self) -> list[str]:
+        """Remove staging and temp files a stopped daemon left (an upload never finished)."""
+        removed = []
+        with os.scandir(self.path) as entries:
+            for entry in entries:
+                name = entry.name
+                staged = name.startswith(".") and name.endswith(".upload")
+                if (staged or name.startswith(".tmp-")) and entry.is_file(follow_symlinks=False):
+                    os.unlink(entry.path)
+                    removed.append(name)
+        return removed
+
     def _existing(self, target: Path) -> Path | None:
         try:
             st = target.lstat()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import Annotated, Any, Literal
 
@@ -21,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hostd import __version__
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
-from hostd.api.rpc import Methods
+from hostd.api.rpc import Methods, RpcError
 from hostd.api.server import current_client
 from hostd.daemon import Daemon
 from hostd.machine.events import (
@@ -41,16 +42,6 @@ Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 SettingKey = Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Za-z0-9_]+$")]
 AXES = ("x", "y", "z", "a", "b", "c")
-
-
-class ApiError(Exception):
-    """An error with an api.md code, raised by the methods themselves."""
-
-    def __init__(self, code: int, message: str, data: Any = None) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-        self.data = data
 
 
 class Params(BaseModel):
@@ -144,38 +135,50 @@ class UnsubscribeParams(Params):
 Notify = Callable[[str, dict[str, Any]], None]
 
 
+@dataclass(frozen=True, slots=True)
+class _Subscription:
+    owner: object  # the client: one notification per client, however many subscriptions match
+    notify: Notify
+    topics: frozenset[str]
+    machine: str | None
+
+
 class Subscriptions:
     """Which client wants which topics of which machine; fan-out never blocks."""
 
     def __init__(self) -> None:
         self._next = 1
-        self._subs: dict[int, tuple[Notify, frozenset[str], str | None]] = {}
+        self._subs: dict[int, _Subscription] = {}
 
-    def add(self, notify: Notify, topics: list[str], machine: str | None) -> int:
+    def add(self, owner: object, notify: Notify, topics: list[str], machine: str | None) -> int:
         sub_id = self._next
         self._next += 1
-        self._subs[sub_id] = (notify, frozenset(topics), machine)
+        self._subs[sub_id] = _Subscription(owner, notify, frozenset(topics), machine)
         return sub_id
 
     def remove(self, sub_id: int) -> bool:
         return self._subs.pop(sub_id, None) is not None
 
-    def remove_all(self, notify: Notify) -> None:
-        for sub_id in [k for k, (n, _, _) in self._subs.items() if n == notify]:
+    def remove_all(self, owner: object) -> None:
+        for sub_id in [k for k, sub in self._subs.items() if sub.owner is owner]:
             del self._subs[sub_id]
 
-    def clients(self) -> list[tuple[Notify, frozenset[str], str | None]]:
-        return list(self._subs.values())
+    def has(self, owner: object) -> bool:
+        return any(sub.owner is owner for sub in self._subs.values())
 
     def wants(self, topic: str, machine: str) -> bool:
-        return any(topic in t and m in (None, machine) for _, t, m in self._subs.values())
+        return any(_matches(sub, topic, machine) for sub in self._subs.values())
 
     def deliver(self, topic: str, machine: str, params: dict[str, Any]) -> None:
-        sent: set[int] = set()
-        for notify, topics, wanted in list(self._subs.values()):
-            if topic in topics and wanted in (None, machine) and id(notify) not in sent:
-                sent.add(id(notify))
-                notify(topic, params)
+        done: set[int] = set()
+        for sub in list(self._subs.values()):
+            if _matches(sub, topic, machine) and id(sub.owner) not in done:
+                done.add(id(sub.owner))
+                sub.notify(topic, params)
+
+
+def _matches(sub: _Subscription, topic: str, machine: str) -> bool:
+    return topic in sub.topics and sub.machine in (None, machine)
 
 
 class Api:
@@ -227,13 +230,13 @@ class Api:
     def _machine(self, machine_id: str) -> Machine:
         machine = self.daemon.machine(machine_id)
         if machine is None:
-            raise ApiError(1001, f"unknown machine {machine_id!r}")
+            raise RpcError(1001, f"unknown machine {machine_id!r}")
         return machine
 
     async def _store(self) -> Any:
         store = self.daemon.store
         if store is None:
-            raise ApiError(-32603, "the job store is not open")
+            raise RpcError(-32603, "the job store is not open")
         return store
 
     # -- daemon and machines ---------------------------------------------
@@ -273,7 +276,7 @@ class Api:
         try:
             response = await machine.engine.send(p.line, timeout=p.timeout)
         except InvalidCommand as exc:
-            raise ApiError(-32602, exc.message, {"refusal": exc.refusal.value}) from None
+            raise RpcError(-32602, exc.message, {"refusal": exc.refusal.value}) from None
         return {"status": response.status, "r": response.body}
 
     async def machine_feedhold(self, p: MachineParams) -> dict[str, Any]:
@@ -331,7 +334,7 @@ class Api:
         try:
             data = decode(p.data, p.encoding)
         except InvalidData as exc:
-            raise ApiError(-32602, str(exc)) from None
+            raise RpcError(-32602, str(exc)) from None
         size = await asyncio.to_thread(
             self.jobs.upload, p.name, data, append=p.append, final=p.final
         )
@@ -345,7 +348,7 @@ class Api:
         try:
             await asyncio.to_thread(self.jobs.delete, p.name)
         except NoSuchFileError as exc:
-            raise ApiError(1004, str(exc)) from None
+            raise RpcError(1004, str(exc)) from None
         return {}
 
     # -- jobs ------------------------------------------------------------------
@@ -355,15 +358,19 @@ class Api:
         try:
             await asyncio.to_thread(self.jobs.resolve, p.file)
         except NoSuchFileError as exc:
-            raise ApiError(1004, str(exc)) from None
+            raise RpcError(1004, str(exc)) from None
         job = await machine.start_make(p.file, p.start_line)
         return {"job": job.id}
 
     async def job_pause(self, p: MachineParams) -> dict[str, Any]:
-        return self._machine(p.machine).pause().model_dump(mode="json")
+        machine = self._machine(p.machine)
+        machine.pause()
+        return _live(machine)
 
     async def job_resume(self, p: MachineParams) -> dict[str, Any]:
-        return self._machine(p.machine).resume().model_dump(mode="json")
+        machine = self._machine(p.machine)
+        machine.resume()
+        return _live(machine)
 
     async def job_cancel(self, p: MachineParams) -> dict[str, Any]:
         job = await self._machine(p.machine).cancel()
@@ -376,7 +383,7 @@ class Api:
                 return current.model_dump(mode="json")
         job = await (await self._store()).get(p.job)
         if job is None:
-            raise ApiError(1004, f"no job {p.job}")
+            raise RpcError(1004, f"no job {p.job}")
         return dict(job.model_dump(mode="json"))
 
     async def job_list(self, p: JobListParams) -> list[dict[str, Any]]:
@@ -398,11 +405,11 @@ class Api:
 
     async def fault_override(self, p: FaultOverrideParams) -> dict[str, Any]:
         self._machine(p.machine)
-        raise ApiError(-32602, f"no fault {p.fault!r} on {p.machine}")
+        raise RpcError(-32602, f"no fault {p.fault!r} on {p.machine}")
 
     async def fault_clear(self, p: FaultParams) -> dict[str, Any]:
         self._machine(p.machine)
-        raise ApiError(-32602, f"no fault {p.fault!r} on {p.machine}")
+        raise RpcError(-32602, f"no fault {p.fault!r} on {p.machine}")
 
     # -- subscriptions -----------------------------------------------------
 
@@ -411,15 +418,24 @@ class Api:
         if p.machine is not None:
             self._machine(p.machine)
         client = current_client()
-        notify: Notify = client.notify
-        if not any(n == notify for n, _, _ in self.subscriptions.clients()):
-            client.on_disconnect.append(lambda: self.subscriptions.remove_all(notify))
-        return {"subscription": self.subscriptions.add(notify, list(p.topics), p.machine)}
+        if not self.subscriptions.has(client):
+            client.on_disconnect.append(partial(self.subscriptions.remove_all, client))
+        sub_id = self.subscriptions.add(client, client.notify, list(p.topics), p.machine)
+        if client.closed:  # it left while this request ran: its hooks may have run already
+            self.subscriptions.remove_all(client)
+        return {"subscription": sub_id}
 
     async def unsubscribe(self, p: UnsubscribeParams) -> dict[str, Any]:
         if not self.subscriptions.remove(p.subscription):
-            raise ApiError(-32602, f"no subscription {p.subscription}")
+            raise RpcError(-32602, f"no subscription {p.subscription}")
         return {}
+
+
+def _live(machine: Machine) -> dict[str, Any]:
+    """The machine's job with the counts as they are now, not as last persisted."""
+    job = machine.current_job()
+    assert job is not None
+    return job.model_dump(mode="json")
 
 
 def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:

@@ -172,7 +172,7 @@ class Engine:
             await self._want.wait()
             if not self.config.auto_connect:
                 self._want.clear()  # this request is being served; a later one sets it again
-            reason, was_ready = await self._session()
+            was_ready = await self._session()
             if self._stop.is_set():  # a disconnect was asked for
                 self._stop.clear()
                 continue
@@ -218,8 +218,8 @@ class Engine:
             self._stop.set()
             await self._down.wait()
 
-    async def _session(self) -> tuple[str, bool]:
-        """One connection, from opening to teardown. Never raises but for cancellation."""
+    async def _session(self) -> bool:
+        """One connection, opening to teardown: whether it got ready. Raises only if cancelled."""
         self.link_state = LinkState.OPENING
         self._down.clear()
         was_ready = False
@@ -230,7 +230,7 @@ class Engine:
         except LinkError as exc:
             self._end_attempt(str(exc))
             self._teardown(str(exc))
-            return str(exc), False
+            return False
         try:
             async with asyncio.TaskGroup() as tg:
                 tg.create_task(self._read_loop(self.link))
@@ -254,7 +254,7 @@ class Engine:
             finally:
                 self._end_attempt(reason)
                 self._teardown(reason)
-        return reason, was_ready
+        return was_ready
 
     async def _port_paths(self) -> tuple[str, str | None]:
         if self._ports is not None:

@@ -248,3 +248,13 @@ async def test_a_subscriber_that_never_reads_does_not_slow_a_job_or_others(
         assert job["state"] == "completed" and job["lines_acked"] == 5000
         await rpc.close()
         await sleeper.close()
+
+
+async def test_overlapping_subscriptions_deliver_each_notification_once(rpc: Rpc) -> None:
+    await rpc.call("subscribe", topics=["supervisor"], machine="sim1")
+    await rpc.call("subscribe", topics=["supervisor", "job"])
+    await rpc.call("machine.disconnect", machine="sim1")
+    first = await rpc.notification(lambda n: n["method"] == "supervisor")
+    assert first["params"]["to"] == "disconnected"
+    await rpc.call("daemon.info")  # answers follow every notification queued before them
+    assert rpc.notifications.empty(), "the same notification arrived twice"
