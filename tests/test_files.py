@@ -52,10 +52,10 @@ def test_plain_names_are_fine() -> None:
 
 def test_upload_list_delete(jobs: JobsDir) -> None:
     assert jobs.upload("a.gcode", b"G0 X1\n") == 6
-    assert [(f.name, f.size) for f in jobs.list()] == [("a.gcode", 6)]
-    assert jobs.list()[0].modified.endswith("Z")
+    assert [(f.name, f.size) for f in jobs.entries()] == [("a.gcode", 6)]
+    assert jobs.entries()[0].modified.endswith("Z")
     jobs.delete("a.gcode")
-    assert jobs.list() == []
+    assert jobs.entries() == []
     with pytest.raises(NoSuchFileError):
         jobs.delete("a.gcode")
 
@@ -70,7 +70,7 @@ def test_upload_replaces_atomically_and_leaves_no_temp_files(jobs: JobsDir) -> N
 def test_chunks_stay_hidden_until_the_final_one(jobs: JobsDir) -> None:
     jobs.upload("big.gcode", b"G0 X1\n", final=False)
     jobs.upload("big.gcode", b"G0 X2\n", append=True, final=False)
-    assert jobs.list() == []  # nothing half-uploaded to start
+    assert jobs.entries() == []  # nothing half-uploaded to start
     with pytest.raises(NoSuchFileError):
         jobs.resolve("big.gcode")
     assert jobs.upload("big.gcode", b"G0 X3\n", append=True) == 18
@@ -88,7 +88,7 @@ def test_a_symlink_planted_in_the_directory_is_not_followed(jobs: JobsDir, tmp_p
     secret = tmp_path / "secret"
     secret.write_text("not for clients")
     (jobs.path / "link.gcode").symlink_to(secret)
-    assert jobs.list() == []
+    assert jobs.entries() == []
     with pytest.raises(NoSuchFileError):
         jobs.resolve("link.gcode")
     with pytest.raises(NoSuchFileError):

@@ -110,7 +110,7 @@ class JobsDir:
             os.replace(staging, target)
         return size
 
-    def list(self) -> list[FileInfo]:
+    def entries(self) -> list[FileInfo]:
         files = []
         with os.scandir(self.path) as entries:
             for entry in entries:

@@ -341,7 +341,7 @@ class Api:
         return {"name": p.name, "size": size}
 
     async def file_list(self) -> list[dict[str, Any]]:
-        files = await asyncio.to_thread(self.jobs.list)
+        files = await asyncio.to_thread(self.jobs.entries)
         return [{"name": f.name, "size": f.size, "modified": f.modified} for f in files]
 
     async def file_delete(self, p: FileName) -> dict[str, Any]:

@@ -80,7 +80,7 @@ class Machine:
         self.job: Job | None = None  # the current or last operation's row
         self._stream: JobStream | None = None
         self._runners: set[asyncio.Task[None]] = set()
-        self._writes: set[asyncio.Task[Job]] = set()  # row updates not awaited by anyone
+        self._last_write: asyncio.Task[None] | None = None  # row writes land in order
         self._disconnect_asked = False
         self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
@@ -94,7 +94,7 @@ class Machine:
         finally:
             for task in list(self._runners):
                 task.cancel()
-            pending = [*self._runners, *self._writes]
+            pending = [*self._runners, *([self._last_write] if self._last_write else [])]
             if pending:
                 await asyncio.gather(*pending, return_exceptions=True)
 
@@ -163,13 +163,13 @@ class Machine:
             for line in lines:
                 response = await self.engine.send(line)
                 bodies.append(response.body)
-                job = await self._progress(job, sent=len(bodies), acked=len(bodies))
+                self._record(lines_sent=len(bodies), lines_acked=len(bodies))
         except MachineError as exc:
             error = exc
         finally:
             end = StreamEnd.COMPLETED if error is None else StreamEnd.FAILED
             code = None if error is None else error.code
-            await self._end(job, StreamResult(end, code, None if error is None else error.message))
+            await self._end(StreamResult(end, code, None if error is None else error.message))
         if error is not None:
             raise error
         return job, bodies
@@ -187,10 +187,10 @@ class Machine:
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:
-            await self._end(job, StreamResult(StreamEnd.FAILED, exc.code, exc.message))
+            await self._end(StreamResult(StreamEnd.FAILED, exc.code, exc.message))
             raise
         self._stream = stream
-        runner = asyncio.create_task(self._run(job, stream, handle), name=f"job-{job.id}")
+        runner = asyncio.create_task(self._run(stream, handle), name=f"job-{job.id}")
         self._runners.add(runner)
         runner.add_done_callback(self._runners.discard)
         return job
@@ -208,59 +208,72 @@ class Machine:
             self._operation_stopped()
             raise
         self.job = job
-        self._publish_job(job)
+        self._last_write = None
+        self._publish_job()
         return job
 
-    async def _run(self, job: Job, stream: JobStream, handle: TextIO | None) -> None:
+    async def _run(self, stream: JobStream, handle: TextIO | None) -> None:
         """Follow a streaming operation to its end, persisting and publishing progress."""
-        persisted_at = published_at = time.monotonic()
-        persisted = (0, 0)
+        persisted_at = time.monotonic()
+        persisted_acked = 0
+        last = (0, 0)
         try:
             while not stream.done:
                 await asyncio.wait({stream.result}, timeout=PUBLISH_EVERY)
                 counts = (stream.sent, stream.acked)
-                if counts == persisted:
+                if counts == last:
                     continue
+                last = counts
                 clock = time.monotonic()
-                due = clock - persisted_at >= PERSIST_EVERY
-                if due or stream.acked - persisted[1] >= PERSIST_LINES:
-                    job = await self._progress(job, sent=counts[0], acked=counts[1])
-                    persisted, persisted_at = counts, clock
-                elif clock - published_at >= PUBLISH_EVERY:
-                    self._publish_job(self._with_counts(job, stream))
-                published_at = clock
-            job = self._with_counts(job, stream)
-            if job.kind == "jog" and stream.result.result().end is not StreamEnd.COMPLETED:
+                if (
+                    clock - persisted_at >= PERSIST_EVERY
+                    or counts[1] - persisted_acked >= PERSIST_LINES
+                ):
+                    self._record(lines_sent=counts[0], lines_acked=counts[1])
+                    persisted_at, persisted_acked = clock, counts[1]
+                else:
+                    self._publish_job()
+            kind = self.job.kind if self.job else None
+            if kind == "jog" and stream.result.result().end is not StreamEnd.COMPLETED:
                 await self._restore_absolute_mode()
         finally:
             if handle is not None:
                 handle.close()
             result = stream.result.result() if stream.done else _interrupted()
-            await asyncio.shield(self._end(self._with_counts(job, stream), result))
+            await asyncio.shield(self._end(result, stream))
 
-    async def _progress(self, job: Job, *, sent: int, acked: int) -> Job:
-        job = await self.store.update(job.id, lines_sent=sent, lines_acked=acked)
-        self.job = job
-        self._publish_job(job)
-        return job
+    def _record(self, *, publish: bool = True, **fields: Any) -> asyncio.Task[None]:
+        """Change the job: in memory at once (the truth), on disk after every earlier write."""
+        assert self.job is not None
+        self.job = self.job.model_copy(update=fields)
+        self._last_write = asyncio.create_task(self._write(self._last_write, self.job.id, fields))
+        if publish:
+            self._publish_job()
+        return self._last_write
 
-    async def _end(self, job: Job, result: StreamResult) -> None:
+    async def _write(self, previous: asyncio.Task[None] | None, job_id: int, fields: Any) -> None:
+        if previous is not None:
+            await asyncio.wait({previous})
+        try:
+            await self.store.update(job_id, **fields)
+        except Exception:
+            self._log.exception("could not write the job row", job=job_id)
+
+    async def _end(self, result: StreamResult, stream: JobStream | None = None) -> None:
         error = None
         if result.code is not None or result.end is StreamEnd.FAILED:
             error = JobError(code=result.code or 1005, message=result.message or result.end.value)
-        job = await self.store.update(
-            job.id,
-            state=_JOB_STATE[result.end],
-            lines_sent=job.lines_sent,
-            lines_acked=job.lines_acked,
-            ended_at=now(),
-            error=error,
-        )
-        self.job = job
+        assert self.job is not None
+        counts = {} if stream is None else {"lines_sent": stream.sent, "lines_acked": stream.acked}
         self._stream = None
-        self._publish_job(job)
+        state = _JOB_STATE[result.end]
+        # The end is told only once it is on disk: no client hears "completed"
+        # of a job a crash would then show "interrupted".
+        await self._record(publish=False, state=state, ended_at=now(), error=error, **counts)
+        self._publish_job()
+        self._operation_stopped()  # in the same step: a client told "ended" finds the machine free
+        job = self.job
         self._log.info("job ended", job=job.id, state=job.state, acked=job.lines_acked)
-        self._operation_stopped()
 
     def _operation_stopped(self) -> None:
         if self.supervisor.can(SupEvent.OPERATION_STOPPED):
@@ -329,13 +342,8 @@ class Machine:
         )
 
     def _set_job_state(self, state: str) -> None:
-        if self.job is None:
-            return
-        self.job = self.job.model_copy(update={"state": state})
-        self._publish_job(self.job)
-        task = asyncio.create_task(self.store.update(self.job.id, state=state))
-        self._writes.add(task)
-        task.add_done_callback(self._writes.discard)
+        if self.job is not None:
+            self._record(state=state)
 
     # -- views -------------------------------------------------------------
 
@@ -359,8 +367,9 @@ class Machine:
     def _with_counts(self, job: Job, stream: JobStream) -> Job:
         return job.model_copy(update={"lines_sent": stream.sent, "lines_acked": stream.acked})
 
-    def _publish_job(self, job: Job) -> None:
-        if self.hub.active:
+    def _publish_job(self) -> None:
+        job = self.current_job()
+        if job is not None and self.hub.active:
             self.hub.publish(JobChanged(self.id, job.model_dump(mode="json")))
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import itertools
 from pathlib import Path
 
 import pytest
@@ -169,6 +170,7 @@ async def test_a_job_runs_and_is_reported(rpc: Rpc, hostd: Running) -> None:
 async def test_job_pause_resume_cancel(rpc: Rpc) -> None:
     program = "".join(f"G1 X{i % 30} F1200\n" for i in range(200))
     await rpc.call("file.upload", name="long.gcode", data=program)
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
     started = await rpc.call("job.start", machine="sim1", file="long.gcode")
     await fails(1003, rpc.call("job.start", machine="sim1", file="long.gcode"))
     await fails(1003, rpc.call("machine.send", machine="sim1", line="G0 X0"))
@@ -180,6 +182,15 @@ async def test_job_pause_resume_cancel(rpc: Rpc) -> None:
     cancelled = await rpc.call("job.cancel", machine="sim1")
     assert cancelled["state"] == "cancelled"
     await fails(1003, rpc.call("job.resume", machine="sim1"))
+    # Across pause, resume and cancel, no notification's counts ever went backwards.
+    await rpc.call("daemon.info")  # every notification sent so far is in the queue now
+    jobs = []
+    while not rpc.notifications.empty():
+        jobs.append(rpc.notifications.get_nowait()["params"]["job"])
+    assert [j["state"] for j in jobs][-1] == "cancelled"
+    for earlier, later in itertools.pairwise(jobs):
+        assert later["lines_acked"] >= earlier["lines_acked"]
+        assert later["lines_sent"] >= earlier["lines_sent"]
 
 
 async def test_jog_and_settings(rpc: Rpc) -> None:
