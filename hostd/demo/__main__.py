@@ -1,164 +1,124 @@
-"""`make demo` at the foundation stage: stream a sample job to the simulated board.
+"""`make demo`: the daemon, a simulated machine, a sample job run from the CLI.
 
-It runs the real parts (the simulator on a pseudo-terminal pair, the link,
-the codec and the line-mode sender) without the daemon, which arrives with
-the next issues and will then take this demo over.
+Every step is a real command a user could type: `hostd serve` with a demo
+config (one simulated g2core on a pseudo-terminal pair), `hostd run` with
+its live progress bar, `hostd hold` and `hostd resume` a third of the way
+in, `hostd jobs` for the job's history row, then SIGTERM to the daemon.
+Exit status 0 only if every step did what it should.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
+import socket
 import sys
 import tempfile
-import time
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from hostd.link import LineReceived, Link, LinkLost
-from hostd.logs import configure_logging
-from hostd.machine.linemode import InFlight, LineModeSender
-from hostd.protocol.commands import encode_line, encode_set
-from hostd.protocol.messages import Banner, Message, Response, StatusReport
-from hostd.protocol.parser import parse_line
-from hostd.protocol.program import program_lines
-from hostd.protocol.states import MachineState, state_from_code
-from hostd.sim import SimConfig, SimController
+from hostd.cli.client import Client
 
 SAMPLE = Path(__file__).with_name("sample.gcode")
-SETTINGS: list[dict[str, Any]] = [
-    {"ej": 1},
-    {"jv": 4},
-    {"si": 100},
-    {"sr": {k: True for k in ("stat", "line", "posx", "posy", "posz", "vel")}},
-]
+HOSTD = [sys.executable, "-m", "hostd"]
+CONFIG = """\
+[daemon]
+socket = "{socket}"
+state_dir = "{state}"
+log_level = "warning"
+
+[[machines]]
+id = "sim1"
+data_port = "sim"
+auto_connect = true
+"""
 
 
 class DemoError(Exception):
     pass
 
 
-class Board:
-    """Just enough of a machine model to show the job: reads the link, keeps the state."""
-
-    def __init__(self, link: Link) -> None:
-        self.link = link
-        self.state: MachineState | None = None
-        self.position = {"x": 0.0, "y": 0.0, "z": 0.0}
-
-    async def next_messages(self) -> list[Message]:
-        messages: list[Message] = []
-        for event in await self.link.read():
-            if isinstance(event, LinkLost):
-                raise DemoError(f"link lost: {event.reason}")
-            assert isinstance(event, LineReceived)
-            msg = parse_line(event.line)
-            self._apply(msg)
-            messages.append(msg)
-        return messages
-
-    def _apply(self, msg: Message) -> None:
-        fields = msg.fields if isinstance(msg, StatusReport) else None
-        if isinstance(msg, Response):
-            fields = msg.status_report
-        if fields:
-            self.state = state_from_code(fields.get("stat")) or self.state
-            for axis in self.position:
-                if isinstance(fields.get(f"pos{axis}"), int | float):
-                    self.position[axis] = float(fields[f"pos{axis}"])
-
-    async def wait_banner(self) -> Banner:
-        async with asyncio.timeout(5):
-            while True:
-                for msg in await self.next_messages():
-                    if isinstance(msg, Banner):
-                        return msg
-
-    async def ask(self, line: bytes) -> Response:
-        """One line, outside any job: write it and wait for its answer."""
-        self.link.write_line(line)
-        async with asyncio.timeout(5):
-            while True:
-                for msg in await self.next_messages():
-                    if isinstance(msg, Response):
-                        if not msg.ok:
-                            raise DemoError(f"{line!r} answered with status {msg.status}")
-                        return msg
+async def hostd(*args: str, env: dict[str, str]) -> None:
+    """One CLI command, its output straight to the terminal; DemoError if it fails."""
+    proc = await asyncio.create_subprocess_exec(*HOSTD, *args, env=env)
+    if await proc.wait() != 0:
+        raise DemoError(f"hostd {' '.join(args)} exited {proc.returncode}")
 
 
-async def stream(board: Board, path: Path, console: Console) -> int:
-    with path.open() as f:
-        total = sum(1 for _ in program_lines(f))
-    sender = LineModeSender(window=4)
-    acked = 0
-    started = time.monotonic()
-    columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.percentage:>3.0f}%  {task.fields[rate]:>5.0f} lines/s"),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[where]}"),
-    )
-    with path.open() as f, Progress(*columns, console=console) as progress:
-        task = progress.add_task(path.name, total=total, rate=0.0, where="")
-        lines = program_lines(f)
-        pending = next(lines, None)
-        while True:
-            while pending is not None and sender.has_room:
-                number, text = pending
-                board.link.write_line(encode_line(text))
-                sender.sent(InFlight(encode_line(text), file_line=number))
-                pending = next(lines, None)
-            for msg in await board.next_messages():
-                if isinstance(msg, Response):
-                    entry = sender.answered(msg)
-                    if not msg.ok:
-                        raise DemoError(f"line {entry.file_line} refused: status {msg.status}")
-                    acked += 1
-            state = board.state.name if board.state is not None else "?"
-            pos = board.position
-            progress.update(
-                task,
-                completed=acked,
-                rate=acked / max(time.monotonic() - started, 1e-6),
-                where=f"{state:<12} X{pos['x']:8.3f} Y{pos['y']:8.3f}",
-            )
-            # {r} means queued, not done: the job ends when the board says so.
-            finished = board.state in (MachineState.PROGRAM_STOP, MachineState.PROGRAM_END)
-            if pending is None and not len(sender) and finished:
-                return acked
+async def wait_ready(notify: socket.socket, daemon: asyncio.subprocess.Process) -> None:
+    """Until the daemon says READY=1 over the notify socket, as it would to systemd."""
+    loop = asyncio.get_running_loop()
+    async with asyncio.timeout(30):
+        while b"READY=1" not in await loop.sock_recv(notify, 4096):
+            if daemon.returncode is not None:
+                raise DemoError("hostd serve exited during start-up")
+
+
+async def hold_and_resume(sock: str, env: dict[str, str], console: Console) -> None:
+    """A third of the way through the job, pause it for a moment and resume it."""
+    async with Client(sock) as client:
+        await client.call("subscribe", topics=["job"], machine="sim1")
+        async with asyncio.timeout(60):
+            async for note in client.notifications():
+                job = note.params["job"]
+                total = job.get("lines_total") or 0
+                if job["state"] == "running" and job["lines_acked"] * 3 >= total > 0:
+                    break
+        console.print("\n[bold]feedhold[/bold]: hostd hold sim1")
+        await hostd("hold", "sim1", env=env)
+        await asyncio.sleep(1.5)  # let the pause be seen
+        console.print("[bold]resume[/bold]: hostd resume sim1")
+        await hostd("resume", "sim1", env=env)
 
 
 async def run(console: Console) -> int:
-    config = SimConfig(speed_factor=40.0, status_interval=0.1)
     with tempfile.TemporaryDirectory(prefix="hostd-demo-") as tmp:
-        async with SimController(str(Path(tmp) / "ttyG2"), config=config) as sim:
-            console.print(f"simulated g2core on [bold]{sim.data_path}[/bold]")
-            link = await Link.open(sim.data_path)
-            try:
-                board = Board(link)
-                banner = await board.wait_banner()
-                console.print(f"board says SYSTEM READY: firmware build {banner.fb}")
-                for setting in SETTINGS:
-                    await board.ask(encode_set(setting))
-                console.print(f"settings sent ({len(SETTINGS)} lines), streaming {SAMPLE.name}")
-                acked = await stream(board, SAMPLE, console)
-                state = board.state.name if board.state else "?"
-                console.print(f"[green]job complete[/green]: {acked} lines answered, board {state}")
-            finally:
-                await link.close()
+        sock = os.path.join(tmp, "hostd.sock")
+        config = Path(tmp) / "demo.toml"
+        config.write_text(CONFIG.format(socket=sock, state=os.path.join(tmp, "state")))
+        env = {**os.environ, "HOSTD_SOCKET": sock}
+        notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        notify.bind(os.path.join(tmp, "notify"))
+        notify.setblocking(False)
+
+        console.rule("hostd demo")
+        console.print(f"starting: hostd serve --config {config}")
+        daemon = await asyncio.create_subprocess_exec(
+            *HOSTD,
+            "serve",
+            "--config",
+            str(config),
+            env={**env, "NOTIFY_SOCKET": os.path.join(tmp, "notify")},
+        )
+        try:
+            await wait_ready(notify, daemon)
+            console.print("hostd is ready; the simulated machine:")
+            await hostd("status", env=env)
+            console.print(f"\nrunning: hostd run {SAMPLE.name} --machine sim1")
+            pauser = asyncio.create_task(hold_and_resume(sock, env, console))
+            await hostd("run", str(SAMPLE), "--machine", "sim1", env=env)
+            await pauser
+            console.print("\nthe job's history row: hostd jobs --machine sim1 --limit 1")
+            await hostd("jobs", "--machine", "sim1", "--limit", "1", env=env)
+        finally:
+            if daemon.returncode is None:
+                daemon.send_signal(signal.SIGTERM)
+            code = await daemon.wait()
+            notify.close()
+        if code != 0:
+            raise DemoError(f"hostd serve exited {code} on SIGTERM")
+        console.print("\nhostd stopped cleanly (SIGTERM).")
+        console.rule("demo complete")
     return 0
 
 
 def main() -> int:
-    configure_logging("warning")
     console = Console()
     try:
         return asyncio.run(run(console))
-    except (DemoError, TimeoutError) as exc:
+    except (DemoError, TimeoutError, OSError) as exc:
         console.print(f"[red]demo failed[/red]: {exc or 'timed out'}")
         return 1
 
