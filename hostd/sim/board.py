@@ -82,6 +82,8 @@ class Board:
         self._rx_bytes: dict[str, int] = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
+        # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
+        self.inputs: dict[str, float | int] = dict.fromkeys(reports.INPUT_KEYS, 0)
         self.power_on()
 
     # --- power and connection
@@ -231,6 +233,16 @@ class Board:
                     self._set_state(MachineState.RUN)
                 else:
                     self._set_state(MachineState.PROGRAM_STOP)
+        self._flush_sr()
+
+    def set_input(self, key: str, value: float | int) -> None:
+        """A digital or analogue input changed: reported at once if it is in the list [4]."""
+        value = reports.number(value, reports.places(key))  # a change too small to print is none
+        if self.inputs[key] == value:
+            return
+        self.inputs[key] = value
+        if key in self.settings.sr_keys:
+            self._sr_now = True
         self._flush_sr()
 
     def set_homed(self, homed: bool) -> None:
@@ -788,6 +800,7 @@ class Board:
             "home": 1 if all(self.homed.values()) else 0,
             "qr": self._free,
         }
+        values |= self.inputs
         for axis in AXES:
             values[f"pos{axis}"] = (machine[axis] - interp.offsets[axis]) / scale
             values[f"mpo{axis}"] = machine[axis]

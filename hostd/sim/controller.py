@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import time
 from collections.abc import Callable
 from types import TracebackType
@@ -30,6 +31,7 @@ from hostd.protocol.states import MachineState
 from hostd.sim.board import Board
 from hostd.sim.config import Kind, Received, SimConfig
 from hostd.sim.ptyport import PtyPort
+from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
 
 log = structlog.get_logger(__name__)
@@ -219,6 +221,29 @@ class SimController:
     def set_homed(self, homed: bool) -> None:
         self._board.set_homed(homed)
         self._kick()
+
+    def set_input(self, n: int, value: int | bool) -> None:
+        """Digital input `n` (1..8) reads `value` (0/1): `in<n>`, reported when listed."""
+        if not _input_number(n, DIGITAL_INPUTS):
+            raise ValueError(f"no digital input {n!r}: the board has in1..in{DIGITAL_INPUTS}")
+        if value not in (0, 1) or isinstance(value, float):
+            raise ValueError(f"a digital input is 0 or 1, not {value!r}")
+        self._board.set_input(f"in{n}", int(value))
+        self._kick()
+
+    def set_analog(self, n: int, value: float) -> None:
+        """Analogue input `n` (1..4) reads `value`: `ain<n>`, reported when listed."""
+        if not _input_number(n, ANALOG_INPUTS):
+            raise ValueError(f"no analogue input {n!r}: the board has ain1..ain{ANALOG_INPUTS}")
+        if isinstance(value, bool) or not math.isfinite(value):
+            raise ValueError(f"an analogue input reads a finite number, not {value!r}")
+        self._board.set_input(f"ain{n}", float(value))
+        self._kick()
+
+    @property
+    def inputs(self) -> dict[str, float | int]:
+        """What each input reads now, by status report key (`in1`.., `ain1`..)."""
+        return dict(self._board.inputs)
 
     def inject_garbage(self, data: bytes) -> None:
         """Write `data` raw to the port with the control role, as a broken board might."""
@@ -470,3 +495,7 @@ class SimController:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(delay):
                     await self._wake.wait()
+
+
+def _input_number(n: object, count: int) -> bool:
+    return isinstance(n, int) and not isinstance(n, bool) and 1 <= n <= count

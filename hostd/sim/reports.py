@@ -10,6 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
+# The board's inputs: digital `in1`..`in8` (0/1) and analogue `ain1`..`ain4`.
+DIGITAL_INPUTS = 8
+ANALOG_INPUTS = 4
+INPUT_KEYS: tuple[str, ...] = tuple(f"in{n}" for n in range(1, DIGITAL_INPUTS + 1)) + tuple(
+    f"ain{n}" for n in range(1, ANALOG_INPUTS + 1)
+)
+
 # Keys a status report may list (leaf keys only, as on the board).
 SR_KEYS: tuple[str, ...] = (
     "line",
@@ -45,6 +52,7 @@ SR_KEYS: tuple[str, ...] = (
     "homz",
     "home",
     "qr",
+    *INPUT_KEYS,
 )
 DEFAULT_SR: tuple[str, ...] = ("line", "posx", "posy", "posz", "feed", "vel", "unit", "stat")
 MAX_SR_KEYS = 39  # NV_MAX_OBJECTS
@@ -52,6 +60,7 @@ MAX_SR_KEYS = 39  # NV_MAX_OBJECTS
 # Decimal places a value is reported (and compared) with.
 _PLACES = {"vel": 2, "feed": 2}
 _POSITION_PLACES = 3
+_ANALOG_PLACES = 3
 _ALWAYS_REPORTED_STATS = (3, 4)
 
 
@@ -66,6 +75,8 @@ def number(value: float, places: int) -> float | int:
 def places(key: str) -> int:
     if key.startswith(("pos", "mpo", "ofs")):
         return _POSITION_PLACES
+    if key.startswith("ain"):
+        return _ANALOG_PLACES
     return _PLACES.get(key, 0)
 
 
