@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from hostd.link import BOOTLOADER_BAUD
+from hostd.machine.signals import SignalsConfig
 
 SIM_PORT = "sim"
 
@@ -51,6 +52,9 @@ class MachineConfig(_Strict):
     handshake_timeout: Annotated[float, Field(gt=0)] = 5.0
     # Status report interval asked of the board, seconds (g2core's minimum is 0.1).
     status_interval: Annotated[float, Field(ge=0.1)] = 0.25
+    # Where lid, laser selection, coolant flow and temperature come from
+    # (hostd/machine/signals.py); none configured, none of those faults.
+    signals: SignalsConfig = SignalsConfig()
 
     @field_validator("baudrate")
     @classmethod

@@ -33,7 +33,7 @@ class Daemon:
         self.jobs_dir = self.state_dir / "jobs"
         self.machines: dict[str, Machine] = {}
         self.store: JobStore | None = None
-        self._sims: list[SimController] = []
+        self.sims: dict[str, SimController] = {}  # the simulated boards, by machine id
         self._stop = asyncio.Event()
 
     def machine(self, machine_id: str) -> Machine | None:
@@ -63,7 +63,7 @@ class Daemon:
                 for task in tasks:
                     task.cancel()
         finally:
-            for sim in self._sims:
+            for sim in self.sims.values():
                 with contextlib.suppress(Exception):
                     await sim.close()
             self.store.close()
@@ -82,5 +82,5 @@ class Daemon:
         control = str(sim_dir / f"{config.id}-control") if config.control_port else None
         sim = SimController(data, control_path=control, config=SimConfig(speed_factor=SIM_SPEED))
         await sim.start()
-        self._sims.append(sim)
+        self.sims[config.id] = sim
         return config.model_copy(update={"data_port": data, "control_port": control})

@@ -29,6 +29,7 @@ from hostd.machine.events import (
     Console,
     Event,
     ExceptionRaised,
+    FaultChanged,
     JobChanged,
     StatusChanged,
     SupervisorChanged,
@@ -213,6 +214,8 @@ class Api:
             )
         elif isinstance(event, JobChanged):
             subs.deliver("job", mid, {"machine": mid, "job": event.job})
+        elif isinstance(event, FaultChanged):
+            subs.deliver("fault", mid, {"machine": mid, "fault": event.fault})
         elif isinstance(event, Console) and subs.wants("console", mid):
             subs.deliver(
                 "console",
@@ -296,7 +299,7 @@ class Api:
         return {}
 
     async def machine_reset(self, p: MachineParams) -> dict[str, Any]:
-        await self._machine(p.machine).engine.reset()
+        await self._machine(p.machine).reset()
         return {}
 
     async def machine_clear(self, p: MachineParams) -> dict[str, Any]:
@@ -397,19 +400,16 @@ class Api:
         }
         return [live.get(j.id, j).model_dump(mode="json") for j in jobs]
 
-    # -- faults (the fault table arrives with issue 6) -----------------------
+    # -- faults ------------------------------------------------------------
 
     async def fault_list(self, p: MachineParams) -> list[dict[str, Any]]:
-        faults: list[dict[str, Any]] = self._machine(p.machine).snapshot()["faults"]
-        return faults
+        return [f.to_json() for f in self._machine(p.machine).faults.all()]
 
     async def fault_override(self, p: FaultOverrideParams) -> dict[str, Any]:
-        self._machine(p.machine)
-        raise RpcError(-32602, f"no fault {p.fault!r} on {p.machine}")
+        return self._machine(p.machine).override_fault(p.fault, p.override).to_json()
 
     async def fault_clear(self, p: FaultParams) -> dict[str, Any]:
-        self._machine(p.machine)
-        raise RpcError(-32602, f"no fault {p.fault!r} on {p.machine}")
+        return self._machine(p.machine).clear_fault(p.fault).to_json()
 
     # -- subscriptions -----------------------------------------------------
 

@@ -132,7 +132,10 @@ async def jobs(c: Client, args: argparse.Namespace, out: Output) -> int:
 
 
 async def faults(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """The active faults (fault.list answers the whole table; --all shows it)."""
     rows = await c.call("fault.list", machine=args.machine)
+    if not args.all:
+        rows = [row for row in rows if row.get("active")]
     _listing(out, rows, render.faults, f"{args.machine}: no active faults")
     return OK
 

@@ -110,9 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--machine", "-m", metavar="M")
     p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")
 
-    client("faults", "faults", "a machine's active faults").add_argument(
-        "machine", metavar="MACHINE"
-    )
+    p = client("faults", "faults", "a machine's active faults")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("--all", action="store_true", help="every fault of the table, active or not")
 
     p = client("watch", "watch", "status, exceptions and supervisor changes live, until Ctrl-C")
     p.add_argument("machine", nargs="?", metavar="MACHINE")

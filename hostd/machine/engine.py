@@ -39,11 +39,19 @@ from hostd.machine.errors import (
     Busy,
     ControllerError,
     ControllerTimeout,
+    FaultActive,
     MachineError,
     NotConnected,
     Rejected,
 )
-from hostd.machine.events import Console, ExceptionRaised, Hub, LinkChanged, StatusChanged
+from hostd.machine.events import (
+    Console,
+    ExceptionRaised,
+    FaultDetected,
+    Hub,
+    LinkChanged,
+    StatusChanged,
+)
 from hostd.machine.linemode import InFlight, LineModeSender, SenderError
 from hostd.machine.model import MachineModel
 from hostd.machine.stream import JobStream, StreamEnd
@@ -86,6 +94,18 @@ _LOCKOUT_BY_STATUS: dict[int, MachineState] = {
     Status.PANIC: MachineState.PANIC,
     **{code: MachineState.PANIC for code in range(86, 100)},  # assertion failures
 }
+_NOT_TEXT = frozenset({"not valid UTF-8", "control characters in a text line"})
+# Statuses that call a line malformed: for the daemon's own lines, a daemon bug (`syntax`).
+_MALFORMED = frozenset(
+    {
+        Status.INVALID_OR_MALFORMED_COMMAND,
+        Status.BAD_NUMBER_FORMAT,
+        Status.UNSUPPORTED_TYPE,
+        Status.JSON_SYNTAX_ERROR,
+        Status.JSON_TOO_MANY_PAIRS,
+        Status.VALUE_TYPE_ERROR,
+    }
+)
 _LOCKOUT_REJECTIONS = frozenset(
     {
         Status.COMMAND_REJECTED_BY_ALARM,
@@ -107,11 +127,12 @@ Source = asyncio.Future[Response] | JobStream
 
 @dataclass(slots=True)
 class _Queued:
-    """A client line waiting for a window slot."""
+    """A line waiting for a window slot: a client's, or the daemon's own (a clear)."""
 
     encoded: bytes
     cls: CommandClass
     future: asyncio.Future[Response]
+    own: bool = False
 
 
 @dataclass(slots=True)
@@ -149,6 +170,8 @@ class Engine:
         self._await_report = False  # an `er` came: job lines wait for a status report
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._settings_pending = False  # refused in a lockout: sent again when it ends
+        self._halted = False  # an internal fault: nothing but halts and reset is written
+        self._lines_in = 0  # lines read and understood this session (the serial fault's value)
         self._restart_deadline: float | None = None  # a reset is under way until then
         self._last_rx = 0.0
         self._banner: asyncio.Future[Banner] | None = None
@@ -293,6 +316,7 @@ class Engine:
                 self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
         self._await_report = self._awaiting_rest = False
         self._settings_pending = False
+        self._lines_in = 0
         self.model.reset()
         self._log.info("link down", reason=reason)
         self._publish_link(False, reason)
@@ -307,7 +331,13 @@ class Engine:
                 if not isinstance(event, LineReceived):
                     raise _SessionEnd(event.reason)
                 self._last_rx = event.at
-                self._receive(event.channel, event.line)
+                try:
+                    self._receive(event.channel, event.line)
+                except _SessionEnd:
+                    raise
+                except Exception as exc:  # a bug of ours: stop writing, keep reading
+                    self._log.exception("engine invariant broken")
+                    self._internal_fault(f"{type(exc).__name__}: {exc}")
             self._pump()
 
     def _receive(self, channel: Channel, line: bytes) -> None:
@@ -325,8 +355,13 @@ class Engine:
             self._on_banner(msg)
         elif isinstance(msg, Unparseable):
             self._log.warning("unparseable controller output", reason=msg.reason, raw=msg.raw)
+            kind = "serial" if msg.reason in _NOT_TEXT else "lexical"
+            self._detected(kind, self._lines_in, f"{msg.reason}: {msg.raw[:60]!r}")
+            self._changed.set()
+            return
         else:
             self._log.debug("controller said", message=_kind(msg))
+        self._lines_in += 1
         self._changed.set()
 
     def _on_response(self, response: Response) -> None:
@@ -334,7 +369,12 @@ class Engine:
             entry = self.sender.answered(response)
         except SenderError:
             self._log.warning("answer with no line waiting", raw=response.raw)
+            self._detected("lexical", None, f"an answer with no line waiting: {response.raw!r}")
             return
+        if entry.own and response.status in _MALFORMED:
+            # The board calls a line the daemon wrote malformed: a daemon bug.
+            line = entry.line.rstrip(b"\n").decode(errors="replace")
+            self._detected("syntax", line, f"{line!r} refused: {message(response.status)}")
         report = response.status_report
         if report is not None:
             self._on_status(report)
@@ -401,6 +441,20 @@ class Engine:
 
     def _on_state(self, state: MachineState) -> None:
         self._log.info("controller state", state=state.name)
+        stream = self.stream
+        if state is MachineState.RUN and stream is not None:
+            stream.program_pause_sent = False
+        elif (
+            state in (MachineState.PROGRAM_STOP, MachineState.PROGRAM_END)
+            and stream is not None
+            and not stream.done
+            and not stream.exhausted
+            and not stream.program_pause_sent
+            and self._flush is None
+        ):
+            # The board ran out of moves while the job still had lines on the host.
+            where = f"after file line {stream.last_acked_line}"
+            self._detected("underflow", stream.acked, f"the controller stopped {where}")
         if not state.is_lockout:
             if self._settings_pending and self.link_state is LinkState.READY:
                 self._reapply_settings()
@@ -426,6 +480,8 @@ class Engine:
         """Fill the window: client lines first, then the job's lines."""
         if self.link is None or self.link_state is not LinkState.READY or self._flush is not None:
             return
+        if self._halted:
+            return
         state = self.model.state
         while self.sender.has_room:
             if self._outbox:
@@ -433,8 +489,8 @@ class Engine:
                 verdict = admit(queued.cls, state)
                 if verdict is not None:
                     self._fail(queued.future, Rejected(verdict, self._locked_message()))
-                elif not self._write(queued.encoded, queued.future, Channel.DATA):
-                    self._fail(queued.future, NotConnected(f"{self.id}: link lost"))
+                elif not self._write(queued.encoded, queued.future, Channel.DATA, own=queued.own):
+                    self._fail(queued.future, self._write_refused())
                 continue
             stream = self.stream
             if (
@@ -461,16 +517,21 @@ class Engine:
         *,
         file_line: int | None = None,
         urgent: bool = False,
+        own: bool = False,
     ) -> bool:
         link = self.link
-        if link is None:
+        if link is None or self._halted:
             return False
         written = (
             link.write_line(encoded) if channel is Channel.DATA else link.write_control(encoded)
         )
         if not written:
             return False
-        self.sender.sent(InFlight(encoded, source, file_line), urgent=urgent)
+        try:
+            self.sender.sent(InFlight(encoded, source, file_line, own), urgent=urgent)
+        except SenderError as exc:  # written but not booked: the books can no longer be trusted
+            self._internal_fault(str(exc))
+            return False
         self._log.debug("tx", channel=channel.value, line=encoded)
         if self.hub.active:
             self._publish_console("tx", channel if link.dual else Channel.DATA, encoded)
@@ -493,7 +554,7 @@ class Engine:
     def _query_status(self) -> asyncio.Future[Response]:
         """Ask for a full status report, ahead of anything queued."""
         future = _future()
-        if not self._write(encode_get("sr"), future, Channel.CONTROL, urgent=True):
+        if not self._write(encode_get("sr"), future, Channel.CONTROL, urgent=True, own=True):
             future.set_exception(NotConnected(f"{self.id}: not connected"))
         return future
 
@@ -594,7 +655,7 @@ class Engine:
             {"sv": 1},
             {"qv": 0},
             {"si": round(self.config.status_interval * 1000)},
-            {"sr": dict.fromkeys(STATUS_KEYS, True)},
+            {"sr": dict.fromkeys((*STATUS_KEYS, *self.config.signals.keys()), True)},
         ]
 
     def _reapply_settings(self) -> None:
@@ -602,7 +663,7 @@ class Engine:
         for setting in self._settings():
             future = _future()
             future.add_done_callback(partial(self._setting_answered, setting))
-            if not self._write(encode_set(setting), future, Channel.CONTROL, urgent=True):
+            if not self._write(encode_set(setting), future, Channel.CONTROL, urgent=True, own=True):
                 return
 
     def _setting_answered(self, setting: dict[str, Any], future: asyncio.Future[Response]) -> None:
@@ -614,7 +675,7 @@ class Engine:
     async def _ask(self, encoded: bytes) -> Response:
         """A daemon line outside any job, answered before the next is sent."""
         future = _future()
-        if not self._write(encoded, future, Channel.CONTROL, urgent=True):
+        if not self._write(encoded, future, Channel.CONTROL, urgent=True, own=True):
             raise NotConnected(f"{self.id}: link lost")
         return await future
 
@@ -647,6 +708,8 @@ class Engine:
     async def send(self, line: str, timeout: float = 10.0) -> Response:
         """One line from a client, answered by the board (ControllerError for a non-zero status)."""
         self._require_ready()
+        if self._halted:
+            raise self._write_refused()
         validate_line(line)
         cls = classify(line)
         text = line.strip()
@@ -687,9 +750,12 @@ class Engine:
         if self.link is None or self.link_state is LinkState.DOWN:
             raise NotConnected(f"{self.id} is not connected")
         state = self.model.state
-        verdict = admit(classify_realtime(command), state)
+        cls = classify_realtime(command)
+        verdict = admit(cls, state)
         if verdict is not None:
             raise Rejected(verdict, self._locked_message())
+        if self._halted and cls not in (CommandClass.HALT, CommandClass.RESET):
+            raise self._write_refused()
         self._write_realtime(command)
 
     async def clear(self, timeout: float = 5.0) -> None:
@@ -708,7 +774,7 @@ class Engine:
                 f"{self.id}: lines still unanswered in the controller; not clearing"
             ) from None
         future = _future()
-        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, future))
+        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, future, own=True))
         self._pump()
         await self._answer(future, timeout)
         try:
@@ -724,6 +790,7 @@ class Engine:
         self._restart_deadline = time.monotonic() + timeout
         self._ready.clear()
         self._write_realtime(Realtime.RESET)
+        self._halted = False  # the controller restarts; so do the daemon's books
         try:
             async with asyncio.timeout(timeout):
                 await self._down.wait()
@@ -768,6 +835,32 @@ class Engine:
             await self._changed.wait()
 
     # -- helpers -------------------------------------------------------------
+
+    def _detected(self, fault: str, value: Any, text: str) -> None:
+        self.hub.publish(FaultDetected(self.id, fault, value, text))
+
+    def _internal_fault(self, text: str) -> None:
+        """The daemon broke one of its own invariants here: write nothing more until reset."""
+        self._halted = True
+        if self.stream is not None and not self.stream.done:
+            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
+        self._detected("internal", None, text)
+
+    def _write_refused(self) -> MachineError:
+        if self._halted:
+            return FaultActive(
+                f"{self.id}: internal fault, nothing is written until machine.reset", ["internal"]
+            )
+        return NotConnected(f"{self.id}: link lost")
+
+    def stop_stream(self, code: int, text: str) -> None:
+        """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
+        if self.stream is None or self.stream.done:
+            return
+        self.stream.finish(StreamEnd.FAILED, code, text)
+        if self.link is not None:
+            self._write_realtime(Realtime.FEEDHOLD)
+            self._write_realtime(Realtime.QUEUE_FLUSH)
 
     def _locked_message(self) -> str:
         state = self.model.state

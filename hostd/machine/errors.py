@@ -46,3 +46,9 @@ class ControllerError(MachineError):
 
 class ControllerTimeout(MachineError):
     code = 1006
+
+
+class FaultActive(MachineError):
+    """An un-overridden fault forbids this request; `data` lists the fault ids."""
+
+    code = 1007

@@ -61,7 +61,32 @@ class JobChanged:
     job: dict[str, Any]
 
 
-Event = StatusChanged | ExceptionRaised | Console | LinkChanged | SupervisorChanged | JobChanged
+@dataclass(frozen=True, slots=True)
+class FaultDetected:
+    """The engine saw a link or software fault; the machine's fault table decides."""
+
+    machine: str
+    fault: str
+    value: Any
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class FaultChanged:
+    machine: str
+    fault: dict[str, Any]
+
+
+Event = (
+    StatusChanged
+    | ExceptionRaised
+    | Console
+    | LinkChanged
+    | SupervisorChanged
+    | JobChanged
+    | FaultDetected
+    | FaultChanged
+)
 Listener = Callable[[Event], None]
 
 

@@ -36,6 +36,7 @@ class InFlight:
     line: bytes  # as written, with its LF
     source: Any = None  # whoever sent it: a job, a client request
     file_line: int | None = None  # for a job's line, its line number in the file
+    own: bool = False  # the daemon's own line (handshake, query, clear), not a client's or a job's
     sent_at: float = field(default_factory=time.monotonic)
 
     @property

@@ -27,22 +27,27 @@ import structlog
 
 from hostd.config import MachineConfig
 from hostd.machine.engine import Engine
-from hostd.machine.errors import Busy, MachineError
+from hostd.machine.errors import Busy, FaultActive, MachineError
 from hostd.machine.events import (
     Event,
+    FaultChanged,
+    FaultDetected,
     Hub,
     JobChanged,
     LinkChanged,
     StatusChanged,
     SupervisorChanged,
 )
+from hostd.machine.faults import Fault, FaultTable
 from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, now
+from hostd.machine.signals import fault_conditions
 from hostd.machine.stream import JobStream, StreamEnd, StreamResult
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import Refused, Supervisor, Transition
 from hostd.machine.supervisor import State as SupState
 from hostd.protocol.commands import Realtime
 from hostd.protocol.program import program_lines
+from hostd.protocol.states import MachineState
 
 log = structlog.get_logger(__name__)
 
@@ -81,6 +86,9 @@ class Machine:
         self._stream: JobStream | None = None
         self._runners: set[asyncio.Task[None]] = set()
         self._last_write: asyncio.Task[None] | None = None  # row writes land in order
+        self.faults = FaultTable()
+        self._signal_values: dict[str, Any] = {}  # the last value of every signal key
+        self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
         self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
@@ -117,7 +125,13 @@ class Machine:
                 self.supervisor.fire(SupEvent.DISCONNECT if asked else SupEvent.DISCONNECTED)
             self._settle()
         elif isinstance(event, StatusChanged):
+            self._on_signals(event.report)
             self._settle()
+        elif isinstance(event, FaultDetected):
+            now_ = time.time()
+            self._fault_changed(
+                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
+            )
 
     def _settle(self) -> None:
         """Busy against idle, from what the board says and what the host has queued."""
@@ -133,6 +147,57 @@ class Machine:
     def _on_transition(self, t: Transition) -> None:
         self._log.info("supervisor", source=t.source.value, target=t.target.value, on=t.event.value)
         self.hub.publish(SupervisorChanged(self.id, t.source.value, t.target.value, t.event.value))
+
+    # -- faults ------------------------------------------------------------
+
+    def _on_signals(self, report: dict[str, Any]) -> None:
+        """Signals from the report's keys (it carries only changes), then the fault rules."""
+        signals = self.config.signals
+        keys = signals.keys()
+        self._signal_values.update((k, v) for k, v in report.items() if k in keys)
+        self._signals = signals.evaluate(self._signal_values, self._signals)
+        conditions = fault_conditions(self._signals)
+        # The controller's SHUTDOWN (its e-stop input) is always an e-stop source.
+        shutdown = self.engine.model.state is MachineState.SHUTDOWN
+        conditions["estop"] = conditions.get("estop", False) or shutdown
+        now_ = time.time()
+        for fault_id, active in conditions.items():
+            self._fault_changed(self.faults.set(fault_id, active, now=now_))
+
+    def _fault_changed(self, fault: Fault | None) -> None:
+        """Publish a change and apply its effect on a running job."""
+        if fault is None:
+            return
+        self._log.warning("fault", fault=fault.id, active=fault.active, value=fault.value)
+        self.hub.publish(FaultChanged(self.id, fault.to_json()))
+        blocking = self.faults.blocking()
+        if blocking and self._stream is not None and not self._stream.done:
+            ids = ", ".join(f.id for f in blocking)
+            self.engine.stop_stream(FaultActive.code, f"fault active: {ids}")
+
+    def override_fault(self, fault_id: str, on: bool) -> Fault:
+        fault = self.faults.override(fault_id, on)
+        self._fault_changed(fault)
+        return fault
+
+    def clear_fault(self, fault_id: str) -> Fault:
+        before = self.faults.get(fault_id)
+        fault = self.faults.clear(fault_id)
+        if fault != before:
+            self._fault_changed(fault)
+        return fault
+
+    def _refuse_if_faulted(self) -> None:
+        blocking = self.faults.blocking()
+        if blocking:
+            ids = [f.id for f in blocking]
+            raise FaultActive(f"{self.id}: fault active: {', '.join(ids)}", ids)
+
+    async def reset(self) -> None:
+        """0x18 and re-synchronisation; the back end's own faults are cleared with it."""
+        await self.engine.reset()
+        for fault in self.faults.reset():
+            self._fault_changed(fault)
 
     # -- operations ----------------------------------------------------------
 
@@ -201,6 +266,7 @@ class Machine:
         A locked-out board is the first thing to say (204/205/206), before "busy".
         """
         self.engine.admit_action()
+        self._refuse_if_faulted()  # 1007
         self.supervisor.fire(SupEvent.START_OPERATION)  # Refused (1003) unless idle
         try:
             job = await self.store.create(self.id, kind, file, total)
@@ -358,8 +424,8 @@ class Machine:
         snap.update(
             dialect=self.config.dialect,
             supervisor=self.supervisor.state.value,
-            indicator="normal",
-            faults=[],
+            indicator=self.faults.indicator().value,
+            faults=[f.to_json() for f in self.faults.active()],
             job=None if job is None else job.model_dump(mode="json"),
         )
         return snap

@@ -11,11 +11,14 @@ lost. The outcome is set once.
 from __future__ import annotations
 
 import asyncio
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 
 from hostd.protocol.commands import InvalidCommand, encode_line
+
+_PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
 
 
 class StreamEnd(StrEnum):
@@ -42,6 +45,8 @@ class JobStream:
         self.rejected = 0  # answered with a non-zero status
         self.discarded = 0  # dropped unanswered by the board's flush or kill
         self.last_acked_line: int | None = None
+        # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
+        self.program_pause_sent = False
         self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
 
     @property
@@ -69,6 +74,8 @@ class JobStream:
     def take(self) -> None:
         """The peeked line was written."""
         assert self._next is not None
+        if _PROGRAM_PAUSE.search(self._next[1]):
+            self.program_pause_sent = True
         self._next = None
         self.sent += 1
 

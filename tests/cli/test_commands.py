@@ -209,6 +209,10 @@ def test_faults_of_a_healthy_machine_is_an_empty_list(idle: Daemon) -> None:
 
     assert table.returncode == 0 and "no active faults" in table.stderr
     assert raw.returncode == 0 and json.loads(raw.stdout) == []
+    whole = idle.cli("faults", MACHINE, "--all", "--json")
+    assert whole.returncode == 0
+    faults = json.loads(whole.stdout)
+    assert len(faults) == 10 and not any(f["active"] for f in faults)
 
 
 # -- machine actions -------------------------------------------------------------------

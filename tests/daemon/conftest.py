@@ -98,19 +98,25 @@ class Running:
             await watcher.close()
 
 
-def config_data(tmp_path: Path, machines: int = 1) -> dict[str, Any]:
+def config_data(tmp_path: Path, machines: int = 1, **extra: Any) -> dict[str, Any]:
     return {
         "daemon": {"socket": str(tmp_path / "hostd.sock"), "state_dir": str(tmp_path / "state")},
         "machines": [
-            {"id": f"sim{i}", "data_port": "sim", "status_interval": 0.1, "auto_connect": True}
+            {
+                "id": f"sim{i}",
+                "data_port": "sim",
+                "status_interval": 0.1,
+                "auto_connect": True,
+                **extra,
+            }
             for i in range(1, machines + 1)
         ],
     }
 
 
 @contextlib.asynccontextmanager
-async def running_daemon(tmp_path: Path, machines: int = 1) -> AsyncIterator[Running]:
-    config = parse_config(config_data(tmp_path, machines))
+async def running_daemon(tmp_path: Path, machines: int = 1, **extra: Any) -> AsyncIterator[Running]:
+    config = parse_config(config_data(tmp_path, machines, **extra))
     daemon = Daemon(config)
     api = Api(daemon)
     server = ApiServer(build_methods(api))

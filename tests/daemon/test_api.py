@@ -228,7 +228,18 @@ async def test_subscriptions_deliver_topics_and_stop_after_unsubscribe(rpc: Rpc)
 
 
 async def test_faults_are_listed(rpc: Rpc) -> None:
-    assert await rpc.call("fault.list", machine="sim1") == []
+    faults = await rpc.call("fault.list", machine="sim1")
+    assert len(faults) == 10 and not any(f["active"] for f in faults)
+    assert set(faults[0]) == {
+        "id",
+        "severity",
+        "active",
+        "overridden",
+        "overridable",
+        "since",
+        "value",
+        "message",
+    }
     await fails(-32602, rpc.call("fault.clear", machine="sim1", fault="nope"))
 
 
