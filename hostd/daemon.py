@@ -24,6 +24,7 @@ log = structlog.get_logger(__name__)
 
 DB_NAME = "hostd.db"
 SIM_SPEED = 10.0  # simulated boards move ten times faster than real ones
+SIM_PLANNER = 48  # g2core's planner buffers (PLANNER_QUEUE_SIZE)
 
 
 class Daemon:
@@ -80,7 +81,8 @@ class Daemon:
         await asyncio.to_thread(sim_dir.mkdir, mode=0o750, exist_ok=True)
         data = str(sim_dir / f"{config.id}-data")
         control = str(sim_dir / f"{config.id}-control") if config.control_port else None
-        sim = SimController(data, control_path=control, config=SimConfig(speed_factor=SIM_SPEED))
+        board = SimConfig(speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER)
+        sim = SimController(data, control_path=control, config=board)
         await sim.start()
         self.sims[config.id] = sim
         return config.model_copy(update={"data_port": data, "control_port": control})

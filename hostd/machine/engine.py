@@ -612,7 +612,8 @@ class Engine:
             self._awaiting_rest = True
             self._query_status()  # its answer, or any later report, tells whether it rests
             return
-        if self.model.state in (MachineState.PROGRAM_STOP, MachineState.PROGRAM_END):
+        # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
+        if self.model.state is not None and self.model.state.is_resting:
             self._awaiting_rest = False
             stream.finish(StreamEnd.COMPLETED)
 

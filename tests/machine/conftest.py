@@ -17,7 +17,13 @@ from hostd.machine.stream import JobStream
 from hostd.protocol.program import program_lines
 from hostd.sim import SimConfig, SimController
 
-FAST = SimConfig(speed_factor=50.0, status_interval=0.02, feedhold_decel=0.02, boot_time=0.02)
+FAST = SimConfig(
+    speed_factor=50.0,
+    status_interval=0.02,
+    feedhold_decel=0.02,
+    boot_time=0.02,
+    planner_depth=48,  # g2core's: a job is not starved by a passing stall of the test machine
+)
 
 
 @dataclass

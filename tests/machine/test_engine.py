@@ -23,7 +23,7 @@ from tests.machine.conftest import FAST, Recorder, Rig, machine_config, running
 pytestmark = pytest.mark.asyncio
 
 
-def moves(count: int, feed: int = 3000, step: float = 1.0) -> list[str]:
+def moves(count: int, feed: int = 3000, step: float = 4.0) -> list[str]:
     return [f"G1 X{(i % 50) * step:.3f} Y{(i % 7) * step:.3f} F{feed}" for i in range(1, count + 1)]
 
 

@@ -22,7 +22,8 @@ from tests.machine.conftest import FAST, Recorder, machine_config
 
 pytestmark = pytest.mark.asyncio
 
-PROGRAM = "%\n(part)\nG21 G90\n\n" + "".join(f"G1 X{i % 40} Y{i % 9} F3000\n" for i in range(60))
+MOVES = "".join(f"G1 X{(i % 8) * 5} Y{i % 9} F3000\n" for i in range(60))
+PROGRAM = "%\n(part)\nG21 G90\n\n" + MOVES
 PROGRAM += "M30\n%\n"
 
 
@@ -210,7 +211,7 @@ async def test_settings_are_read_and_written_as_one_operation(bench: Bench) -> N
 
 
 async def test_an_alarm_mid_job_fails_the_row_and_keeps_the_machine_busy(bench: Bench) -> None:
-    bench.write("long.gcode", "".join(f"G1 X{i % 20} F3000\n" for i in range(400)))
+    bench.write("long.gcode", "".join(f"G1 X{(i % 2) * 10} F3000\n" for i in range(400)))
     job = await bench.machine.start_make("long.gcode")
     await bench.sim.wait_for(lambda: len(bench.sim.received) > 30)
     bench.sim.limit_switch("x")
@@ -244,7 +245,7 @@ async def test_two_machines_are_independent(tmp_path: Path) -> None:
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     async with bench_for(tmp_path / "a", "a") as a, bench_for(tmp_path / "b", "b") as b:
-        text = "".join(f"G1 X{i % 20} F3000\n" for i in range(150))
+        text = "".join(f"G1 X{(i % 2) * 10} F3000\n" for i in range(150))
         a.write("a.gcode", text)
         b.write("b.gcode", text)
         job_a = await a.machine.start_make("a.gcode")
