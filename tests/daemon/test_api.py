@@ -283,3 +283,21 @@ async def test_overlapping_subscriptions_deliver_each_notification_once(rpc: Rpc
     assert first["params"]["to"] == "disconnected"
     await rpc.call("daemon.info")  # answers follow every notification queued before them
     assert rpc.notifications.empty(), "the same notification arrived twice"
+
+
+async def test_panic_refuses_everything_but_reset(rpc: Rpc) -> None:
+    await rpc.call("machine.send", machine="sim1", line="{panic:n}")
+    await fails(206, rpc.call("machine.send", machine="sim1", line="G0 X1"))
+    await fails(206, rpc.call("machine.clear", machine="sim1"))
+    await fails(206, rpc.call("machine.cycle_start", machine="sim1"))
+    assert await rpc.call("machine.reset", machine="sim1") == {}
+    assert (await rpc.call("machine.status", machine="sim1"))["state"]["name"] == "READY"
+
+
+async def test_a_board_that_does_not_answer_in_time_is_1006(rpc: Rpc, hostd: Running) -> None:
+    sim = hostd.daemon.sims["sim1"]
+    sim.stop_reading()  # the line stays unread: no answer comes
+    err = await fails(1006, rpc.call("machine.send", machine="sim1", line="{xvm:n}", timeout=0.3))
+    assert "0.3" in err.message
+    sim.resume_reading()
+    assert (await rpc.call("machine.send", machine="sim1", line="{yvm:n}"))["status"] == 0
