@@ -54,7 +54,11 @@ def check_name(name: str) -> str:
         raise FileNameError(f"{name!r}: a plain file name, without directories")
     if name.startswith("."):
         raise FileNameError(f"{name!r}: names starting with '.' are reserved")
-    if len(name.encode("utf-8", "surrogatepass")) > MAX_NAME:
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:  # a lone surrogate: no file system name
+        raise FileNameError("the file name is not valid text") from None
+    if size > MAX_NAME:
         raise FileNameError(f"file name over {MAX_NAME} bytes")
     if any(ord(c) < 0x20 or ord(c) == 0x7F for c in name):
         raise FileNameError(f"{name!r}: control characters in the name")

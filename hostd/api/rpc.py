@@ -144,10 +144,21 @@ def _default(obj: Any) -> Any:
 
 
 def encode(message: Any) -> bytes:
-    """Compact, strict JSON as UTF-8 bytes, without the line terminator."""
-    return json.dumps(
+    """Compact, strict JSON as UTF-8 bytes, without the line terminator.
+
+    Text with a lone surrogate (JSON's "\ud800", echoed back in an id or a
+    method name) has no UTF-8 form: such a message is written with ASCII
+    escapes instead, still valid JSON, still the same value.
+    """
+    text = json.dumps(
         message, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_default
-    ).encode()
+    )
+    try:
+        return text.encode()
+    except UnicodeEncodeError:
+        return json.dumps(
+            message, separators=(",", ":"), ensure_ascii=True, allow_nan=False, default=_default
+        ).encode()
 
 
 def encode_error(code: int, message: str, id: Id = None, data: Any = None) -> bytes:

@@ -41,6 +41,7 @@ class Refusal(StrEnum):
     TOO_LONG = "too-long"
     LINE_BREAK = "line-break"
     CONTROL_CHAR = "control-char"
+    NOT_TEXT = "not-text"
     REALTIME = "realtime"
     TAPE_MARK = "tape-mark"
     UBER_GROUP = "uber-group"
@@ -78,7 +79,10 @@ def validate_line(line: str) -> str:
             raise InvalidCommand(Refusal.LINE_BREAK, "one command per line: CR/LF inside the line")
         if stripped[:1] not in _REALTIME_LEADS:
             raise InvalidCommand(Refusal.CONTROL_CHAR, "control characters inside the line")
-    size = len(line.encode("utf-8"))
+    try:
+        size = len(line.encode("utf-8"))
+    except UnicodeEncodeError:  # a lone surrogate, as JSON's "\ud800" can carry
+        raise InvalidCommand(Refusal.NOT_TEXT, "the line is not valid text") from None
     if size > MAX_LINE_BYTES:
         raise InvalidCommand(
             Refusal.TOO_LONG,

@@ -39,7 +39,10 @@ class LineBuffer:
             if self._discarding:
                 self._discarding = False
             else:
-                lines.append(_strip_cr(bytes(buf[start:end])))
+                line = bytes(buf[start:end])
+                # Cut however the bytes arrived: whole in one read, or in pieces.
+                over = len(line) > self.max_line
+                lines.append(line[: self.max_line] if over else _strip_cr(line))
             start = end + 1
         del buf[:start]
         if len(buf) > self.max_line:
