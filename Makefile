@@ -33,3 +33,12 @@ test: lint typecheck unit
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+
+# Performance figures beside their baselines (bench/run.py); BENCH_ARGS=--quick to try things.
+.PHONY: bench soak
+bench: $(STAMP)
+	$(BIN)/python -m bench $(BENCH_ARGS)
+
+# Long fault runs against the daemon process (bench/soak.py); not part of `make test`.
+soak: $(STAMP)
+	$(BIN)/python -m bench.soak $(SOAK_ARGS)

@@ -1,0 +1,233 @@
+"""The bench's side of the daemon: a blocking JSON-RPC client and the daemon as a process.
+
+Blocking on purpose: the bench measures the daemon, and a plain socket with
+one `sendall` per request keeps the client's own cost small and its
+timestamps honest (taken right before the bytes are written).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+UPLOAD_CHUNK = 512 * 1024  # bytes of G-code per file.upload request (the line limit is 1 MiB)
+
+
+class RpcFailure(Exception):
+    def __init__(self, error: dict[str, Any]) -> None:
+        super().__init__(f"{error.get('code')}: {error.get('message')}")
+        self.code: int = error.get("code", 0)
+        self.error = error
+
+
+class Client:
+    """One connection. Answers are matched by id; notifications are kept in order."""
+
+    def __init__(self, path: str, timeout: float = 30.0) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.settimeout(timeout)
+        self.sock.connect(path)
+        self._ids = itertools.count(1)
+        self._buf = b""
+        self._answers: dict[int, dict[str, Any]] = {}
+        self.notifications: deque[dict[str, Any]] = deque()
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def request(self, method: str, **params: Any) -> tuple[int, bytes]:
+        msg_id = next(self._ids)
+        message: dict[str, Any] = {"jsonrpc": "2.0", "id": msg_id, "method": method}
+        if params:
+            message["params"] = params
+        return msg_id, json.dumps(message, separators=(",", ":")).encode() + b"\n"
+
+    def send(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def answer(self, msg_id: int) -> Any:
+        while msg_id not in self._answers:
+            self._read_more()
+        msg = self._answers.pop(msg_id)
+        if "error" in msg:
+            raise RpcFailure(msg["error"])
+        return msg["result"]
+
+    def call(self, method: str, **params: Any) -> Any:
+        msg_id, data = self.request(method, **params)
+        self.send(data)
+        return self.answer(msg_id)
+
+    def notification(self, predicate: Callable[[dict[str, Any]], bool], timeout: float) -> Any:
+        deadline = time.monotonic() + timeout
+        while True:
+            while self.notifications:
+                msg = self.notifications.popleft()
+                if predicate(msg):
+                    return msg
+            if time.monotonic() > deadline:
+                raise TimeoutError("no such notification")
+            self._read_more()
+
+    def _read_more(self) -> None:
+        chunk = self.sock.recv(1 << 20)
+        if not chunk:
+            raise ConnectionError("the daemon closed the connection")
+        self._buf += chunk
+        *lines, self._buf = self._buf.split(b"\n")
+        for line in lines:
+            if not line:
+                continue
+            msg = json.loads(line)
+            if "id" in msg and msg.get("method") is None:
+                self._answers[msg["id"]] = msg
+            else:
+                self.notifications.append(msg)
+
+    # helpers for the daemon's methods
+
+    def upload(self, name: str, data: str, chunk: int = UPLOAD_CHUNK) -> None:
+        """A file in chunks: hidden until the final one (file.upload's `final`)."""
+        parts = [data[i : i + chunk] for i in range(0, len(data), chunk)] or [""]
+        for i, part in enumerate(parts):
+            self.call("file.upload", name=name, data=part, append=i > 0, final=i == len(parts) - 1)
+
+    def wait_job_end(self, job_id: int, timeout: float) -> dict[str, Any]:
+        """Until a `job` notification says the job ended (subscribe to `job` first)."""
+        note = self.notification(
+            lambda n: (
+                n.get("method") == "job"
+                and n["params"]["job"]["id"] == job_id
+                and n["params"]["job"]["state"] not in ("running", "paused")
+            ),
+            timeout,
+        )
+        job: dict[str, Any] = note["params"]["job"]
+        return job
+
+
+def program(lines: int) -> str:
+    """A G-code file of `lines` short moves, all different, as a CAM program's would be."""
+    return "".join(f"G1 X{i % 3000 / 10:.3f} Y{i % 700 / 10:.3f} F3000\n" for i in range(lines))
+
+
+class DaemonProcess:
+    """`python -m hostd.service` with a config of one machine on `data_port`."""
+
+    def __init__(
+        self,
+        workdir: Path,
+        data_port: str,
+        *,
+        machine: str = "bench",
+        window: int = 4,
+        log_level: str = "info",
+        extra: str = "",
+        cpus: set[int] | None = None,
+        module: str = "hostd.service",
+    ) -> None:
+        self.workdir = workdir
+        self.machine = machine
+        self.socket = str(workdir / "hostd.sock")
+        self.config = workdir / "hostd.toml"
+        self.config.write_text(
+            "[daemon]\n"
+            f'socket = "{self.socket}"\n'
+            f'state_dir = "{workdir / "state"}"\n'
+            f'log_level = "{log_level}"\n\n'
+            "[[machines]]\n"
+            f'id = "{machine}"\n'
+            f'data_port = "{data_port}"\n'
+            f"window = {window}\n" + extra
+        )
+        self.log = workdir / "hostd.log"
+        self.cpus = cpus
+        self.module = module  # another entry point (a patched daemon) for experiments
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.pid = 0
+
+    def start(self, timeout: float = 20.0) -> None:
+        command = [sys.executable, "-m", self.module, "--config", str(self.config)]
+        with self.log.open("ab") as log:
+            self.proc = subprocess.Popen(
+                [*command, "--log-format", "json"],
+                stdout=subprocess.DEVNULL,
+                stderr=log,
+                preexec_fn=self._pin if self.cpus else None,
+            )
+        self.pid = self.proc.pid
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"daemon exited {self.proc.returncode}; see {self.log}")
+            try:
+                with contextlib.closing(Client(self.socket)) as client:
+                    if client.call("machine.status", machine=self.machine)["supervisor"] == "idle":
+                        break
+            except (OSError, ConnectionError, RpcFailure):
+                pass
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"daemon not idle within {timeout} s; see {self.log}")
+            time.sleep(0.05)
+
+    def _pin(self) -> None:
+        """In the child, before exec: every thread the daemon starts inherits it."""
+        assert self.cpus is not None
+        os.sched_setaffinity(0, self.cpus)
+
+    def client(self) -> Client:
+        return Client(self.socket)
+
+    def wait_idle(self, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        with contextlib.closing(self.client()) as client:
+            while client.call("machine.status", machine=self.machine)["supervisor"] != "idle":
+                if time.monotonic() > deadline:
+                    raise TimeoutError("machine not idle")
+                time.sleep(0.02)
+
+    def cpu_seconds(self) -> float:
+        fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime
+
+    def status_kb(self, key: str) -> int:
+        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+        raise KeyError(key)
+
+    def reset_peak(self) -> None:
+        """Reset VmHWM to the current RSS (clear_refs 5), to measure one phase's peak."""
+        Path(f"/proc/{self.pid}/clear_refs").write_text("5")
+
+    def fds(self) -> int:
+        return len(os.listdir(f"/proc/{self.pid}/fd"))
+
+    def stop(self, timeout: float = 20.0) -> int | None:
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()

@@ -1,0 +1,105 @@
+"""The bench's helper processes: the instant controller and the subscriber fleet."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from typing import Any
+
+
+class ControllerProcess:
+    """bench/instant_controller.py, driven through its stdin/stdout."""
+
+    def __init__(self, link: str) -> None:
+        self.link = link
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "bench.instant_controller", "--link", link],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        self._expect_line("listening")
+
+    def _send(self, command: str) -> None:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+
+    def _readline(self) -> str:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError("the instant controller exited")
+        return line.strip()
+
+    def _expect_line(self, want: str) -> None:
+        line = self._readline()
+        if line != want:
+            raise RuntimeError(f"instant controller said {line!r}, expected {want!r}")
+
+    def expect(self, lines: int) -> None:
+        self._send(f"expect {lines}")
+
+    def status_reports(self, count: int, rate: float) -> None:
+        self._send(f"sr {count} {rate}")
+
+    def dump(self) -> dict[str, Any]:
+        """What was recorded since the last dump (`opened` notices are skipped)."""
+        self._send("dump")
+        while True:
+            line = self._readline()
+            if line.startswith("{"):
+                result: dict[str, Any] = json.loads(line)
+                return result
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self._send("quit")
+                self.proc.wait(5)
+            except (OSError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait()
+
+
+class SubscriberFleet:
+    """bench/subscribers.py: `count` clients subscribed to `topics`, read continuously."""
+
+    def __init__(self, socket: str, count: int, topics: str, machine: str) -> None:
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "bench.subscribers",
+                "--socket",
+                socket,
+                "--count",
+                str(count),
+                "--topics",
+                topics,
+                "--machine",
+                machine,
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline().strip()
+        if line != "ready":
+            self.proc.kill()
+            raise RuntimeError(f"subscriber fleet did not start: {line!r}")
+
+    def stop(self) -> dict[str, Any]:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write("stop\n")
+        self.proc.stdin.flush()
+        result: dict[str, Any] = json.loads(self.proc.stdout.readline())
+        self.proc.wait(10)
+        return result
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()

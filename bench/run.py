@@ -1,0 +1,527 @@
+"""`make bench`: the daemon's performance figures, each beside a baseline from the same run.
+
+    python -m bench [--quick] [--profile [PATH]] [--keep]
+
+- P1 streaming throughput: a job of N lines (file.upload, job.start, the
+  `job` notification saying completed) through the whole daemon at window 4,
+  against the raw loop (bench/raw.py) at the same window; median of repeats,
+  raw and daemon runs interleaved.
+- P2 realtime latency: `machine.feedhold` written to the socket to `!` read
+  by the controller, while a job streams at full rate with 50 subscribers on
+  `status` and `job`; baseline: `!` written by the raw loop mid-stream.
+- P3 fan-out: a status report written by the controller to its notification
+  read by each of 100 `status` subscribers; baseline: one subscriber.
+- P4 memory: the daemon's peak RSS (VmHWM) streaming a 1,000,000-line file
+  against a 10,000-line one, each in a fresh daemon.
+- P5 CPU: the daemon's CPU seconds (utime + stime) per 10,000 lines streamed
+  (the P1 jobs); baseline: the raw loop's CPU per 10,000 lines.
+
+Every process runs on this machine, so CLOCK_MONOTONIC (time.monotonic())
+is shared and one-way latencies are differences of two readings.
+
+Placement: the host under test (the daemon, or the raw loop) is pinned to
+the first CPU, everything else (the instant controller, the clients, the
+bench) to the others (`--no-pin` to let the scheduler decide). On a 2-vCPU
+VM the scheduler otherwise puts both ends of the pty on one CPU in some runs
+and not in others, and the raw loop swings between 30k and 190k lines/s.
+
+`make bench` exits 1 when a target is missed. `--profile` samples the
+daemon with py-spy (not a dependency: `pip install py-spy` anywhere) during
+an extra P1 job and during P2, and prints the top functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from bench import profile as spy
+from bench.client import DaemonProcess, program
+from bench.procs import ControllerProcess, SubscriberFleet
+from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost
+
+WINDOW = 4
+MACHINE = "bench"
+
+
+@dataclass
+class Settings:
+    stream_lines: int = 50_000
+    repeats: int = 3
+    hold_samples: int = 300
+    hold_spacing: float = 0.02  # s between a `~` and the next `!`
+    resume_after: float = 0.005  # s between a `!` and its `~`
+    hold_subscribers: int = 50
+    fanout_subscribers: int = 100
+    fanout_reports: int = 200
+    fanout_rate: float = 50.0  # status reports a second
+    memory_small: int = 10_000
+    memory_large: int = 1_000_000
+
+    @classmethod
+    def quick(cls) -> Settings:
+        return cls(
+            stream_lines=20_000,
+            repeats=1,
+            hold_samples=100,
+            fanout_reports=100,
+            memory_large=200_000,
+        )
+
+
+@dataclass
+class Row:
+    figure: str
+    daemon: str
+    baseline: str
+    compare: str
+    target: str
+    ok: bool | None
+    notes: list[str] = field(default_factory=list)
+
+
+# --- statistics ---------------------------------------------------------------
+
+
+def pct(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q * (len(ordered) - 1))))]
+
+
+def spread(values_s: list[float]) -> str:
+    if not values_s:
+        return "no samples"
+    us = [v * 1e6 for v in values_s]
+    return f"{pct(us, 0.5):.0f}/{pct(us, 0.99):.0f}/{max(us):.0f} us"
+
+
+# --- the figures ------------------------------------------------------------------
+
+
+class Bench:
+    def __init__(
+        self,
+        workdir: Path,
+        settings: Settings,
+        py_spy: str | None,
+        pin: bool = True,
+        module: str = "hostd.service",
+    ) -> None:
+        self.workdir = workdir
+        self.module = module
+        self.s = settings
+        self.py_spy = py_spy
+        # The host under test (the daemon, or the raw loop) gets CPU 0 to itself; the
+        # controller, the clients and the bench share the others. Without this the
+        # scheduler sometimes puts both ends of the pty on one CPU (a round trip
+        # without a cross-CPU wakeup) and sometimes not: the raw loop then varies 5x.
+        cpus = os.sched_getaffinity(0)
+        self.host_cpus: set[int] | None = None
+        self.other_cpus = cpus
+        if pin and len(cpus) >= 2:
+            first = min(cpus)
+            self.host_cpus, self.other_cpus = {first}, cpus - {first}
+            os.sched_setaffinity(0, self.other_cpus)  # inherited by every helper process
+        self.rows: list[Row] = []
+        self.profiles: list[tuple[str, spy.Profile]] = []
+        self.notes: list[str] = []
+
+    def _dir(self, name: str) -> Path:
+        path = self.workdir / name
+        path.mkdir()
+        return path
+
+    @contextlib.contextmanager
+    def _daemon(self, name: str) -> Iterator[tuple[DaemonProcess, ControllerProcess]]:
+        where = self._dir(name)
+        controller = ControllerProcess(str(where / "ttyBENCH"))
+        daemon = DaemonProcess(
+            where,
+            controller.link,
+            machine=MACHINE,
+            window=WINDOW,
+            cpus=self.host_cpus,
+            module=self.module,
+        )
+        try:
+            daemon.start()
+            yield daemon, controller
+        finally:
+            code = daemon.stop()
+            controller.close()
+            if code not in (0, None):
+                self.notes.append(f"{name}: daemon exited {code}; log in {daemon.log}")
+
+    @contextlib.contextmanager
+    def _on_host_cpus(self) -> Iterator[None]:
+        """Run the raw loop (in this process) where the daemon runs."""
+        if self.host_cpus is None:
+            yield
+            return
+        os.sched_setaffinity(0, self.host_cpus)
+        try:
+            yield
+        finally:
+            os.sched_setaffinity(0, self.other_cpus)
+
+    # P1 + P5 -------------------------------------------------------------------
+
+    def stream(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
+        n = self.s.stream_lines
+        text = program(n)
+        lines = [line.encode() + b"\n" for line in text.splitlines()]
+        raw_ctl = ControllerProcess(str(self._dir("raw") / "ttyRAW"))
+        raw = RawHost(raw_ctl.link)
+        client = daemon.client()
+        try:
+            client.upload("p1.gcode", text)
+            client.call("subscribe", topics=["job"], machine=MACHINE)
+            raw_rates, raw_cpu, d_rates, d_cpu = [], [], [], []
+            for _ in range(self.s.repeats):
+                raw_ctl.expect(n)
+                with self._on_host_cpus():
+                    result = raw.stream(lines, WINDOW)
+                raw_rates.append(result.lines / result.seconds)
+                raw_cpu.append(result.cpu / result.lines * 10_000)
+                rate, cpu = self._job(daemon, controller, client, "p1.gcode", n)
+                d_rates.append(rate)
+                d_cpu.append(cpu / n * 10_000)
+            if self.py_spy:
+                client.upload("profile.gcode", program(5 * n))
+                self._profiled_job(daemon, controller, client, "profile.gcode", 5 * n)
+        finally:
+            client.close()
+            raw.close()
+            raw_ctl.close()
+        d_rate, r_rate = statistics.median(d_rates), statistics.median(raw_rates)
+        ratio = d_rate / r_rate
+        runs = ", ".join(f"{r:,.0f}" for r in d_rates)
+        self.rows.append(
+            Row(
+                f"P1 throughput, {n:,} lines, W={WINDOW}",
+                f"{d_rate:,.0f} lines/s",
+                f"{r_rate:,.0f} lines/s raw",
+                f"{ratio:.2f}x raw",
+                ">= 0.50x raw",
+                ratio >= 0.5,
+                [f"daemon runs: {runs}; raw runs: {', '.join(f'{r:,.0f}' for r in raw_rates)}"],
+            )
+        )
+        cpu, raw_c = statistics.median(d_cpu), statistics.median(raw_cpu)
+        self.rows.append(
+            Row(
+                "P5 CPU per 10,000 lines",
+                f"{cpu:.3f} s",
+                f"{raw_c:.3f} s raw host",
+                f"{cpu / raw_c:.1f}x raw",
+                "< 0.25 s",
+                cpu < 0.25,
+                [f"daemon runs: {', '.join(f'{c:.3f}' for c in d_cpu)} s"],
+            )
+        )
+
+    def _job(
+        self,
+        daemon: DaemonProcess,
+        controller: ControllerProcess,
+        client: Any,
+        file: str,
+        n: int,
+    ) -> tuple[float, float]:
+        """One job, start to `completed`: (lines/s, daemon CPU seconds)."""
+        daemon.wait_idle()
+        controller.expect(n)
+        cpu0 = daemon.cpu_seconds()
+        t0 = time.monotonic()
+        job_id = client.call("job.start", machine=MACHINE, file=file)["job"]
+        job = client.wait_job_end(job_id, timeout=max(60.0, n / 500))
+        seconds = time.monotonic() - t0
+        cpu = daemon.cpu_seconds() - cpu0
+        if job["state"] != "completed" or job["lines_acked"] != n:
+            raise RuntimeError(f"job ended {job['state']} with {job['lines_acked']} of {n}")
+        return n / seconds, cpu
+
+    def _profiled_job(
+        self, daemon: DaemonProcess, controller: ControllerProcess, client: Any, file: str, n: int
+    ) -> None:
+        assert self.py_spy is not None
+        out = self.workdir / "p1-profile.txt"
+        recorder = spy.start(self.py_spy, daemon.pid, out)
+        time.sleep(0.5)  # attached before the job starts
+        try:
+            self._job(daemon, controller, client, file, n)
+        finally:
+            err = spy.stop(recorder)
+        if out.exists():
+            self.profiles.append(("P1 job (streaming, one follower)", spy.summarise(out)))
+        else:
+            self.notes.append(f"py-spy wrote nothing: {err[-500:]}")
+
+    # P2 ---------------------------------------------------------------------------
+
+    def realtime(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
+        samples = self.s.hold_samples
+        long_lines = 1_000_000
+        client = daemon.client()
+        fleet = None
+        try:
+            client.upload("p2.gcode", program(long_lines))
+            fleet = SubscriberFleet(daemon.socket, self.s.hold_subscribers, "status,job", MACHINE)
+            daemon.wait_idle()
+            controller.expect(long_lines)
+            controller.dump()
+            job_id = client.call("job.start", machine=MACHINE, file="p2.gcode")["job"]
+            time.sleep(0.3)  # streaming at full rate
+            sent_at: list[float] = []
+            recorder = None
+            if self.py_spy:
+                recorder = spy.start(self.py_spy, daemon.pid, self.workdir / "p2-profile.txt")
+                time.sleep(0.5)
+            for _ in range(samples):
+                msg_id, data = client.request("machine.feedhold", machine=MACHINE)
+                t0 = time.monotonic()
+                client.send(data)
+                sent_at.append(t0)
+                client.answer(msg_id)
+                time.sleep(self.s.resume_after)
+                client.call("machine.cycle_start", machine=MACHINE)
+                time.sleep(self.s.hold_spacing)
+            if recorder is not None:
+                spy.stop(recorder)
+                out = self.workdir / "p2-profile.txt"
+                if out.exists():
+                    title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
+                    self.profiles.append((title, spy.summarise(out)))
+            job = client.call("job.get", job=job_id)
+            acked = job["lines_acked"]
+            client.call("job.cancel", machine=MACHINE)
+            fleet_result = fleet.stop()
+            fleet = None
+        finally:
+            if fleet is not None:
+                fleet.kill()
+            client.close()
+        bangs = controller.dump()["bangs"]
+        if len(bangs) != len(sent_at):
+            raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
+        latencies = [b - s for b, s in zip(bangs, sent_at, strict=True)]
+        (self.workdir / "p2-samples.json").write_text(
+            json.dumps({"sent_at": sent_at, "bangs": bangs})
+        )
+
+        # baseline: `!` written by the raw loop mid-stream
+        raw_ctl = ControllerProcess(str(self._dir("raw-rt") / "ttyRAW"))
+        raw = RawHost(raw_ctl.link)
+        try:
+            n = REALTIME_EVERY * (samples + 1) + RESUME_AFTER
+            lines = [line.encode() + b"\n" for line in program(n).splitlines()]
+            raw_ctl.expect(n)
+            with self._on_host_cpus():
+                result = raw.stream(lines, WINDOW, realtime=True)
+            raw_bangs = raw_ctl.dump()["bangs"]
+        finally:
+            raw.close()
+            raw_ctl.close()
+        raw_lat = [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
+        p99 = pct(latencies, 0.99)
+        self.rows.append(
+            Row(
+                f"P2 `!` latency, {len(latencies)} holds, {self.s.hold_subscribers} subs",
+                spread(latencies),
+                spread(raw_lat) + " raw",
+                "p50/p99/max",
+                "p99 < 1 ms",
+                p99 < 1e-3,
+                [
+                    f"job acked {acked:,} lines during the samples; "
+                    f"fleet read {sum(fleet_result['messages']):,} notifications, "
+                    f"{fleet_result['closed']} subscribers disconnected"
+                ],
+            )
+        )
+
+    # P3 ---------------------------------------------------------------------------
+
+    def fanout(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
+        daemon.wait_idle()
+        big = self._fanout_once(daemon, controller, self.s.fanout_subscribers)
+        one = self._fanout_once(daemon, controller, 1)
+        (lat, missing), (lat1, missing1) = big, one
+        p99 = pct(lat, 0.99)
+        notes = [f"{len(lat):,} deliveries, {missing} missing; baseline {missing1} missing"]
+        self.rows.append(
+            Row(
+                f"P3 fan-out, {self.s.fanout_subscribers} subs, {self.s.fanout_rate:g} sr/s",
+                spread(lat),
+                spread(lat1) + " 1 sub",
+                f"p99 {p99 / pct(lat1, 0.99):.1f}x 1 sub",
+                "p99 < 5 ms",
+                p99 < 5e-3 and missing == 0,
+                notes,
+            )
+        )
+
+    def _fanout_once(
+        self, daemon: DaemonProcess, controller: ControllerProcess, subscribers: int
+    ) -> tuple[list[float], int]:
+        count, rate = self.s.fanout_reports, self.s.fanout_rate
+        fleet = SubscriberFleet(daemon.socket, subscribers, "status", MACHINE)
+        try:
+            controller.dump()
+            time.sleep(0.2)
+            controller.status_reports(count, rate)
+            time.sleep(count / rate + 0.5)
+            written = dict(map(tuple, controller.dump()["sr"]))
+            result = fleet.stop()
+        except BaseException:
+            fleet.kill()
+            raise
+        latencies = []
+        for client_seen in result["seen"]:
+            for k, t in client_seen:
+                latencies.append(t - written[k])
+        missing = subscribers * count - len(latencies)
+        return latencies, missing
+
+    # P4 ---------------------------------------------------------------------------
+
+    def memory(self) -> None:
+        small = self._peak(self.s.memory_small)
+        large = self._peak(self.s.memory_large)
+        ratio = large[0] / small[0]
+        stream_ratio = large[1] / small[1]
+        self.rows.append(
+            Row(
+                f"P4 peak RSS, {self.s.memory_large:,} vs {self.s.memory_small:,} lines",
+                f"{large[0] / 1024:.1f} MiB",
+                f"{small[0] / 1024:.1f} MiB",
+                f"{ratio:.3f}x",
+                "<= 1.10x",
+                ratio <= 1.1,
+                [
+                    "VmHWM over the daemon's life (upload included); streaming phase only "
+                    f"(VmHWM reset before job.start): {large[1] / 1024:.1f} vs "
+                    f"{small[1] / 1024:.1f} MiB = {stream_ratio:.3f}x; "
+                    f"{self.s.memory_large:,} lines at {large[2]:,.0f} lines/s"
+                ],
+            )
+        )
+
+    def _peak(self, n: int) -> tuple[int, int, float]:
+        """(lifetime VmHWM kB, streaming-phase VmHWM kB, lines/s) for one job in a fresh daemon."""
+        with self._daemon(f"p4-{n}") as (daemon, controller):
+            client = daemon.client()
+            try:
+                client.upload("p4.gcode", program(n))
+                client.call("subscribe", topics=["job"], machine=MACHINE)
+                before = daemon.status_kb("VmHWM")
+                daemon.reset_peak()
+                rate, _ = self._job(daemon, controller, client, "p4.gcode", n)
+                streaming = daemon.status_kb("VmHWM")
+            finally:
+                client.close()
+        return max(before, streaming), streaming, rate
+
+    # --- running it all ------------------------------------------------------------
+
+    def run(self, only: set[str] | None = None) -> None:
+        def wanted(name: str) -> bool:
+            return only is None or name in only
+
+        steps: list[tuple[str, Callable[[DaemonProcess, ControllerProcess], None]]] = [
+            ("p1", self.stream),
+            ("p2", self.realtime),
+            ("p3", self.fanout),
+        ]
+        if any(wanted(name) for name, _ in steps):
+            with self._daemon("main") as (daemon, controller):
+                for name, step in steps:
+                    if wanted(name):
+                        _progress(f"{name}...")
+                        step(daemon, controller)
+        if wanted("p4"):
+            _progress("p4...")
+            self.memory()
+
+
+def _progress(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def render_table(rows: list[Row]) -> str:
+    head = ("figure", "daemon", "baseline", "ratio / pct", "target", "result")
+    cells = [(r.figure, r.daemon, r.baseline, r.compare, r.target, _verdict(r.ok)) for r in rows]
+    widths = [max(len(str(c[i])) for c in [head, *cells]) for i in range(len(head))]
+    line = "+".join("-" * (w + 2) for w in widths)
+    out = [" | ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)), line]
+    out += [" | ".join(c.ljust(w) for c, w in zip(cell, widths, strict=True)) for cell in cells]
+    return "\n".join(out)
+
+
+def _verdict(ok: bool | None) -> str:
+    return "-" if ok is None else ("PASS" if ok else "FAIL")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller runs, for trying things")
+    parser.add_argument(
+        "--profile",
+        nargs="?",
+        const="auto",
+        metavar="PY_SPY",
+        help="also sample the daemon with py-spy (found on PATH unless given)",
+    )
+    parser.add_argument("--only", help="comma-separated subset: p1,p2,p3,p4 (p5 comes with p1)")
+    parser.add_argument("--keep", action="store_true", help="keep the work directory")
+    parser.add_argument(
+        "--no-pin", action="store_true", help="let the scheduler place the processes"
+    )
+    parser.add_argument(
+        "--daemon-module",
+        default="hostd.service",
+        help="the daemon's entry module (to try a patched daemon; default hostd.service)",
+    )
+    parser.add_argument("--hold-subscribers", type=int, help="P2's subscribers (default 50)")
+    args = parser.parse_args(argv)
+
+    settings = Settings.quick() if args.quick else Settings()
+    if args.hold_subscribers is not None:
+        settings.hold_subscribers = args.hold_subscribers
+    py_spy = None
+    if args.profile:
+        py_spy = spy.find_py_spy(args.profile)
+        if py_spy is None:
+            parser.error("--profile: py-spy not found (pip install py-spy)")
+    workdir = Path(tempfile.mkdtemp(prefix="hostd-bench-"))
+    bench = Bench(workdir, settings, py_spy, pin=not args.no_pin, module=args.daemon_module)
+    only = set(args.only.split(",")) if args.only else None
+    try:
+        bench.run(only)
+    finally:
+        print(render_table(bench.rows))
+        for row in bench.rows:
+            for note in row.notes:
+                print(f"  {row.figure.split(' ')[0]}: {note}")
+        for note in bench.notes:
+            print(f"  note: {note}")
+        for title, prof in bench.profiles:
+            print(f"\n== profile: {title}\n{spy.render(prof)}")
+        if args.keep or bench.profiles:
+            print(f"\nwork directory kept: {workdir}")
+        else:
+            shutil.rmtree(workdir, ignore_errors=True)
+    return 0 if all(r.ok is not False for r in bench.rows) else 1
