@@ -25,6 +25,7 @@ log = structlog.get_logger(__name__)
 DB_NAME = "hostd.db"
 SIM_SPEED = 10.0  # simulated boards move ten times faster than real ones
 SIM_PLANNER = 48  # g2core's planner buffers (PLANNER_QUEUE_SIZE)
+SIM_HISTORY = 1000  # lines a simulated board remembers: a daemon runs for days
 
 
 class Daemon:
@@ -81,7 +82,7 @@ class Daemon:
         await asyncio.to_thread(sim_dir.mkdir, mode=0o750, exist_ok=True)
         data = str(sim_dir / f"{config.id}-data")
         control = str(sim_dir / f"{config.id}-control") if config.control_port else None
-        board = SimConfig(speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER)
+        board = SimConfig(speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER, history=SIM_HISTORY)
         sim = SimController(data, control_path=control, config=board)
         await sim.start()
         self.sims[config.id] = sim

@@ -31,12 +31,17 @@ class SimConfig:
     fb: float = 101.06  # firmware build in the banner; 440.xx makes it look like TinyG
     boot_time: float = 0.05  # s the board is gone after a reset (0x18)
     rx_budget: int = 1024  # bytes of unprocessed input per port, like the board's RX ring
+    # Entries kept in `received` and `sent` (None: all, for tests). A board that
+    # runs for days inside the daemon keeps only the most recent ones.
+    history: int | None = None
 
     def __post_init__(self) -> None:
         if self.planner_depth < 1:
             raise ValueError("planner_depth must be at least 1")
         if self.speed_factor <= 0:
             raise ValueError("speed_factor must be positive")
+        if self.history is not None and self.history < 1:
+            raise ValueError("history must be at least 1")
         if self.rx_budget < 64:
             raise ValueError("rx_budget must be at least 64 bytes")
 

@@ -249,7 +249,7 @@ class SimController:
         """Write `data` raw to the port with the control role, as a broken board might."""
         port = self._output_port()
         if port is not None and port.write(data):
-            self.sent.append(Received(time.monotonic(), port.name, data, "raw"))
+            self._keep(self.sent, Received(time.monotonic(), port.name, data, "raw"))
             self._pulse()
 
     def set_ack_delay(self, seconds: float) -> None:
@@ -377,7 +377,14 @@ class SimController:
     # --- internals
 
     def _record(self, t: float, port: str, data: bytes, kind: Kind) -> None:
-        self.received.append(Received(t, port, data, kind))
+        self._keep(self.received, Received(t, port, data, kind))
+
+    def _keep(self, log: list[Received], entry: Received) -> None:
+        """Append; past twice `history` entries, drop all but the last `history`."""
+        log.append(entry)
+        limit = self.config.history
+        if limit is not None and len(log) > 2 * limit:
+            del log[:-limit]
 
     def _output_port(self) -> PtyPort | None:
         if self._silent or self._resetting or self._primary is None:
@@ -393,7 +400,7 @@ class SimController:
             return
         data = line.encode("ascii", "backslashreplace")
         if port.write(data + b"\n"):
-            self.sent.append(Received(time.monotonic(), port.name, data, "line"))
+            self._keep(self.sent, Received(time.monotonic(), port.name, data, "line"))
             if port.backlog:
                 self._board.output_blocked = True
             self._pulse()

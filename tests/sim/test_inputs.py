@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
+import serialx
 
-from hostd.sim import SimController
+from hostd.sim import SimConfig, SimController
 
 from .conftest import Host, Message
 
@@ -141,3 +143,21 @@ async def test_a_digital_input_is_zero_or_one(sim: SimController, value: int) ->
 async def test_an_analogue_input_is_a_finite_number(sim: SimController, value: float) -> None:
     with pytest.raises(ValueError, match="finite"):
         sim.set_analog(1, value)
+
+
+@pytest.mark.asyncio
+async def test_history_keeps_only_the_most_recent_entries(tmp_path: Path) -> None:
+    """A board inside the daemon runs for days: what it recorded must not grow forever."""
+    path = str(tmp_path / "ttyH")
+    async with SimController(path, config=SimConfig(instant=True, history=10)) as sim:
+        _, writer = await serialx.open_serial_connection(url=path, baudrate=115200)
+        try:
+            await sim.wait_attached()
+            for i in range(60):
+                writer.write(f"G0 X{i}\n".encode())
+            await sim.wait_received(b"G0 X59")
+            assert len(sim.received) <= 20
+            assert sim.received[-1].data == b"G0 X59"
+            assert len(sim.sent) <= 20
+        finally:
+            writer.close()
