@@ -448,9 +448,9 @@ class Engine:
             state in (MachineState.PROGRAM_STOP, MachineState.PROGRAM_END)
             and stream is not None
             and not stream.done
-            and not stream.exhausted
             and not stream.program_pause_sent
             and self._flush is None
+            and stream.peek() is not None  # lines still on the host (not only "not looked yet")
         ):
             # The board ran out of moves while the job still had lines on the host.
             where = f"after file line {stream.last_acked_line}"

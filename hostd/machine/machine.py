@@ -7,7 +7,8 @@ start only from idle, each recorded as a job row; `make` streams a file
 from the jobs directory and is the only pausable one.
 
 Progress is persisted at most `PERSIST_EVERY` seconds or `PERSIST_LINES`
-answered lines apart, so a crash loses at most that much of a row's
+answered lines apart (the stream wakes its runner when it crosses the
+mark), so a crash loses at most that much of a row's
 `lines_acked`; it is only ever copied from the engine's count of lines the
 controller answered, so it never claims more. `job` events are published
 on every state change and at most every `PUBLISH_EVERY` seconds while a
@@ -17,6 +18,7 @@ job runs.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from collections.abc import Iterator
@@ -285,7 +287,11 @@ class Machine:
         last = (0, 0)
         try:
             while not stream.done:
-                await asyncio.wait({stream.result}, timeout=PUBLISH_EVERY)
+                stream.wake_at = persisted_acked + PERSIST_LINES
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(PUBLISH_EVERY):
+                        await stream.wake.wait()
+                stream.wake.clear()
                 counts = (stream.sent, stream.acked)
                 if counts == last:
                     continue

@@ -48,6 +48,9 @@ class JobStream:
         # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
         self.program_pause_sent = False
         self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
+        # Set when `acked` reaches `wake_at`, and when the stream ends: its runner's cue.
+        self.wake = asyncio.Event()
+        self.wake_at: int | None = None
 
     @property
     def done(self) -> bool:
@@ -82,8 +85,12 @@ class JobStream:
     def acknowledged(self, file_line: int | None) -> None:
         self.acked += 1
         self.last_acked_line = file_line
+        if self.wake_at is not None and self.acked >= self.wake_at:
+            self.wake_at = None
+            self.wake.set()
 
     def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
         if not self.done:
             self._next = None
             self.result.set_result(StreamResult(end, code, message))
+            self.wake.set()
