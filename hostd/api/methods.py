@@ -13,6 +13,7 @@ one), so a half-uploaded program is never started.
 from __future__ import annotations
 
 import asyncio
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -22,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hostd import __version__
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
-from hostd.api.rpc import Methods, RpcError
+from hostd.api.rpc import Methods, RpcError, encode_notification
 from hostd.api.server import current_client
 from hostd.daemon import Daemon
 from hostd.machine.events import (
@@ -133,49 +134,71 @@ class UnsubscribeParams(Params):
     subscription: int
 
 
-Notify = Callable[[str, dict[str, Any]], None]
+Send = Callable[[bytes], object]
 
 
 @dataclass(frozen=True, slots=True)
 class _Subscription:
     owner: object  # the client: one notification per client, however many subscriptions match
-    notify: Notify
+    send: Send  # the client's send_line: takes an encoded message
     topics: frozenset[str]
     machine: str | None
 
 
 class Subscriptions:
-    """Which client wants which topics of which machine; fan-out never blocks."""
+    """Which client wants which topics of which machine; fan-out never blocks.
 
-    def __init__(self) -> None:
+    A notification is encoded once, however many clients get it, and not at
+    all when nobody wants it; `wants` is a dictionary look-up, since it is
+    asked for every status report of every machine.
+    """
+
+    def __init__(self, on_change: Callable[[], None] | None = None) -> None:
         self._next = 1
         self._subs: dict[int, _Subscription] = {}
+        self._interest: Counter[tuple[str, str | None]] = Counter()
+        self._on_change = on_change
 
-    def add(self, owner: object, notify: Notify, topics: list[str], machine: str | None) -> int:
+    def add(self, owner: object, send: Send, topics: list[str], machine: str | None) -> int:
         sub_id = self._next
         self._next += 1
-        self._subs[sub_id] = _Subscription(owner, notify, frozenset(topics), machine)
+        sub = _Subscription(owner, send, frozenset(topics), machine)
+        self._subs[sub_id] = sub
+        self._interest.update((topic, machine) for topic in sub.topics)
+        self._changed()
         return sub_id
 
     def remove(self, sub_id: int) -> bool:
-        return self._subs.pop(sub_id, None) is not None
+        sub = self._subs.pop(sub_id, None)
+        if sub is None:
+            return False
+        self._interest.subtract((topic, sub.machine) for topic in sub.topics)
+        self._changed()
+        return True
 
     def remove_all(self, owner: object) -> None:
         for sub_id in [k for k, sub in self._subs.items() if sub.owner is owner]:
-            del self._subs[sub_id]
+            self.remove(sub_id)
 
     def has(self, owner: object) -> bool:
         return any(sub.owner is owner for sub in self._subs.values())
 
     def wants(self, topic: str, machine: str) -> bool:
-        return any(_matches(sub, topic, machine) for sub in self._subs.values())
+        return self._interest[(topic, None)] > 0 or self._interest[(topic, machine)] > 0
 
     def deliver(self, topic: str, machine: str, params: dict[str, Any]) -> None:
+        if not self.wants(topic, machine):
+            return
+        line = encode_notification(topic, params)
         done: set[int] = set()
         for sub in list(self._subs.values()):
             if _matches(sub, topic, machine) and id(sub.owner) not in done:
                 done.add(id(sub.owner))
-                sub.notify(topic, params)
+                sub.send(line)
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change()
 
 
 def _matches(sub: _Subscription, topic: str, machine: str) -> bool:
@@ -186,7 +209,12 @@ class Api:
     def __init__(self, daemon: Daemon) -> None:
         self.daemon = daemon
         self.jobs = JobsDir(daemon.jobs_dir)
-        self.subscriptions = Subscriptions()
+        self.subscriptions = Subscriptions(self._console_interest)
+
+    def _console_interest(self) -> None:
+        """Engines publish their raw traffic only while someone listens to it."""
+        for machine in self.daemon.machines.values():
+            machine.engine.console = self.subscriptions.wants("console", machine.id)
 
     def attach(self) -> None:
         """Listen to every machine (call once the daemon has built them)."""
@@ -216,7 +244,7 @@ class Api:
             subs.deliver("job", mid, {"machine": mid, "job": event.job})
         elif isinstance(event, FaultChanged):
             subs.deliver("fault", mid, {"machine": mid, "fault": event.fault})
-        elif isinstance(event, Console) and subs.wants("console", mid):
+        elif isinstance(event, Console):
             subs.deliver(
                 "console",
                 mid,
@@ -420,7 +448,7 @@ class Api:
         client = current_client()
         if not self.subscriptions.has(client):
             client.on_disconnect.append(partial(self.subscriptions.remove_all, client))
-        sub_id = self.subscriptions.add(client, client.notify, list(p.topics), p.machine)
+        sub_id = self.subscriptions.add(client, client.send_line, list(p.topics), p.machine)
         if client.closed:  # it left while this request ran: its hooks may have run already
             self.subscriptions.remove_all(client)
         return {"subscription": sub_id}

@@ -130,14 +130,18 @@ class Link:
         """A whole encoded line (ending in LF) on the data channel."""
         return self._write(Channel.DATA, data)
 
+    def write_lines(self, lines: list[bytes]) -> bool:
+        """Whole encoded lines on the data channel, in one write."""
+        for line in lines:
+            _check_line(line)
+        return self._channel(Channel.DATA).write(b"".join(lines))
+
     def write_control(self, data: bytes) -> bool:
         """A whole encoded line or realtime byte on the control channel (or the only one)."""
         return self._write(Channel.CONTROL if self.dual else Channel.DATA, data)
 
     def _write(self, channel: Channel, data: bytes) -> bool:
-        # Whole lines only: a realtime byte must never land inside a partial line.
-        if not data.endswith(b"\n") or b"\n" in data[:-1]:
-            raise ValueError(f"not exactly one terminated line: {data!r}")
+        _check_line(data)
         return self._channel(channel).write(data)
 
     def write_backlog(self, channel: Channel = Channel.DATA) -> int:
@@ -151,3 +155,9 @@ class Link:
         for name in (Channel.DATA, Channel.CONTROL):
             if name in self._channels:
                 await self._channels[name].close()
+
+
+def _check_line(data: bytes) -> None:
+    """Whole lines only: a realtime byte must never land inside a partial line."""
+    if not data.endswith(b"\n") or b"\n" in data[:-1]:
+        raise ValueError(f"not exactly one terminated line: {data!r}")

@@ -164,6 +164,7 @@ class Engine:
         self.link_state = LinkState.DOWN
         self.stream: JobStream | None = None
         self.last_error: str | None = None
+        self.console = False  # publish every line sent and received (someone listens)
         self._ports = ports
         self._outbox: deque[_Queued] = deque()
         self._flush: _Flush | None = None
@@ -343,7 +344,7 @@ class Engine:
     def _receive(self, channel: Channel, line: bytes) -> None:
         msg = parse_line(line)
         self._log.debug("rx", channel=channel.value, line=line)
-        if self.hub.active:
+        if self.console:
             self._publish_console("rx", channel, line)
         if isinstance(msg, Response):
             self._on_response(msg)
@@ -477,14 +478,17 @@ class Engine:
     # -- writing -----------------------------------------------------------
 
     def _pump(self) -> None:
-        """Fill the window: client lines first, then the job's lines."""
-        if self.link is None or self.link_state is not LinkState.READY or self._flush is not None:
+        """Fill the window: client lines first, then the job's lines, in one write."""
+        link = self.link
+        if link is None or self.link_state is not LinkState.READY or self._flush is not None:
             return
         if self._halted:
             return
         state = self.model.state
+        batch: list[bytes] = []
         while self.sender.has_room:
             if self._outbox:
+                self._flush_batch(link, batch)
                 queued = self._outbox.popleft()
                 verdict = admit(queued.cls, state)
                 if verdict is not None:
@@ -499,15 +503,33 @@ class Engine:
                 or self._await_report
                 or (state is not None and state.is_lockout)
             ):
-                return
+                break
             nxt = stream.peek()
             if nxt is None:
                 self._check_stream_complete()
-                return
+                break
             number, encoded = nxt
-            if not self._write(encoded, stream, Channel.DATA, file_line=number):
-                return
+            try:
+                self.sender.sent(InFlight(encoded, stream, number))
+            except SenderError as exc:
+                self._internal_fault(str(exc))
+                break
             stream.take()
+            batch.append(encoded)
+        self._flush_batch(link, batch)
+
+    def _flush_batch(self, link: Link, batch: list[bytes]) -> None:
+        """Job lines already booked go out in one write (one syscall, not one a line)."""
+        if not batch:
+            return
+        if link.write_lines(batch):
+            if self.console:
+                for line in batch:
+                    self._publish_console("tx", Channel.DATA, line)
+            self._log.debug("tx", channel="data", lines=len(batch))
+        elif self.stream is not None:
+            self.stream.sent -= len(batch)  # never written: the link is gone, teardown follows
+        batch.clear()
 
     def _write(
         self,
@@ -533,7 +555,7 @@ class Engine:
             self._internal_fault(str(exc))
             return False
         self._log.debug("tx", channel=channel.value, line=encoded)
-        if self.hub.active:
+        if self.console:
             self._publish_console("tx", channel if link.dual else Channel.DATA, encoded)
         return True
 
@@ -542,7 +564,7 @@ class Engine:
         if link is None or not link.write_control(encode_realtime(command)):
             raise NotConnected(f"{self.id}: not connected")
         self._log.debug("tx", channel="control", line=command.value)
-        if self.hub.active:
+        if self.console:
             channel = Channel.CONTROL if link.dual else Channel.DATA
             self._publish_console("tx", channel, encode_realtime(command))
         if command in (Realtime.QUEUE_FLUSH, Realtime.JOB_KILL):

@@ -9,6 +9,7 @@ parser only says what it is.
 from __future__ import annotations
 
 import json
+import re
 from typing import Any, TypeGuard
 
 from hostd.protocol.messages import (
@@ -30,8 +31,15 @@ _BANNER_MSG = "SYSTEM READY"
 _NOISE = frozenset(range(0x20)) - {0x09} | {0x7F}
 
 
+# The answer to almost every job line: read without the JSON parser.
+_PLAIN_ANSWER = re.compile(rb'\{"r":\{\},"f":\[1,(\d{1,3}),(\d{1,4})\]\}')
+
+
 def parse_line(raw: bytes) -> Message:
     """Classify one line (terminator already removed)."""
+    plain = _PLAIN_ANSWER.fullmatch(raw)
+    if plain is not None:
+        return Response({}, int(plain[1]), int(plain[2]), raw)
     if raw[:1] == b"{":
         return _parse_json(raw)
     return _parse_text(raw)

@@ -218,3 +218,16 @@ async def test_runaway_output_is_cut_not_hoarded(peers: Iterator[PtyPeer]) -> No
         assert [len(e.line) for e in got] == [4096, 2]
     finally:
         await link.close()
+
+
+async def test_a_batch_of_lines_goes_out_in_order_as_one_write(peers: Iterator[PtyPeer]) -> None:
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    peer.start_reading()
+    try:
+        assert link.write_lines([b"G1 X1\n", b"G1 X2\n", b"G1 X3\n"])
+        await peer.wait_received(b"G1 X1\nG1 X2\nG1 X3\n")
+        with pytest.raises(ValueError):
+            link.write_lines([b"G1 X4\n", b"G1 X5"])  # one line unterminated: nothing written
+    finally:
+        await link.close()

@@ -132,6 +132,7 @@ async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
         recorder = Recorder()
         hub.subscribe(recorder)
         engine = Engine(machine_config(path), hub)
+        engine.console = True  # the recorder reads the traffic
         async with running(engine):
             await engine.connect()
             yield Rig(sim, engine, recorder)

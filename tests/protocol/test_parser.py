@@ -199,3 +199,11 @@ def test_line_buffer_cuts_a_line_that_never_ends() -> None:
     assert buf.feed(b"yyyy") == []  # still the same runaway line
     assert buf.feed(b"zz\nnext\n") == [b"next"]
     assert buf.pending == 0
+
+
+def test_the_plain_answer_fast_path_agrees_with_the_json_parser() -> None:
+    for raw in (b'{"r":{},"f":[1,0,4]}', b'{"r":{},"f":[1,204,26]}', b'{"r":{},"f":[1,0,1234]}'):
+        fast = parse_line(raw)
+        slow = parse_line(raw.replace(b'{"r":{}', b'{"r": {}'))  # not the fast shape
+        assert isinstance(fast, Response) and isinstance(slow, Response)
+        assert (fast.body, fast.status, fast.count) == (slow.body, slow.status, slow.count)
