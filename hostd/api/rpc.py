@@ -85,6 +85,8 @@ class Method:
 
     handler: Handler
     params_model: type[BaseModel] | None
+    # Never suspends (a realtime byte): the server may run it without a task of its own.
+    immediate: bool = False
 
 
 class Methods(Mapping[str, Method]):
@@ -92,25 +94,45 @@ class Methods(Mapping[str, Method]):
 
     def __init__(self) -> None:
         self._table: dict[str, Method] = {}
+        self.immediate_names: list[bytes] = []  # as they appear quoted in a request line
 
     @overload
     def register(
-        self, name: str, params_model: type[P], handler: Callable[[P], Awaitable[Any]]
+        self,
+        name: str,
+        params_model: type[P],
+        handler: Callable[[P], Awaitable[Any]],
+        *,
+        immediate: bool = False,
     ) -> None: ...
 
     @overload
     def register(
-        self, name: str, params_model: None, handler: Callable[[], Awaitable[Any]]
+        self,
+        name: str,
+        params_model: None,
+        handler: Callable[[], Awaitable[Any]],
+        *,
+        immediate: bool = False,
     ) -> None: ...
 
-    def register(self, name: str, params_model: type[BaseModel] | None, handler: Handler) -> None:
+    def register(
+        self,
+        name: str,
+        params_model: type[BaseModel] | None,
+        handler: Handler,
+        *,
+        immediate: bool = False,
+    ) -> None:
         """Add a method. Refuses duplicates and params models that would accept unknown fields."""
         if name in self._table:
             raise ValueError(f"method {name!r} is already registered")
         if params_model is not None and params_model.model_config.get("extra") != "forbid":
             # A typo'd field name must be an error for the client, not silently ignored.
             raise ValueError(f"params model of {name!r} must set model_config extra='forbid'")
-        self._table[name] = Method(handler, params_model)
+        self._table[name] = Method(handler, params_model, immediate)
+        if immediate:
+            self.immediate_names.append(f'"{name}"'.encode())
 
     def __getitem__(self, name: str) -> Method:
         return self._table[name]
@@ -327,6 +349,22 @@ async def _one(obj: Any, methods: Mapping[str, Method], context: object) -> byte
     except RpcError as e:
         return encode_error(e.code, e.message, None)
     return await _call(request, methods, context)
+
+
+def is_immediate(line: bytes, methods: Methods) -> bool:
+    """A single request for a method that never suspends: answerable without a task.
+
+    A substring test first, so that other requests cost nothing more.
+    """
+    if not any(name in line for name in methods.immediate_names):
+        return False
+    try:
+        obj = json.loads(line)
+    except (ValueError, RecursionError):
+        return False
+    name = obj.get("method") if isinstance(obj, dict) else None
+    method = methods.get(name) if isinstance(name, str) else None
+    return method is not None and method.immediate
 
 
 async def dispatch(line: bytes, methods: Mapping[str, Method], context: object) -> bytes | None:

@@ -410,6 +410,10 @@ class ApiServer:
             if not line.strip():
                 continue
             await slots.acquire()
+            if isinstance(self._methods, rpc.Methods) and rpc.is_immediate(line, self._methods):
+                # A realtime byte: run it now, not a loop pass later in a task of its own.
+                await self._handle(client, line, slots)
+                continue
             task = tg.create_task(self._handle(client, line, slots))
             pending.add(task)
             task.add_done_callback(pending.discard)

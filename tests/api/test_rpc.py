@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 from pydantic import BaseModel, ConfigDict
 
+from hostd.api import rpc
 from hostd.api.rpc import (
     INTERNAL_ERROR,
     MAX_BATCH,
@@ -155,3 +156,22 @@ async def test_a_batch_is_capped() -> None:
         "error": {"code": -32600, "message": "invalid request: batch over 1000 requests"},
         "id": None,
     }
+
+
+def test_only_single_requests_for_immediate_methods_skip_the_task() -> None:
+    class P(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        machine: str
+
+    async def hold(p: P) -> dict[str, object]:
+        return {}
+
+    table = rpc.Methods()
+    table.register("machine.feedhold", P, hold, immediate=True)
+    table.register("machine.status", P, hold)
+    line = b'{"jsonrpc":"2.0","id":1,"method":"machine.feedhold","params":{"machine":"m"}}'
+    assert rpc.is_immediate(line, table)
+    assert not rpc.is_immediate(line.replace(b"feedhold", b"status"), table)
+    assert not rpc.is_immediate(b"[" + line + b"]", table)  # a batch goes the usual way
+    assert not rpc.is_immediate(b'{"method":"machine.feedhold"', table)  # broken JSON
+    assert not rpc.is_immediate(b'{"method":"x","params":"machine.feedhold"}', table)
