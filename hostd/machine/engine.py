@@ -522,13 +522,13 @@ class Engine:
         """Job lines already booked go out in one write (one syscall, not one a line)."""
         if not batch:
             return
+        # A failed write means the link is already gone: the lines stay booked,
+        # and teardown accounts for them with every other unanswered line.
         if link.write_lines(batch):
             if self.console:
                 for line in batch:
                     self._publish_console("tx", Channel.DATA, line)
             self._log.debug("tx", channel="data", lines=len(batch))
-        elif self.stream is not None:
-            self.stream.sent -= len(batch)  # never written: the link is gone, teardown follows
         batch.clear()
 
     def _write(
