@@ -39,6 +39,8 @@ clean:
 bench: $(STAMP)
 	$(BIN)/python -m bench $(BENCH_ARGS)
 
-# Long fault runs against the daemon process (bench/soak.py); not part of `make test`.
+# Long fault runs, not part of `make test`: against the daemon process (bench/soak.py),
+# and unplug/re-plug and alarm cycles over real ptys (bench/soak_link.py).
 soak: $(STAMP)
 	$(BIN)/python -m bench.soak $(SOAK_ARGS)
+	$(BIN)/python -m bench.soak_link
