@@ -337,7 +337,7 @@ class Engine:
                 except _SessionEnd:
                     raise
                 except Exception as exc:  # a bug of ours: stop writing, keep reading
-                    self._log.exception("engine invariant broken")
+                    self._job_log().exception("engine invariant broken")
                     self._internal_fault(f"{type(exc).__name__}: {exc}")
             self._pump()
 
@@ -355,7 +355,7 @@ class Engine:
         elif isinstance(msg, Banner):
             self._on_banner(msg)
         elif isinstance(msg, Unparseable):
-            self._log.warning("unparseable controller output", reason=msg.reason, raw=msg.raw)
+            self._job_log().warning("unparseable controller output", reason=msg.reason, raw=msg.raw)
             kind = "serial" if msg.reason in _NOT_TEXT else "lexical"
             self._detected(kind, self._lines_in, f"{msg.reason}: {msg.raw[:60]!r}")
             self._changed.set()
@@ -369,7 +369,7 @@ class Engine:
         try:
             entry = self.sender.answered(response)
         except SenderError:
-            self._log.warning("answer with no line waiting", raw=response.raw)
+            self._job_log().warning("answer with no line waiting", raw=response.raw)
             self._detected("lexical", None, f"an answer with no line waiting: {response.raw!r}")
             return
         if entry.own and response.status in _MALFORMED:
@@ -420,7 +420,7 @@ class Engine:
 
     def _on_exception(self, report: ExceptionReport) -> None:
         self.model.apply_exception(report)
-        self._log.warning("controller exception", status=report.status, msg=report.message)
+        self._job_log().warning("controller exception", status=report.status, msg=report.message)
         if self.hub.active:
             self.hub.publish(ExceptionRaised(self.id, report.fields))
         lockout = _LOCKOUT_BY_STATUS.get(report.status or -1)
@@ -441,7 +441,7 @@ class Engine:
         raise _SessionEnd("controller restarted (unexpected SYSTEM READY)")
 
     def _on_state(self, state: MachineState) -> None:
-        self._log.info("controller state", state=state.name)
+        self._job_log().info("controller state", state=state.name)
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -858,6 +858,13 @@ class Engine:
             await self._changed.wait()
 
     # -- helpers -------------------------------------------------------------
+
+    def _job_log(self) -> Any:
+        """The machine's logger, with `job=` while a job runs."""
+        stream = self.stream
+        if stream is None or stream.done or stream.job_id is None:
+            return self._log
+        return self._log.bind(job=stream.job_id)
 
     def _detected(self, fault: str, value: Any, text: str) -> None:
         self.hub.publish(FaultDetected(self.id, fault, value, text))

@@ -250,7 +250,7 @@ class Machine:
         handle: TextIO | None,
     ) -> Job:
         job = await self._begin(kind, file, total)
-        stream = JobStream(lines)
+        stream = JobStream(lines, job.id)
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:

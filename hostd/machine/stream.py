@@ -36,8 +36,9 @@ class StreamResult:
 
 
 class JobStream:
-    def __init__(self, lines: Iterator[tuple[int, str]]) -> None:
+    def __init__(self, lines: Iterator[tuple[int, str]], job_id: int | None = None) -> None:
         self._lines = lines
+        self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: tuple[int, bytes] | None = None
         self.exhausted = False
         self.sent = 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import Iterator
 
@@ -9,6 +10,9 @@ import pytest
 import structlog
 
 from hostd.logs import configure_logging
+from hostd.machine.stream import JobStream
+from hostd.protocol.commands import Realtime
+from hostd.protocol.states import MachineState as S
 from tests.machine.conftest import Rig
 
 pytestmark = pytest.mark.asyncio
@@ -54,3 +58,20 @@ async def test_at_info_the_traffic_is_not_logged(
     logs = records(capsys.readouterr().err)
     assert not [r for r in logs if r["event"] in ("tx", "rx")]
     assert all(r["machine"] == "m1" for r in logs if "state" in r)
+
+
+async def test_what_happens_during_a_job_is_logged_with_its_job(
+    capsys: pytest.CaptureFixture[str], info_json: None, rig: Rig
+) -> None:
+    capsys.readouterr()
+    stream = JobStream(iter([(1, "G1 X40 F3000"), (2, "G1 X0")]), job_id=7)
+    rig.engine.start_stream(stream)
+    async with asyncio.timeout(5):  # the engine itself has read that the board runs
+        await rig.engine.wait_for(lambda: rig.engine.model.state is S.RUN)
+    rig.engine.realtime(Realtime.JOB_KILL)
+    async with asyncio.timeout(5):
+        await stream.result
+    logs = records(capsys.readouterr().err)
+    states = [r for r in logs if r["event"] == "controller state" and r.get("job") == 7]
+    assert states, logs
+    assert all(r["machine"] == "m1" for r in states)
