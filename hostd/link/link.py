@@ -8,7 +8,7 @@ one). Losing either channel loses the link: the machine is gone.
 
 The inbox is bounded: past `INBOX_HIGH` unread events the link stops reading
 the device (the controller's own output then blocks, as on a real USB
-endpoint), and reads again once the owner has caught up.
+endpoint), and reads again as soon as the owner has taken the events.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from functools import partial
 from hostd.link.serial import SerialChannel
 
 INBOX_HIGH = 4096
-INBOX_LOW = 1024
 
 
 class Channel(StrEnum):

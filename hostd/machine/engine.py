@@ -25,7 +25,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import partial
@@ -152,8 +152,6 @@ class Engine:
         self,
         config: MachineConfig,
         hub: Hub | None = None,
-        *,
-        ports: Callable[[], Awaitable[tuple[str, str | None]]] | None = None,
     ) -> None:
         self.config = config
         self.id = config.id
@@ -163,9 +161,7 @@ class Engine:
         self.link: Link | None = None
         self.link_state = LinkState.DOWN
         self.stream: JobStream | None = None
-        self.last_error: str | None = None
         self.console = False  # publish every line sent and received (someone listens)
-        self._ports = ports
         self._outbox: deque[_Queued] = deque()
         self._flush: _Flush | None = None
         self._await_report = False  # an `er` came: job lines wait for a status report
@@ -249,8 +245,8 @@ class Engine:
         was_ready = False
         reason = "closed"
         try:
-            data, control = await self._port_paths()
-            self.link = await Link.open(data, control, self.config.baudrate)
+            config = self.config
+            self.link = await Link.open(config.data_port, config.control_port, config.baudrate)
         except LinkError as exc:
             self._end_attempt(str(exc))
             self._teardown(str(exc))
@@ -280,21 +276,14 @@ class Engine:
                 self._teardown(reason)
         return was_ready
 
-    async def _port_paths(self) -> tuple[str, str | None]:
-        if self._ports is not None:
-            return await self._ports()
-        return self.config.data_port, self.config.control_port
-
     def _set_ready(self) -> None:
         self._restart_deadline = None
         self.link_state = LinkState.READY
-        self.last_error = None
         self._ready.set()
         self._publish_link(True, "ready")
         self._log.info("machine ready", state=self.model.state)
 
     def _end_attempt(self, reason: str) -> None:
-        self.last_error = reason
         if self._attempt_failed is not None and not self._attempt_failed.done():
             self._attempt_failed.set_result(reason)
 

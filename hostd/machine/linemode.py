@@ -17,9 +17,8 @@ but `n`).
 
 from __future__ import annotations
 
-import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from hostd.protocol.messages import Response
@@ -37,7 +36,6 @@ class InFlight:
     source: Any = None  # whoever sent it: a job, a client request
     file_line: int | None = None  # for a job's line, its line number in the file
     own: bool = False  # the daemon's own line (handshake, query, clear), not a client's or a job's
-    sent_at: float = field(default_factory=time.monotonic)
 
     @property
     def control(self) -> bool:
