@@ -177,3 +177,20 @@ async def test_bad_config_stops_start_up_with_one_clear_message(tmp_path: Path) 
     message = stderr.decode()
     assert str(config) in message and "machines[0].window" in message
     assert message.count("\n") == 1
+
+
+async def test_an_unknown_socket_group_stops_start_up_with_a_clear_message(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "group.toml"
+    config.write_text(
+        f'[daemon]\nsocket = "{tmp_path}/s.sock"\nstate_dir = "{tmp_path}/state"\n'
+        'group = "no-such-group-hostd"\n'
+    )
+    proc = await asyncio.create_subprocess_exec(
+        *SERVE, "--config", str(config), stderr=asyncio.subprocess.PIPE
+    )
+    _, stderr = await proc.communicate()
+    assert proc.returncode == 2
+    assert "[daemon] group: no group named 'no-such-group-hostd'" in stderr.decode()
+    assert not (tmp_path / "s.sock").exists()
