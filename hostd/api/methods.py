@@ -351,9 +351,7 @@ class Api:
         return {}
 
     async def settings_get(self, p: SettingsGetParams) -> dict[str, Any]:
-        lines = [f'{{"{key}":null}}' for key in p.keys]
-        _, bodies = await self._machine(p.machine).settings(lines)
-        return _merge(bodies)
+        return await self._machine(p.machine).read_settings(list(p.keys))
 
     async def settings_set(self, p: SettingsSetParams) -> dict[str, Any]:
         _, bodies = await self._machine(p.machine).settings(setting_lines(dict(p.values)))
@@ -394,14 +392,10 @@ class Api:
         return {"job": job.id}
 
     async def job_pause(self, p: MachineParams) -> dict[str, Any]:
-        machine = self._machine(p.machine)
-        machine.pause()
-        return _live(machine)
+        return self._machine(p.machine).pause().model_dump(mode="json")
 
     async def job_resume(self, p: MachineParams) -> dict[str, Any]:
-        machine = self._machine(p.machine)
-        machine.resume()
-        return _live(machine)
+        return self._machine(p.machine).resume().model_dump(mode="json")
 
     async def job_cancel(self, p: MachineParams) -> dict[str, Any]:
         job = await self._machine(p.machine).cancel()
@@ -457,13 +451,6 @@ class Api:
         if not self.subscriptions.remove(p.subscription):
             raise RpcError(-32602, f"no subscription {p.subscription}")
         return {}
-
-
-def _live(machine: Machine) -> dict[str, Any]:
-    """The machine's job with the counts as they are now, not as last persisted."""
-    job = machine.current_job()
-    assert job is not None
-    return job.model_dump(mode="json")
 
 
 def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:

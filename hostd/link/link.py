@@ -136,8 +136,13 @@ class Link:
         return self._channel(Channel.DATA).write(b"".join(lines))
 
     def write_control(self, data: bytes) -> bool:
-        """A whole encoded line or realtime byte on the control channel (or the only one)."""
+        """A whole encoded line on the control channel (or the only one)."""
         return self._write(Channel.CONTROL if self.dual else Channel.DATA, data)
+
+    def write_realtime(self, data: bytes) -> bool:
+        """A realtime byte (and its LF) on the control channel, ahead of every queued byte."""
+        _check_line(data)
+        return self._channel(Channel.CONTROL).write(data, urgent=True)
 
     def _write(self, channel: Channel, data: bytes) -> bool:
         _check_line(data)

@@ -10,6 +10,14 @@ blocked the loop when the peer stopped reading (tests/link pins both cases).
 
 Failures of the device while open (EOF, EIO, unplug) never surface as an
 exception: the channel reports them once, as a `lost` callback.
+
+Realtime never waits behind the daemon's own bytes. The transport is given
+bytes only while its buffer is empty (its high-water mark is 0, so it says
+`pause_writing` the moment the device stops taking them); what the device
+has not taken yet waits here, in two queues, and urgent bytes (`!`, `~`,
+0x18...) leave before any line queued beside them. Whatever the transport
+already holds is at most the tail of one write, whole lines, so an urgent
+byte never lands inside a partial line.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import os
+from collections import deque
 from collections.abc import Callable
 
 import serialx
@@ -49,6 +58,10 @@ class SerialChannel(asyncio.Protocol):
         self._transport: asyncio.Transport | None = None
         self._closed = asyncio.get_running_loop().create_future()
         self.lost = False
+        self._blocked = False  # the transport holds bytes the device has not taken
+        self._urgent: deque[bytes] = deque()
+        self._queued: deque[bytes] = deque()
+        self._queued_bytes = 0
 
     @classmethod
     async def open(
@@ -73,6 +86,7 @@ class SerialChannel(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self._transport = transport
+        transport.set_write_buffer_limits(high=0, low=0)
 
     def data_received(self, data: bytes) -> None:
         for line in self._framer.feed(data):
@@ -94,22 +108,56 @@ class SerialChannel(asyncio.Protocol):
 
     # writing
 
-    def write(self, data: bytes) -> bool:
-        """Queue bytes; False if the channel is gone (the lost report says why)."""
+    def write(self, data: bytes, *, urgent: bool = False) -> bool:
+        """Write bytes, or queue them while the device is not taking any.
+
+        Urgent bytes go ahead of every queued one. False if the channel is
+        gone (the lost report says why).
+        """
         if self.lost or self._transport is None:
             return False
+        if not self._blocked:
+            return self._send(data)
+        if urgent:
+            self._urgent.append(data)
+        else:
+            self._queued.append(data)
+            self._queued_bytes += len(data)
+        return True
+
+    def pause_writing(self) -> None:
+        self._blocked = True
+
+    def resume_writing(self) -> None:
+        """The device took everything: hand it what waited, urgent bytes first."""
+        self._blocked = False
+        while not self._blocked and (self._urgent or self._queued):
+            if self._urgent:
+                data = b"".join(self._urgent)
+                self._urgent.clear()
+            else:
+                data = b"".join(self._queued)
+                self._queued.clear()
+                self._queued_bytes = 0
+            if not self._send(data):
+                return
+
+    def _send(self, data: bytes) -> bool:
+        transport = self._transport
+        assert transport is not None
         try:
-            self._transport.write(data)
+            transport.write(data)
         except (OSError, SerialException) as exc:
             self._report_lost(_describe(exc))
-            self._transport.abort()
+            transport.abort()
             return False
-        return True
+        return not self.lost
 
     @property
     def write_backlog(self) -> int:
         """Bytes accepted but not yet taken by the device (it may have stopped reading)."""
-        return self._transport.get_write_buffer_size() if self._transport else 0
+        held = self._queued_bytes + sum(map(len, self._urgent))
+        return held + (self._transport.get_write_buffer_size() if self._transport else 0)
 
     # closing
 

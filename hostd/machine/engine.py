@@ -7,8 +7,16 @@ tears it down as one, and reconnects with back-off.
 
 Every write goes through `_pump` or `_write`, and every one is decided by
 the state the board last reported, applied before the write:
+- a client's line is admitted twice: when it arrives, and again at the moment
+  it is written. It carries the context it was admitted in (free, in a hold,
+  any); if that context is gone by then (a hold began or ended, a job
+  started, a lockout began), it fails with a clear error instead of running
+  where it was never meant to. Waiting lines are re-checked on every change;
 - lines pass the command class table (`hostd.protocol.classes`) in ALARM,
   SHUTDOWN and PANIC; job lines are not written at all then;
+- job lines are not written while the job is paused (from its `!` to its
+  `~`) nor while the board reports a hold; in-hold lines (`{"gc2":...}`) and
+  queries go at once, past the window, through a bounded control lane;
 - an exception report stops job lines until a status report says where the
   board is (an `er` may announce an alarm before its status report does);
 - after `%` or 0x04 no data line is written until the board shows the flush
@@ -115,6 +123,16 @@ _LOCKOUT_REJECTIONS = frozenset(
 )
 
 
+class Context(StrEnum):
+    """What a client's line was admitted for; it is written only while that still holds."""
+
+    FREE = "free"  # no job running, no hold: an ordinary line under the window
+    HOLD = "hold"  # the board is in a hold: run inside it, in its secondary planner
+    JOB = "job"  # a job is streaming: no client action fits
+    ANY = "any"  # queries and clears: fit every context
+    OWN = "own"  # the daemon's own line
+
+
 class LinkState(StrEnum):
     DOWN = "down"
     OPENING = "opening"
@@ -127,12 +145,16 @@ Source = asyncio.Future[Response] | JobStream
 
 @dataclass(slots=True)
 class _Queued:
-    """A line waiting for a window slot: a client's, or the daemon's own (a clear)."""
+    """A line waiting for a slot: a client's, or the daemon's own (a clear)."""
 
     encoded: bytes
     cls: CommandClass
     future: asyncio.Future[Response]
-    own: bool = False
+    context: Context
+
+    @property
+    def own(self) -> bool:
+        return self.context is Context.OWN
 
 
 @dataclass(slots=True)
@@ -162,7 +184,8 @@ class Engine:
         self.link_state = LinkState.DOWN
         self.stream: JobStream | None = None
         self.console = False  # publish every line sent and received (someone listens)
-        self._outbox: deque[_Queued] = deque()
+        self._outbox: deque[_Queued] = deque()  # data-channel lines, under the window
+        self._lane: deque[_Queued] = deque()  # queries and in-hold lines, the control lane
         self._flush: _Flush | None = None
         self._await_report = False  # an `er` came: job lines wait for a status report
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
@@ -297,8 +320,9 @@ class Engine:
             self._flush = None
         for entry in self.sender.clear():
             self._settle_unanswered(entry, NotConnected(f"link lost: {reason}"))
-        while self._outbox:
-            self._fail(self._outbox.popleft().future, NotConnected(f"link lost: {reason}"))
+        for waiting in (self._outbox, self._lane):
+            while waiting:
+                self._fail(waiting.popleft().future, NotConnected(f"link lost: {reason}"))
         if self.stream is not None and not self.stream.done:
             if restarted:
                 self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
@@ -440,57 +464,93 @@ class Engine:
             and not stream.done
             and not stream.program_pause_sent
             and self._flush is None
+            and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and stream.peek() is not None  # lines still on the host (not only "not looked yet")
         ):
             # The board ran out of moves while the job still had lines on the host.
             where = f"after file line {stream.last_acked_line}"
             self._detected("underflow", stream.acked, f"the controller stopped {where}")
-        if not state.is_lockout:
-            if self._settings_pending and self.link_state is LinkState.READY:
-                self._reapply_settings()
+        if state.is_lockout:
+            refusal = admit(CommandClass.ACTION, state)
+            assert refusal is not None
+            text = self.model.last_exception_message() or message(refusal)
+            if self.stream is not None and not self.stream.done:
+                # Drain: the job's remaining lines are dropped on the host at once.
+                self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+        elif self._settings_pending and self.link_state is LinkState.READY:
+            self._reapply_settings()
+        self._recheck_waiting()
+
+    def _context(self) -> Context:
+        if self.model.state is MachineState.HOLD:
+            return Context.HOLD
+        return Context.JOB if self._job_running() else Context.FREE
+
+    def _admissible(self, queued: _Queued, state: MachineState | None, context: Context) -> bool:
+        """May this waiting line be written now? If not, its asker is told why, once."""
+        verdict = admit(queued.cls, state)
+        if verdict is not None:
+            self._fail(queued.future, Rejected(verdict, self._locked_message()))
+            return False
+        if queued.context in (Context.ANY, Context.OWN) or queued.context is context:
+            return True
+        self._fail(queued.future, Busy(_context_changed(self.id, queued.context, context)))
+        return False
+
+    def _recheck_waiting(self) -> None:
+        """After any change of context, fail the waiting lines it no longer admits.
+
+        Not while a flush is under way: the board passes through a hold on its
+        way to the stop that ends it, and nothing is written before then, so
+        the write itself decides.
+        """
+        if self._flush is not None:
             return
-        refusal = admit(CommandClass.ACTION, state)
-        assert refusal is not None
-        text = self.model.last_exception_message() or message(refusal)
-        if self.stream is not None and not self.stream.done:
-            # Drain: the job's remaining lines are dropped on the host at once.
-            self.stream.finish(StreamEnd.FAILED, int(refusal), text)
-        kept: deque[_Queued] = deque()
-        for queued in self._outbox:
-            verdict = admit(queued.cls, state)
-            if verdict is None:
-                kept.append(queued)
-            else:
-                self._fail(queued.future, Rejected(verdict, self._locked_message()))
-        self._outbox = kept
+        state, context = self.model.state, self._context()
+        self._outbox = deque(q for q in self._outbox if self._admissible(q, state, context))
+        self._lane = deque(q for q in self._lane if self._admissible(q, state, context))
 
     # -- writing -----------------------------------------------------------
 
     def _pump(self) -> None:
-        """Fill the window: client lines first, then the job's lines, in one write."""
+        """Fill the lane and the window: client lines first, then the job's lines, in one write.
+
+        Every waiting line is admitted again here, against the state and
+        context of this moment.
+        """
         link = self.link
         if link is None or self.link_state is not LinkState.READY or self._flush is not None:
             return
         if self._halted:
             return
         state = self.model.state
+        context = self._context()
+        lane = self._lane
+        while lane and self.sender.control_room:
+            queued = lane.popleft()
+            if self._admissible(queued, state, context) and not self._write(
+                queued.encoded, queued.future, Channel.CONTROL
+            ):
+                self._fail(queued.future, self._write_refused())
         batch: list[bytes] = []
-        while self.sender.has_room:
+        while True:
             if self._outbox:
+                if not self.sender.room(self._outbox[0].encoded):
+                    break  # in order: a client's lines never overtake each other
                 self._flush_batch(link, batch)
                 queued = self._outbox.popleft()
-                verdict = admit(queued.cls, state)
-                if verdict is not None:
-                    self._fail(queued.future, Rejected(verdict, self._locked_message()))
-                elif not self._write(queued.encoded, queued.future, Channel.DATA, own=queued.own):
+                if self._admissible(queued, state, context) and not self._write(
+                    queued.encoded, queued.future, Channel.DATA, own=queued.own
+                ):
                     self._fail(queued.future, self._write_refused())
                 continue
             stream = self.stream
             if (
                 stream is None
                 or stream.done
+                or stream.paused
                 or self._await_report
-                or (state is not None and state.is_lockout)
+                or (state is not None and (state.is_lockout or state is MachineState.HOLD))
             ):
                 break
             nxt = stream.peek()
@@ -498,6 +558,8 @@ class Engine:
                 self._check_stream_complete()
                 break
             number, encoded = nxt
+            if not self.sender.room(encoded):
+                break
             try:
                 self.sender.sent(InFlight(encoded, stream, number))
             except SenderError as exc:
@@ -550,7 +612,7 @@ class Engine:
 
     def _write_realtime(self, command: Realtime) -> None:
         link = self.link
-        if link is None or not link.write_control(encode_realtime(command)):
+        if link is None or not link.write_realtime(encode_realtime(command)):
             raise NotConnected(f"{self.id}: not connected")
         self._log.debug("tx", channel="control", line=command.value)
         if self.console:
@@ -725,25 +787,38 @@ class Engine:
         validate_line(line)
         cls = classify(line)
         text = line.strip()
-        state = self.model.state
-        verdict = admit(cls, state)
+        verdict = admit(cls, self.model.state)
         if verdict is not None:
             raise Rejected(verdict, self._locked_message())
-        holding = state is MachineState.HOLD
-        moves = cls in (CommandClass.ACTION, CommandClass.PROGRAM_END)
-        if moves and self._job_running() and not holding:
-            raise Busy(f"{self.id} is running a job")
         future = _future()
         if cls is CommandClass.QUERY:
             # As a JSON GET it is run on arrival: it never waits behind queued G-code.
-            if not self._write(_as_json_query(text), future, Channel.CONTROL, urgent=True):
-                raise NotConnected(f"{self.id}: link lost")
+            self._lane.append(_Queued(_as_json_query(text), cls, future, Context.ANY))
+        elif cls is CommandClass.CLEAR:
+            self._outbox.append(_Queued(encode_line(text), cls, future, Context.ANY))
         else:
-            encoded = encode_in_hold(text) if holding and _is_gcode(text) else encode_line(text)
-            queued = _Queued(encoded, cls, future)
-            self._outbox.append(queued)
-            self._pump()
+            self._admit_action(text, cls, future)
+        self._pump()
         return await self._answer(future, timeout)
+
+    def _admit_action(self, text: str, cls: CommandClass, future: asyncio.Future[Response]) -> None:
+        """An action line: in a hold, run inside it at once; free, under the window; else busy."""
+        context = self._context()
+        if context is Context.JOB:
+            pausing = self.stream is not None and self.stream.paused
+            raise Busy(
+                f"{self.id}: the job is still entering its hold; send again once it holds"
+                if pausing
+                else f"{self.id} is running a job"
+            )
+        if context is Context.FREE:
+            self._outbox.append(_Queued(encode_line(text), cls, future, context))
+            return
+        if text.startswith("$"):
+            # A text line is data: the board would keep it until the hold ends.
+            raise Busy(f"{self.id} is in a hold: send settings as JSON ({{key:value}})")
+        encoded = encode_in_hold(text) if _is_gcode(text) else encode_line(text)
+        self._lane.append(_Queued(encoded, cls, future, context))
 
     async def _answer(self, future: asyncio.Future[Response], timeout: float) -> Response:
         try:
@@ -751,6 +826,7 @@ class Engine:
                 response = await asyncio.shield(future)
         except TimeoutError:
             self._outbox = deque(q for q in self._outbox if q.future is not future)
+            self._lane = deque(q for q in self._lane if q.future is not future)
             future.cancel()
             raise ControllerTimeout(f"no answer from {self.id} within {timeout:g} s") from None
         if not response.ok:
@@ -786,7 +862,7 @@ class Engine:
                 f"{self.id}: lines still unanswered in the controller; not clearing"
             ) from None
         future = _future()
-        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, future, own=True))
+        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, future, Context.OWN))
         self._pump()
         await self._answer(future, timeout)
         try:
@@ -823,7 +899,33 @@ class Engine:
         self.admit_action()
         self.stream = stream
         self._awaiting_rest = False
+        self._recheck_waiting()  # a client line still waiting was not admitted into a job
         self._pump()
+
+    def pause_stream(self) -> None:
+        """The job's pause: `!`, and none of its lines is written until `resume_stream`."""
+        stream = self._live_stream()
+        self.realtime(Realtime.FEEDHOLD)
+        stream.paused = True
+
+    def resume_stream(self) -> None:
+        """The job's resume: `~`, and its lines flow again."""
+        stream = self._live_stream()
+        if not stream.paused:
+            raise Busy(f"{self.id}: the job is not paused")
+        self.realtime(Realtime.CYCLE_START)
+        stream.paused = False
+        self._pump()
+
+    def _live_stream(self) -> JobStream:
+        stream = self.stream
+        if stream is None or stream.done:
+            raise Busy(f"{self.id} has no job streaming")
+        return stream
+
+    def out_of_hold(self) -> bool:
+        """No hold on the board and no flush under way: a free line is written as it is."""
+        return self._flush is None and self.model.state is not MachineState.HOLD
 
     def _job_running(self) -> bool:
         return self.stream is not None and not self.stream.done
@@ -920,6 +1022,17 @@ def _discarded(kind: Realtime) -> MachineError:
 
 def _locked(state: MachineState | None) -> bool:
     return state is not None and state.is_lockout
+
+
+def _context_changed(machine: str, admitted: Context, now: Context) -> str:
+    what = {
+        Context.HOLD: "a hold began",
+        Context.JOB: "a job started",
+        Context.FREE: "the hold ended",
+    }[now]
+    if admitted is Context.HOLD and now is not Context.HOLD:
+        what = "the hold ended"
+    return f"{machine}: {what} before the line was written; it was not sent"
 
 
 def _is_gcode(text: str) -> bool:

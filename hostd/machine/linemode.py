@@ -1,8 +1,17 @@
 """Line-mode flow control: at most `window` lines unanswered, each answer matched to its line.
 
-Pure bookkeeping, no I/O: the engine asks `has_room`, records what it wrote
+Pure bookkeeping, no I/O: the engine asks `room`, records what it wrote
 with `sent`, hands every `{r}` to `answered`, and calls `dropped` after `%`
 or 0x04, when the board discards buffered lines without answering them.
+
+Two budgets, one a kind of line. Data lines (G-code, `$`) wait in the
+board's buffer for planner room: at most `window` of them are unanswered,
+the line-mode window. Control lines (`{`) are read on every pass of the
+board's main loop, ahead of waiting data (g2core.md section 7.1), so they
+have a lane of their own, `control_window` deep: a flood of queries neither
+takes the job's slots nor grows past what the board skips ahead of data
+(at most 16 out-of-order lines). The daemon's own urgent lines (the status
+probe, the handshake's settings) may go past the lane; they are few.
 
 Matching answers to lines needs care, because the board does not answer in
 the order it was written to. It runs a *control* line (one starting with
@@ -47,11 +56,15 @@ class InFlight:
         return length + 2 if self.control else length + 1
 
 
+CONTROL_WINDOW = 4
+
+
 class LineModeSender:
-    def __init__(self, window: int = 4) -> None:
-        if window < 1:
+    def __init__(self, window: int = 4, control_window: int = CONTROL_WINDOW) -> None:
+        if window < 1 or control_window < 1:
             raise ValueError("window must be at least 1")
         self.window = window
+        self.control_window = control_window
         self._data: deque[InFlight] = deque()
         self._control: deque[InFlight] = deque()
 
@@ -60,16 +73,32 @@ class LineModeSender:
 
     @property
     def has_room(self) -> bool:
-        return len(self) < self.window
+        """Room for one more data line."""
+        return len(self._data) < self.window
+
+    @property
+    def control_room(self) -> bool:
+        """Room for one more control line in its lane."""
+        return len(self._control) < self.control_window
+
+    def room(self, line: bytes) -> bool:
+        """Room for this line, by its kind."""
+        return self.control_room if line.startswith(b"{") else self.has_room
+
+    @property
+    def data_in_flight(self) -> int:
+        return len(self._data)
 
     def sent(self, entry: InFlight, *, urgent: bool = False) -> None:
-        """Record a written line. An urgent one (a client query) may go past the window.
+        """Record a written line. An urgent one (the daemon's own) may go past its budget.
 
         The board still answers it with an `{r}`, so it still takes a slot;
-        the count goes above `window` only until that answer arrives.
+        the count goes above the budget only until that answer arrives.
         """
-        if not urgent and not self.has_room:
-            raise SenderError(f"window of {self.window} exceeded")
+        if not urgent and not self.room(entry.line):
+            kind = "control lane" if entry.control else "window"
+            budget = self.control_window if entry.control else self.window
+            raise SenderError(f"{kind} of {budget} exceeded")
         (self._control if entry.control else self._data).append(entry)
 
     def answered(self, response: Response) -> InFlight:

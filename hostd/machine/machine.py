@@ -45,9 +45,9 @@ from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, now
 from hostd.machine.signals import fault_conditions
 from hostd.machine.stream import JobStream, StreamEnd, StreamResult
 from hostd.machine.supervisor import Event as SupEvent
-from hostd.machine.supervisor import Refused, Supervisor, Transition
 from hostd.machine.supervisor import State as SupState
-from hostd.protocol.commands import Realtime
+from hostd.machine.supervisor import Supervisor, Transition
+from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
 
@@ -221,24 +221,38 @@ class Machine:
         lines = [f"G91 G1 {words} F{feed:g}", "G90"]
         return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
 
+    async def read_settings(self, keys: list[str]) -> dict[str, Any]:
+        """Read settings: queries, so served in every state while the link is up; no job row."""
+        lines = [json.dumps({key: None}) for key in keys]
+        answers = await asyncio.gather(*(self.engine.send(line) for line in lines))
+        merged: dict[str, Any] = {}
+        for response in answers:
+            merged.update(response.body)
+        return merged
+
     async def settings(self, lines: list[str]) -> tuple[Job, list[dict[str, Any]]]:
-        """A batch of settings lines run as one operation; the bodies the board answered."""
+        """A batch of settings lines run as one operation; the bodies the board answered.
+
+        The row says `completed` only when every line was answered with
+        status 0; anything else, even the request being abandoned, is `failed`.
+        """
         job = await self._begin("settings", None, len(lines))
         bodies: list[dict[str, Any]] = []
-        error: MachineError | None = None
+        result = StreamResult(StreamEnd.FAILED, 1005, "the settings operation was abandoned")
         try:
             for line in lines:
                 response = await self.engine.send(line)
                 bodies.append(response.body)
                 self._record(lines_sent=len(bodies), lines_acked=len(bodies))
+            result = StreamResult(StreamEnd.COMPLETED)
         except MachineError as exc:
-            error = exc
+            result = StreamResult(StreamEnd.FAILED, exc.code, exc.message)
+            raise
+        except InvalidCommand as exc:
+            result = StreamResult(StreamEnd.FAILED, -32602, exc.message)
+            raise
         finally:
-            end = StreamEnd.COMPLETED if error is None else StreamEnd.FAILED
-            code = None if error is None else error.code
-            await self._end(StreamResult(end, code, None if error is None else error.message))
-        if error is not None:
-            raise error
+            await asyncio.shield(self._end(result))
         return job, bodies
 
     async def _start(
@@ -355,7 +369,11 @@ class Machine:
     async def _restore_absolute_mode(self) -> None:
         """A jog stopped mid-way may have left the board in G91: put G90 back."""
         try:
+            async with asyncio.timeout(5):  # a stop by `!` and `%` passes through a hold
+                await self.engine.wait_for(self.engine.out_of_hold)
             await self.engine.send("G90")
+        except TimeoutError:
+            self._log.warning("could not restore G90 after a jog: the board stayed in a hold")
         except MachineError as exc:
             self._log.warning("could not restore G90 after a jog", error=exc.message)
 
@@ -368,37 +386,42 @@ class Machine:
 
     def feedhold(self) -> None:
         """`!`; during a make job it is the job's pause."""
-        self.engine.realtime(Realtime.FEEDHOLD)
         if self._pausable():
-            self.supervisor.fire(SupEvent.PAUSE_OPERATION)
-            self._set_job_state("paused")
+            self.pause()
+        else:
+            self.engine.realtime(Realtime.FEEDHOLD)
 
     def cycle_start(self) -> None:
         """`~`; while paused it is the job's resume."""
-        self.engine.realtime(Realtime.CYCLE_START)
-        if self.supervisor.state is SupState.PAUSED:
-            self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
-            self._set_job_state("running")
+        if self._resumable():
+            self.resume()
+        else:
+            self.engine.realtime(Realtime.CYCLE_START)
 
     def pause(self) -> Job:
+        """Pause the streaming make job: `!`, and none of its lines written until resumed.
+
+        Only the job that is streaming can be paused: one whose stream has
+        ended is final, even while its row is still being written.
+        """
         if not self._pausable():
-            raise Refused(self.supervisor.state, SupEvent.PAUSE_OPERATION)
-        self.feedhold()
-        assert self.job is not None
-        return self.job
+            raise Busy(f"{self.id} has no running make job to pause")
+        self.engine.pause_stream()
+        self.supervisor.fire(SupEvent.PAUSE_OPERATION)
+        return self._set_job_state("paused")
 
     def resume(self) -> Job:
-        if self.supervisor.state is not SupState.PAUSED:
-            raise Refused(self.supervisor.state, SupEvent.UNPAUSE_OPERATION)
-        self.cycle_start()
-        assert self.job is not None
-        return self.job
+        if not self._resumable():
+            raise Busy(f"{self.id} has no paused job to resume")
+        self.engine.resume_stream()
+        self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
+        return self._set_job_state("running")
 
     async def cancel(self) -> Job:
         """0x04: the board kills the job; the host drops what it had not sent."""
-        if self._stream is None or self._stream.done or self.job is None:
+        stream = self._live_stream()
+        if stream is None or self.job is None:
             raise Busy(f"{self.id} has no running job to cancel")
-        stream = self._stream
         self.engine.realtime(Realtime.JOB_KILL)
         async with asyncio.timeout(5):
             await asyncio.shield(stream.result)
@@ -406,16 +429,27 @@ class Machine:
             await asyncio.wait({runner}, timeout=5)
         return self.job
 
+    def _live_stream(self) -> JobStream | None:
+        """The stream of the running operation, while it streams; None once it ended."""
+        stream = self._stream
+        return stream if stream is not None and not stream.done else None
+
     def _pausable(self) -> bool:
         return (
             self.supervisor.state is SupState.OPERATION
+            and self._live_stream() is not None
             and self.job is not None
             and self.job.kind == "make"
         )
 
-    def _set_job_state(self, state: str) -> None:
-        if self.job is not None:
-            self._record(state=state)
+    def _resumable(self) -> bool:
+        return self.supervisor.state is SupState.PAUSED and self._live_stream() is not None
+
+    def _set_job_state(self, state: str) -> Job:
+        """Only ever called while the job streams: a job's end state is final."""
+        assert self.job is not None and self._live_stream() is not None
+        self._record(state=state)
+        return self.current_job() or self.job
 
     # -- views -------------------------------------------------------------
 

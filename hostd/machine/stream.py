@@ -48,6 +48,7 @@ class JobStream:
         self.last_acked_line: int | None = None
         # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
         self.program_pause_sent = False
+        self.paused = False  # from the job's `!` to its `~`: none of its lines is written
         self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
         # Set when `acked` reaches `wake_at`, and when the stream ends: its runner's cue.
         self.wake = asyncio.Event()

@@ -58,6 +58,12 @@ class PtyPeer:
                 self._arrived.clear()
                 await self._arrived.wait()
 
+    async def wait_length(self, size: int) -> None:
+        async with asyncio.timeout(5):
+            while len(self.received) < size:
+                self._arrived.clear()
+                await self._arrived.wait()
+
     def unplug(self) -> None:
         """What a pulled USB cable looks like: the device and its name vanish."""
         self.stop_reading()

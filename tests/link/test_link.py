@@ -231,3 +231,29 @@ async def test_a_batch_of_lines_goes_out_in_order_as_one_write(peers: Iterator[P
             link.write_lines([b"G1 X4\n", b"G1 X5"])  # one line unterminated: nothing written
     finally:
         await link.close()
+
+
+async def test_a_realtime_byte_overtakes_every_line_the_device_has_not_taken(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """A controller that stops reading: `!` must not wait behind 100 KB of queued lines."""
+    peer = next(peers)  # never reads until told to
+    link = await Link.open(str(peer.path))
+    try:
+        line = b"G1 X" + b"1" * 507 + b"\n"  # 512 bytes
+        for _ in range(200):
+            assert link.write_line(line)
+        assert link.write_backlog() > 17 * 1024  # more than the kernel holds
+        assert link.write_realtime(encode_realtime(Realtime.FEEDHOLD))
+        peer.start_reading()
+        total = len(line) * 200 + 2
+        await peer.wait_length(total)
+        got = bytes(peer.received)
+        assert len(got) == total
+        bang = got.index(b"!\n")
+        # Ahead of all but what the kernel and the transport already held (whole lines).
+        assert bang % len(line) == 0
+        assert bang < 64 * len(line)  # the kernel holds some 17 to 21 KB; 200 lines is 100 KB
+        assert got.replace(b"!\n", b"", 1) == line * 200  # the lines themselves, intact
+    finally:
+        await link.close()

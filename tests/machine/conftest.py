@@ -1,4 +1,4 @@
-"""An engine connected to the simulated board over a real pseudo-terminal pair."""
+"""An engine, or a whole machine with its job store, on the simulated board over a real pty."""
 
 from __future__ import annotations
 
@@ -12,8 +12,19 @@ import pytest_asyncio
 
 from hostd.config import MachineConfig
 from hostd.machine.engine import Engine
-from hostd.machine.events import Console, Event, ExceptionRaised, Hub, StatusChanged
+from hostd.machine.events import (
+    Console,
+    Event,
+    ExceptionRaised,
+    Hub,
+    JobChanged,
+    StatusChanged,
+    SupervisorChanged,
+)
+from hostd.machine.jobstore import Job, JobStore
+from hostd.machine.machine import Machine
 from hostd.machine.stream import JobStream
+from hostd.machine.supervisor import State as Sup
 from hostd.protocol.program import program_lines
 from hostd.sim import SimConfig, SimController
 
@@ -136,3 +147,73 @@ async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
         async with running(engine):
             await engine.connect()
             yield Rig(sim, engine, recorder)
+
+
+@dataclass
+class Bench:
+    sim: SimController
+    machine: Machine
+    store: JobStore
+    recorder: Recorder
+    jobs: Path
+
+    def write(self, name: str, text: str) -> None:
+        (self.jobs / name).write_text(text)
+
+    async def job_ended(self, job_id: int) -> Job:
+        def ended(e: Event) -> bool:
+            if not isinstance(e, JobChanged) or e.job["id"] != job_id:
+                return False
+            return e.job["state"] not in ("running", "paused")
+
+        await self.recorder.wait_for(ended)
+        row = await self.store.get(job_id)
+        assert row is not None
+        return row
+
+    async def supervisor(self, state: Sup) -> None:
+        """Until the supervisor is in `state` (re-checked on each transition published)."""
+        if self.machine.supervisor.state is not state:
+            await self.recorder.wait_for(
+                lambda e: (
+                    isinstance(e, SupervisorChanged)
+                    and e.target == state.value
+                    and self.machine.supervisor.state is state
+                )
+            )
+
+    def transitions(self) -> list[tuple[str, str, str]]:
+        return [
+            (e.source, e.event, e.target)
+            for e in self.recorder.events
+            if isinstance(e, SupervisorChanged)
+        ]
+
+
+@contextlib.asynccontextmanager
+async def bench_for(tmp_path: Path, name: str = "m1", **overrides: object) -> AsyncIterator[Bench]:
+    path = str(tmp_path / f"tty-{name}")
+    jobs = tmp_path / "jobs"
+    jobs.mkdir(exist_ok=True)
+    store = JobStore(tmp_path / f"{name}.db")
+    async with SimController(path, config=FAST) as sim:
+        machine = Machine(machine_config(path, id=name, **overrides), store, jobs)
+        recorder = Recorder()
+        machine.hub.subscribe(recorder)
+        task = asyncio.create_task(machine.serve())
+        try:
+            await machine.connect()
+            bench = Bench(sim, machine, store, recorder, jobs)
+            await bench.supervisor(Sup.IDLE)
+            yield bench
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            store.close()
+
+
+@pytest_asyncio.fixture
+async def bench(tmp_path: Path) -> AsyncIterator[Bench]:
+    async with bench_for(tmp_path) as b:
+        yield b

@@ -39,9 +39,17 @@ def test_answers_come_back_in_order_with_their_file_lines() -> None:
     assert len(sender) == 0
 
 
-def test_json_lines_count_against_the_window_too() -> None:
-    sender = LineModeSender(window=1)
+def test_json_lines_have_a_bounded_lane_of_their_own() -> None:
+    # The board reads `{`-lines on every pass, ahead of waiting G-code: a flood of
+    # queries must not take the job's slots, and stays within its own lane.
+    sender = LineModeSender(window=1, control_window=2)
     sender.sent(control('{"xvm":null}'))
+    sender.sent(control('{"yvm":null}'))
+    assert sender.has_room and not sender.control_room
+    assert sender.room(b"G1 X1\n") and not sender.room(b'{"zvm":null}\n')
+    with pytest.raises(SenderError, match="control lane of 2"):
+        sender.sent(control('{"zvm":null}'))
+    sender.sent(data("G1 X1"))
     assert not sender.has_room
 
 

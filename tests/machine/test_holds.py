@@ -1,0 +1,266 @@
+"""Holds, client lines admitted at the moment they are written, and a job's final end.
+
+Every assertion is on what the simulated board read over the pty
+(`sim.received`), on the job rows in SQLite, or on what a caller was told.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+import pytest
+
+from hostd.machine.errors import Busy, MachineError
+from hostd.machine.events import Event, SupervisorChanged
+from hostd.machine.supervisor import State as Sup
+from hostd.protocol.commands import Realtime
+from hostd.protocol.states import MachineState as S
+from hostd.sim import SimController
+from tests.machine.conftest import Bench, Rig
+
+pytestmark = pytest.mark.asyncio
+
+LONG = "".join(f"G1 X{(i % 2) * 40} F600\n" for i in range(300))
+SHORT = "G21 G90\nG1 X2 F3000\nG1 X0\n"
+
+
+async def held(bench: Bench) -> None:
+    """Until the daemon has read that the board holds (not only until the board does)."""
+    engine = bench.machine.engine
+    await engine.wait_for(lambda: engine.model.state is S.HOLD)
+
+
+def lines_between(sim: SimController, first: bytes, last: bytes | None) -> list[bytes]:
+    """The lines the board read after the first `first` byte and before the next `last`."""
+    out: list[bytes] = []
+    inside = False
+    for r in sim.received:
+        if r.data == first and not inside:
+            inside = True
+        elif inside and last is not None and r.data == last:
+            break
+        elif inside and r.kind == "line":
+            out.append(r.data)
+    return out
+
+
+async def test_a_paused_job_writes_none_of_its_lines_until_resumed(bench: Bench) -> None:
+    bench.write("long.gcode", LONG)
+    job = await bench.machine.start_make("long.gcode")
+    await bench.sim.wait_state(S.RUN)
+    bench.machine.pause()
+    await held(bench)
+    # A round trip through the board: everything written before it has been read.
+    await bench.machine.engine.send("{xvm:n}")
+    await bench.machine.engine.send("{yvm:n}")
+    read_in_hold = lines_between(bench.sim, b"!", None)
+    assert read_in_hold == [b'{"xvm":null}', b'{"yvm":null}']  # queries only, no job line
+    assert bench.machine.current_job() is not None
+    assert bench.machine.current_job().state == "paused"  # type: ignore[union-attr]
+    bench.machine.resume()
+    await bench.sim.wait_for(lambda: len(lines_between(bench.sim, b"~", None)) > 4)
+    bench.machine.jog_stop()
+    assert (await bench.job_ended(job.id)).state == "cancelled"
+
+
+async def test_a_line_sent_in_a_pause_runs_inside_the_hold_at_once(bench: Bench) -> None:
+    bench.write("long.gcode", LONG)
+    await bench.machine.start_make("long.gcode")
+    await bench.sim.wait_state(S.RUN)
+    bench.machine.pause()
+    await held(bench)
+    # The board keeps the job's lines in flight for after the hold, unanswered:
+    # the in-hold line must not wait behind them.
+    bench.sim.set_ack_delay(30)
+    response = await bench.machine.engine.send("G91 G0 Z1", timeout=2)
+    assert response.ok
+    assert b'{"gc2":"G91 G0 Z1"}' in lines_between(bench.sim, b"!", None)
+    assert not any(r.data == b"~" for r in bench.sim.received)
+
+
+async def test_a_text_setting_in_a_hold_is_refused_not_left_for_after_it(bench: Bench) -> None:
+    bench.write("long.gcode", LONG)
+    await bench.machine.start_make("long.gcode")
+    await bench.sim.wait_state(S.RUN)
+    bench.machine.pause()
+    await held(bench)
+    before = len(bench.sim.received)
+    with pytest.raises(Busy, match="send settings as JSON"):
+        await bench.machine.engine.send("$xvm=1000")
+    await bench.machine.engine.send("{xvm:n}")
+    assert [r.data for r in bench.sim.received[before:]] == [b'{"xvm":null}']
+
+
+async def test_an_action_while_the_job_is_still_entering_its_hold_is_refused(
+    bench: Bench,
+) -> None:
+    bench.write("long.gcode", LONG)
+    await bench.machine.start_make("long.gcode")
+    await bench.sim.wait_state(S.RUN)
+    bench.machine.pause()  # the board is still decelerating: not yet in HOLD
+    with pytest.raises(Busy, match="still entering its hold"):
+        await bench.machine.engine.send("G0 Z1")
+
+
+async def test_a_waiting_line_fails_when_a_job_starts_instead_of_running_inside_it(
+    rig: Rig,
+) -> None:
+    rig.sim.set_ack_delay(30)  # the board reads on but answers nothing for now
+    engine = rig.engine
+    before = len(rig.received_lines())
+    first = [asyncio.create_task(engine.send(f"G0 X{i}", timeout=60)) for i in range(4)]
+    late = asyncio.create_task(engine.send("G0 Y9", timeout=60))
+    await rig.sim.wait_received(lambda: len(rig.received_lines()) >= before + 4)
+    assert not late.done()  # the window is full: it waits on the host
+    rig.job(["G1 X1 F600"])
+    with pytest.raises(Busy, match="a job started before the line was written"):
+        await late
+    assert b"G0 Y9" not in rig.received_lines()
+    for task in first:
+        task.cancel()
+    await asyncio.gather(*first, return_exceptions=True)
+
+
+async def test_a_waiting_line_fails_when_a_hold_begins(rig: Rig) -> None:
+    rig.sim.set_ack_delay(30)
+    engine = rig.engine
+    moves = [asyncio.create_task(engine.send(f"G1 X{10 * i} F300", timeout=60)) for i in (1, 2)]
+    moves += [asyncio.create_task(engine.send(f"G1 Y{i} F300", timeout=60)) for i in (1, 2)]
+    late = asyncio.create_task(engine.send("G0 Z9", timeout=60))
+    await rig.sim.wait_state(S.RUN)
+    assert not late.done()
+    engine.realtime(Realtime.FEEDHOLD)
+    # Written after the hold it would be kept by the board and run after `~`.
+    with pytest.raises(Busy, match="a hold began before the line was written"):
+        await late
+    assert b"G0 Z9" not in rig.received_lines()
+    for task in moves:
+        task.cancel()
+    await asyncio.gather(*moves, return_exceptions=True)
+
+
+async def test_queries_have_a_bounded_lane_and_realtime_goes_ahead_of_them(rig: Rig) -> None:
+    engine = rig.engine
+    rig.job([f"G1 X{i % 2 * 20} F3000" for i in range(200)])
+    await rig.sim.wait_state(S.RUN)
+    start = len(rig.sim.received)
+    flood = [asyncio.create_task(engine.send("{sr:n}")) for _ in range(200)]
+    await asyncio.sleep(0)  # every request has arrived and queued
+    engine.realtime(Realtime.FEEDHOLD)
+    await rig.sim.wait_received(b"!")
+    before_bang = [r.data for r in rig.sim.received[start:]]
+    before_bang = before_bang[: before_bang.index(b"!")]
+    # At most the lane's four queries reached the board ahead of the `!`.
+    assert before_bang.count(b'{"sr":null}') <= 4
+    answers = await asyncio.gather(*flood)
+    assert all(a.ok for a in answers)
+    assert rig.recorder.max_in_flight() <= 4 + 4 + 1  # window, lane, and one own probe
+
+
+async def test_a_query_flood_does_not_starve_a_running_job(bench: Bench) -> None:
+    bench.write("part.gcode", "".join(f"G1 X{i % 2 * 5} F6000\n" for i in range(150)))
+    job = await bench.machine.start_make("part.gcode")
+
+    async def flood() -> None:
+        while True:
+            await asyncio.gather(*(bench.machine.engine.send("{sr:n}") for _ in range(20)))
+
+    flooding = asyncio.create_task(flood())
+    try:
+        row = await bench.job_ended(job.id)
+    finally:
+        flooding.cancel()
+        with contextlib.suppress(asyncio.CancelledError, MachineError):
+            await flooding
+    assert (row.state, row.lines_acked) == ("completed", 150)
+    assert not [f for f in bench.machine.faults.active() if f.id == "underflow"]
+
+
+# -- a job's end is final ----------------------------------------------------
+
+
+async def test_pause_resume_and_cancel_after_the_end_are_refused(bench: Bench) -> None:
+    bench.write("short.gcode", SHORT)
+    job = await bench.machine.start_make("short.gcode")
+    assert (await bench.job_ended(job.id)).state == "completed"
+    for act in (bench.machine.pause, bench.machine.resume):
+        with pytest.raises(Busy):
+            act()
+    with pytest.raises(Busy):
+        await bench.machine.cancel()
+    row = await bench.store.get(job.id)
+    assert row is not None and row.state == "completed"
+
+
+async def test_a_pause_as_the_stream_ends_leaves_the_job_completed(bench: Bench) -> None:
+    bench.write("short.gcode", SHORT)
+    job = await bench.machine.start_make("short.gcode")
+    stream = bench.machine._stream
+    assert stream is not None
+    outcomes: list[str] = []
+
+    def pause_now(_: object) -> None:  # the instant the stream ends, before its row is written
+        try:
+            bench.machine.pause()
+            outcomes.append("paused")
+        except Busy as exc:
+            outcomes.append(f"refused {exc.code}")
+
+    stream.result.add_done_callback(pause_now)
+    row = await bench.job_ended(job.id)
+    assert outcomes == ["refused 1003"]
+    assert (row.state, row.ended_at is not None) == ("completed", True)
+    await bench.supervisor(Sup.IDLE)
+    assert bench.machine.current_job().state == "completed"  # type: ignore[union-attr]
+
+
+async def test_a_pause_while_the_next_job_starts_leaves_the_last_one_completed(
+    bench: Bench,
+) -> None:
+    bench.write("short.gcode", SHORT)
+    first = await bench.machine.start_make("short.gcode")
+    assert (await bench.job_ended(first.id)).state == "completed"
+    await bench.supervisor(Sup.IDLE)
+    outcomes: list[str] = []
+
+    def pause_at_start(event: Event) -> None:
+        # The supervisor has gone to `operation`; the new row is being written.
+        if isinstance(event, SupervisorChanged) and event.target == "operation":
+            try:
+                bench.machine.pause()
+                outcomes.append("paused")
+            except Busy:
+                outcomes.append("refused")
+
+    bench.machine.hub.subscribe(pause_at_start)
+    second = await bench.machine.start_make("short.gcode")
+    assert outcomes == ["refused"]
+    row = await bench.store.get(first.id)
+    assert row is not None and row.state == "completed"
+    assert (await bench.job_ended(second.id)).state == "completed"
+
+
+# -- settings --------------------------------------------------------------
+
+
+async def test_settings_are_read_in_an_alarm_without_a_job_row(bench: Bench) -> None:
+    bench.sim.limit_switch("x")
+    await bench.sim.wait_state(S.ALARM)
+    await bench.machine.engine.wait_for(lambda: bench.machine.engine.model.state is S.ALARM)
+    jobs_before = await bench.store.list_jobs("m1", 50)
+    assert await bench.machine.read_settings(["xvm", "yvm"]) == {"xvm": 6000, "yvm": 6000}
+    assert await bench.store.list_jobs("m1", 50) == jobs_before
+
+
+async def test_an_abandoned_settings_operation_is_recorded_failed(bench: Bench) -> None:
+    bench.sim.set_ack_delay(30)
+    task = asyncio.create_task(bench.machine.settings(['{"xvm":12000}']))
+    await bench.sim.wait_received(b'{"xvm":12000}')
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    job = bench.machine.job
+    assert job is not None and job.kind == "settings"
+    row = await bench.store.get(job.id)
+    assert row is not None and row.state == "failed"
