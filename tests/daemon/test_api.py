@@ -118,6 +118,37 @@ async def test_alarm_rejects_actions_until_clear(rpc: Rpc) -> None:
     assert snap["last_exception"]["st"] == 18
 
 
+async def test_settings_are_read_in_every_lockout_without_a_job_row(rpc: Rpc) -> None:
+    await rpc.call("subscribe", topics=["status"], machine="sim1")
+    before = await rpc.call("job.list", machine="sim1")
+    for raise_it, name in (("machine.alarm", "ALARM"), ("machine.shutdown", "SHUTDOWN")):
+        await rpc.call(raise_it, machine="sim1")
+        await rpc.notification(
+            lambda n, name=name: (
+                n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == name
+            )
+        )
+        assert await rpc.call("settings.get", machine="sim1", keys=["xvm", "yvm"]) == {
+            "xvm": 6000,
+            "yvm": 6000,
+        }
+        await fails(
+            205 if name == "SHUTDOWN" else 204,
+            rpc.call("settings.set", machine="sim1", values={"xvm": 1}),
+        )
+    assert await rpc.call("job.list", machine="sim1") == before
+
+
+async def test_pause_resume_cancel_of_an_ended_job_are_refused(rpc: Rpc) -> None:
+    await rpc.call("file.upload", name="short.gcode", data="G1 X1 F3000\nG1 X0\n")
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    started = await rpc.call("job.start", machine="sim1", file="short.gcode")
+    assert (await job_end(rpc, started["job"]))["state"] == "completed"
+    for method in ("job.pause", "job.resume", "job.cancel"):
+        await fails(1003, rpc.call(method, machine="sim1"))
+    assert (await rpc.call("job.get", job=started["job"]))["state"] == "completed"
+
+
 async def test_shutdown_and_reset(rpc: Rpc, hostd: Running) -> None:
     await rpc.call("machine.shutdown", machine="sim1")
     await fails(205, rpc.call("machine.send", machine="sim1", line="M30"))
