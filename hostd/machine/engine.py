@@ -519,19 +519,22 @@ class Engine:
         context of this moment.
         """
         link = self.link
-        if link is None or self.link_state is not LinkState.READY or self._flush is not None:
-            return
-        if self._halted:
+        if link is None or self.link_state is not LinkState.READY or self._halted:
             return
         state = self.model.state
         context = self._context()
+        flushing = self._flush is not None
         lane = self._lane
         while lane and self.sender.control_room:
+            if flushing and lane[0].context is not Context.ANY:
+                break  # queries run during a flush; an in-hold line waits to see how it ends
             queued = lane.popleft()
             if self._admissible(queued, state, context) and not self._write(
                 queued.encoded, queued.future, Channel.CONTROL
             ):
                 self._fail(queued.future, self._write_refused())
+        if flushing:
+            return  # no data line until the board shows what it discarded
         batch: list[bytes] = []
         while True:
             if self._outbox:

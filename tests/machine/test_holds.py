@@ -264,3 +264,12 @@ async def test_an_abandoned_settings_operation_is_recorded_failed(bench: Bench) 
     assert job is not None and job.kind == "settings"
     row = await bench.store.get(job.id)
     assert row is not None and row.state == "failed"
+
+
+async def test_a_query_is_answered_while_a_flush_is_unconfirmed(rig: Rig) -> None:
+    # `%` outside a hold: the board ignores it, and the engine waits up to 2 s to
+    # see whether it flushed. Queries are `{`-lines the board runs at once anyway.
+    rig.engine.realtime(Realtime.QUEUE_FLUSH)
+    response = await rig.engine.send("{xvm:n}")
+    assert response.body == {"xvm": 6000}
+    assert rig.engine._flush is not None  # answered before the flush was settled
