@@ -20,6 +20,7 @@ from hostd.protocol.commands import Realtime
 from hostd.protocol.relaxed import is_get, parse_relaxed
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
+from hostd.protocol.textmode import parse_text_command
 
 
 class CommandClass(Enum):
@@ -64,7 +65,6 @@ _REALTIME_CLASS = {
     Realtime.ENQUIRY: CommandClass.QUERY,
 }
 _CLEAR_KEYS = frozenset({"clear", "clr"})
-_TEXT_CLEARS = frozenset({"$clear", "$clr"})
 # Exactly M2 or M30, as g2core matches it: an N word or anything else defeats it.
 _PROGRAM_END = re.compile(r"[mM](?:2|30)")
 
@@ -84,7 +84,11 @@ def classify_realtime(command: Realtime) -> CommandClass:
 def classify(line: str) -> CommandClass:
     """The class of one (already validated) line, as the board will read it.
 
-    Anything not recognised as harmless is an ACTION: unknown is unsafe.
+    Lines are classified only after `validate_line`, which refuses whatever
+    the host cannot read exactly as the board does (commands.py): a duplicate
+    name, JSON the board would misread, an ambiguous text command. Should an
+    unvalidated line come here anyway, anything not recognised as harmless is
+    an ACTION: unknown is unsafe.
     """
     text = line.strip()
     if text.startswith("{"):
@@ -92,10 +96,10 @@ def classify(line: str) -> CommandClass:
     if text == "?":
         return CommandClass.QUERY
     if text.startswith("$"):
-        lowered = text.lower()
-        if lowered in _TEXT_CLEARS:
-            return CommandClass.CLEAR
-        return CommandClass.ACTION if "=" in text else CommandClass.QUERY
+        command = parse_text_command(text)
+        if command is None or not command.is_get:
+            return CommandClass.ACTION  # `$xvm=1` and `$xvm 1` alike: a SET
+        return CommandClass.CLEAR if command.name in _CLEAR_KEYS else CommandClass.QUERY
     if _PROGRAM_END.fullmatch(text):
         return CommandClass.PROGRAM_END
     return CommandClass.ACTION

@@ -7,6 +7,16 @@ bytes (cut, the rest read as a new line), CR/LF inside a line (two lines,
 two answers), uber-group queries and help screens (several answers), `%`
 tape marks and empty lines (no answer), a leading realtime character (taken
 as a control), and the bootloader commands (they can erase the firmware).
+
+The rule above all: the host sends only what it reads exactly as the board
+will, since that reading is what classifies the line (classes.py). A JSON
+line is read by `relaxed.read_relaxed` (names twice, nesting the board
+misreads, escapes, out-of-range numbers: refused), a text command by
+`textmode.read_text_command`, a G-code line checked by `gcode.check_gcode`
+(words the board would misread, active comments). A line none of them can
+read is refused, never sent as a guess. A client's line may also not SET a
+value the daemon owns (`settings.DAEMON_OWNED`: `{jv:0}` would silence the
+board); the daemon's own lines (`encode_set`) may.
 """
 
 from __future__ import annotations
@@ -14,10 +24,15 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Mapping
-from enum import Enum, StrEnum
+from enum import Enum
 from typing import Any
 
-from hostd.protocol.relaxed import is_get, parse_relaxed
+from hostd.protocol.gcode import check_gcode
+from hostd.protocol.refusals import InvalidCommand as InvalidCommand
+from hostd.protocol.refusals import Refusal as Refusal
+from hostd.protocol.relaxed import board_pairs, is_get, read_relaxed
+from hostd.protocol.settings import DAEMON_OWNED, RESERVED
+from hostd.protocol.textmode import read_text_command
 
 MAX_LINE_BYTES = 511
 
@@ -33,42 +48,34 @@ class Realtime(bytes, Enum):
     ENQUIRY = b"\x05"
 
 
-class Refusal(StrEnum):
-    """Why a line may never be sent."""
-
-    EMPTY = "empty"
-    NUL = "nul"
-    TOO_LONG = "too-long"
-    LINE_BREAK = "line-break"
-    CONTROL_CHAR = "control-char"
-    NOT_TEXT = "not-text"
-    REALTIME = "realtime"
-    TAPE_MARK = "tape-mark"
-    UBER_GROUP = "uber-group"
-    HELP = "help"
-    BOOTLOADER = "bootloader"
-
-
-class InvalidCommand(ValueError):
-    """The host was asked to send something the controller must never receive."""
-
-    def __init__(self, refusal: Refusal, message: str) -> None:
-        super().__init__(message)
-        self.refusal = refusal
-        self.message = message
-
-
 _REALTIME_LEADS = frozenset(r.value.decode() for r in Realtime) - {"%"}
 _UBER_GROUPS = frozenset({"m", "q", "o"})
 _TEXT_UBER = frozenset({"$$", "$m", "$q", "$o"})
-_HELP = frozenset({"h", "$h"})
+_HELP_KEYS = frozenset({"h", "help", "defa"})  # a GET of these prints help screens
 _BOOTLOADER_KEYS = frozenset({"flash", "boot"})
-_TEXT_KEY = re.compile(r"^\$([a-z0-9_]+)")
+_GCODE_KEYS = frozenset({"gc", "gc2"})
 _BAD_CHAR = re.compile(r"[\x00-\x08\x0a-\x1f\x7f]")
 
 
 def validate_line(line: str) -> str:
-    """Return the line unchanged if it may be sent; raise InvalidCommand if not."""
+    """Return a client's (or a job's) line unchanged if it may be sent; else InvalidCommand."""
+    _validate(line, client=True)
+    return line
+
+
+def _validate(line: str, *, client: bool) -> None:
+    stripped = _check_frame(line)
+    lead = stripped[0]
+    if lead == "{":
+        _validate_json(stripped, client=client)
+    elif lead in "$?Hh":
+        _validate_text_command(stripped, client=client)
+    else:
+        check_gcode(stripped)
+
+
+def _check_frame(line: str) -> str:
+    """The rules on bytes and the first character; the stripped line."""
     stripped = line.strip()
     if _BAD_CHAR.search(line):
         if "\x00" in line:
@@ -98,31 +105,47 @@ def validate_line(line: str) -> str:
         )
     if lead == "%":
         raise InvalidCommand(Refusal.TAPE_MARK, "a '%' line gets no answer from the controller")
-    if lead == "{":
-        obj = parse_relaxed(stripped)
-        if obj is not None:
-            _validate_json(obj, stripped)
-    elif lead in "$Hh":
-        _validate_text_command(stripped.lower())
-    return line
+    return stripped
 
 
-def _validate_text_command(lowered: str) -> None:
-    if lowered in _TEXT_UBER:
-        raise InvalidCommand(Refusal.UBER_GROUP, f"{lowered!r} answers with several lines")
-    if lowered in _HELP:
+def _validate_text_command(stripped: str, *, client: bool) -> None:
+    if stripped.lower() in _TEXT_UBER:
+        raise InvalidCommand(Refusal.UBER_GROUP, f"{stripped!r} answers with several lines")
+    if stripped[0] == "H":
+        raise InvalidCommand(Refusal.HELP, "a line starting with 'H' prints the help screens")
+    if stripped[0] == "?":
+        if stripped != "?":
+            raise InvalidCommand(Refusal.UNREADABLE, "'?' is a status request only on its own")
+        return
+    command = read_text_command(stripped)
+    _check_names((command.name,), command.value, client=client)
+
+
+def _validate_json(text: str, *, client: bool) -> None:
+    for names, value in board_pairs(read_relaxed(text)):
+        _check_names(names, value, client=client)
+        if _GCODE_KEYS & set(names) and not is_get(value):
+            if not isinstance(value, str):
+                raise InvalidCommand(Refusal.UNREADABLE, f"{names[0]!r} takes a G-code string")
+            check_gcode(value)
+
+
+def _check_names(names: tuple[str, ...], value: object, *, client: bool) -> None:
+    """One pair (JSON) or one text command, by every name the board may look it up by."""
+    named = set(names)
+    get = is_get(value)
+    if named & _BOOTLOADER_KEYS:
+        raise InvalidCommand(Refusal.BOOTLOADER, "bootloader commands are never sent")
+    if get and named & _UBER_GROUPS:
+        raise InvalidCommand(Refusal.UBER_GROUP, f"{names[0]!r} answers with several lines")
+    if get and named & _HELP_KEYS:
         raise InvalidCommand(Refusal.HELP, "help screens answer with several lines")
-    text_key = _TEXT_KEY.match(lowered)
-    if text_key and text_key.group(1) in _BOOTLOADER_KEYS:
-        raise InvalidCommand(Refusal.BOOTLOADER, "bootloader commands are never sent")
-
-
-def _validate_json(obj: Mapping[str, Any], line: str) -> None:
-    keys = obj.keys()
-    if keys & _BOOTLOADER_KEYS:
-        raise InvalidCommand(Refusal.BOOTLOADER, "bootloader commands are never sent")
-    if any(k in _UBER_GROUPS and is_get(obj[k]) for k in keys):
-        raise InvalidCommand(Refusal.UBER_GROUP, f"{line!r} answers with several lines")
+    owned = named & DAEMON_OWNED
+    if client and not get and owned:
+        name = min(owned)
+        raise InvalidCommand(
+            Refusal.RESERVED_KEY, f"{name!r} is the daemon's to set: {RESERVED[name].reason}"
+        )
 
 
 def encode_line(line: str) -> bytes:
@@ -131,7 +154,10 @@ def encode_line(line: str) -> bytes:
 
 
 def _json_line(obj: Mapping[str, Any]) -> bytes:
-    return encode_line(json.dumps(obj, separators=(",", ":"), allow_nan=False))
+    """One of the daemon's own JSON lines: every rule but DAEMON_OWNED applies."""
+    text = json.dumps(obj, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
+    _validate(text, client=False)
+    return text.encode("utf-8") + b"\n"
 
 
 def encode_get(*keys: str) -> bytes:
@@ -152,9 +178,21 @@ def encode_clear() -> bytes:
 
 
 def encode_in_hold(line: str) -> bytes:
-    """`{"gc2":"<line>"}`: a command run inside a feedhold, in the secondary planner."""
+    """`{"gc2":"<line>"}`: a command run inside a feedhold, in the secondary planner.
+
+    The board's strings have no escapes: a line with a quote or a backslash
+    cannot be wrapped (it would end the string early), and a TAB is sent as
+    the space the board reads it as.
+    """
     validate_line(line)
-    return _json_line({"gc2": line.strip()})
+    text = line.strip().replace("\t", " ")
+    if '"' in text or "\\" in text:
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            "a line sent during a hold is wrapped in a JSON string, which cannot hold "
+            "a quote or a backslash on this board",
+        )
+    return _json_line({"gc2": text})
 
 
 def encode_realtime(command: Realtime) -> bytes:

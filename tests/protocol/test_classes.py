@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from hostd.protocol.classes import (
     ADMISSION,
@@ -12,8 +14,10 @@ from hostd.protocol.classes import (
     classify,
     classify_realtime,
 )
-from hostd.protocol.commands import Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime, Refusal, validate_line
+from hostd.protocol.relaxed import board_pairs, is_get, read_relaxed
 from hostd.protocol.states import MachineState as S
+from tests.fuzz.strategies import fuzz
 
 Q, C, E, R, H, A = (
     CommandClass.QUERY,
@@ -120,3 +124,33 @@ def test_what_clears_what() -> None:
 def test_lockout_states() -> None:
     assert {s for s in S if s.is_lockout} == {S.ALARM, S.SHUTDOWN, S.PANIC}
     assert {s for s in S if s.is_resting} == {S.READY, S.PROGRAM_STOP, S.PROGRAM_END}
+
+
+# -- a line is classified only if it is read with certainty ----------------------
+
+json_keys = st.sampled_from(["gc", "GC", "clear", "clr", "xvm", "x", "vm", "sys", "alarm"])
+json_values = st.sampled_from(["n", "null", '""', "1", '"G0 X100"', "t", "{vm:n}", "{clear:n}"])
+json_lines = st.lists(
+    st.tuples(json_keys, json_values).map(lambda kv: f"{kv[0]}:{kv[1]}"), min_size=1, max_size=4
+).map(lambda pairs: "{" + ",".join(pairs) + "}")
+
+
+@fuzz(800)
+@given(json_lines)
+def test_a_json_line_that_passes_is_classified_by_every_pair_it_runs(line: str) -> None:
+    try:
+        validate_line(line)
+    except InvalidCommand:
+        return
+    pairs = board_pairs(read_relaxed(line))
+    names = [name for names, _ in pairs for name in names]
+    assert len(names) == len(set(names)), "a name the board runs twice passed"
+    if classify(line) in (Q, C):
+        assert all(is_get(value) for _, value in pairs), "a SET passed as a query or a clear"
+
+
+def test_the_issues_line_is_refused_not_classified_as_a_clear() -> None:
+    line = '{"gc":"G0 X100","clear":n,"gc":n}'
+    with pytest.raises(InvalidCommand) as err:
+        validate_line(line)
+    assert err.value.refusal is Refusal.DUPLICATE_KEY

@@ -41,7 +41,17 @@ def test_clear_is_sent_in_get_form() -> None:
 
 def test_in_hold_commands_are_wrapped_in_gc2() -> None:
     assert encode_in_hold("G91 G0 Z5") == b'{"gc2":"G91 G0 Z5"}\n'
-    assert encode_in_hold(' M3 S1000 (say "hi") ') == b'{"gc2":"M3 S1000 (say \\"hi\\")"}\n'
+    assert encode_in_hold(" M3 S1000 (say hi)\t") == b'{"gc2":"M3 S1000 (say hi)"}\n'
+    assert encode_in_hold("G0\tX1") == b'{"gc2":"G0 X1"}\n'  # the board reads a TAB as a space
+
+
+@pytest.mark.parametrize("line", ['M3 S1000 (say "hi")', "G0 X1 (a\\b)"])
+def test_a_line_the_boards_string_cannot_hold_is_not_wrapped(line: str) -> None:
+    # The board's strings have no escapes: `\"` would end the string early.
+    validate_line(line)
+    with pytest.raises(InvalidCommand) as err:
+        encode_in_hold(line)
+    assert err.value.refusal is Refusal.UNREADABLE
 
 
 @pytest.mark.parametrize("command", list(Realtime))
@@ -89,7 +99,7 @@ def test_lines_that_must_never_reach_the_board_are_refused(line: str, refusal: R
 
 
 def test_longest_line_the_board_takes_is_accepted() -> None:
-    line = "G1 X" + "1" * (MAX_LINE_BYTES - 4)
+    line = "G1 X1 (" + "c" * (MAX_LINE_BYTES - 8) + ")"
     assert len(line) == MAX_LINE_BYTES
     assert encode_line(line).endswith(b"\n")
 
@@ -101,7 +111,7 @@ def test_multibyte_characters_count_as_bytes() -> None:
 
 def test_wrapping_cannot_smuggle_an_overlong_line() -> None:
     with pytest.raises(InvalidCommand) as err:
-        encode_in_hold("G1 X" + '"' * 300)  # escaping doubles it past the limit
+        encode_in_hold("G1 X1 (" + "c" * 496 + ")")  # the wrapping takes it past the limit
     assert err.value.refusal is Refusal.TOO_LONG
 
 

@@ -1,0 +1,114 @@
+"""G-code words the board would misread, and the host's own G-code (the jog line).
+
+How the board reads a G-code line (g2core `gcode_parser.cpp`, `util.h`):
+`(...)` comments are dropped, and `;` or `%` end the line; a checksum
+starts at `*`; every space and every character but letters, digits, `.`
+and `-` is dropped; each word is a letter and a number read by `c_atof`,
+whose integer part is a 32-bit `int` and which has no exponent. Hence the
+rules, each a refusal of the whole line (BAD_NUMBER unless said otherwise):
+
+- A number's integer part has at most nine digits, leading zeros not
+  counted (below 1,000,000,000; the board wraps past 2,147,483,647, so
+  `X3000000000` would move the other way). That holds for N words too (the
+  board's own limit for N is 2,000,000,000).
+- No exponent: a digit or `.` directly followed by `e`/`E` and a digit, sign
+  or `.` (`X1e3`, `X2.5E-1`) is refused. The board reads `X1e300` as X1
+  and a word E300, an extruder move on Marlin-compatible builds. An E word
+  is written with a space before it: `G1 X1 E5`.
+- No numbers run together: digits, a space, then more digits (`X1 000`) are
+  refused; the board drops the space and reads X1000.
+- No active comments (ACTIVE_COMMENT): a comment that starts `({` or
+  `(msg` (any case) is JSON the board runs as a command of its own, outside
+  every rule the host applies to JSON lines, and a line holding only one
+  gets two answers.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+
+from hostd.protocol.numbers import format_distance, format_feed
+from hostd.protocol.refusals import InvalidCommand, Refusal
+
+JOG_AXES = frozenset("xyzabc")
+INTEGER_DIGITS = 9
+
+# The common case, checked in one match: words of a letter other than E and a
+# number of at most nine integer digits, no comments. Anything else is read in full.
+_PLAIN = re.compile(r"(?:[A-DF-Za-df-z][ \t]*(?:[-+]?[0-9]{0,9}(?:\.[0-9]*)?)?[ \t]*)+")
+_ACTIVE_COMMENT = re.compile(r"\((?:\{|msg)", re.IGNORECASE)
+# The board: `(` to `)` is a comment; `;` or `%` ends the line; `*` starts a checksum.
+_COMMENT = re.compile(r"\([^)]*\)?")
+_LINE_END = re.compile(r"[;%*]")
+_EXPONENT = re.compile(r"[0-9.][eE][-+.0-9]")
+_RUN_TOGETHER = re.compile(r"[0-9.][ \t]+[0-9.]")
+_DROPPED = re.compile(r"[^A-Za-z0-9.\-]")
+# An integer part: digits not preceded by a digit or a point (those are decimals).
+_INTEGER_PART = re.compile(r"(?<![0-9.])[0-9]+")
+
+
+def check_gcode(text: str) -> None:
+    """Refuse a G-code line the board would misread (the rules above)."""
+    if _PLAIN.fullmatch(text):
+        return  # every job line takes this path: it must stay cheap
+    _check_words(text)
+
+
+def _check_words(text: str) -> None:
+    """The full reading: every rule, whatever the line looks like."""
+    active = _ACTIVE_COMMENT.search(text)
+    if active is not None:
+        raise InvalidCommand(
+            Refusal.ACTIVE_COMMENT,
+            f"an active comment {text[active.start() : active.start() + 12]!r}...: the board runs "
+            "its JSON as a command of its own; send JSON as its own line",
+        )
+    words = _code_part(text)
+    exponent = _EXPONENT.search(words)
+    if exponent is not None:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER,
+            f"{_around(words, exponent.start())!r} looks like exponent notation: the board has "
+            "none, and reads X1e3 as X1 and a word E3; write the number in full, "
+            "or a space before an E word",
+        )
+    together = _RUN_TOGETHER.search(words)
+    if together is not None:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER,
+            f"{_around(words, together.start())!r}: numbers separated only by spaces, "
+            "which the board drops and reads as one number",
+        )
+    for m in _INTEGER_PART.finditer(_DROPPED.sub("", words)):
+        digits = m.group().lstrip("0")
+        if len(digits) > INTEGER_DIGITS:
+            raise InvalidCommand(
+                Refusal.BAD_NUMBER,
+                f"a number with {len(digits)} integer digits ({digits[:12]}...): the board "
+                f"reads at most {INTEGER_DIGITS} safely (it wraps past 2,147,483,647)",
+            )
+
+
+def jog_line(axes: Mapping[str, float], feed: float) -> str:
+    """`G91 G1 X1.5000 F600.000`: a relative move, in the board's fixed-decimal words."""
+    if not axes:
+        raise InvalidCommand(Refusal.EMPTY, "a jog needs at least one axis")
+    words = []
+    for axis, distance in axes.items():
+        if axis not in JOG_AXES:
+            raise InvalidCommand(Refusal.UNREADABLE, f"unknown axis {axis!r}")
+        words.append(f"{axis.upper()}{format_distance(distance, f'{axis} distance')}")
+    return f"G91 G1 {' '.join(words)} F{format_feed(feed)}"
+
+
+def _code_part(text: str) -> str:
+    """The line without its comments, up to where the board stops reading words."""
+    code = _COMMENT.sub(" ", text)
+    end = _LINE_END.search(code)
+    return code if end is None else code[: end.start()]
+
+
+def _around(text: str, at: int) -> str:
+    start = max(0, at - 6)
+    return text[start : at + 6].strip()
