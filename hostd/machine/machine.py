@@ -48,6 +48,7 @@ from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.gcode import jog_line
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
 
@@ -217,8 +218,7 @@ class Machine:
             raise
 
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
-        words = " ".join(f"{axis.upper()}{distance:.4f}" for axis, distance in axes.items())
-        lines = [f"G91 G1 {words} F{feed:g}", "G90"]
+        lines = [jog_line(axes, feed), "G90"]
         return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
 
     async def read_settings(self, keys: list[str]) -> dict[str, Any]:

@@ -110,7 +110,7 @@ async def test_a_jog_moves_relative_and_restores_absolute(bench: Bench) -> None:
     assert (row.kind, row.state, row.lines_acked) == ("jog", "completed", 2)
     assert bench.sim.position["x"] == pytest.approx(1.5)
     lines = [r.data for r in bench.sim.received if r.kind == "line" and r.data[:1] != b"{"]
-    assert lines[-2:] == [b"G91 G1 X1.5000 Y-0.5000 F600", b"G90"]
+    assert lines[-2:] == [b"G91 G1 X1.5000 Y-0.5000 F600.000", b"G90"]
 
 
 async def test_jog_stop_drops_the_rest_and_still_restores_absolute(bench: Bench) -> None:
