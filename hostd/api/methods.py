@@ -35,15 +35,27 @@ from hostd.machine.events import (
     StatusChanged,
     SupervisorChanged,
 )
-from hostd.machine.machine import Machine, setting_lines
+from hostd.machine.machine import Machine
 from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.gcode import JOG_AXES
+from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
+from hostd.protocol.settings import check_key, check_values, set_lines
 
 API_VERSION = 1
 TOPICS = ("status", "exception", "supervisor", "fault", "job", "console")
 Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 SettingKey = Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Za-z0-9_]+$")]
-AXES = ("x", "y", "z", "a", "b", "c")
+SettingValue = bool | int | float | str  # bounded by hostd.protocol.settings.check_values
+AXES = JOG_AXES
+# Every number a client gives is a JSON number of its type (strict: no strings, no
+# booleans, no 1.0 for an integer), finite, and bounded.
+MAX_ID = 2**53 - 1  # job and subscription ids, line numbers: exact in every JSON reader
+Id = Annotated[int, Field(strict=True, ge=1, le=MAX_ID)]
+Distance = Annotated[
+    float, Field(strict=True, allow_inf_nan=False, ge=-MAX_DISTANCE, le=MAX_DISTANCE)
+]
+Feed = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=MIN_FEED, le=MAX_FEED)]
 
 
 class Params(BaseModel):
@@ -56,12 +68,14 @@ class MachineParams(Params):
 
 class SendParams(MachineParams):
     line: str
-    timeout: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    timeout: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=3600)] = 10.0
 
 
 class JogParams(MachineParams):
-    axes: dict[str, float]
-    feed: Annotated[float, Field(gt=0)]
+    """Distances in the machine's units, |d| <= MAX_DISTANCE; MIN_FEED <= feed <= MAX_FEED."""
+
+    axes: dict[str, Distance]
+    feed: Feed
 
     @field_validator("axes")
     @classmethod
@@ -77,9 +91,22 @@ class JogParams(MachineParams):
 class SettingsGetParams(MachineParams):
     keys: Annotated[list[SettingKey], Field(min_length=1, max_length=100)]
 
+    @field_validator("keys")
+    @classmethod
+    def _readable(cls, keys: list[str]) -> list[str]:
+        for key in keys:
+            check_key(key, read=True)  # a GET of `clear` clears: refused (settings.RESERVED)
+        return keys
+
 
 class SettingsSetParams(MachineParams):
-    values: Annotated[dict[SettingKey, float | int | bool | str], Field(min_length=1)]
+    values: Annotated[dict[SettingKey, SettingValue], Field(min_length=1, max_length=100)]
+
+    @field_validator("values")
+    @classmethod
+    def _settings(cls, values: dict[str, SettingValue]) -> dict[str, SettingValue]:
+        check_values(values)  # reserved names, case duplicates, numbers and text bounds
+        return values
 
 
 class FileName(Params):
@@ -100,7 +127,7 @@ class UploadParams(FileName):
 
 class JobStartParams(MachineParams):
     file: str
-    start_line: Annotated[int, Field(ge=1)] = 1
+    start_line: Id = 1
 
     @field_validator("file")
     @classmethod
@@ -109,12 +136,12 @@ class JobStartParams(MachineParams):
 
 
 class JobParams(Params):
-    job: Annotated[int, Field(ge=1)]
+    job: Id
 
 
 class JobListParams(Params):
     machine: MachineId | None = None
-    limit: Annotated[int, Field(ge=1, le=1000)] = 50
+    limit: Annotated[int, Field(strict=True, ge=1, le=1000)] = 50
 
 
 class FaultParams(MachineParams):
@@ -131,7 +158,7 @@ class SubscribeParams(Params):
 
 
 class UnsubscribeParams(Params):
-    subscription: int
+    subscription: Id
 
 
 Send = Callable[[bytes], object]
@@ -354,7 +381,7 @@ class Api:
         return await self._machine(p.machine).read_settings(list(p.keys))
 
     async def settings_set(self, p: SettingsSetParams) -> dict[str, Any]:
-        _, bodies = await self._machine(p.machine).settings(setting_lines(dict(p.values)))
+        _, bodies = await self._machine(p.machine).settings(set_lines(p.values))
         return _merge(bodies)
 
     # -- files ---------------------------------------------------------------

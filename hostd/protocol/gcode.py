@@ -31,7 +31,7 @@ from collections.abc import Mapping
 from hostd.protocol.numbers import format_distance, format_feed
 from hostd.protocol.refusals import InvalidCommand, Refusal
 
-JOG_AXES = frozenset("xyzabc")
+JOG_AXES = ("x", "y", "z", "a", "b", "c")
 INTEGER_DIGITS = 9
 
 # The common case, checked in one match: words of a letter other than E and a
