@@ -1,7 +1,8 @@
 """The control API's Unix socket: newline-framed JSON-RPC, one task tree per client.
 
 This file only moves lines between sockets and `rpc.dispatch`; what a line
-means is `rpc.py`'s business, what a method does is the API layer's.
+means is `rpc.py`'s business, what a method does is the API layer's, where
+the socket file may live and how it is born is `socketfile.py`'s.
 
 Per client (a `Client`, which is also the `context` handlers can ask for with
 `current_client()`):
@@ -31,15 +32,13 @@ import contextlib
 import enum
 import itertools
 import os
-import socket
-import stat
 from collections.abc import Callable, Mapping
 from types import TracebackType
 from typing import Any, Final, Self, cast
 
 import structlog
 
-from hostd.api import rpc
+from hostd.api import rpc, socketfile
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
 
 log = structlog.get_logger(__name__)
@@ -48,11 +47,6 @@ MAX_LINE: Final = 1 << 20
 QUEUE_SIZE: Final = 1000
 WRITE_TIMEOUT: Final = 10.0
 MAX_INFLIGHT: Final = 128
-SOCKET_MODE: Final = 0o660
-
-
-class SocketPathError(Exception):
-    """The socket path cannot be used: not a socket, or another process listens on it."""
 
 
 class _End(enum.Enum):
@@ -240,8 +234,8 @@ class ApiServer:
         max_inflight: int = MAX_INFLIGHT,
     ) -> None:
         """`policy` defaults to root and the daemon's own user; `socket_gid`, when
-        given, becomes the socket file's group (0660 lets that group connect,
-        the policy must still allow them)."""
+        given, becomes the socket file's group (the file is then 0660 so that
+        the group can connect, the policy must still allow them; else 0600)."""
         self._methods = methods
         self._policy = policy if policy is not None else AccessPolicy.default()
         self._socket_gid = socket_gid
@@ -278,20 +272,21 @@ class ApiServer:
         await self.close()
 
     async def start(self, path: str | os.PathLike[str]) -> None:
-        """Listen on `path`. Raises SocketPathError if the path is taken by
-        something that is not a stale socket."""
+        """Listen on `path`. Raises `socketfile.SocketPathError` (one line, for the
+        operator) if the path cannot be used: see socketfile.py."""
         if self._server is not None or self._closing:
             raise RuntimeError("ApiServer.start() called twice")
         where = os.fspath(path)
-        _remove_stale_socket(where)
-        sock, self._inode = _bind(where, self._socket_gid)
+        socketfile.prepare(where)
+        bound = socketfile.bind(where, self._socket_gid)
+        self._inode = bound.inode
         try:
             self._server = await asyncio.start_unix_server(
-                self._accept, sock=sock, limit=self._max_line
+                self._accept, sock=bound.sock, limit=self._max_line
             )
         except BaseException:
-            sock.close()
-            self._unlink_own_socket(where)
+            bound.sock.close()
+            socketfile.unlink_own(where, bound.inode)
             raise
         self._path = where
         log.info("api listening", path=where, gid=self._socket_gid, max_line=self._max_line)
@@ -309,21 +304,10 @@ class ApiServer:
         if self._server is not None:
             await self._server.wait_closed()
             self._server = None
-        if self._path is not None:
-            self._unlink_own_socket(self._path)
+        if self._path is not None and self._inode is not None:
+            socketfile.unlink_own(self._path, self._inode)
             log.info("api closed", path=self._path)
             self._path = None
-
-    def _unlink_own_socket(self, path: str) -> None:
-        """Remove the socket file, unless someone replaced it with another since we bound it."""
-        try:
-            st = os.lstat(path)
-        except FileNotFoundError:
-            return
-        if (st.st_dev, st.st_ino) != self._inode:
-            log.warning("socket path no longer ours; left in place", path=path)
-            return
-        os.unlink(path)
 
     # --- per connection -----------------------------------------------------
 
@@ -447,67 +431,3 @@ class ApiServer:
                 while not client.closed and await reader.read(1 << 16):
                     pass
         client.close("request line too long")
-
-
-def _remove_stale_socket(path: str) -> None:
-    """Make room for our socket: remove a socket nobody listens on; refuse anything else."""
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
-        return
-    if not stat.S_ISSOCK(st.st_mode):
-        raise SocketPathError(f"{path} exists and is not a socket; refusing to remove it")
-    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    probe.setblocking(False)
-    try:
-        probe.connect(path)
-    except ConnectionRefusedError:
-        pass  # stale: left behind by a daemon that died
-    except FileNotFoundError:
-        return
-    except BlockingIOError:
-        raise SocketPathError(f"{path} is in use: another process listens on it") from None
-    except OSError as e:
-        raise SocketPathError(f"cannot tell whether {path} is in use: {e}") from None
-    else:
-        raise SocketPathError(f"{path} is in use: another process listens on it")
-    finally:
-        probe.close()
-    os.unlink(path)
-    log.info("removed stale socket", path=path)
-
-
-def _bind(path: str, gid: int | None) -> tuple[socket.socket, tuple[int, int]]:
-    """A socket bound at `path`, mode 0660, group `gid`, not yet listening.
-
-    The file is born 0600 (umask), given its group, then opened to the group:
-    it is never wider than 0660 and never open to the wrong group, and nobody
-    can connect before start_unix_server calls listen(). The umask is
-    process-wide: a file another thread creates in this instant is born
-    stricter than it asked for, never wider.
-    """
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    bound = False
-    try:
-        old = os.umask(0o177)
-        try:
-            sock.bind(path)
-            bound = True
-        finally:
-            os.umask(old)
-        if gid is not None:
-            try:
-                os.chown(path, -1, gid, follow_symlinks=False)
-            except OSError as e:
-                raise SocketPathError(f"cannot give {path} group {gid}: {e.strerror}") from e
-        st = os.lstat(path)
-        if not stat.S_ISSOCK(st.st_mode):  # chmod follows symlinks: do not let a swap redirect it
-            raise SocketPathError(f"{path} was replaced while binding")
-        os.chmod(path, SOCKET_MODE)
-    except BaseException:
-        sock.close()
-        if bound:
-            with contextlib.suppress(OSError):
-                os.unlink(path)
-        raise
-    return sock, (st.st_dev, st.st_ino)

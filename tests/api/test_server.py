@@ -13,7 +13,8 @@ import pytest
 from structlog.testing import capture_logs
 
 from hostd.api.peer import AccessPolicy
-from hostd.api.server import ApiServer, SocketPathError
+from hostd.api.server import ApiServer
+from hostd.api.socketfile import SocketPathError
 
 from .conftest import TIMEOUT, Conn, Harness, serving
 
@@ -363,11 +364,11 @@ async def test_a_write_that_does_not_drain_in_time_disconnects(
 # --- the socket file and its peers -------------------------------------------
 
 
-async def test_the_socket_file_is_0660(server: ApiServer) -> None:
+async def test_the_socket_file_is_0600_without_a_group(server: ApiServer) -> None:
     assert server.path is not None
     st = os.stat(server.path)
     assert stat.S_ISSOCK(st.st_mode)
-    assert stat.S_IMODE(st.st_mode) == 0o660
+    assert stat.S_IMODE(st.st_mode) == 0o600
 
 
 async def test_the_socket_gets_the_configured_group_and_the_umask_is_restored(
@@ -382,6 +383,41 @@ async def test_the_socket_gets_the_configured_group_and_the_umask_is_restored(
             assert os.umask(0o022) == 0o022
     finally:
         os.umask(umask)
+
+
+@pytest.mark.parametrize("gid", [None, os.getgid()], ids=["no-group", "group"])
+async def test_the_socket_is_born_0600_whatever_the_umask_it_inherits(
+    harness: Harness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, gid: int | None
+) -> None:
+    """Seen at the first thing done to the file after bind(): it already exists, at 0600."""
+    real_chown, real_chmod = os.chown, os.chmod
+    seen: list[tuple[str, int, int]] = []  # (call, the file's mode then, the umask then)
+
+    def look(call: str, path: Any) -> None:
+        umask = os.umask(0)
+        os.umask(umask)
+        seen.append((call, stat.S_IMODE(os.lstat(path).st_mode), umask))
+
+    def chown(path: Any, *args: Any, **kwargs: Any) -> None:
+        look("chown", path)
+        real_chown(path, *args, **kwargs)
+
+    def chmod(path: Any, *args: Any, **kwargs: Any) -> None:
+        look("chmod", path)
+        real_chmod(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "chown", chown)
+    monkeypatch.setattr(os, "chmod", chmod)
+    umask = os.umask(0)  # the loosest a parent could hand down
+    try:
+        async with serving(harness, tmp_path / "s", socket_gid=gid) as server:
+            assert server.path is not None
+            final = stat.S_IMODE(os.stat(server.path).st_mode)
+    finally:
+        os.umask(umask)
+    expected = [("chmod", 0o600, 0)] if gid is None else [("chown", 0o600, 0), ("chmod", 0o600, 0)]
+    assert seen == expected
+    assert final == (0o600 if gid is None else 0o660)
 
 
 async def test_a_regular_file_at_the_path_is_not_deleted(harness: Harness, tmp_path: Path) -> None:
@@ -417,6 +453,91 @@ async def test_a_socket_someone_listens_on_is_not_taken_over(
     conn = await Conn.open(server.path)
     assert (await conn.call("count"))["result"] == 1
     await conn.close()
+
+
+async def test_a_planted_symlink_is_refused_and_left_alone(
+    harness: Harness, tmp_path: Path
+) -> None:
+    target = tmp_path / "elsewhere"
+    path = tmp_path / "s"
+    path.symlink_to(target)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match=r"s is a symbolic link; refusing to follow"):
+        await server.start(path)
+    await server.close()
+    assert path.is_symlink() and os.readlink(path) == str(target)
+    assert not target.exists()
+
+
+async def test_a_symlink_to_a_stale_socket_is_refused_not_followed(
+    harness: Harness, tmp_path: Path
+) -> None:
+    stale = tmp_path / "stale"
+    leftover = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    leftover.bind(str(stale))
+    leftover.close()
+    path = tmp_path / "s"
+    path.symlink_to(stale)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="symbolic link"):
+        await server.start(path)
+    assert path.is_symlink() and stale.exists()
+
+
+@pytest.mark.parametrize(
+    ("mode", "who"), [(0o770, "its group"), (0o707, "others"), (0o777, "others")]
+)
+async def test_a_directory_others_may_write_without_the_sticky_bit_is_refused(
+    harness: Harness, tmp_path: Path, mode: int, who: str
+) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(mode)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError) as refused:
+        await server.start(shared / "s")
+    assert str(refused.value) == (
+        f"the socket's directory {shared} is writable by {who} (mode 0{mode:o}) without the"
+        f" sticky bit, so they could replace the socket; use a directory only the daemon's"
+        f" user can write (chmod go-w {shared})"
+    )
+    assert os.listdir(shared) == []
+
+
+async def test_a_sticky_directory_like_tmp_is_fine(harness: Harness, tmp_path: Path) -> None:
+    shared = tmp_path / "tmp"
+    shared.mkdir()
+    shared.chmod(0o1777)
+    async with serving(harness, shared / "s"):
+        conn = await Conn.open(shared / "s")
+        assert (await conn.call("count"))["result"] == 1
+        await conn.close()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a directory away takes root")
+async def test_a_directory_another_user_owns_is_refused(harness: Harness, tmp_path: Path) -> None:
+    theirs = tmp_path / "theirs"
+    theirs.mkdir(mode=0o755)
+    os.chown(theirs, 4321, -1)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="belongs to uid 4321, who could replace"):
+        await server.start(theirs / "s")
+
+
+async def test_a_missing_directory_is_named(harness: Harness, tmp_path: Path) -> None:
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match=f"directory {tmp_path}/nope does not exist"):
+        await server.start(tmp_path / "nope" / "s")
+
+
+async def test_a_path_too_long_for_a_socket_is_one_clear_error(
+    harness: Harness, tmp_path: Path
+) -> None:
+    server = ApiServer(harness.methods)
+    with pytest.raises(
+        SocketPathError, match=r"cannot create the socket .*: AF_UNIX path too long"
+    ):
+        await server.start(tmp_path / ("x" * 120))
 
 
 async def test_a_peer_the_policy_denies_is_closed_without_an_answer(
