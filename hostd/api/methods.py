@@ -36,7 +36,7 @@ from hostd.machine.events import (
     SupervisorChanged,
 )
 from hostd.machine.machine import Machine, setting_lines
-from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime, validate_line
 
 API_VERSION = 1
 TOPICS = ("status", "exception", "supervisor", "fault", "job", "console")
@@ -44,6 +44,10 @@ Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 SettingKey = Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Za-z0-9_]+$")]
 AXES = ("x", "y", "z", "a", "b", "c")
+# A jog is a hand move: 100 m (or inches) and 100 m/min bound any real one, and keep
+# the numbers plain decimals in the G-code (`F{feed:g}` would write 1e-05 or 1e+06).
+JOG_LIMIT = 100_000.0
+JogDistance = Annotated[float, Field(ge=-JOG_LIMIT, le=JOG_LIMIT)]
 
 
 class Params(BaseModel):
@@ -60,8 +64,8 @@ class SendParams(MachineParams):
 
 
 class JogParams(MachineParams):
-    axes: dict[str, float]
-    feed: Annotated[float, Field(gt=0)]
+    axes: dict[str, JogDistance]
+    feed: Annotated[float, Field(ge=0.001, le=JOG_LIMIT)]
 
     @field_validator("axes")
     @classmethod
@@ -351,12 +355,13 @@ class Api:
         return {}
 
     async def settings_get(self, p: SettingsGetParams) -> dict[str, Any]:
-        lines = [f'{{"{key}":null}}' for key in p.keys]
+        lines = _sendable([f'{{"{key}":null}}' for key in p.keys])
         _, bodies = await self._machine(p.machine).settings(lines)
         return _merge(bodies)
 
     async def settings_set(self, p: SettingsSetParams) -> dict[str, Any]:
-        _, bodies = await self._machine(p.machine).settings(setting_lines(dict(p.values)))
+        lines = _sendable(setting_lines(dict(p.values)))
+        _, bodies = await self._machine(p.machine).settings(lines)
         return _merge(bodies)
 
     # -- files ---------------------------------------------------------------
@@ -464,6 +469,17 @@ def _live(machine: Machine) -> dict[str, Any]:
     job = machine.current_job()
     assert job is not None
     return job.model_dump(mode="json")
+
+
+def _sendable(lines: list[str]) -> list[str]:
+    """The lines, if the controller may get every one; else -32602 saying why, as
+    `machine.send` does, before any of them is sent (a 600-byte value, `flash`)."""
+    for line in lines:
+        try:
+            validate_line(line)
+        except InvalidCommand as exc:
+            raise RpcError(-32602, exc.message, {"refusal": exc.refusal.value}) from None
+    return lines
 
 
 def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:
