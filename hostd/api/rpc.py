@@ -33,7 +33,9 @@ Decisions beyond JSON-RPC 2.0 itself:
   (a fraction, an object, a bool, 2**53) is -32600 answered with `id: null`:
   JSON-RPC says ids SHOULD NOT have fractional parts, and an id the client
   cannot compare exactly cannot match its request anyway.
-- A batch holds at most `MAX_BATCH` (1000) requests; a longer one is one -32600.
+- A batch holds at most `max_batch` requests (`MAX_BATCH`, 1000, unless the
+  caller says less; the server says its per-client limit); a longer one is one
+  -32600 and none of it runs.
 - Invalid requests (-32600) and parse errors (-32700) are answered even when
   the request had no `id`, with `id: null`, as the JSON-RPC examples do. Once a
   request is valid and has no `id`, it is a notification: it runs and nothing
@@ -62,8 +64,8 @@ METHOD_NOT_FOUND: Final = -32601
 INVALID_PARAMS: Final = -32602
 INTERNAL_ERROR: Final = -32603
 
-# Batch elements run concurrently, outside the server's per-client in-flight
-# bound: a cap keeps one line from starting an unbounded number of handlers.
+# Batch elements run concurrently: a cap keeps one line from starting an
+# unbounded number of handlers. The server passes its per-client limit instead.
 MAX_BATCH: Final = 1000
 # The largest integer every JSON implementation represents exactly (2**53 - 1).
 MAX_SAFE_INTEGER: Final = 9_007_199_254_740_991
@@ -107,7 +109,6 @@ class Methods(Mapping[str, Method]):
 
     def __init__(self) -> None:
         self._table: dict[str, Method] = {}
-        self.immediate_names: list[bytes] = []  # as they appear quoted in a request line
 
     @overload
     def register(
@@ -144,8 +145,6 @@ class Methods(Mapping[str, Method]):
             # A typo'd field name must be an error for the client, not silently ignored.
             raise ValueError(f"params model of {name!r} must set model_config extra='forbid'")
         self._table[name] = Method(handler, params_model, immediate)
-        if immediate:
-            self.immediate_names.append(f'"{name}"'.encode())
 
     def __getitem__(self, name: str) -> Method:
         return self._table[name]
@@ -439,44 +438,71 @@ async def _one(obj: Any, methods: Mapping[str, Method], context: object) -> byte
     return await _call(request, methods, context)
 
 
-def is_immediate(line: bytes, methods: Methods) -> bool:
-    """A single request for a method that never suspends: answerable without a task.
+@dataclass(frozen=True, slots=True)
+class Incoming:
+    """One request line, parsed once: what `answer` will run, and how much of it.
 
-    A substring test first, so that other requests cost nothing more.
+    `requests` is what the line costs against a client's limit on requests
+    in flight: a batch's length, else 1. When `reply` is set the line is
+    answered with it as it is and nothing runs (`requests` is 0): it is not
+    JSON, or a batch that is empty or over the cap.
     """
-    if not any(name in line for name in methods.immediate_names):
-        return False
+
+    message: Any
+    requests: int
+    reply: bytes | None = None
+
+
+def decode(line: bytes, max_batch: int = MAX_BATCH) -> Incoming:
+    """Parse one line (with or without its newline). Never raises for what a client sent."""
     try:
-        obj = json.loads(line)
-    except (ValueError, RecursionError):
+        message = _parse(line)
+    except RpcError as e:
+        return Incoming(None, 0, encode_error(e.code, e.message, None))
+    if not isinstance(message, list):
+        return Incoming(message, 1)
+    if not message:
+        return Incoming(None, 0, encode_error(INVALID_REQUEST, "invalid request: empty batch"))
+    if len(message) > max_batch:
+        error = f"invalid request: batch over {max_batch} requests"
+        return Incoming(None, 0, encode_error(INVALID_REQUEST, error))
+    return Incoming(message, len(message))
+
+
+def is_immediate(incoming: Incoming, methods: Mapping[str, Method]) -> bool:
+    """A single request for a method that never suspends: answerable without a task."""
+    message = incoming.message
+    if incoming.reply is not None or not isinstance(message, dict):
         return False
-    name = obj.get("method") if isinstance(obj, dict) else None
+    name = message.get("method")
     method = methods.get(name) if isinstance(name, str) else None
     return method is not None and method.immediate
 
 
-async def dispatch(line: bytes, methods: Mapping[str, Method], context: object) -> bytes | None:
-    """Answer one line: the response (single or batch array) as bytes without a newline,
+async def answer(
+    incoming: Incoming, methods: Mapping[str, Method], context: object
+) -> bytes | None:
+    """Run a decoded line: the response (single or batch array) as bytes without a newline,
     or None when nothing is to be sent (a notification, a batch of only notifications).
 
     Never raises for anything the client sent or a handler did; cancellation passes through.
     Batch elements run concurrently; the array is sent once all of them are done.
     """
-    try:
-        message = _parse(line)
-    except RpcError as e:
-        return encode_error(e.code, e.message, None)
+    if incoming.reply is not None:
+        return incoming.reply
+    message = incoming.message
     if not isinstance(message, list):
         return await _one(message, methods, context)
-    if not message:
-        return encode_error(INVALID_REQUEST, "invalid request: empty batch", None)
-    if len(message) > MAX_BATCH:
-        return encode_error(
-            INVALID_REQUEST, f"invalid request: batch over {MAX_BATCH} requests", None
-        )
     async with asyncio.TaskGroup() as tg:
         tasks = [tg.create_task(_one(element, methods, context)) for element in message]
     answers = [answer for task in tasks if (answer := task.result()) is not None]
     if not answers:
         return None
     return b"[" + b",".join(answers) + b"]"
+
+
+async def dispatch(
+    line: bytes, methods: Mapping[str, Method], context: object, max_batch: int = MAX_BATCH
+) -> bytes | None:
+    """`decode` then `answer`: one line in, its response (or None) out."""
+    return await answer(decode(line, max_batch), methods, context)

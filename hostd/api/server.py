@@ -1,6 +1,6 @@
 """The control API's Unix socket: newline-framed JSON-RPC, one task tree per client.
 
-This file only moves lines between sockets and `rpc.dispatch`; what a line
+This file only moves lines between sockets and `rpc`; what a line
 means is `rpc.py`'s business, what a method does is the API layer's, where
 the socket file may live and how it is born is `socketfile.py`'s.
 
@@ -8,10 +8,14 @@ Per client (a `Client`, which is also the `context` handlers can ask for with
 `current_client()`):
 
 - One connection task owns everything the client causes: a reader loop, a
-  writer task, and one task per request (requests are handled concurrently,
-  so a slow one never holds up the next; answers go out as they complete).
-  At most `max_inflight` requests run at once; past that the reader stops
-  reading and the socket pushes back on the client.
+  writer task, and one task per request line (requests are handled
+  concurrently, so a slow one never holds up the next; answers go out as
+  they complete).
+- At most `max_inflight` requests run at once, counting each request of a
+  batch: a line of n requests waits until n are free, and meanwhile the
+  reader stops reading and the socket pushes back on the client. A batch of
+  more than `max_inflight` requests could never fit: it is one -32600 and
+  none of it runs. So at most one parsed line per client waits on the host.
 - Everything sent to the client (answers and notifications) goes through one
   bounded queue emptied by the writer task. A full queue, or a write that
   cannot drain within `write_timeout`, disconnects the client: one that stops
@@ -393,24 +397,33 @@ class ApiServer:
                 return
             if not line.strip():
                 continue
-            await slots.acquire()
-            if isinstance(self._methods, rpc.Methods) and rpc.is_immediate(line, self._methods):
-                # A realtime byte: run it now, not a loop pass later in a task of its own.
-                await self._handle(client, line, slots)
+            incoming = rpc.decode(line, max_batch=self._max_inflight)
+            if incoming.reply is not None:  # not JSON, or a batch that cannot run: nothing runs
+                client.send_line(incoming.reply)
                 continue
-            task = tg.create_task(self._handle(client, line, slots))
+            for _ in range(incoming.requests):  # the reader is the only taker: no deadlock
+                await slots.acquire()
+            if rpc.is_immediate(incoming, self._methods):
+                # A realtime byte: run it now, not a loop pass later in a task of its own.
+                await self._handle(client, incoming, slots)
+                continue
+            task = tg.create_task(self._handle(client, incoming, slots))
             pending.add(task)
             task.add_done_callback(pending.discard)
 
-    async def _handle(self, client: Client, line: bytes, slots: asyncio.Semaphore) -> None:
+    async def _handle(
+        self, client: Client, incoming: rpc.Incoming, slots: asyncio.Semaphore
+    ) -> None:
+        """Answer one line; its requests' slots are given back once all of them are done."""
         try:
-            response = await rpc.dispatch(line, self._methods, client)
+            response = await rpc.answer(incoming, self._methods, client)
         except Exception:
-            # dispatch answers everything itself; reaching here is a bug in rpc.py.
+            # answer() answers everything itself; reaching here is a bug in rpc.py.
             client.log.exception("dispatch failed")
             response = rpc.encode_error(rpc.INTERNAL_ERROR, "internal error")
         finally:
-            slots.release()
+            for _ in range(incoming.requests):
+                slots.release()
         if response is not None:
             client.send_line(response)
 

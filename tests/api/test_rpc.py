@@ -249,6 +249,40 @@ async def test_a_batch_is_capped() -> None:
     }
 
 
+@pytest.mark.parametrize(
+    ("line", "requests"),
+    [
+        (b'{"jsonrpc":"2.0","method":"where","id":1}', 1),
+        (b"[1, 2, 3]", 3),
+        (b'[{"jsonrpc":"2.0","method":"where"}]', 1),
+        (b"42", 1),
+    ],
+)
+def test_a_line_costs_one_request_or_its_batch_length(line: bytes, requests: int) -> None:
+    incoming = rpc.decode(line)
+    assert incoming.reply is None
+    assert incoming.requests == requests
+
+
+@pytest.mark.parametrize("line", [b"nope", b"[]", b"[1, 2, 3, 4]"])
+def test_a_line_that_cannot_run_is_answered_at_once_and_costs_nothing(line: bytes) -> None:
+    incoming = rpc.decode(line, max_batch=3)
+    assert incoming.requests == 0
+    assert incoming.reply is not None
+    assert json.loads(incoming.reply)["error"]["code"] in (-32700, -32600)
+
+
+@pytest.mark.asyncio
+async def test_the_batch_cap_is_the_callers() -> None:
+    one = b'{"jsonrpc":"2.0","method":"where","id":1}'
+    answer = await dispatch(b"[" + b",".join([one] * 4) + b"]", table(), None, max_batch=3)
+    assert answer is not None
+    assert json.loads(answer)["error"] == {
+        "code": -32600,
+        "message": "invalid request: batch over 3 requests",
+    }
+
+
 def test_only_single_requests_for_immediate_methods_skip_the_task() -> None:
     class P(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -260,9 +294,13 @@ def test_only_single_requests_for_immediate_methods_skip_the_task() -> None:
     table = rpc.Methods()
     table.register("machine.feedhold", P, hold, immediate=True)
     table.register("machine.status", P, hold)
+
+    def immediate(line: bytes) -> bool:
+        return rpc.is_immediate(rpc.decode(line), table)
+
     line = b'{"jsonrpc":"2.0","id":1,"method":"machine.feedhold","params":{"machine":"m"}}'
-    assert rpc.is_immediate(line, table)
-    assert not rpc.is_immediate(line.replace(b"feedhold", b"status"), table)
-    assert not rpc.is_immediate(b"[" + line + b"]", table)  # a batch goes the usual way
-    assert not rpc.is_immediate(b'{"method":"machine.feedhold"', table)  # broken JSON
-    assert not rpc.is_immediate(b'{"method":"x","params":"machine.feedhold"}', table)
+    assert immediate(line)
+    assert not immediate(line.replace(b"feedhold", b"status"))
+    assert not immediate(b"[" + line + b"]")  # a batch goes the usual way
+    assert not immediate(b'{"method":"machine.feedhold"')  # broken JSON
+    assert not immediate(b'{"method":"x","params":"machine.feedhold"}')

@@ -361,6 +361,49 @@ async def test_a_write_that_does_not_drain_in_time_disconnects(
             await deaf.close()
 
 
+async def test_a_batch_counts_each_request_against_the_clients_limit(
+    harness: Harness, tmp_path: Path
+) -> None:
+    slow = {"jsonrpc": "2.0", "method": "slow"}
+    async with serving(harness, tmp_path / "s", max_inflight=4) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            for batch in range(3):  # nine requests on three lines; four may run at once
+                await conn.send([{**slow, "id": f"{batch}.{i}"} for i in range(3)])
+            async with asyncio.timeout(TIMEOUT):
+                await harness.slow_started.wait()
+            await asyncio.sleep(0.1)  # room for the second batch to start, were it let in
+            assert harness.running == 3  # it waits: its three do not fit in the one left
+            harness.release.set()
+            answers = [await conn.recv() for _ in range(3)]
+            assert sorted(a["id"] for batch in answers for a in batch) == [
+                f"{b}.{i}" for b in range(3) for i in range(3)
+            ]
+            assert harness.peak == 3
+        finally:
+            await conn.close()
+
+
+async def test_a_batch_larger_than_the_limit_is_refused_whole(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_inflight=4) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send([{"jsonrpc": "2.0", "method": "count", "id": i} for i in range(5)])
+            assert await conn.recv() == {
+                "jsonrpc": "2.0",
+                "error": {"code": -32600, "message": "invalid request: batch over 4 requests"},
+                "id": None,
+            }
+            await conn.send([{"jsonrpc": "2.0", "method": "count", "id": i} for i in range(4)])
+            assert sorted(a["result"] for a in await conn.recv()) == [1, 2, 3, 4]
+        finally:
+            await conn.close()
+
+
 # --- the socket file and its peers -------------------------------------------
 
 
