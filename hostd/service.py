@@ -95,7 +95,13 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
     notifier = Notifier()
     daemon = Daemon(config)
     api = Api(daemon)
-    server = ApiServer(build_methods(api), policy=policy, socket_gid=gid)
+    server = ApiServer(
+        build_methods(api),
+        policy=policy,
+        socket_gid=gid,
+        max_clients=config.daemon.max_clients,
+        line_timeout=config.daemon.line_timeout,
+    )
     loop = asyncio.get_running_loop()
 
     def stop() -> None:

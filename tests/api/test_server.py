@@ -6,6 +6,7 @@ import asyncio
 import os
 import socket
 import stat
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -400,6 +401,184 @@ async def test_a_batch_larger_than_the_limit_is_refused_whole(
             }
             await conn.send([{"jsonrpc": "2.0", "method": "count", "id": i} for i in range(4)])
             assert sorted(a["result"] for a in await conn.recv()) == [1, 2, 3, 4]
+        finally:
+            await conn.close()
+
+
+async def test_past_max_clients_an_allowed_peer_is_told_the_daemon_is_full(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=2) as server:
+        assert server.path is not None
+        first, second = await Conn.open(server.path), await Conn.open(server.path)
+        try:
+            assert (await first.call("count", id=1))["result"] == 1
+            assert (await second.call("count", id=1))["result"] == 2
+            with capture_logs() as logs:
+                third = await Conn.open(server.path)
+                await third.send({"jsonrpc": "2.0", "method": "count", "id": 1})
+                assert await third.recv() == {
+                    "jsonrpc": "2.0",
+                    "error": {
+                        "code": -32000,
+                        "message": "daemon full: 2 clients connected; try again later",
+                    },
+                    "id": None,
+                }
+                assert await third.closed_by_server()
+            [entry] = [e for e in logs if e["event"] == "api client refused: daemon full"]
+            assert (entry["pid"], entry["uid"], entry["max_clients"]) == (
+                os.getpid(),
+                os.getuid(),
+                2,
+            )
+            assert harness.counted == 2  # the refused request never ran
+            assert server.admitted == 2
+            assert (await first.call("count", id=2))["result"] == 3
+            assert (await second.call("count", id=2))["result"] == 4
+            await third.close()
+        finally:
+            await first.close()
+            await second.close()
+
+
+async def test_a_place_freed_by_a_client_that_left_is_taken_by_the_next(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=1) as server:
+        assert server.path is not None
+        first = await Conn.open(server.path)
+        await first.call("whoami")
+        await first.close()
+        async with asyncio.timeout(TIMEOUT):
+            await harness.disconnected.wait()
+            # It counts until its connection task has ended, a few loop passes after
+            # its hooks ran; nothing signals that, so look (bounded by the timeout).
+            while server.admitted:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        second = await Conn.open(server.path)
+        try:
+            assert (await second.call("count"))["result"] == 1
+        finally:
+            await second.close()
+
+
+async def test_a_client_that_left_with_requests_running_still_counts(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=1) as server:
+        assert server.path is not None
+        gone = await Conn.open(server.path)
+        await gone.send({"jsonrpc": "2.0", "method": "slow", "id": 1})
+        async with asyncio.timeout(TIMEOUT):
+            await harness.slow_started.wait()
+        await gone.close()
+        newcomer = await Conn.open(server.path)
+        try:
+            assert (await newcomer.recv())["error"]["code"] == -32000
+            harness.release.set()
+        finally:
+            await newcomer.close()
+
+
+class _Gate:
+    """An access policy that holds every peer at the door until opened."""
+
+    def __init__(self) -> None:
+        self.open = threading.Event()
+        self.waiting = threading.Semaphore(0)
+
+    def allows(self, peer: Any) -> bool:
+        self.waiting.release()
+        return self.open.wait(TIMEOUT)
+
+
+async def test_connections_waiting_for_admission_are_bounded_too(
+    harness: Harness, tmp_path: Path
+) -> None:
+    gate = _Gate()
+    async with serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server:
+        assert server.path is not None
+        held = [await Conn.open(server.path) for _ in range(2)]
+        try:
+            for _ in held:
+                assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
+            with capture_logs() as logs:
+                dropped = await Conn.open(server.path)
+                assert await dropped.closed_by_server()
+            assert [e["event"] for e in logs] == ["api connection dropped: too many being admitted"]
+            gate.open.set()
+            for conn in held:
+                assert (await conn.call("count"))["id"] == 1
+        finally:
+            gate.open.set()
+            for conn in held:
+                await conn.close()
+
+
+async def test_a_half_sent_line_left_for_line_timeout_disconnects_only_that_client(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", line_timeout=0.2) as server:
+        assert server.path is not None
+        quiet = await Conn.open(server.path)
+        await quiet.call("count", id=1)  # admitted; says nothing more from here on
+        stalled = await Conn.open(server.path)
+        try:
+            await stalled.call("count", id=1)
+            loop = asyncio.get_running_loop()
+            with capture_logs() as logs:
+                await stalled.send_raw(b'{"jsonrpc": "2.0", "method": "cou')
+                sent = loop.time()
+                assert await stalled.recv() == {
+                    "jsonrpc": "2.0",
+                    "error": {"code": -32600, "message": "request line not finished within 0.2 s"},
+                    "id": None,
+                }
+                assert await stalled.closed_by_server()
+            assert loop.time() - sent >= 0.2
+            reasons = [e["reason"] for e in logs if e["event"] == "api client disconnected"]
+            assert reasons == ["half a line for over 0.2 s"]
+            # Quiet for longer than the timeout, but between lines: still served.
+            assert (await quiet.call("count", id=2))["result"] == 3
+            assert [c.id for c in server.clients] == [1]
+        finally:
+            await quiet.close()
+            await stalled.close()
+
+
+async def test_a_line_sent_in_pieces_within_the_timeout_is_one_request(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", line_timeout=5) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            for piece in (b'{"jsonrpc": "2.0", ', b'"method": "count",', b' "id": 4}\n'):
+                await conn.send_raw(piece)
+            assert await conn.recv() == {"jsonrpc": "2.0", "result": 1, "id": 4}
+        finally:
+            await conn.close()
+
+
+async def test_the_line_clock_stops_while_the_daemon_is_not_reading(
+    harness: Harness, tmp_path: Path
+) -> None:
+    """At its limit of requests in flight the client is not read: that is not its stall."""
+    async with serving(harness, tmp_path / "s", max_inflight=1, line_timeout=0.2) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send({"jsonrpc": "2.0", "method": "slow", "id": "slow"})
+            async with asyncio.timeout(TIMEOUT):
+                await harness.slow_started.wait()
+            await conn.send_raw(b'{"jsonrpc": "2.0", "method": "count", "id": 1}\n{"jsonrpc"')
+            await asyncio.sleep(0.4)  # twice the line timeout, all of it spent waiting on us
+            harness.release.set()
+            assert (await conn.recv())["id"] == "slow"
+            assert (await conn.recv())["id"] == 1
+            await conn.send_raw(b': "2.0", "method": "count", "id": 2}\n')
+            assert (await conn.recv())["result"] == 2
         finally:
             await conn.close()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -261,3 +262,33 @@ async def test_a_failure_at_bind_time_is_still_one_line_not_a_traceback(tmp_path
     assert stderr.splitlines()[-1] == (
         f"hostd: cannot create the socket {path}: AF_UNIX path too long"
     )
+
+
+async def test_max_clients_and_line_timeout_from_the_config_hold_in_the_daemon(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "limits.toml"
+    config.write_text(
+        f'[daemon]\nsocket = "{tmp_path}/hostd.sock"\nstate_dir = "{tmp_path}/state"\n'
+        "max_clients = 1\nline_timeout = 0.3\n"
+    )
+    async with daemon_process(tmp_path, config) as process:
+        await process.message(b"READY=1")
+        first_reader, first = await asyncio.open_unix_connection(process.socket_path)
+        first.write(b'{"jsonrpc": "2.0", "method": "daemon.info", "id": 1}\n')
+        async with asyncio.timeout(10):
+            assert json.loads(await first_reader.readline())["result"]["machines"] == []
+            reader, writer = await asyncio.open_unix_connection(process.socket_path)
+            assert json.loads(await reader.readline())["error"]["code"] == -32000
+            assert await reader.read() == b""
+        writer.close()
+        # The one admitted client leaves a line half-sent: closed after line_timeout.
+        first.write(b'{"jsonrpc": "2.0"')
+        async with asyncio.timeout(10):
+            error = json.loads(await first_reader.readline())["error"]
+            assert error["message"] == "request line not finished within 0.3 s"
+            assert await first_reader.read() == b""
+        first.close()
+        process.proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
