@@ -35,6 +35,11 @@ class DaemonConfig(_Strict):
     # group); root and the daemon's own user always may. None: nobody else.
     group: str | None = None
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    # Clients connected at once; one more is told the daemon is full and closed.
+    max_clients: Annotated[int, Field(ge=1, le=10_000)] = 128
+    # Seconds a client may leave a request line half-sent before it is disconnected
+    # (a client quiet between lines stays connected however long).
+    line_timeout: Annotated[float, Field(gt=0, le=3600)] = 10.0
 
 
 class MachineConfig(_Strict):

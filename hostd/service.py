@@ -1,8 +1,11 @@
 """`hostd serve`: the daemon in the foreground, as systemd runs it.
 
 Start-up: the config is validated whole (a bad one is one message naming
-the file, the key and the problem, and exit status 2), then the machines
-are built, then the socket listens, then systemd is told READY=1. SIGTERM
+the file, the key and the problem, and exit status 2), then the socket path
+is checked (hostd/api/socketfile.py: a directory others could write, a
+planted symlink, a file, a live daemon's socket), then the machines are
+built, then the socket listens, then systemd is told READY=1. A start-up
+failure is one line on stderr and exit status 1, never a traceback. SIGTERM
 or SIGINT: STOPPING=1, the socket stops accepting, every running job ends
 `interrupted` with its counts written, the ports are closed, the socket
 file is removed, exit 0.
@@ -17,9 +20,11 @@ import sys
 
 import structlog
 
+from hostd.api import socketfile
 from hostd.api.methods import Api, build_methods
 from hostd.api.peer import AccessPolicy, group_id
-from hostd.api.server import ApiServer, SocketPathError
+from hostd.api.server import ApiServer
+from hostd.api.socketfile import SocketPathError
 from hostd.config import Config, ConfigError, load_config
 from hostd.daemon import Daemon
 from hostd.logs import configure_logging
@@ -43,15 +48,37 @@ def serve_main(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"hostd: {exc}", file=sys.stderr)
         return 2
-    configure_logging(args.log_level or config.daemon.log_level, args.log_format)
     socket_path = args.socket or config.daemon.socket
     try:
-        asyncio.run(serve(config, socket_path, policy, gid))
-    except (OSError, SocketPathError) as exc:
-        log.error("cannot serve", error=str(exc))
+        # Before anything is built: a bad path is one line now, not after the machines.
+        socketfile.check_path(socket_path)
+    except SocketPathError as exc:
         print(f"hostd: {exc}", file=sys.stderr)
         return 1
+    configure_logging(args.log_level or config.daemon.log_level, args.log_format)
+    try:
+        asyncio.run(serve(config, socket_path, policy, gid))
+    except Exception as exc:
+        failure = _start_up_failure(exc)
+        if failure is None:
+            raise  # a bug: its traceback is what it needs
+        print(f"hostd: {failure}", file=sys.stderr)
+        return 1
     return 0
+
+
+def _start_up_failure(exc: BaseException) -> Exception | None:
+    """The operator's problem inside `exc` (the path, the system), or None for a bug.
+
+    The socket starts listening inside the daemon's task group, so a failure
+    there (the path taken between the check and the bind) arrives wrapped in
+    an ExceptionGroup; the operator needs its one line, not the group.
+    """
+    if isinstance(exc, SocketPathError | OSError):
+        return exc
+    if isinstance(exc, BaseExceptionGroup) and len(exc.exceptions) == 1:
+        return _start_up_failure(exc.exceptions[0])
+    return None
 
 
 def _access(config: Config) -> tuple[AccessPolicy, int | None]:
@@ -68,7 +95,13 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
     notifier = Notifier()
     daemon = Daemon(config)
     api = Api(daemon)
-    server = ApiServer(build_methods(api), policy=policy, socket_gid=gid)
+    server = ApiServer(
+        build_methods(api),
+        policy=policy,
+        socket_gid=gid,
+        max_clients=config.daemon.max_clients,
+        line_timeout=config.daemon.line_timeout,
+    )
     loop = asyncio.get_running_loop()
 
     def stop() -> None:

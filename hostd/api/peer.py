@@ -1,8 +1,9 @@
 """Who is on the other end of the socket, and whether they may talk to the daemon.
 
-The socket file's mode (0660) is the first gate; this is the second: the
-kernel tells us the peer's pid, uid and gid at connect time (SO_PEERCRED),
-which a client cannot forge, and the policy decides on those alone.
+The socket file's mode (0600, or 0660 with a group) is the first gate; this
+is the second: the kernel tells us the peer's pid, uid and gid at connect
+time (SO_PEERCRED), which a client cannot forge, and the policy decides on
+those alone.
 """
 
 from __future__ import annotations

@@ -23,7 +23,19 @@ Decisions beyond JSON-RPC 2.0 itself:
   nothing/null/`[]`/`{}` (validated as `{}`). A non-empty array is -32602.
 - Requests are parsed as strict JSON: UTF-8 only, no NaN/Infinity. Results are
   written as strict JSON too: a NaN in a result is a bug (-32603, logged).
-- A batch holds at most `MAX_BATCH` (1000) requests; a longer one is one -32600.
+- Numbers are I-JSON's (RFC 7493): integers within +-(2**53 - 1), floats
+  finite. Those are the numbers every JSON implementation reads the same; a
+  number beyond them (10**400, 1e400) would mean one thing to the client and
+  another here, and used as a job id or a distance it reaches code that was
+  never meant to see it. Out of range in `params` is -32602 naming where; the
+  number is never handed to a handler.
+- An `id` is a string, an integer within that range, or null. Anything else
+  (a fraction, an object, a bool, 2**53) is -32600 answered with `id: null`:
+  JSON-RPC says ids SHOULD NOT have fractional parts, and an id the client
+  cannot compare exactly cannot match its request anyway.
+- A batch holds at most `max_batch` requests (`MAX_BATCH`, 1000, unless the
+  caller says less; the server says its per-client limit); a longer one is one
+  -32600 and none of it runs.
 - Invalid requests (-32600) and parse errors (-32700) are answered even when
   the request had no `id`, with `id: null`, as the JSON-RPC examples do. Once a
   request is valid and has no `id`, it is a notification: it runs and nothing
@@ -34,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from contextvars import ContextVar
 from dataclasses import dataclass
@@ -51,13 +64,15 @@ METHOD_NOT_FOUND: Final = -32601
 INVALID_PARAMS: Final = -32602
 INTERNAL_ERROR: Final = -32603
 
-# Batch elements run concurrently, outside the server's per-client in-flight
-# bound: a cap keeps one line from starting an unbounded number of handlers.
+# Batch elements run concurrently: a cap keeps one line from starting an
+# unbounded number of handlers. The server passes its per-client limit instead.
 MAX_BATCH: Final = 1000
+# The largest integer every JSON implementation represents exactly (2**53 - 1).
+MAX_SAFE_INTEGER: Final = 9_007_199_254_740_991
 
 P = TypeVar("P", bound=BaseModel)
 
-Id = str | int | float | None
+Id = str | int | None
 Handler = Callable[..., Awaitable[Any]]
 
 
@@ -94,7 +109,6 @@ class Methods(Mapping[str, Method]):
 
     def __init__(self) -> None:
         self._table: dict[str, Method] = {}
-        self.immediate_names: list[bytes] = []  # as they appear quoted in a request line
 
     @overload
     def register(
@@ -131,8 +145,6 @@ class Methods(Mapping[str, Method]):
             # A typo'd field name must be an error for the client, not silently ignored.
             raise ValueError(f"params model of {name!r} must set model_config extra='forbid'")
         self._table[name] = Method(handler, params_model, immediate)
-        if immediate:
-            self.immediate_names.append(f'"{name}"'.encode())
 
     def __getitem__(self, name: str) -> Method:
         return self._table[name]
@@ -218,8 +230,42 @@ def _encode_failure(exc: RpcError, id: Id, method: str) -> bytes:
 # --- decoding and validation ------------------------------------------------
 
 
+class OutOfRange:
+    """A number of a request beyond I-JSON's range, kept as its text and never used.
+
+    The parser makes one of these instead of the number, so that the request
+    can still be read and answered with its own id (-32602), and no handler
+    or pydantic model ever sees 10**400 or infinity.
+    """
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str) -> None:
+        self.text = text if len(text) <= 24 else text[:20] + "..."
+
+    def __repr__(self) -> str:
+        return f"OutOfRange({self.text!r})"
+
+
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not JSON")
+
+
+def _parse_int(text: str) -> int | OutOfRange:
+    # JSON has no leading zeros: 15 digits always fit, 16 may (2**53 - 1 has 16). The
+    # length test comes first so that 5000 digits never reach int() (and its digit limit).
+    if len(text) <= 15:
+        return int(text)
+    if len(text) <= 17:
+        value = int(text)
+        if -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER:
+            return value
+    return OutOfRange(text)
+
+
+def _parse_float(text: str) -> float | OutOfRange:
+    value = float(text)
+    return value if math.isfinite(value) else OutOfRange(text)  # 1e400 is inf to float()
 
 
 def _parse(line: bytes) -> Any:
@@ -229,16 +275,51 @@ def _parse(line: bytes) -> Any:
     except UnicodeDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: not UTF-8 at byte {e.start}") from None
     try:
-        return json.loads(text, parse_constant=_reject_constant)
+        return json.loads(
+            text,
+            parse_constant=_reject_constant,
+            parse_int=_parse_int,
+            parse_float=_parse_float,
+        )
     except json.JSONDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: {e.msg} at column {e.colno}") from None
     except (ValueError, RecursionError) as e:
-        # NaN/Infinity, an integer over the interpreter's digit limit, nesting too deep.
+        # NaN/Infinity, nesting too deep for the parser.
         raise RpcError(PARSE_ERROR, f"parse error: {e}") from None
 
 
 def _valid_id(value: Any) -> bool:
-    return value is None or (isinstance(value, str | int | float) and not isinstance(value, bool))
+    if value is None or isinstance(value, str):
+        return True
+    # bool is an int to Python; OutOfRange and floats are not ints at all.
+    return (
+        isinstance(value, int)
+        and not isinstance(value, bool)
+        and -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER
+    )
+
+
+def _out_of_range(params: dict[str, Any] | list[Any]) -> list[dict[str, Any]]:
+    """Where `params` holds an OutOfRange number, as pydantic-style error entries.
+
+    Iterative: a value nested as deep as the parser allows must not recurse here.
+    """
+    found: list[dict[str, Any]] = []
+    stack: list[tuple[list[str | int], Any]] = [([], params)]
+    while stack:
+        loc, value = stack.pop()
+        if isinstance(value, OutOfRange):
+            message = (
+                f"number {value.text} out of range: integers must be within "
+                f"+-{MAX_SAFE_INTEGER}, floats finite"
+            )
+            found.append({"loc": loc, "msg": message, "type": "number_out_of_range"})
+        elif isinstance(value, dict):
+            stack.extend(([*loc, key], item) for key, item in value.items())
+        elif isinstance(value, list):
+            stack.extend(([*loc, index], item) for index, item in enumerate(value))
+    found.sort(key=lambda error: [str(part) for part in error["loc"]])
+    return found
 
 
 @dataclass(frozen=True, slots=True)
@@ -258,7 +339,11 @@ def _check_request(obj: Any) -> _Request:
     if obj.get("jsonrpc") != "2.0":
         raise _InvalidRequest('invalid request: "jsonrpc" must be "2.0"', id)
     if not _valid_id(raw_id):
-        raise _InvalidRequest('invalid request: "id" must be a string, a number or null', None)
+        raise _InvalidRequest(
+            f'invalid request: "id" must be a string, an integer within +-{MAX_SAFE_INTEGER}'
+            " or null",
+            None,
+        )
     method = obj.get("method")
     if not isinstance(method, str):
         raise _InvalidRequest('invalid request: "method" must be a string', id)
@@ -293,6 +378,8 @@ def _bind_params(name: str, method: Method, params: dict[str, Any] | list[Any] |
         return ()
     if isinstance(params, list) and params:
         raise RpcError(INVALID_PARAMS, "invalid params: params must be an object (by name)")
+    if params and (beyond := _out_of_range(params)):
+        raise RpcError(INVALID_PARAMS, _describe(beyond), beyond)
     try:
         return (method.params_model.model_validate(params or {}),)
     except ValidationError as e:
@@ -351,44 +438,71 @@ async def _one(obj: Any, methods: Mapping[str, Method], context: object) -> byte
     return await _call(request, methods, context)
 
 
-def is_immediate(line: bytes, methods: Methods) -> bool:
-    """A single request for a method that never suspends: answerable without a task.
+@dataclass(frozen=True, slots=True)
+class Incoming:
+    """One request line, parsed once: what `answer` will run, and how much of it.
 
-    A substring test first, so that other requests cost nothing more.
+    `requests` is what the line costs against a client's limit on requests
+    in flight: a batch's length, else 1. When `reply` is set the line is
+    answered with it as it is and nothing runs (`requests` is 0): it is not
+    JSON, or a batch that is empty or over the cap.
     """
-    if not any(name in line for name in methods.immediate_names):
-        return False
+
+    message: Any
+    requests: int
+    reply: bytes | None = None
+
+
+def decode(line: bytes, max_batch: int = MAX_BATCH) -> Incoming:
+    """Parse one line (with or without its newline). Never raises for what a client sent."""
     try:
-        obj = json.loads(line)
-    except (ValueError, RecursionError):
+        message = _parse(line)
+    except RpcError as e:
+        return Incoming(None, 0, encode_error(e.code, e.message, None))
+    if not isinstance(message, list):
+        return Incoming(message, 1)
+    if not message:
+        return Incoming(None, 0, encode_error(INVALID_REQUEST, "invalid request: empty batch"))
+    if len(message) > max_batch:
+        error = f"invalid request: batch over {max_batch} requests"
+        return Incoming(None, 0, encode_error(INVALID_REQUEST, error))
+    return Incoming(message, len(message))
+
+
+def is_immediate(incoming: Incoming, methods: Mapping[str, Method]) -> bool:
+    """A single request for a method that never suspends: answerable without a task."""
+    message = incoming.message
+    if incoming.reply is not None or not isinstance(message, dict):
         return False
-    name = obj.get("method") if isinstance(obj, dict) else None
+    name = message.get("method")
     method = methods.get(name) if isinstance(name, str) else None
     return method is not None and method.immediate
 
 
-async def dispatch(line: bytes, methods: Mapping[str, Method], context: object) -> bytes | None:
-    """Answer one line: the response (single or batch array) as bytes without a newline,
+async def answer(
+    incoming: Incoming, methods: Mapping[str, Method], context: object
+) -> bytes | None:
+    """Run a decoded line: the response (single or batch array) as bytes without a newline,
     or None when nothing is to be sent (a notification, a batch of only notifications).
 
     Never raises for anything the client sent or a handler did; cancellation passes through.
     Batch elements run concurrently; the array is sent once all of them are done.
     """
-    try:
-        message = _parse(line)
-    except RpcError as e:
-        return encode_error(e.code, e.message, None)
+    if incoming.reply is not None:
+        return incoming.reply
+    message = incoming.message
     if not isinstance(message, list):
         return await _one(message, methods, context)
-    if not message:
-        return encode_error(INVALID_REQUEST, "invalid request: empty batch", None)
-    if len(message) > MAX_BATCH:
-        return encode_error(
-            INVALID_REQUEST, f"invalid request: batch over {MAX_BATCH} requests", None
-        )
     async with asyncio.TaskGroup() as tg:
         tasks = [tg.create_task(_one(element, methods, context)) for element in message]
     answers = [answer for task in tasks if (answer := task.result()) is not None]
     if not answers:
         return None
     return b"[" + b",".join(answers) + b"]"
+
+
+async def dispatch(
+    line: bytes, methods: Mapping[str, Method], context: object, max_batch: int = MAX_BATCH
+) -> bytes | None:
+    """`decode` then `answer`: one line in, its response (or None) out."""
+    return await answer(decode(line, max_batch), methods, context)

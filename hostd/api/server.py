@@ -1,16 +1,22 @@
 """The control API's Unix socket: newline-framed JSON-RPC, one task tree per client.
 
-This file only moves lines between sockets and `rpc.dispatch`; what a line
-means is `rpc.py`'s business, what a method does is the API layer's.
+This file only moves lines between sockets and `rpc`; what a line means is
+`rpc.py`'s business, what a method does is the API layer's, where the socket
+file may live and how it is born is `socketfile.py`'s, and how bytes become
+lines is `lines.py`'s.
 
 Per client (a `Client`, which is also the `context` handlers can ask for with
 `current_client()`):
 
 - One connection task owns everything the client causes: a reader loop, a
-  writer task, and one task per request (requests are handled concurrently,
-  so a slow one never holds up the next; answers go out as they complete).
-  At most `max_inflight` requests run at once; past that the reader stops
-  reading and the socket pushes back on the client.
+  writer task, and one task per request line (requests are handled
+  concurrently, so a slow one never holds up the next; answers go out as
+  they complete).
+- At most `max_inflight` requests run at once, counting each request of a
+  batch: a line of n requests waits until n are free, and meanwhile the
+  reader stops reading and the socket pushes back on the client. A batch of
+  more than `max_inflight` requests could never fit: it is one -32600 and
+  none of it runs. So at most one parsed line per client waits on the host.
 - Everything sent to the client (answers and notifications) goes through one
   bounded queue emptied by the writer task. A full queue, or a write that
   cannot drain within `write_timeout`, disconnects the client: one that stops
@@ -20,8 +26,18 @@ Per client (a `Client`, which is also the `context` handlers can ask for with
   a CLI was closed would be worse. Closing the server cancels them.
 
 Lines longer than `max_line` are answered with -32600 and the connection is
-closed; a client that ends its side (EOF) gets the answers to the requests it
-sent before the connection is closed.
+closed; so is a line left half-sent for `line_timeout` seconds (a client
+quiet between lines stays connected however long). A client that ends its
+side (EOF) gets the answers to the requests it sent before the connection is
+closed.
+
+Connections: at most `max_clients` admitted clients at once. A connection
+counts from its admission until its last request has finished, even when its
+peer has already gone (its requests still hold the daemon's resources). An
+allowed peer past the cap is told so in one line (error `SERVER_FULL`, id
+null) and closed; nothing it sent is run. At most `max_clients` more
+connections may be in admission or being turned away at once; past that a
+new connection is closed at once, unread.
 """
 
 from __future__ import annotations
@@ -31,15 +47,14 @@ import contextlib
 import enum
 import itertools
 import os
-import socket
-import stat
 from collections.abc import Callable, Mapping
 from types import TracebackType
 from typing import Any, Final, Self, cast
 
 import structlog
 
-from hostd.api import rpc
+from hostd.api import rpc, socketfile
+from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
 
 log = structlog.get_logger(__name__)
@@ -48,11 +63,12 @@ MAX_LINE: Final = 1 << 20
 QUEUE_SIZE: Final = 1000
 WRITE_TIMEOUT: Final = 10.0
 MAX_INFLIGHT: Final = 128
-SOCKET_MODE: Final = 0o660
-
-
-class SocketPathError(Exception):
-    """The socket path cannot be used: not a socket, or another process listens on it."""
+MAX_CLIENTS: Final = 128
+LINE_TIMEOUT: Final = 10.0
+# How long a client turned away (the daemon full) gets to read why before it is dropped.
+TURN_AWAY_LINGER: Final = 1.0
+# JSON-RPC leaves -32000 to -32099 to the server: the daemon has max_clients connected.
+SERVER_FULL: Final = -32000
 
 
 class _End(enum.Enum):
@@ -93,6 +109,7 @@ class Client:
         self._write_timeout = write_timeout
         self._closed = False
         self._ending = False  # an _End is queued: nothing more goes in
+        self._end_reason = "client ended the connection"
         self._writer_task: asyncio.Task[None] | None = None
 
     @property
@@ -154,10 +171,14 @@ class Client:
             self._writer_task.cancel()
         asyncio.get_running_loop().call_soon(self._run_hooks)
 
-    def _finish(self, end: _End) -> None:
-        """Let the writer send what is queued, then end the connection as `end` says."""
+    def _finish(self, end: _End, reason: str = "client ended the connection") -> None:
+        """Let the writer send what is queued, then end the connection as `end` says.
+
+        `reason` is what the disconnect is logged with, once `CLOSE` has closed it.
+        """
         if self._closed or self._ending:
             return
+        self._end_reason = reason
         try:
             self._queue.put_nowait(end)
         except asyncio.QueueFull:
@@ -199,7 +220,7 @@ class Client:
                     self._writer.close()
                     async with asyncio.timeout(self._write_timeout):
                         await self._writer.wait_closed()
-                    self.close("client ended the connection")
+                    self.close(self._end_reason)
                     return
         except TimeoutError:
             self.close(f"write did not drain within {self._write_timeout} s")
@@ -238,10 +259,12 @@ class ApiServer:
         queue_size: int = QUEUE_SIZE,
         write_timeout: float = WRITE_TIMEOUT,
         max_inflight: int = MAX_INFLIGHT,
+        max_clients: int = MAX_CLIENTS,
+        line_timeout: float = LINE_TIMEOUT,
     ) -> None:
         """`policy` defaults to root and the daemon's own user; `socket_gid`, when
-        given, becomes the socket file's group (0660 lets that group connect,
-        the policy must still allow them)."""
+        given, becomes the socket file's group (the file is then 0660 so that
+        the group can connect, the policy must still allow them; else 0600)."""
         self._methods = methods
         self._policy = policy if policy is not None else AccessPolicy.default()
         self._socket_gid = socket_gid
@@ -249,12 +272,15 @@ class ApiServer:
         self._queue_size = queue_size
         self._write_timeout = write_timeout
         self._max_inflight = max_inflight
+        self._max_clients = max_clients
+        self._line_timeout = line_timeout
         self._server: asyncio.Server | None = None
         self._path: str | None = None
         self._inode: tuple[int, int] | None = None
         self._closing = False
         self._ids = itertools.count(1)
-        self._clients: set[Client] = set()
+        self._clients: set[Client] = set()  # admitted, until their last request is done
+        self._unadmitted = 0  # connections being admitted or turned away
         self._connections: set[asyncio.Task[None]] = set()
 
     @property
@@ -265,6 +291,12 @@ class ApiServer:
     def clients(self) -> list[Client]:
         """The clients connected now."""
         return [c for c in self._clients if not c.closed]
+
+    @property
+    def admitted(self) -> int:
+        """Connections counted against `max_clients`: those connected, and those that
+        left with requests still running."""
+        return len(self._clients)
 
     async def __aenter__(self) -> Self:
         return self
@@ -278,23 +310,30 @@ class ApiServer:
         await self.close()
 
     async def start(self, path: str | os.PathLike[str]) -> None:
-        """Listen on `path`. Raises SocketPathError if the path is taken by
-        something that is not a stale socket."""
+        """Listen on `path`. Raises `socketfile.SocketPathError` (one line, for the
+        operator) if the path cannot be used: see socketfile.py."""
         if self._server is not None or self._closing:
             raise RuntimeError("ApiServer.start() called twice")
         where = os.fspath(path)
-        _remove_stale_socket(where)
-        sock, self._inode = _bind(where, self._socket_gid)
+        socketfile.prepare(where)
+        bound = socketfile.bind(where, self._socket_gid)
+        self._inode = bound.inode
         try:
             self._server = await asyncio.start_unix_server(
-                self._accept, sock=sock, limit=self._max_line
+                self._accept, sock=bound.sock, limit=self._max_line
             )
         except BaseException:
-            sock.close()
-            self._unlink_own_socket(where)
+            bound.sock.close()
+            socketfile.unlink_own(where, bound.inode)
             raise
         self._path = where
-        log.info("api listening", path=where, gid=self._socket_gid, max_line=self._max_line)
+        log.info(
+            "api listening",
+            path=where,
+            gid=self._socket_gid,
+            max_line=self._max_line,
+            max_clients=self._max_clients,
+        )
 
     async def close(self) -> None:
         """Stop accepting, drop every client (cancelling their requests), remove the socket file."""
@@ -309,21 +348,10 @@ class ApiServer:
         if self._server is not None:
             await self._server.wait_closed()
             self._server = None
-        if self._path is not None:
-            self._unlink_own_socket(self._path)
+        if self._path is not None and self._inode is not None:
+            socketfile.unlink_own(self._path, self._inode)
             log.info("api closed", path=self._path)
             self._path = None
-
-    def _unlink_own_socket(self, path: str) -> None:
-        """Remove the socket file, unless someone replaced it with another since we bound it."""
-        try:
-            st = os.lstat(path)
-        except FileNotFoundError:
-            return
-        if (st.st_dev, st.st_ino) != self._inode:
-            log.warning("socket path no longer ours; left in place", path=path)
-            return
-        os.unlink(path)
 
     # --- per connection -----------------------------------------------------
 
@@ -334,6 +362,12 @@ class ApiServer:
         if self._closing:
             transport.abort()
             return
+        if self._unadmitted >= self._max_clients:
+            # A flood of connections: do not even ask who they are (a thread each).
+            log.warning("api connection dropped: too many being admitted", max=self._max_clients)
+            transport.abort()
+            return
+        self._unadmitted += 1
         task = asyncio.create_task(self._serve(reader, writer))
         self._connections.add(task)
         task.add_done_callback(self._connections.discard)
@@ -358,7 +392,13 @@ class ApiServer:
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         transport = cast(asyncio.Transport, writer.transport)
         try:
-            peer = await self._admit(writer)
+            try:
+                peer = await self._admit(writer)
+                if peer is not None and len(self._clients) >= self._max_clients:
+                    await self._turn_away(peer, reader, writer)
+                    peer = None
+            finally:
+                self._unadmitted -= 1
         except BaseException:
             transport.abort()
             raise
@@ -387,21 +427,51 @@ class ApiServer:
             client._run_hooks()
             self._clients.discard(client)
 
+    async def _turn_away(
+        self, peer: PeerCred, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        """Tell an allowed peer the daemon is full, then hang up without running anything.
+
+        The answer is followed by EOF and whatever the peer sends meanwhile is
+        discarded until it hangs up too (or TURN_AWAY_LINGER passes): closing
+        with its request unread would reset the connection under the answer.
+        """
+        log.warning(
+            "api client refused: daemon full",
+            pid=peer.pid,
+            uid=peer.uid,
+            max_clients=self._max_clients,
+        )
+        message = f"daemon full: {self._max_clients} clients connected; try again later"
+        transport = cast(asyncio.Transport, writer.transport)
+        with contextlib.suppress(TimeoutError, OSError):
+            async with asyncio.timeout(TURN_AWAY_LINGER):
+                writer.write(rpc.encode_error(SERVER_FULL, message) + b"\n")
+                writer.write_eof()
+                transport.resume_reading()
+                await writer.drain()
+                while await reader.read(1 << 16):
+                    pass
+
     async def _read_loop(
         self, client: Client, reader: asyncio.StreamReader, tg: asyncio.TaskGroup
     ) -> None:
+        lines = LineReader(reader, max_line=self._max_line, line_timeout=self._line_timeout)
         slots = asyncio.Semaphore(self._max_inflight)
         pending: set[asyncio.Task[None]] = set()
         while not client.closed:
             try:
-                line = await reader.readline()
-            except ValueError:  # over the StreamReader's limit, i.e. max_line
+                line = await lines.readline()
+            except LineTooLong:
                 await self._refuse_long_line(client, reader)
+                return
+            except LineTimeout:
+                self._drop_stalled(client)
                 return
             except OSError as e:
                 client.close(f"read failed: {e}")
                 return
-            if not line:
+            if line is None:
                 # EOF: the client is done sending; answer what it asked, then close.
                 if pending:
                     await asyncio.wait(pending)
@@ -409,26 +479,42 @@ class ApiServer:
                 return
             if not line.strip():
                 continue
-            await slots.acquire()
-            if isinstance(self._methods, rpc.Methods) and rpc.is_immediate(line, self._methods):
-                # A realtime byte: run it now, not a loop pass later in a task of its own.
-                await self._handle(client, line, slots)
+            incoming = rpc.decode(line, max_batch=self._max_inflight)
+            if incoming.reply is not None:  # not JSON, or a batch that cannot run: nothing runs
+                client.send_line(incoming.reply)
                 continue
-            task = tg.create_task(self._handle(client, line, slots))
+            for _ in range(incoming.requests):  # the reader is the only taker: no deadlock
+                await slots.acquire()
+            if rpc.is_immediate(incoming, self._methods):
+                # A realtime byte: run it now, not a loop pass later in a task of its own.
+                await self._handle(client, incoming, slots)
+                continue
+            task = tg.create_task(self._handle(client, incoming, slots))
             pending.add(task)
             task.add_done_callback(pending.discard)
 
-    async def _handle(self, client: Client, line: bytes, slots: asyncio.Semaphore) -> None:
+    async def _handle(
+        self, client: Client, incoming: rpc.Incoming, slots: asyncio.Semaphore
+    ) -> None:
+        """Answer one line; its requests' slots are given back once all of them are done."""
         try:
-            response = await rpc.dispatch(line, self._methods, client)
+            response = await rpc.answer(incoming, self._methods, client)
         except Exception:
-            # dispatch answers everything itself; reaching here is a bug in rpc.py.
+            # answer() answers everything itself; reaching here is a bug in rpc.py.
             client.log.exception("dispatch failed")
             response = rpc.encode_error(rpc.INTERNAL_ERROR, "internal error")
         finally:
-            slots.release()
+            for _ in range(incoming.requests):
+                slots.release()
         if response is not None:
             client.send_line(response)
+
+    def _drop_stalled(self, client: Client) -> None:
+        """A line left half-sent for line_timeout: say so, then close (a slowloris, or a bug)."""
+        client.log.warning("api client stalled mid-line; closing", line_timeout=self._line_timeout)
+        message = f"request line not finished within {self._line_timeout:g} s"
+        client.send_line(rpc.encode_error(rpc.INVALID_REQUEST, message))
+        client._finish(_End.CLOSE, f"half a line for over {self._line_timeout:g} s")
 
     async def _refuse_long_line(self, client: Client, reader: asyncio.StreamReader) -> None:
         """Answer -32600, then close without resetting the connection under the answer.
@@ -447,67 +533,3 @@ class ApiServer:
                 while not client.closed and await reader.read(1 << 16):
                     pass
         client.close("request line too long")
-
-
-def _remove_stale_socket(path: str) -> None:
-    """Make room for our socket: remove a socket nobody listens on; refuse anything else."""
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
-        return
-    if not stat.S_ISSOCK(st.st_mode):
-        raise SocketPathError(f"{path} exists and is not a socket; refusing to remove it")
-    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    probe.setblocking(False)
-    try:
-        probe.connect(path)
-    except ConnectionRefusedError:
-        pass  # stale: left behind by a daemon that died
-    except FileNotFoundError:
-        return
-    except BlockingIOError:
-        raise SocketPathError(f"{path} is in use: another process listens on it") from None
-    except OSError as e:
-        raise SocketPathError(f"cannot tell whether {path} is in use: {e}") from None
-    else:
-        raise SocketPathError(f"{path} is in use: another process listens on it")
-    finally:
-        probe.close()
-    os.unlink(path)
-    log.info("removed stale socket", path=path)
-
-
-def _bind(path: str, gid: int | None) -> tuple[socket.socket, tuple[int, int]]:
-    """A socket bound at `path`, mode 0660, group `gid`, not yet listening.
-
-    The file is born 0600 (umask), given its group, then opened to the group:
-    it is never wider than 0660 and never open to the wrong group, and nobody
-    can connect before start_unix_server calls listen(). The umask is
-    process-wide: a file another thread creates in this instant is born
-    stricter than it asked for, never wider.
-    """
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    bound = False
-    try:
-        old = os.umask(0o177)
-        try:
-            sock.bind(path)
-            bound = True
-        finally:
-            os.umask(old)
-        if gid is not None:
-            try:
-                os.chown(path, -1, gid, follow_symlinks=False)
-            except OSError as e:
-                raise SocketPathError(f"cannot give {path} group {gid}: {e.strerror}") from e
-        st = os.lstat(path)
-        if not stat.S_ISSOCK(st.st_mode):  # chmod follows symlinks: do not let a swap redirect it
-            raise SocketPathError(f"{path} was replaced while binding")
-        os.chmod(path, SOCKET_MODE)
-    except BaseException:
-        sock.close()
-        if bound:
-            with contextlib.suppress(OSError):
-                os.unlink(path)
-        raise
-    return sock, (st.st_dev, st.st_ino)

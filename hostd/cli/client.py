@@ -107,6 +107,7 @@ class Client:
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
         self._closed: str | None = None  # why the connection ended, once it has
+        self._farewell: str | None = None  # an error the daemon sent without an id
 
     async def __aenter__(self) -> Self:
         try:
@@ -191,6 +192,8 @@ class Client:
                     reason = f"reading from hostd at {self.path}: {exc}"
                     break
                 if not line:
+                    if self._farewell is not None:
+                        reason = f"{reason}: {self._farewell}"
                     break
                 if not line.strip():
                     continue
@@ -217,9 +220,11 @@ class Client:
         error = message.get("error")
         request_id = message.get("id")
         if request_id is None and isinstance(error, dict):
-            # The daemon could not read our id (a line over its size limit): every
-            # waiting call is a candidate, and it closes the connection next anyway.
+            # The daemon could not read our id (a line over its size limit) or will not
+            # serve us (it is full): every waiting call is a candidate, and it closes the
+            # connection next anyway. With none waiting, it is why the connection ends.
             failure = _rpc_error(error)
+            self._farewell = failure.message
             for waiting in self._pending.values():
                 if not waiting.done():
                     waiting.set_exception(failure)

@@ -56,6 +56,8 @@ class Harness:
     slow_started: asyncio.Event = field(default_factory=asyncio.Event)
     disconnected: asyncio.Event = field(default_factory=asyncio.Event)
     counted: int = 0
+    running: int = 0  # `slow` calls under way
+    peak: int = 0  # the most `slow` calls ever under way at once
 
     def __post_init__(self) -> None:
         m = self.methods
@@ -75,8 +77,13 @@ class Harness:
         return p.a + p.b
 
     async def slow(self) -> str:
+        self.running += 1
+        self.peak = max(self.peak, self.running)
         self.slow_started.set()
-        await self.release.wait()
+        try:
+            await self.release.wait()
+        finally:
+            self.running -= 1
         return "slow done"
 
     async def boom(self) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from typing import Any
 
 import pytest
@@ -30,6 +31,12 @@ class Lax(BaseModel):
     x: int
 
 
+class JobRef(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    job: int
+    tags: list[Any] = []
+
+
 def table() -> Methods:
     async def nan() -> float:
         return math.nan
@@ -46,7 +53,12 @@ def table() -> Methods:
     async def where(p: Point) -> Point:
         return p
 
+    async def store(p: JobRef) -> str:
+        # What SQLite does with an integer: a signed 64-bit slot, OverflowError past it.
+        return struct.pack("<q", p.job).hex()
+
     m = Methods()
+    m.register("store", JobRef, store)
     m.register("nan", None, nan)
     m.register("unserialisable", None, unserialisable)
     m.register("who", None, who)
@@ -113,8 +125,8 @@ async def test_a_result_that_is_not_strict_json_is_an_internal_error(method: str
 @pytest.mark.asyncio
 @pytest.mark.parametrize(
     "line",
-    [b"[" * 100_000 + b"]" * 100_000, b"1" * 5000, b"", b'{"a": Infinity}'],
-    ids=["too-deep", "too-many-digits", "empty", "infinity"],
+    [b"[" * 100_000 + b"]" * 100_000, b"", b'{"a": Infinity}', b'{"id": NaN}', b"-Infinity"],
+    ids=["too-deep", "empty", "infinity", "nan", "minus-infinity"],
 )
 async def test_json_python_would_choke_on_or_accept_loosely_is_a_parse_error(line: bytes) -> None:
     answer = await call(line)
@@ -123,8 +135,87 @@ async def test_json_python_would_choke_on_or_accept_loosely_is_a_parse_error(lin
 
 
 @pytest.mark.asyncio
-async def test_a_float_id_is_echoed() -> None:
-    assert (await call('{"jsonrpc":"2.0","method":"where","id":1.5}'))["id"] == 1.5
+@pytest.mark.parametrize(
+    "line",
+    [b"1" * 5000, b"1e400", b"[1e400]"],
+    ids=["more-digits-than-python-reads", "beyond-a-double", "in-a-batch"],
+)
+async def test_a_number_too_big_for_anyone_is_still_json_but_not_a_request(line: bytes) -> None:
+    answer = await call(line)
+    first = answer[0] if isinstance(answer, list) else answer
+    assert first["error"]["code"] == -32600
+    assert first["id"] is None
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize(
+    "id",
+    ["1.5", "1.0", "1e3", "-0.0", "9007199254740992", "-9007199254740992", "1" + "0" * 400,
+     "1e400", "true", "false", "{}", "[]", '{"id": 1}'],
+)  # fmt: skip
+async def test_an_id_that_is_not_a_string_a_safe_integer_or_null_is_an_invalid_request(
+    id: str,
+) -> None:
+    answer = await call(f'{{"jsonrpc":"2.0","method":"where","id":{id}}}')
+    assert answer["error"]["code"] == -32600
+    assert answer["error"]["message"] == (
+        'invalid request: "id" must be a string, an integer within +-9007199254740991 or null'
+    )
+    assert answer["id"] is None
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("id", [0, 9007199254740991, -9007199254740991, "", "x" * 1000])
+async def test_safe_integer_and_string_ids_are_echoed(id: int | str) -> None:
+    line = json.dumps({"jsonrpc": "2.0", "method": "where", "id": id})
+    assert (await call(line))["id"] == id
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize(
+    ("params", "loc", "number"),
+    [
+        ('{"job": 9007199254740992}', ["job"], "9007199254740992"),
+        ('{"job": -1' + "0" * 400 + "}", ["job"], "-1000000000000000000..."),
+        ('{"job": 1, "tags": [0, {"a": 1e400}]}', ["tags", 1, "a"], "1e400"),
+        ('{"job": 1, "tags": [-1e999]}', ["tags", 0], "-1e999"),
+    ],
+    ids=["just-past-2**53", "400-digits", "nested-float-overflow", "negative-overflow"],
+)
+async def test_a_number_out_of_range_in_params_is_invalid_params_not_an_internal_error(
+    params: str, loc: list[Any], number: str
+) -> None:
+    answer = await call(f'{{"jsonrpc":"2.0","method":"store","id":7,"params":{params}}}')
+    assert answer["id"] == 7
+    assert answer["error"]["code"] == -32602
+    assert answer["error"]["data"] == [
+        {
+            "loc": loc,
+            "msg": f"number {number} out of range: integers must be within"
+            " +-9007199254740991, floats finite",
+            "type": "number_out_of_range",
+        }
+    ]
+    assert answer["error"]["message"].startswith(f"invalid params: {'.'.join(map(str, loc))}: ")
+
+
+@pytest.mark.asyncio
+async def test_the_largest_safe_integer_reaches_the_handler() -> None:
+    answer = await call(
+        '{"jsonrpc":"2.0","method":"store","id":1,"params":{"job":-9007199254740991}}'
+    )
+    assert answer["result"] == struct.pack("<q", -(2**53 - 1)).hex()
+
+
+@pytest.mark.asyncio
+async def test_params_nested_as_deep_as_the_parser_allows_are_invalid_params() -> None:
+    deep = "[" * 500 + "]" * 500
+    answer = await call(f'{{"jsonrpc":"2.0","method":"store","id":1,"params":{{"job":{deep}}}}}')
+    assert answer["error"]["code"] == -32602
+    answer = await call(
+        f'{{"jsonrpc":"2.0","method":"store","id":1,"params":{{"job":1,"tags":{deep}}}}}'
+    )
+    assert answer["result"] == struct.pack("<q", 1).hex()
 
 
 @pytest.mark.asyncio
@@ -158,6 +249,40 @@ async def test_a_batch_is_capped() -> None:
     }
 
 
+@pytest.mark.parametrize(
+    ("line", "requests"),
+    [
+        (b'{"jsonrpc":"2.0","method":"where","id":1}', 1),
+        (b"[1, 2, 3]", 3),
+        (b'[{"jsonrpc":"2.0","method":"where"}]', 1),
+        (b"42", 1),
+    ],
+)
+def test_a_line_costs_one_request_or_its_batch_length(line: bytes, requests: int) -> None:
+    incoming = rpc.decode(line)
+    assert incoming.reply is None
+    assert incoming.requests == requests
+
+
+@pytest.mark.parametrize("line", [b"nope", b"[]", b"[1, 2, 3, 4]"])
+def test_a_line_that_cannot_run_is_answered_at_once_and_costs_nothing(line: bytes) -> None:
+    incoming = rpc.decode(line, max_batch=3)
+    assert incoming.requests == 0
+    assert incoming.reply is not None
+    assert json.loads(incoming.reply)["error"]["code"] in (-32700, -32600)
+
+
+@pytest.mark.asyncio
+async def test_the_batch_cap_is_the_callers() -> None:
+    one = b'{"jsonrpc":"2.0","method":"where","id":1}'
+    answer = await dispatch(b"[" + b",".join([one] * 4) + b"]", table(), None, max_batch=3)
+    assert answer is not None
+    assert json.loads(answer)["error"] == {
+        "code": -32600,
+        "message": "invalid request: batch over 3 requests",
+    }
+
+
 def test_only_single_requests_for_immediate_methods_skip_the_task() -> None:
     class P(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -169,9 +294,13 @@ def test_only_single_requests_for_immediate_methods_skip_the_task() -> None:
     table = rpc.Methods()
     table.register("machine.feedhold", P, hold, immediate=True)
     table.register("machine.status", P, hold)
+
+    def immediate(line: bytes) -> bool:
+        return rpc.is_immediate(rpc.decode(line), table)
+
     line = b'{"jsonrpc":"2.0","id":1,"method":"machine.feedhold","params":{"machine":"m"}}'
-    assert rpc.is_immediate(line, table)
-    assert not rpc.is_immediate(line.replace(b"feedhold", b"status"), table)
-    assert not rpc.is_immediate(b"[" + line + b"]", table)  # a batch goes the usual way
-    assert not rpc.is_immediate(b'{"method":"machine.feedhold"', table)  # broken JSON
-    assert not rpc.is_immediate(b'{"method":"x","params":"machine.feedhold"}', table)
+    assert immediate(line)
+    assert not immediate(line.replace(b"feedhold", b"status"))
+    assert not immediate(b"[" + line + b"]")  # a batch goes the usual way
+    assert not immediate(b'{"method":"machine.feedhold"')  # broken JSON
+    assert not immediate(b'{"method":"x","params":"machine.feedhold"}')

@@ -6,6 +6,7 @@ import asyncio
 import os
 import socket
 import stat
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +14,8 @@ import pytest
 from structlog.testing import capture_logs
 
 from hostd.api.peer import AccessPolicy
-from hostd.api.server import ApiServer, SocketPathError
+from hostd.api.server import ApiServer
+from hostd.api.socketfile import SocketPathError
 
 from .conftest import TIMEOUT, Conn, Harness, serving
 
@@ -360,14 +362,235 @@ async def test_a_write_that_does_not_drain_in_time_disconnects(
             await deaf.close()
 
 
+async def test_a_batch_counts_each_request_against_the_clients_limit(
+    harness: Harness, tmp_path: Path
+) -> None:
+    slow = {"jsonrpc": "2.0", "method": "slow"}
+    async with serving(harness, tmp_path / "s", max_inflight=4) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            for batch in range(3):  # nine requests on three lines; four may run at once
+                await conn.send([{**slow, "id": f"{batch}.{i}"} for i in range(3)])
+            async with asyncio.timeout(TIMEOUT):
+                await harness.slow_started.wait()
+            await asyncio.sleep(0.1)  # room for the second batch to start, were it let in
+            assert harness.running == 3  # it waits: its three do not fit in the one left
+            harness.release.set()
+            answers = [await conn.recv() for _ in range(3)]
+            assert sorted(a["id"] for batch in answers for a in batch) == [
+                f"{b}.{i}" for b in range(3) for i in range(3)
+            ]
+            assert harness.peak == 3
+        finally:
+            await conn.close()
+
+
+async def test_a_batch_larger_than_the_limit_is_refused_whole(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_inflight=4) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send([{"jsonrpc": "2.0", "method": "count", "id": i} for i in range(5)])
+            assert await conn.recv() == {
+                "jsonrpc": "2.0",
+                "error": {"code": -32600, "message": "invalid request: batch over 4 requests"},
+                "id": None,
+            }
+            await conn.send([{"jsonrpc": "2.0", "method": "count", "id": i} for i in range(4)])
+            assert sorted(a["result"] for a in await conn.recv()) == [1, 2, 3, 4]
+        finally:
+            await conn.close()
+
+
+async def test_past_max_clients_an_allowed_peer_is_told_the_daemon_is_full(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=2) as server:
+        assert server.path is not None
+        first, second = await Conn.open(server.path), await Conn.open(server.path)
+        try:
+            assert (await first.call("count", id=1))["result"] == 1
+            assert (await second.call("count", id=1))["result"] == 2
+            with capture_logs() as logs:
+                third = await Conn.open(server.path)
+                await third.send({"jsonrpc": "2.0", "method": "count", "id": 1})
+                assert await third.recv() == {
+                    "jsonrpc": "2.0",
+                    "error": {
+                        "code": -32000,
+                        "message": "daemon full: 2 clients connected; try again later",
+                    },
+                    "id": None,
+                }
+                assert await third.closed_by_server()
+            [entry] = [e for e in logs if e["event"] == "api client refused: daemon full"]
+            assert (entry["pid"], entry["uid"], entry["max_clients"]) == (
+                os.getpid(),
+                os.getuid(),
+                2,
+            )
+            assert harness.counted == 2  # the refused request never ran
+            assert server.admitted == 2
+            assert (await first.call("count", id=2))["result"] == 3
+            assert (await second.call("count", id=2))["result"] == 4
+            await third.close()
+        finally:
+            await first.close()
+            await second.close()
+
+
+async def test_a_place_freed_by_a_client_that_left_is_taken_by_the_next(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=1) as server:
+        assert server.path is not None
+        first = await Conn.open(server.path)
+        await first.call("whoami")
+        await first.close()
+        async with asyncio.timeout(TIMEOUT):
+            await harness.disconnected.wait()
+            # It counts until its connection task has ended, a few loop passes after
+            # its hooks ran; nothing signals that, so look (bounded by the timeout).
+            while server.admitted:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        second = await Conn.open(server.path)
+        try:
+            assert (await second.call("count"))["result"] == 1
+        finally:
+            await second.close()
+
+
+async def test_a_client_that_left_with_requests_running_still_counts(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", max_clients=1) as server:
+        assert server.path is not None
+        gone = await Conn.open(server.path)
+        await gone.send({"jsonrpc": "2.0", "method": "slow", "id": 1})
+        async with asyncio.timeout(TIMEOUT):
+            await harness.slow_started.wait()
+        await gone.close()
+        newcomer = await Conn.open(server.path)
+        try:
+            assert (await newcomer.recv())["error"]["code"] == -32000
+            harness.release.set()
+        finally:
+            await newcomer.close()
+
+
+class _Gate:
+    """An access policy that holds every peer at the door until opened."""
+
+    def __init__(self) -> None:
+        self.open = threading.Event()
+        self.waiting = threading.Semaphore(0)
+
+    def allows(self, peer: Any) -> bool:
+        self.waiting.release()
+        return self.open.wait(TIMEOUT)
+
+
+async def test_connections_waiting_for_admission_are_bounded_too(
+    harness: Harness, tmp_path: Path
+) -> None:
+    gate = _Gate()
+    async with serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server:
+        assert server.path is not None
+        held = [await Conn.open(server.path) for _ in range(2)]
+        try:
+            for _ in held:
+                assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
+            with capture_logs() as logs:
+                dropped = await Conn.open(server.path)
+                assert await dropped.closed_by_server()
+            assert [e["event"] for e in logs] == ["api connection dropped: too many being admitted"]
+            gate.open.set()
+            for conn in held:
+                assert (await conn.call("count"))["id"] == 1
+        finally:
+            gate.open.set()
+            for conn in held:
+                await conn.close()
+
+
+async def test_a_half_sent_line_left_for_line_timeout_disconnects_only_that_client(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", line_timeout=0.2) as server:
+        assert server.path is not None
+        quiet = await Conn.open(server.path)
+        await quiet.call("count", id=1)  # admitted; says nothing more from here on
+        stalled = await Conn.open(server.path)
+        try:
+            await stalled.call("count", id=1)
+            loop = asyncio.get_running_loop()
+            with capture_logs() as logs:
+                await stalled.send_raw(b'{"jsonrpc": "2.0", "method": "cou')
+                sent = loop.time()
+                assert await stalled.recv() == {
+                    "jsonrpc": "2.0",
+                    "error": {"code": -32600, "message": "request line not finished within 0.2 s"},
+                    "id": None,
+                }
+                assert await stalled.closed_by_server()
+            assert loop.time() - sent >= 0.2
+            reasons = [e["reason"] for e in logs if e["event"] == "api client disconnected"]
+            assert reasons == ["half a line for over 0.2 s"]
+            # Quiet for longer than the timeout, but between lines: still served.
+            assert (await quiet.call("count", id=2))["result"] == 3
+            assert [c.id for c in server.clients] == [1]
+        finally:
+            await quiet.close()
+            await stalled.close()
+
+
+async def test_a_line_sent_in_pieces_within_the_timeout_is_one_request(
+    harness: Harness, tmp_path: Path
+) -> None:
+    async with serving(harness, tmp_path / "s", line_timeout=5) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            for piece in (b'{"jsonrpc": "2.0", ', b'"method": "count",', b' "id": 4}\n'):
+                await conn.send_raw(piece)
+            assert await conn.recv() == {"jsonrpc": "2.0", "result": 1, "id": 4}
+        finally:
+            await conn.close()
+
+
+async def test_the_line_clock_stops_while_the_daemon_is_not_reading(
+    harness: Harness, tmp_path: Path
+) -> None:
+    """At its limit of requests in flight the client is not read: that is not its stall."""
+    async with serving(harness, tmp_path / "s", max_inflight=1, line_timeout=0.2) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send({"jsonrpc": "2.0", "method": "slow", "id": "slow"})
+            async with asyncio.timeout(TIMEOUT):
+                await harness.slow_started.wait()
+            await conn.send_raw(b'{"jsonrpc": "2.0", "method": "count", "id": 1}\n{"jsonrpc"')
+            await asyncio.sleep(0.4)  # twice the line timeout, all of it spent waiting on us
+            harness.release.set()
+            assert (await conn.recv())["id"] == "slow"
+            assert (await conn.recv())["id"] == 1
+            await conn.send_raw(b': "2.0", "method": "count", "id": 2}\n')
+            assert (await conn.recv())["result"] == 2
+        finally:
+            await conn.close()
+
+
 # --- the socket file and its peers -------------------------------------------
 
 
-async def test_the_socket_file_is_0660(server: ApiServer) -> None:
+async def test_the_socket_file_is_0600_without_a_group(server: ApiServer) -> None:
     assert server.path is not None
     st = os.stat(server.path)
     assert stat.S_ISSOCK(st.st_mode)
-    assert stat.S_IMODE(st.st_mode) == 0o660
+    assert stat.S_IMODE(st.st_mode) == 0o600
 
 
 async def test_the_socket_gets_the_configured_group_and_the_umask_is_restored(
@@ -382,6 +605,41 @@ async def test_the_socket_gets_the_configured_group_and_the_umask_is_restored(
             assert os.umask(0o022) == 0o022
     finally:
         os.umask(umask)
+
+
+@pytest.mark.parametrize("gid", [None, os.getgid()], ids=["no-group", "group"])
+async def test_the_socket_is_born_0600_whatever_the_umask_it_inherits(
+    harness: Harness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, gid: int | None
+) -> None:
+    """Seen at the first thing done to the file after bind(): it already exists, at 0600."""
+    real_chown, real_chmod = os.chown, os.chmod
+    seen: list[tuple[str, int, int]] = []  # (call, the file's mode then, the umask then)
+
+    def look(call: str, path: Any) -> None:
+        umask = os.umask(0)
+        os.umask(umask)
+        seen.append((call, stat.S_IMODE(os.lstat(path).st_mode), umask))
+
+    def chown(path: Any, *args: Any, **kwargs: Any) -> None:
+        look("chown", path)
+        real_chown(path, *args, **kwargs)
+
+    def chmod(path: Any, *args: Any, **kwargs: Any) -> None:
+        look("chmod", path)
+        real_chmod(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "chown", chown)
+    monkeypatch.setattr(os, "chmod", chmod)
+    umask = os.umask(0)  # the loosest a parent could hand down
+    try:
+        async with serving(harness, tmp_path / "s", socket_gid=gid) as server:
+            assert server.path is not None
+            final = stat.S_IMODE(os.stat(server.path).st_mode)
+    finally:
+        os.umask(umask)
+    expected = [("chmod", 0o600, 0)] if gid is None else [("chown", 0o600, 0), ("chmod", 0o600, 0)]
+    assert seen == expected
+    assert final == (0o600 if gid is None else 0o660)
 
 
 async def test_a_regular_file_at_the_path_is_not_deleted(harness: Harness, tmp_path: Path) -> None:
@@ -417,6 +675,91 @@ async def test_a_socket_someone_listens_on_is_not_taken_over(
     conn = await Conn.open(server.path)
     assert (await conn.call("count"))["result"] == 1
     await conn.close()
+
+
+async def test_a_planted_symlink_is_refused_and_left_alone(
+    harness: Harness, tmp_path: Path
+) -> None:
+    target = tmp_path / "elsewhere"
+    path = tmp_path / "s"
+    path.symlink_to(target)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match=r"s is a symbolic link; refusing to follow"):
+        await server.start(path)
+    await server.close()
+    assert path.is_symlink() and os.readlink(path) == str(target)
+    assert not target.exists()
+
+
+async def test_a_symlink_to_a_stale_socket_is_refused_not_followed(
+    harness: Harness, tmp_path: Path
+) -> None:
+    stale = tmp_path / "stale"
+    leftover = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    leftover.bind(str(stale))
+    leftover.close()
+    path = tmp_path / "s"
+    path.symlink_to(stale)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="symbolic link"):
+        await server.start(path)
+    assert path.is_symlink() and stale.exists()
+
+
+@pytest.mark.parametrize(
+    ("mode", "who"), [(0o770, "its group"), (0o707, "others"), (0o777, "others")]
+)
+async def test_a_directory_others_may_write_without_the_sticky_bit_is_refused(
+    harness: Harness, tmp_path: Path, mode: int, who: str
+) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(mode)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError) as refused:
+        await server.start(shared / "s")
+    assert str(refused.value) == (
+        f"the socket's directory {shared} is writable by {who} (mode 0{mode:o}) without the"
+        f" sticky bit, so they could replace the socket; use a directory only the daemon's"
+        f" user can write (chmod go-w {shared})"
+    )
+    assert os.listdir(shared) == []
+
+
+async def test_a_sticky_directory_like_tmp_is_fine(harness: Harness, tmp_path: Path) -> None:
+    shared = tmp_path / "tmp"
+    shared.mkdir()
+    shared.chmod(0o1777)
+    async with serving(harness, shared / "s"):
+        conn = await Conn.open(shared / "s")
+        assert (await conn.call("count"))["result"] == 1
+        await conn.close()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a directory away takes root")
+async def test_a_directory_another_user_owns_is_refused(harness: Harness, tmp_path: Path) -> None:
+    theirs = tmp_path / "theirs"
+    theirs.mkdir(mode=0o755)
+    os.chown(theirs, 4321, -1)
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match="belongs to uid 4321, who could replace"):
+        await server.start(theirs / "s")
+
+
+async def test_a_missing_directory_is_named(harness: Harness, tmp_path: Path) -> None:
+    server = ApiServer(harness.methods)
+    with pytest.raises(SocketPathError, match=f"directory {tmp_path}/nope does not exist"):
+        await server.start(tmp_path / "nope" / "s")
+
+
+async def test_a_path_too_long_for_a_socket_is_one_clear_error(
+    harness: Harness, tmp_path: Path
+) -> None:
+    server = ApiServer(harness.methods)
+    with pytest.raises(
+        SocketPathError, match=r"cannot create the socket .*: AF_UNIX path too long"
+    ):
+        await server.start(tmp_path / ("x" * 120))
 
 
 async def test_a_peer_the_policy_denies_is_closed_without_an_answer(

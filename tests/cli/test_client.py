@@ -169,6 +169,21 @@ async def test_a_hang_up_fails_the_waiting_call_and_ends_the_notifications(
 
 
 @pytest.mark.asyncio
+async def test_a_daemon_that_turns_us_away_says_why_in_the_hang_up(server: Scripted) -> None:
+    async def handler(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        send(writer, {"error": {"code": -32000, "message": "daemon full"}, "id": None})
+        writer.write_eof()
+        await reader.read()
+
+    server.handler = handler
+    async with Client(server.path) as c:
+        with pytest.raises(ConnectionLost, match=r"closed the connection: daemon full$"):
+            await c.notifications().__anext__()
+        with pytest.raises(ConnectionLost, match=r"closed the connection: daemon full$"):
+            await c.call("daemon.info")
+
+
+@pytest.mark.asyncio
 async def test_a_missing_socket_says_where_and_asks_about_the_daemon(tmp_path: Path) -> None:
     path = tmp_path / "none.sock"
 

@@ -239,6 +239,40 @@ async def test_jog_and_settings(rpc: Rpc) -> None:
     assert kinds[:3] == ["settings", "settings", "settings"] or "jog" in kinds
 
 
+@pytest.mark.parametrize(
+    ("method", "params"),
+    [
+        ("machine.jog", {"axes": {"x": 1e300}, "feed": 100}),
+        ("machine.jog", {"axes": {"x": 1}, "feed": 1e300}),
+        ("machine.jog", {"axes": {"x": 1}, "feed": 1e-300}),
+        ("machine.jog", {"axes": {"x": 1}, "feed": 2**53}),
+        ("job.start", {"file": "a.gcode", "start_line": 2**53}),
+        ("settings.set", {"values": {"xvm": "9" * 600}}),
+        ("settings.set", {"values": {"flash": 1}}),
+        ("settings.get", {"keys": ["boot"]}),
+        ("machine.send", {"line": "G0 X1", "timeout": 10**400}),
+    ],
+    ids=[
+        "jog-100-m-and-more",
+        "jog-feed-huge",
+        "jog-feed-tiny",
+        "jog-feed-past-2**53",
+        "start-line-past-2**53",
+        "setting-over-511-bytes",
+        "set-bootloader",
+        "get-bootloader",
+        "timeout-400-digits",
+    ],
+)
+async def test_params_out_of_range_are_refused_before_anything_is_sent(
+    rpc: Rpc, hostd: Running, method: str, params: dict[str, object]
+) -> None:
+    before = await rpc.call("job.list", machine="sim1")
+    await fails(-32602, rpc.call(method, machine="sim1", **params))
+    assert await rpc.call("job.list", machine="sim1") == before  # no operation was begun
+    assert (await rpc.call("machine.status", machine="sim1"))["supervisor"] == "idle"
+
+
 async def _yvm(rpc: Rpc) -> object:
     return (await rpc.call("machine.send", machine="sim1", line="{yvm:n}"))["r"]["yvm"]
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -119,7 +120,7 @@ async def test_sigterm_mid_job_interrupts_it_and_removes_the_socket(tmp_path: Pa
     config = write_config(tmp_path)
     async with daemon_process(tmp_path, config) as process:
         rpc = await ready_client(process)
-        assert oct(os.stat(process.socket_path).st_mode & 0o777) == oct(0o660)
+        assert oct(os.stat(process.socket_path).st_mode & 0o777) == oct(0o600)  # no group
         await process.message(b"WATCHDOG=1")
         job_id = await start_long_job(rpc)
         await follow_until_acked(rpc, job_id, 50)
@@ -194,3 +195,100 @@ async def test_an_unknown_socket_group_stops_start_up_with_a_clear_message(
     assert proc.returncode == 2
     assert "[daemon] group: no group named 'no-such-group-hostd'" in stderr.decode()
     assert not (tmp_path / "s.sock").exists()
+
+
+async def serve_failure(config: Path) -> tuple[int, str]:
+    """Start a daemon that must not start: its exit status and what it printed on stderr."""
+    proc = await asyncio.create_subprocess_exec(
+        *SERVE, "--config", str(config), stderr=asyncio.subprocess.PIPE
+    )
+    async with asyncio.timeout(20):
+        _, stderr = await proc.communicate()
+    assert proc.returncode is not None
+    return proc.returncode, stderr.decode()
+
+
+def socket_config(tmp_path: Path, socket_path: Path) -> Path:
+    config = tmp_path / "socket.toml"
+    config.write_text(
+        f'[daemon]\nsocket = "{socket_path}"\nstate_dir = "{tmp_path}/state"\n\n'
+        '[[machines]]\nid = "sim1"\ndata_port = "sim"\n'
+    )
+    return config
+
+
+async def test_a_socket_path_in_use_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    path = tmp_path / "hostd.sock"
+    live = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    live.bind(str(path))
+    live.listen()
+    try:
+        status, stderr = await serve_failure(socket_config(tmp_path, path))
+    finally:
+        live.close()
+    assert status == 1
+    assert stderr == f"hostd: {path} is in use: another process listens on it\n"
+    assert not (tmp_path / "state").exists()  # refused before anything was built
+
+
+async def test_a_planted_symlink_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    path = tmp_path / "hostd.sock"
+    path.symlink_to("/etc/passwd")
+    status, stderr = await serve_failure(socket_config(tmp_path, path))
+    assert status == 1
+    assert stderr == (
+        f"hostd: {path} is a symbolic link; refusing to follow or remove it"
+        " (remove it yourself if it is yours)\n"
+    )
+    assert path.is_symlink()
+
+
+async def test_a_directory_others_may_write_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    status, stderr = await serve_failure(socket_config(tmp_path, shared / "hostd.sock"))
+    assert status == 1
+    assert stderr.startswith(f"hostd: the socket's directory {shared} is writable by others")
+    assert stderr.count("\n") == 1
+
+
+async def test_a_failure_at_bind_time_is_still_one_line_not_a_traceback(tmp_path: Path) -> None:
+    """Past the early check, at bind() inside the daemon's task group: unwrapped, one line."""
+    path = tmp_path / ("x" * 120)  # fine to look at, too long for a socket address
+    status, stderr = await serve_failure(socket_config(tmp_path, path))
+    assert status == 1
+    assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1] == (
+        f"hostd: cannot create the socket {path}: AF_UNIX path too long"
+    )
+
+
+async def test_max_clients_and_line_timeout_from_the_config_hold_in_the_daemon(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "limits.toml"
+    config.write_text(
+        f'[daemon]\nsocket = "{tmp_path}/hostd.sock"\nstate_dir = "{tmp_path}/state"\n'
+        "max_clients = 1\nline_timeout = 0.3\n"
+    )
+    async with daemon_process(tmp_path, config) as process:
+        await process.message(b"READY=1")
+        first_reader, first = await asyncio.open_unix_connection(process.socket_path)
+        first.write(b'{"jsonrpc": "2.0", "method": "daemon.info", "id": 1}\n')
+        async with asyncio.timeout(10):
+            assert json.loads(await first_reader.readline())["result"]["machines"] == []
+            reader, writer = await asyncio.open_unix_connection(process.socket_path)
+            assert json.loads(await reader.readline())["error"]["code"] == -32000
+            assert await reader.read() == b""
+        writer.close()
+        # The one admitted client leaves a line half-sent: closed after line_timeout.
+        first.write(b'{"jsonrpc": "2.0"')
+        async with asyncio.timeout(10):
+            error = json.loads(await first_reader.readline())["error"]
+            assert error["message"] == "request line not finished within 0.3 s"
+            assert await first_reader.read() == b""
+        first.close()
+        process.proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0

@@ -5,9 +5,15 @@ one): echoed into an answer, or used as a file name, they once made
 `dispatch` raise or answer -32603; the tests at the end pin those cases.
 
 The real method table, on a daemon that is built but not run (its job store
-open, no machine connected): the handlers answer from the daemon's state,
-so unknown machines, bad params, missing jobs and files all come back as
-errors, and `dispatch` itself never raises.
+open, its one machine built but never connected): the handlers answer from
+the daemon's state, so unknown machines, bad params, missing jobs and files
+all come back as errors, and `dispatch` itself never raises.
+
+-32603 is never an acceptable answer here: it means a bug (api.md). Numbers
+get their own generator, written as JSON text, since that is where 10**400,
+1e400 and 2**53 come from: ids and params out of range once reached a
+handler (SQLite's OverflowError, an infinite id that could not be written
+back) and came back as -32603.
 """
 
 from __future__ import annotations
@@ -30,9 +36,11 @@ from hostd.api.server import Client
 from hostd.config import parse_config
 from hostd.daemon import Daemon
 from hostd.machine.jobstore import JobStore
+from hostd.machine.machine import Machine
 from tests.fuzz.strategies import any_text, dumps, fuzz, json_values
 
-API_CODES = {-32700, -32600, -32601, -32602, -32603, 204, 205, 206, *range(1001, 1008)}
+API_CODES = {-32700, -32600, -32601, -32602, 204, 205, 206, *range(1001, 1008)}  # not -32603
+MAX_SAFE_INTEGER = 2**53 - 1
 
 METHOD_NAMES = [
     "daemon.info", "machine.list", "machine.status", "machine.connect", "machine.disconnect",
@@ -104,6 +112,7 @@ def api() -> Iterator[tuple[Methods, Client, asyncio.AbstractEventLoop]]:
         daemon = Daemon(config)
         daemon.jobs_dir.mkdir(parents=True)
         daemon.store = JobStore(state / "hostd.db")
+        daemon.machines["sim1"] = Machine(config.machines[0], daemon.store, daemon.jobs_dir)
         loop = asyncio.new_event_loop()
         client = Client(1, PeerCred(1, 0, 0), _NoWriter(), queue_size=10_000, write_timeout=1)  # type: ignore[arg-type]
         try:
@@ -194,6 +203,75 @@ def test_every_request_with_an_id_gets_an_api_md_answer(
             assert answer["id"] == message["id"]
     else:
         assert answer is None
+
+
+# Numbers as JSON text: in range, just out of it, far out of it, and what a double cannot hold.
+number_tokens = st.one_of(
+    st.integers(-(2**64), 2**64).map(str),
+    st.integers().map(str),
+    st.floats(allow_nan=False, allow_infinity=False).map(repr),
+    st.sampled_from(
+        [
+            str(MAX_SAFE_INTEGER),
+            str(-MAX_SAFE_INTEGER),
+            str(MAX_SAFE_INTEGER + 1),
+            str(-MAX_SAFE_INTEGER - 1),
+            "1" + "0" * 400,
+            "-" + "9" * 5000,
+            "1e400",
+            "-1e400",
+            "1E+999",
+            "1e-400",
+            "-0.0",
+            "0",
+            "1",
+        ]
+    ),
+)
+number_values = st.recursive(
+    number_tokens,
+    lambda inner: (
+        st.lists(inner, max_size=3).map(lambda xs: "[" + ",".join(xs) + "]")
+        | st.dictionaries(st.sampled_from(["x", "y", "xvm"]), inner, max_size=2).map(
+            lambda d: "{" + ",".join(f'"{k}":{v}' for k, v in d.items()) + "}"
+        )
+    ),
+    max_leaves=4,
+)
+plain_values = st.sampled_from(['"sim1"', '"a.gcode"', '["status"]', '{"x":1}', "true", "null"])
+
+
+@st.composite
+def numeric_requests(draw: st.DrawFn) -> tuple[bytes, str]:
+    """A request line whose id and params are mostly numbers; and its id as written."""
+    keys = draw(st.lists(st.sampled_from(PARAM_NAMES), max_size=4, unique=True))
+    params = ",".join(f'"{key}":{draw(number_values | plain_values)}' for key in keys)
+    id_text = draw(number_tokens | st.just('"r"'))
+    method = draw(st.sampled_from(METHOD_NAMES))
+    line = f'{{"jsonrpc":"2.0","id":{id_text},"method":"{method}","params":{{{params}}}}}'
+    return line.encode(), id_text
+
+
+@fuzz(500)
+@given(numeric_requests())
+@example((b'{"jsonrpc":"2.0","id":1,"method":"job.get","params":{"job":1' + b"0" * 30 + b"}}", "1"))
+@example((b'{"jsonrpc":"2.0","id":1e400,"method":"daemon.info","params":{}}', "1e400"))
+def test_numbers_out_of_range_are_refused_never_an_internal_error(
+    api: tuple[Methods, Client, asyncio.AbstractEventLoop], request: tuple[bytes, str]
+) -> None:
+    line, id_text = request
+    answer = _answer(api, line)
+    _check_answer(answer)
+    id = json.loads(id_text) if len(id_text) < 400 else None
+    safe_id = isinstance(id, str) or (
+        isinstance(id, int) and "." not in id_text and "e" not in id_text.lower()
+        and abs(id) <= MAX_SAFE_INTEGER
+    )  # fmt: skip
+    if safe_id:
+        assert answer["id"] == id
+    else:
+        assert answer["id"] is None
+        assert answer["error"]["code"] == -32600
 
 
 @pytest.mark.parametrize(
