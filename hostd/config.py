@@ -2,7 +2,7 @@
 
 Keys fixed by running.md: `[daemon] socket, state_dir`; per `[[machines]]`:
 `id, dialect, data_port, control_port, baudrate, window, auto_connect`.
-The rest (timings) is the project's, documented in docs/operations.md.
+The rest (timings, the jobs quota) is the project's, documented in docs/operations.md.
 Invalid config is one `ConfigError` naming the file, the key and the problem.
 """
 
@@ -35,6 +35,11 @@ class DaemonConfig(_Strict):
     # group); root and the daemon's own user always may. None: nobody else.
     group: str | None = None
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    # Bytes the jobs directory may hold, published files and unfinished
+    # uploads together; an upload that would pass it is refused (1009). None: no limit.
+    jobs_quota: Annotated[int, Field(gt=0)] | None = None
+    # Seconds an unfinished upload may go without a chunk before it is removed.
+    upload_expiry: Annotated[float, Field(gt=0)] = 3600.0
 
 
 class MachineConfig(_Strict):
