@@ -99,10 +99,15 @@ class Client:
     # helpers for the daemon's methods
 
     def upload(self, name: str, data: str, chunk: int = UPLOAD_CHUNK) -> None:
-        """A file in chunks: hidden until the final one (file.upload's `final`)."""
+        """A file in chunks: hidden until the final one, each after the first naming
+        the upload the first opened and its byte offset (docs/api.md, Uploads)."""
         parts = [data[i : i + chunk] for i in range(0, len(data), chunk)] or [""]
+        more: dict[str, Any] = {}
         for i, part in enumerate(parts):
-            self.call("file.upload", name=name, data=part, append=i > 0, final=i == len(parts) - 1)
+            final = i == len(parts) - 1
+            answer = self.call("file.upload", name=name, data=part, final=final, **more)
+            if not final:
+                more = {"upload": answer["upload"], "offset": answer["size"]}
 
     def wait_job_end(self, job_id: int, timeout: float) -> dict[str, Any]:
         """Until a `job` notification says the job ended (subscribe to `job` first)."""

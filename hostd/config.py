@@ -2,7 +2,7 @@
 
 Keys fixed by running.md: `[daemon] socket, state_dir`; per `[[machines]]`:
 `id, dialect, data_port, control_port, baudrate, window, auto_connect`.
-The rest (timings) is the project's, documented in docs/operations.md.
+The rest (timings, the jobs quota) is the project's, documented in docs/operations.md.
 Invalid config is one `ConfigError` naming the file, the key and the problem.
 """
 
@@ -40,6 +40,11 @@ class DaemonConfig(_Strict):
     # Seconds a client may leave a request line half-sent before it is disconnected
     # (a client quiet between lines stays connected however long).
     line_timeout: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    # Bytes the jobs directory may hold, published files and unfinished
+    # uploads together; an upload that would pass it is refused (1009). None: no limit.
+    jobs_quota: Annotated[int, Field(gt=0)] | None = None
+    # Seconds an unfinished upload may go without a chunk before it is removed.
+    upload_expiry: Annotated[float, Field(gt=0)] = 3600.0
 
 
 class MachineConfig(_Strict):

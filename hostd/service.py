@@ -118,7 +118,7 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
 
     async def ready() -> None:
         for name in await asyncio.to_thread(api.jobs.clean):
-            log.warning("removed an unfinished upload", file=name)
+            log.warning("removed an unfinished upload", staging=name)
         api.attach()
         for machine in daemon.machines.values():
             machine.hub.subscribe(status)
@@ -127,15 +127,22 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
         log.info("hostd ready", socket=socket_path, machines=list(daemon.machines))
 
     watchdog = asyncio.create_task(notifier.watchdog())
+    expiry = asyncio.create_task(api.expire_uploads(_sweep_interval(config)))
     try:
         await daemon.run(ready)
     finally:
         watchdog.cancel()
+        expiry.cancel()
         await server.close()
         notifier.close()
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(signum)
         log.info("hostd stopped")
+
+
+def _sweep_interval(config: Config) -> float:
+    """How often abandoned uploads are looked for: a tenth of their expiry, 1 s to 60 s."""
+    return min(max(config.daemon.upload_expiry / 10, 1.0), 60.0)
 
 
 def _status_line(daemon: Daemon) -> str:

@@ -41,6 +41,7 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
     assert demo.simulated and demo.window == 4 and demo.auto_connect
     assert config.machine("demo") is demo
     assert config.machine("nope") is None
+    assert (config.daemon.jobs_quota, config.daemon.upload_expiry) == (None, 3600.0)
 
 
 @pytest.mark.parametrize(
@@ -55,6 +56,9 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
         (GOOD.replace('dialect = "g2core"', 'dialect = "grbl"'), "machines[0].dialect"),
         (GOOD.replace('data_port = "sim"', ""), "machines[1].data_port"),
         ("[[machines]\nid=", "not valid TOML"),
+        (GOOD.replace("[daemon]", "[daemon]\njobs_quota = 0"), "daemon.jobs_quota"),
+        (GOOD.replace("[daemon]", '[daemon]\njobs_quota = "2G"'), "daemon.jobs_quota"),
+        (GOOD.replace("[daemon]", "[daemon]\nupload_expiry = 0"), "daemon.upload_expiry"),
     ],
 )
 def test_bad_config_names_file_key_and_problem(tmp_path: Path, text: str, expected: str) -> None:

@@ -1,4 +1,7 @@
-"""The jobs directory: names that cannot escape it, atomic writes, chunked uploads."""
+"""The jobs directory: names that cannot escape it, atomic writes, listing and deleting.
+
+How uploads stage, retry, fail and expire: tests/test_uploads.py.
+"""
 
 from __future__ import annotations
 
@@ -51,7 +54,7 @@ def test_plain_names_are_fine() -> None:
 
 
 def test_upload_list_delete(jobs: JobsDir) -> None:
-    assert jobs.upload("a.gcode", b"G0 X1\n") == 6
+    assert jobs.upload("a.gcode", b"G0 X1\n").size == 6
     assert [(f.name, f.size) for f in jobs.entries()] == [("a.gcode", 6)]
     assert jobs.entries()[0].modified.endswith("Z")
     jobs.delete("a.gcode")
@@ -64,24 +67,8 @@ def test_upload_replaces_atomically_and_leaves_no_temp_files(jobs: JobsDir) -> N
     jobs.upload("a.gcode", b"old\n")
     jobs.upload("a.gcode", b"new\n")
     assert (jobs.path / "a.gcode").read_bytes() == b"new\n"
-    assert os.listdir(jobs.path) == ["a.gcode"]
-
-
-def test_chunks_stay_hidden_until_the_final_one(jobs: JobsDir) -> None:
-    jobs.upload("big.gcode", b"G0 X1\n", final=False)
-    jobs.upload("big.gcode", b"G0 X2\n", append=True, final=False)
-    assert jobs.entries() == []  # nothing half-uploaded to start
-    with pytest.raises(NoSuchFileError):
-        jobs.resolve("big.gcode")
-    assert jobs.upload("big.gcode", b"G0 X3\n", append=True) == 18
-    assert (jobs.path / "big.gcode").read_bytes() == b"G0 X1\nG0 X2\nG0 X3\n"
-    assert os.listdir(jobs.path) == ["big.gcode"]
-
-
-def test_append_to_a_published_file(jobs: JobsDir) -> None:
-    jobs.upload("a.gcode", b"G0 X1\n")
-    jobs.upload("a.gcode", b"G0 X2\n", append=True)
-    assert (jobs.path / "a.gcode").read_bytes() == b"G0 X1\nG0 X2\n"
+    assert sorted(os.listdir(jobs.path)) == [".staging", "a.gcode"]
+    assert os.listdir(jobs.path / ".staging") == []
 
 
 def test_a_symlink_planted_in_the_directory_is_not_followed(jobs: JobsDir, tmp_path: Path) -> None:
@@ -104,9 +91,11 @@ def test_base64_data() -> None:
         decode("not base64!", "base64")
 
 
-def test_clean_removes_what_an_unfinished_upload_left(jobs: JobsDir) -> None:
+def test_clean_removes_what_unfinished_uploads_left(jobs: JobsDir) -> None:
     jobs.upload("a.gcode", b"G0\n")
-    jobs.upload("b.gcode", b"G0\n", final=False)
-    (jobs.path / ".tmp-abc").write_bytes(b"x")
-    assert sorted(jobs.clean()) == [".b.gcode.upload", ".tmp-abc"]
-    assert os.listdir(jobs.path) == ["a.gcode"]
+    upload = jobs.upload("b.gcode", b"G0\n", final=False).upload
+    (jobs.path / ".tmp-abc").write_bytes(b"x")  # what older versions left
+    (jobs.path / ".c.gcode.upload").write_bytes(b"x")
+    assert sorted(jobs.clean()) == sorted([upload, ".c.gcode.upload", ".tmp-abc"])
+    assert sorted(os.listdir(jobs.path)) == [".staging", "a.gcode"]
+    assert os.listdir(jobs.path / ".staging") == []

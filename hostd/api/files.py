@@ -1,16 +1,13 @@
 """The jobs directory: G-code files clients upload, list, delete and start.
 
 A file name is a plain relative name: no separator, no `..`, no NUL, not
-hidden (a leading dot is the daemon's own staging), at most 200 bytes.
-Anything else is refused before the file system is touched, so nothing a
-client sends can reach outside the directory (symlinks inside it are not
-followed either: `O_NOFOLLOW`-style checks via `lstat`).
+hidden (names starting with a dot are the daemon's own: `.staging`), at
+most 200 bytes. Anything else is refused before the file system is
+touched, so nothing a client sends can reach outside the directory;
+symlinks inside it are never followed.
 
-Writes are atomic: a temp file in the same directory, fsync, rename. A
-large file may come in chunks (`append`); chunks sent with `final=False`
-collect in a hidden staging file, published by the chunk with
-`final=True`, so a half-uploaded program never appears as a job file.
-Blocking calls: run them with `asyncio.to_thread`.
+Files arrive through `uploads.py`, which never publishes a partial or mixed
+file. Blocking calls: run them with `asyncio.to_thread`.
 """
 
 from __future__ import annotations
@@ -18,14 +15,16 @@ from __future__ import annotations
 import base64
 import binascii
 import os
-import shutil
 import stat
-import tempfile
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-MAX_NAME = 200  # the staging name adds 8 bytes; file systems stop at 255
+from hostd.api.uploads import DEFAULT_EXPIRY, Uploaded, Uploads
+
+MAX_NAME = 200  # file systems stop at 255
 
 
 class FileNameError(ValueError):
@@ -75,8 +74,16 @@ def decode(data: str, encoding: str) -> bytes:
 
 
 class JobsDir:
-    def __init__(self, path: Path) -> None:
+    def __init__(
+        self,
+        path: Path,
+        *,
+        quota: int | None = None,
+        expiry: float = DEFAULT_EXPIRY,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.path = path
+        self.uploads = Uploads(path, quota=quota, expiry=expiry, clock=clock)
 
     def resolve(self, name: str) -> Path:
         """The path of an existing regular file (not a link) of the directory."""
@@ -89,30 +96,20 @@ class JobsDir:
             raise NoSuchFileError(f"{name!r} is not a regular file")
         return path
 
-    def upload(self, name: str, data: bytes, *, append: bool = False, final: bool = True) -> int:
-        """Write or extend a file; returns the size of what is (or will be) published."""
-        target = self.path / check_name(name)
-        staging = self.path / f".{name}.upload"
-        if append and staging.exists():
-            with staging.open("ab") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-        else:
-            base = self._existing(target) if append else None
-            tmp = self._temp()
-            with open(tmp, "r+b") as f:
-                if base is not None:
-                    with base.open("rb") as src:
-                        shutil.copyfileobj(src, f)
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, staging)
-        size = staging.stat().st_size
-        if final:
-            os.replace(staging, target)
-        return size
+    def upload(
+        self,
+        name: str,
+        data: bytes,
+        *,
+        append: bool = False,
+        final: bool = True,
+        upload_id: str | None = None,
+        offset: int | None = None,
+    ) -> Uploaded:
+        """Start, continue or finish an upload of `name` (`Uploads.put`)."""
+        return self.uploads.put(
+            check_name(name), data, append=append, final=final, upload_id=upload_id, offset=offset
+        )
 
     def entries(self) -> list[FileInfo]:
         files = []
@@ -135,25 +132,14 @@ class JobsDir:
         self.resolve(name).unlink()
 
     def clean(self) -> list[str]:
-        """Remove staging and temp files a stopped daemon left (an upload never finished)."""
-        removed = []
+        """Start-up: remove every upload's staging (none survives a restart), and the
+        temp and staging files older versions left beside the job files."""
+        removed = self.uploads.clean()
         with os.scandir(self.path) as entries:
             for entry in entries:
                 name = entry.name
-                staged = name.startswith(".") and name.endswith(".upload")
-                if (staged or name.startswith(".tmp-")) and entry.is_file(follow_symlinks=False):
+                legacy = name.startswith(".tmp-") or (name[:1] == "." and name.endswith(".upload"))
+                if legacy and entry.is_file(follow_symlinks=False):
                     os.unlink(entry.path)
                     removed.append(name)
         return removed
-
-    def _existing(self, target: Path) -> Path | None:
-        try:
-            st = target.lstat()
-        except FileNotFoundError:
-            return None
-        return target if stat.S_ISREG(st.st_mode) else None
-
-    def _temp(self) -> str:
-        fd, tmp = tempfile.mkstemp(dir=self.path, prefix=".tmp-")
-        os.close(fd)
-        return tmp

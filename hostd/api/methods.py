@@ -5,26 +5,30 @@ keep their api.md codes: the machine layer's errors carry `code`, `message`
 and `data`; names that cannot be a file or a machine are -32602; a missing
 machine is 1001, a missing job or file 1004.
 
-The one addition to api.md, documented in docs/api.md: `file.upload`
-takes `final` (chunks sent with `final: false` stay hidden until the final
-one), so a half-uploaded program is never started.
+The additions to api.md, documented in docs/api.md: `file.upload` takes
+`final`, `upload` and `offset` (chunks stay in their own staging until the
+final one, a retry is idempotent), so a half-uploaded or mixed program is
+never started; a full disk or the jobs quota is error 1009.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
+import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hostd import __version__
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
 from hostd.api.rpc import Methods, RpcError, encode_notification
 from hostd.api.server import current_client
+from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
 from hostd.daemon import Daemon
 from hostd.machine.events import (
     Console,
@@ -41,7 +45,10 @@ from hostd.protocol.gcode import JOG_AXES
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
 from hostd.protocol.settings import check_key, check_values, set_lines
 
+log = structlog.get_logger(__name__)
+
 API_VERSION = 1
+STORAGE: Final = 1009  # docs/api.md: the jobs directory is full, over its quota, or failing
 TOPICS = ("status", "exception", "supervisor", "fault", "job", "console")
 Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
@@ -56,6 +63,7 @@ Distance = Annotated[
     float, Field(strict=True, allow_inf_nan=False, ge=-MAX_DISTANCE, le=MAX_DISTANCE)
 ]
 Feed = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=MIN_FEED, le=MAX_FEED)]
+UploadId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
 
 
 class Params(BaseModel):
@@ -123,6 +131,8 @@ class UploadParams(FileName):
     encoding: Literal["utf-8", "base64"] = "utf-8"
     append: bool = False
     final: bool = True
+    upload: UploadId | None = None  # from the first chunk's answer; continues that upload
+    offset: Annotated[int, Field(ge=0)] | None = None  # where this chunk's bytes start
 
 
 class JobStartParams(MachineParams):
@@ -233,9 +243,15 @@ def _matches(sub: _Subscription, topic: str, machine: str) -> bool:
 
 
 class Api:
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: Daemon, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.daemon = daemon
-        self.jobs = JobsDir(daemon.jobs_dir)
+        settings = daemon.config.daemon
+        self.jobs = JobsDir(
+            daemon.jobs_dir,
+            quota=settings.jobs_quota,
+            expiry=settings.upload_expiry,
+            clock=clock,
+        )
         self.subscriptions = Subscriptions(self._console_interest)
 
     def _console_interest(self) -> None:
@@ -389,12 +405,44 @@ class Api:
     async def file_upload(self, p: UploadParams) -> dict[str, Any]:
         try:
             data = decode(p.data, p.encoding)
+            done = await asyncio.to_thread(
+                self.jobs.upload,
+                p.name,
+                data,
+                append=p.append,
+                final=p.final,
+                upload_id=p.upload,
+                offset=p.offset,
+            )
         except InvalidData as exc:
             raise RpcError(-32602, str(exc)) from None
-        size = await asyncio.to_thread(
-            self.jobs.upload, p.name, data, append=p.append, final=p.final
-        )
-        return {"name": p.name, "size": size}
+        except ChunkError as exc:
+            raise RpcError(-32602, str(exc), {"expected_offset": exc.expected}) from None
+        except NoSuchUpload as exc:
+            raise RpcError(1004, str(exc)) from None
+        except StorageError as exc:
+            log.warning("upload refused", file=p.name, reason=exc.reason, error=exc.message)
+            raise RpcError(STORAGE, exc.message, {"reason": exc.reason}) from None
+        result: dict[str, Any] = {"name": done.name, "size": done.size}
+        if done.upload is not None:
+            result["upload"] = done.upload
+        return result
+
+    async def expire_uploads(self, every: float) -> None:
+        """Remove abandoned uploads every `every` seconds, for as long as the daemon runs.
+
+        Each upload call also expires them first; this frees the disk of an
+        upload nobody comes back to, even when no other upload follows.
+        """
+        while True:
+            await asyncio.sleep(every)
+            try:
+                removed = await asyncio.to_thread(self.jobs.uploads.expire)
+            except OSError as exc:  # the next round may do better; the daemon goes on
+                log.warning("cannot look for abandoned uploads", error=str(exc))
+                continue
+            for upload in removed:
+                log.info("removed an abandoned upload", upload=upload)
 
     async def file_list(self) -> list[dict[str, Any]]:
         files = await asyncio.to_thread(self.jobs.entries)

@@ -211,7 +211,12 @@ def _utf8_boundary(data: bytes) -> int:
 
 
 async def upload(c: Client, path: Path, name: str) -> int:
-    """Send the file in pieces; the daemon publishes it only with the last (`final`)."""
+    """Send the file in pieces; the daemon publishes it only with the last (`final`).
+
+    The first piece opens an upload of our own (its `upload` id); each later
+    one names it and the byte `offset` it starts at, so the daemon can tell
+    a repeat from a gap and never mixes our bytes with anyone else's.
+    """
     try:
         f = path.open("rb")
     except OSError as exc:
@@ -220,7 +225,7 @@ async def upload(c: Client, path: Path, name: str) -> int:
     with f:
         pieces = upload_chunks(f)
         piece: tuple[str, str] | None = next(pieces)
-        first = True
+        params: dict[str, Any] = {}
         while piece is not None:
             following = next(pieces, None)
             data, encoding = piece
@@ -229,11 +234,12 @@ async def upload(c: Client, path: Path, name: str) -> int:
                 name=name,
                 data=data,
                 encoding=encoding,
-                append=not first,
                 final=following is None,
+                **params,
             )
             size = int(result.get("size", 0))
-            first = False
+            if following is not None:
+                params = {"upload": result["upload"], "offset": size}
             piece = following
     return size
 

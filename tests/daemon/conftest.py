@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,6 +82,7 @@ class Rpc:
 @dataclass
 class Running:
     daemon: Daemon
+    api: Api
     socket: str
     jobs: Path
 
@@ -98,9 +100,16 @@ class Running:
             await watcher.close()
 
 
-def config_data(tmp_path: Path, machines: int = 1, **extra: Any) -> dict[str, Any]:
+def config_data(
+    tmp_path: Path, machines: int = 1, daemon: dict[str, Any] | None = None, **extra: Any
+) -> dict[str, Any]:
+    """`extra` goes to every machine, `daemon` to `[daemon]`."""
     return {
-        "daemon": {"socket": str(tmp_path / "hostd.sock"), "state_dir": str(tmp_path / "state")},
+        "daemon": {
+            "socket": str(tmp_path / "hostd.sock"),
+            "state_dir": str(tmp_path / "state"),
+            **(daemon or {}),
+        },
         "machines": [
             {
                 "id": f"sim{i}",
@@ -115,26 +124,34 @@ def config_data(tmp_path: Path, machines: int = 1, **extra: Any) -> dict[str, An
 
 
 @contextlib.asynccontextmanager
-async def running_daemon(tmp_path: Path, machines: int = 1, **extra: Any) -> AsyncIterator[Running]:
-    config = parse_config(config_data(tmp_path, machines, **extra))
-    daemon = Daemon(config)
-    api = Api(daemon)
+async def running_daemon(
+    tmp_path: Path,
+    machines: int = 1,
+    daemon: dict[str, Any] | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    **extra: Any,
+) -> AsyncIterator[Running]:
+    """Started as `hostd serve` starts it (service.py); `clock` times uploads' expiry."""
+    config = parse_config(config_data(tmp_path, machines, daemon, **extra))
+    hostd = Daemon(config)
+    api = Api(hostd, clock=clock)
     server = ApiServer(build_methods(api))
     socket = config.daemon.socket
     up = asyncio.Event()
 
     async def ready() -> None:
+        await asyncio.to_thread(api.jobs.clean)
         api.attach()
         await server.start(socket)
         up.set()
 
-    task = asyncio.create_task(daemon.run(ready))
+    task = asyncio.create_task(hostd.run(ready))
     async with asyncio.timeout(10):
         await up.wait()
     try:
-        yield Running(daemon, socket, daemon.jobs_dir)
+        yield Running(hostd, api, socket, hostd.jobs_dir)
     finally:
-        daemon.stop()
+        hostd.stop()
         await task
         await server.close()
 

@@ -164,8 +164,11 @@ async def test_files(rpc: Rpc, hostd: Running) -> None:
     }
     raw = base64.b64encode(b"G0 X2\n").decode()
     await rpc.call("file.upload", name="b.gcode", data=raw, encoding="base64")
-    await rpc.call("file.upload", name="c.gcode", data="G0 X1\n", final=False)
-    await rpc.call("file.upload", name="c.gcode", data="G0 X2\n", append=True)
+    first = await rpc.call("file.upload", name="c.gcode", data="G0 X1\n", final=False)
+    assert first == {"name": "c.gcode", "size": 6, "upload": first["upload"]}
+    assert await rpc.call(
+        "file.upload", name="c.gcode", data="G0 X2\n", upload=first["upload"], offset=6
+    ) == {"name": "c.gcode", "size": 12}
     files = await rpc.call("file.list")
     assert [(f["name"], f["size"]) for f in files] == [
         ("a.gcode", 6),

@@ -15,19 +15,21 @@ from pathlib import Path
 
 import pytest
 
-from tests.daemon.conftest import Rpc, config_data
+from tests.daemon.conftest import Rpc, RpcFailure, config_data
 
 pytestmark = pytest.mark.asyncio
 
 SERVE = [sys.executable, "-m", "hostd.service"]
 
 
-def write_config(tmp_path: Path) -> Path:
+def write_config(tmp_path: Path, *daemon: str) -> Path:
+    """`daemon`: more `[daemon]` lines."""
     data = config_data(tmp_path)
     lines = [
         "[daemon]",
         f'socket = "{data["daemon"]["socket"]}"',
         f'state_dir = "{data["daemon"]["state_dir"]}"',
+        *daemon,
         "",
         "[[machines]]",
         'id = "sim1"',
@@ -161,6 +163,36 @@ async def test_sigkill_mid_job_then_restart_shows_it_interrupted(tmp_path: Path)
         # Persisted at most 100 lines or 1 s apart, and never more than was answered.
         assert 0 < row["lines_acked"] <= row["lines_sent"] < 20000
         assert row["lines_acked"] >= int(str(seen["lines_acked"])) - 100
+        process.proc.send_signal(signal.SIGTERM)
+        await rpc.close()
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
+
+
+async def test_sigkill_mid_upload_then_restart_publishes_nothing(tmp_path: Path) -> None:
+    config = write_config(tmp_path, "jobs_quota = 1000000", "upload_expiry = 600")
+    jobs = tmp_path / "state" / "jobs"
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        await rpc.call("file.upload", name="part.gcode", data="old\n")
+        first = await rpc.call("file.upload", name="part.gcode", data="G0 X1\n", final=False)
+        upload = first["upload"]
+        await rpc.call("file.upload", name="part.gcode", data="G0 X2\n", upload=upload, offset=6)
+        again = await rpc.call("file.upload", name="part.gcode", data="new\n", final=False)
+        process.proc.kill()
+        await process.proc.wait()
+        await rpc.close()
+        assert os.listdir(jobs / ".staging") == [again["upload"]]
+
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        assert os.listdir(jobs / ".staging") == []  # removed at start-up
+        with pytest.raises(RpcFailure) as gone:
+            await rpc.call(
+                "file.upload", name="part.gcode", data="G0\n", upload=again["upload"], offset=4
+            )
+        assert gone.value.code == 1004
+        assert (jobs / "part.gcode").read_bytes() == b"G0 X1\nG0 X2\n"  # the finished one
         process.proc.send_signal(signal.SIGTERM)
         await rpc.close()
         async with asyncio.timeout(20):

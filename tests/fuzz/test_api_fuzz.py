@@ -39,7 +39,7 @@ from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from tests.fuzz.strategies import any_text, dumps, fuzz, json_values
 
-API_CODES = {-32700, -32600, -32601, -32602, 204, 205, 206, *range(1001, 1008)}  # not -32603
+API_CODES = {-32700, -32600, -32601, -32602, 204, 205, 206, *range(1001, 1010)}  # not -32603
 MAX_SAFE_INTEGER = 2**53 - 1
 
 METHOD_NAMES = [
@@ -54,10 +54,12 @@ METHOD_NAMES = [
 PARAM_NAMES = [
     "machine", "line", "timeout", "axes", "feed", "keys", "values", "name", "data",
     "encoding", "append", "final", "file", "start_line", "job", "limit", "fault",
-    "override", "topics", "subscription",
+    "override", "topics", "subscription", "upload", "offset",
 ]  # fmt: skip
 plausible = st.one_of(
-    st.sampled_from(["sim1", "laser1", "../x", "", "a" * 70, "prog.gcode", ".hidden", "a/b"]),
+    st.sampled_from(
+        ["sim1", "laser1", "../x", "", "a" * 70, "prog.gcode", ".hidden", "a/b", "0" * 32]
+    ),
     st.sampled_from(["status", "job", "console", "bogus", "utf-8", "base64", "G0 X1", "?"]),
     st.lists(st.sampled_from(["status", "job", "x", "xvm", "sr"]), max_size=3),
     st.dictionaries(st.sampled_from(["x", "y", "q", "xvm"]), st.floats(-5, 5), max_size=2),

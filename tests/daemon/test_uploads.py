@@ -1,0 +1,212 @@
+"""Uploads through the daemon's socket: never a mixed or partial file, whatever clients do.
+
+A real daemon (simulated machine, jobs directory on disk) and real
+connections; what the file system holds is read from the disk itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
+
+pytestmark = pytest.mark.asyncio
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+async def fails(code: int, call: Any) -> RpcFailure:
+    with pytest.raises(RpcFailure) as err:
+        await call
+    assert err.value.code == code, err.value
+    return err.value
+
+
+def staged(hostd: Running) -> dict[str, bytes]:
+    staging = hostd.jobs / ".staging"
+    return {p.name: p.read_bytes() for p in staging.iterdir()} if staging.exists() else {}
+
+
+async def chunk(rpc: Rpc, name: str, data: str, upload: str, offset: int, final: bool) -> Any:
+    return await rpc.call(
+        "file.upload", name=name, data=data, upload=upload, offset=offset, final=final
+    )
+
+
+async def test_two_clients_uploading_one_name_each_publish_exactly_their_own_bytes(
+    rpc: Rpc, hostd: Running
+) -> None:
+    other = await hostd.client()
+    mine = [f"G1 X{i} (mine)\n" for i in range(3)]
+    theirs = [f"G1 Y{i} (theirs, longer)\n" for i in range(3)]
+    a, b = await asyncio.gather(
+        rpc.call("file.upload", name="part.gcode", data=mine[0], final=False),
+        other.call("file.upload", name="part.gcode", data=theirs[0], final=False),
+    )
+    assert a["upload"] != b["upload"]
+    await asyncio.gather(
+        chunk(rpc, "part.gcode", mine[1], a["upload"], a["size"], False),
+        chunk(other, "part.gcode", theirs[1], b["upload"], b["size"], False),
+    )
+    assert await rpc.call("file.list") == []
+    await fails(1004, rpc.call("job.start", machine="sim1", file="part.gcode"))
+
+    size = len("".join(mine[:2]).encode())
+    await chunk(rpc, "part.gcode", mine[2], a["upload"], size, True)
+    assert (hostd.jobs / "part.gcode").read_text() == "".join(mine)
+
+    size = len("".join(theirs[:2]).encode())
+    await chunk(other, "part.gcode", theirs[2], b["upload"], size, True)
+    assert (hostd.jobs / "part.gcode").read_text() == "".join(theirs)
+    assert staged(hostd) == {}
+    await other.close()
+
+
+async def test_a_retried_chunk_is_idempotent_and_a_wrong_offset_names_the_right_one(
+    rpc: Rpc, hostd: Running
+) -> None:
+    first = await rpc.call("file.upload", name="a.gcode", data="G0 X1\n", final=False)
+    upload = first["upload"]
+    second = await chunk(rpc, "a.gcode", "G0 X2\n", upload, 6, False)
+    assert await chunk(rpc, "a.gcode", "G0 X2\n", upload, 6, False) == second
+
+    wrong = await fails(-32602, chunk(rpc, "a.gcode", "G0 X3\n", upload, 6, False))
+    assert wrong.data == {"expected_offset": 12}
+    assert "expected offset 12" in wrong.message
+    gap = await fails(-32602, chunk(rpc, "a.gcode", "G0 X3\n", upload, 13, True))
+    assert gap.data == {"expected_offset": 12}
+
+    done = await chunk(rpc, "a.gcode", "G0 X3\n", upload, 12, True)
+    assert done == {"name": "a.gcode", "size": 18}
+    assert await chunk(rpc, "a.gcode", "G0 X3\n", upload, 12, True) == done  # the answer was lost
+    assert (hostd.jobs / "a.gcode").read_bytes() == b"G0 X1\nG0 X2\nG0 X3\n"
+
+
+async def test_the_old_chunking_by_name_is_refused_and_publishes_nothing(
+    rpc: Rpc, hostd: Running
+) -> None:
+    await rpc.call("file.upload", name="a.gcode", data="old\n")
+    await rpc.call("file.upload", name="a.gcode", data="G0 X1\n", final=False)
+
+    refused = await fails(-32602, rpc.call("file.upload", name="a.gcode", data="X", append=True))
+
+    assert "needs offset 4" in refused.message and refused.data == {"expected_offset": 4}
+    assert (hostd.jobs / "a.gcode").read_bytes() == b"old\n"
+    appended = await rpc.call("file.upload", name="a.gcode", data="G0\n", append=True, offset=4)
+    assert appended == {"name": "a.gcode", "size": 7}
+    assert (hostd.jobs / "a.gcode").read_bytes() == b"old\nG0\n"
+
+
+async def test_an_unknown_or_malformed_upload_id_is_refused(rpc: Rpc) -> None:
+    unknown = await fails(1004, chunk(rpc, "a.gcode", "G0\n", "0" * 32, 0, True))
+    assert "start the upload again" in unknown.message
+    await fails(-32602, chunk(rpc, "a.gcode", "G0\n", "../../etc/passwd", 0, True))
+
+
+async def test_over_the_quota_a_chunk_is_refused_staging_unchanged_and_a_retry_succeeds(
+    tmp_path: Path,
+) -> None:
+    async with running_daemon(tmp_path, daemon={"jobs_quota": 100}) as hostd:
+        rpc = await hostd.client()
+        await rpc.call("file.upload", name="old.gcode", data="x" * 60)
+        first = await rpc.call("file.upload", name="new.gcode", data="y" * 30, final=False)
+
+        refused = await fails(1009, chunk(rpc, "new.gcode", "z" * 20, first["upload"], 30, False))
+
+        assert refused.data == {"reason": "quota"}
+        assert "quota of 100 bytes" in refused.message
+        assert staged(hostd) == {first["upload"]: b"y" * 30}
+        await rpc.call("file.delete", name="old.gcode")
+        await chunk(rpc, "new.gcode", "z" * 20, first["upload"], 30, True)
+        assert (hostd.jobs / "new.gcode").read_bytes() == b"y" * 30 + b"z" * 20
+        await fails(1009, rpc.call("file.upload", name="big.gcode", data="w" * 51))
+        assert [f["name"] for f in await rpc.call("file.list")] == ["new.gcode"]
+        await rpc.close()
+
+
+async def test_a_link_planted_at_the_staging_path_is_not_followed(
+    rpc: Rpc, hostd: Running, tmp_path: Path
+) -> None:
+    secret = tmp_path / "secret"
+    secret.write_text("not for clients\n")
+    first = await rpc.call("file.upload", name="a.gcode", data="G0 X1\n", final=False)
+    staging = hostd.jobs / ".staging" / first["upload"]
+    staging.unlink()
+    staging.symlink_to(secret)
+
+    refused = await fails(1009, chunk(rpc, "a.gcode", "G0 X2\n", first["upload"], 6, True))
+
+    assert "is gone or is a link" in refused.message and refused.data == {"reason": "io"}
+    assert secret.read_text() == "not for clients\n"
+    assert await rpc.call("file.list") == []
+    await fails(1004, chunk(rpc, "a.gcode", "G0 X2\n", first["upload"], 6, True))
+
+
+async def test_a_restart_mid_upload_publishes_nothing_and_forgets_the_upload(
+    tmp_path: Path,
+) -> None:
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        await rpc.call("file.upload", name="part.gcode", data="old\n")
+        first = await rpc.call("file.upload", name="part.gcode", data="G0 X1\n", final=False)
+        await chunk(rpc, "part.gcode", "G0 X2\n", first["upload"], 6, False)
+        assert len(staged(hostd)) == 1
+        await rpc.close()
+
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        assert staged(hostd) == {}
+        assert (hostd.jobs / "part.gcode").read_bytes() == b"old\n"
+        gone = await fails(1004, chunk(rpc, "part.gcode", "G0 X3\n", first["upload"], 12, True))
+        assert "restarted" in gone.message
+        assert [(f["name"], f["size"]) for f in await rpc.call("file.list")] == [("part.gcode", 4)]
+        await rpc.close()
+
+
+async def test_an_abandoned_upload_expires_and_its_id_is_then_unknown(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock = Clock()
+    async with running_daemon(tmp_path, daemon={"upload_expiry": 60}, clock=clock) as hostd:
+        rpc = await hostd.client()
+        first = await rpc.call("file.upload", name="a.gcode", data="G0 X1\n", final=False)
+        clock.now += 59
+        await chunk(rpc, "a.gcode", "G0 X2\n", first["upload"], 6, False)
+        clock.now += 60
+        uploads = hostd.api.jobs.uploads
+        expire, swept = uploads.expire, asyncio.Event()
+        loop = asyncio.get_running_loop()
+
+        def watched() -> list[str]:
+            removed = expire()
+            if removed:
+                loop.call_soon_threadsafe(swept.set)
+            return removed
+
+        monkeypatch.setattr(uploads, "expire", watched)
+        sweeper = asyncio.create_task(hostd.api.expire_uploads(0.01))  # as `hostd serve` runs it
+        try:
+            async with asyncio.timeout(5):
+                await swept.wait()
+        finally:
+            sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sweeper
+
+        assert staged(hostd) == {}
+
+        gone = await fails(1004, chunk(rpc, "a.gcode", "G0 X3\n", first["upload"], 12, True))
+        assert "expired (60 s without a chunk)" in gone.message
+        assert await rpc.call("file.list") == []
+        await rpc.close()
