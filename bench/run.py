@@ -53,6 +53,7 @@ from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost
 
 WINDOW = 4
 MACHINE = "bench"
+LONG_JOB = 1_000_000  # lines: a job that outlasts the samples taken while it streams
 
 
 @dataclass
@@ -146,23 +147,38 @@ class Bench:
 
     @contextlib.contextmanager
     def _daemon(self, name: str) -> Iterator[tuple[DaemonProcess, ControllerProcess]]:
+        with self._machines(name, [MACHINE]) as (daemon, controllers):
+            yield daemon, controllers[0]
+
+    @contextlib.contextmanager
+    def _machines(
+        self, name: str, ids: list[str]
+    ) -> Iterator[tuple[DaemonProcess, list[ControllerProcess]]]:
+        """A daemon of one machine per id, each on its own instant controller."""
         where = self._dir(name)
-        controller = ControllerProcess(str(where / "ttyBENCH"))
-        daemon = DaemonProcess(
-            where,
-            controller.link,
-            machine=MACHINE,
-            window=WINDOW,
-            cpus=self.host_cpus,
-            module=self.module,
-        )
+        controllers: list[ControllerProcess] = []
+        daemon = None
         try:
+            for machine in ids:
+                controllers.append(ControllerProcess(str(where / f"tty{machine.upper()}")))
+            links = {machine: c.link for machine, c in zip(ids, controllers, strict=True)}
+            first = links.pop(ids[0])
+            daemon = DaemonProcess(
+                where,
+                first,
+                machine=ids[0],
+                also=links,
+                window=WINDOW,
+                cpus=self.host_cpus,
+                module=self.module,
+            )
             daemon.start()
-            yield daemon, controller
+            yield daemon, controllers
         finally:
-            code = daemon.stop()
-            controller.close()
-            if code not in (0, None):
+            code = daemon.stop() if daemon is not None else None
+            for controller in controllers:
+                controller.close()
+            if daemon is not None and code not in (0, None):
                 self.notes.append(f"{name}: daemon exited {code}; log in {daemon.log}")
 
     @contextlib.contextmanager
@@ -201,7 +217,8 @@ class Bench:
                 d_cpu.append(cpu / n * 10_000)
             if self.py_spy:
                 client.upload("profile.gcode", program(5 * n))
-                self._profiled_job(daemon, controller, client, "profile.gcode", 5 * n)
+                with self._profiled(daemon, "p1", "P1 job (streaming, one follower)"):
+                    self._job(daemon, controller, client, "profile.gcode", 5 * n)
         finally:
             client.close()
             raw.close()
@@ -254,88 +271,45 @@ class Bench:
             raise RuntimeError(f"job ended {job['state']} with {job['lines_acked']} of {n}")
         return n / seconds, cpu
 
-    def _profiled_job(
-        self, daemon: DaemonProcess, controller: ControllerProcess, client: Any, file: str, n: int
-    ) -> None:
-        assert self.py_spy is not None
-        out = self.workdir / "p1-profile.txt"
+    @contextlib.contextmanager
+    def _profiled(self, daemon: DaemonProcess, name: str, title: str) -> Iterator[None]:
+        """With --profile, py-spy samples the daemon during the block."""
+        if not self.py_spy:
+            yield
+            return
+        out = self.workdir / f"{name}-profile.txt"
         recorder = spy.start(self.py_spy, daemon.pid, out)
-        time.sleep(0.5)  # attached before the job starts
+        time.sleep(0.5)  # attached before the block starts
         try:
-            self._job(daemon, controller, client, file, n)
+            yield
         finally:
             err = spy.stop(recorder)
         if out.exists():
-            self.profiles.append(("P1 job (streaming, one follower)", spy.summarise(out)))
+            self.profiles.append((title, spy.summarise(out)))
         else:
             self.notes.append(f"py-spy wrote nothing: {err[-500:]}")
 
     # P2 ---------------------------------------------------------------------------
 
     def realtime(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
-        samples = self.s.hold_samples
-        long_lines = 1_000_000
         client = daemon.client()
         fleet = None
         try:
-            client.upload("p2.gcode", program(long_lines))
+            client.upload("p2.gcode", program(LONG_JOB))
             fleet = SubscriberFleet(daemon.socket, self.s.hold_subscribers, "status,job", MACHINE)
-            daemon.wait_idle()
-            controller.expect(long_lines)
-            controller.dump()
-            job_id = client.call("job.start", machine=MACHINE, file="p2.gcode")["job"]
-            time.sleep(0.3)  # streaming at full rate
-            sent_at: list[float] = []
-            recorder = None
-            if self.py_spy:
-                recorder = spy.start(self.py_spy, daemon.pid, self.workdir / "p2-profile.txt")
-                time.sleep(0.5)
-            for _ in range(samples):
-                msg_id, data = client.request("machine.feedhold", machine=MACHINE)
-                t0 = time.monotonic()
-                client.send(data)
-                sent_at.append(t0)
-                client.answer(msg_id)
-                time.sleep(self.s.resume_after)
-                client.call("machine.cycle_start", machine=MACHINE)
-                time.sleep(self.s.hold_spacing)
-            if recorder is not None:
-                spy.stop(recorder)
-                out = self.workdir / "p2-profile.txt"
-                if out.exists():
-                    title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
-                    self.profiles.append((title, spy.summarise(out)))
-            job = client.call("job.get", job=job_id)
-            acked = job["lines_acked"]
-            client.call("job.cancel", machine=MACHINE)
+            title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
+            with self._streaming(daemon, controller, client, MACHINE, "p2.gcode") as job_id:
+                with self._profiled(daemon, "p2", title):
+                    sent_at = self._feedholds(client, MACHINE)
+                acked = client.call("job.get", job=job_id)["lines_acked"]
             fleet_result = fleet.stop()
             fleet = None
         finally:
             if fleet is not None:
                 fleet.kill()
             client.close()
-        bangs = controller.dump()["bangs"]
-        if len(bangs) != len(sent_at):
-            raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
-        latencies = [b - s for b, s in zip(bangs, sent_at, strict=True)]
-        (self.workdir / "p2-samples.json").write_text(
-            json.dumps({"sent_at": sent_at, "bangs": bangs})
-        )
-
-        # baseline: `!` written by the raw loop mid-stream
-        raw_ctl = ControllerProcess(str(self._dir("raw-rt") / "ttyRAW"))
-        raw = RawHost(raw_ctl.link)
-        try:
-            n = REALTIME_EVERY * (samples + 1) + RESUME_AFTER
-            lines = [line.encode() + b"\n" for line in program(n).splitlines()]
-            raw_ctl.expect(n)
-            with self._on_host_cpus():
-                result = raw.stream(lines, WINDOW, realtime=True)
-            raw_bangs = raw_ctl.dump()["bangs"]
-        finally:
-            raw.close()
-            raw_ctl.close()
-        raw_lat = [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
+        latencies = self._latencies(controller, sent_at, "p2")
+        raw_lat = self._raw_realtime("raw-rt")
         p99 = pct(latencies, 0.99)
         self.rows.append(
             Row(
@@ -352,6 +326,70 @@ class Bench:
                 ],
             )
         )
+
+    @contextlib.contextmanager
+    def _streaming(
+        self,
+        daemon: DaemonProcess,
+        controller: ControllerProcess,
+        client: Any,
+        machine: str,
+        file: str,
+    ) -> Iterator[int]:
+        """A job of LONG_JOB lines streaming at full rate on `machine` (its id), cancelled after.
+
+        The controller's records are cleared first: its `bangs` are this job's.
+        """
+        daemon.wait_idle(machine=machine)
+        controller.expect(LONG_JOB)
+        controller.dump()
+        job_id: int = client.call("job.start", machine=machine, file=file)["job"]
+        time.sleep(0.3)  # streaming at full rate
+        yield job_id
+        if client.call("job.get", job=job_id)["state"] in ("running", "paused"):
+            client.call("job.cancel", machine=machine)
+
+    def _feedholds(self, client: Any, machine: str) -> list[float]:
+        """`machine.feedhold`/`machine.cycle_start` pairs: when each feedhold was written."""
+        sent_at: list[float] = []
+        for _ in range(self.s.hold_samples):
+            msg_id, data = client.request("machine.feedhold", machine=machine)
+            t0 = time.monotonic()
+            client.send(data)
+            sent_at.append(t0)
+            client.answer(msg_id)
+            time.sleep(self.s.resume_after)
+            client.call("machine.cycle_start", machine=machine)
+            time.sleep(self.s.hold_spacing)
+        return sent_at
+
+    def _latencies(
+        self, controller: ControllerProcess, sent_at: list[float], name: str
+    ) -> list[float]:
+        """Each feedhold's write to its `!` read by the controller (samples kept in the workdir)."""
+        bangs = controller.dump()["bangs"]
+        if len(bangs) != len(sent_at):
+            raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
+        (self.workdir / f"{name}-samples.json").write_text(
+            json.dumps({"sent_at": sent_at, "bangs": bangs})
+        )
+        return [b - s for b, s in zip(bangs, sent_at, strict=True)]
+
+    def _raw_realtime(self, name: str) -> list[float]:
+        """The baseline: `!` written by the raw loop mid-stream to its read, hold_samples times."""
+        raw_ctl = ControllerProcess(str(self._dir(name) / "ttyRAW"))
+        raw = RawHost(raw_ctl.link)
+        try:
+            n = REALTIME_EVERY * (self.s.hold_samples + 1) + RESUME_AFTER
+            lines = [line.encode() + b"\n" for line in program(n).splitlines()]
+            raw_ctl.expect(n)
+            with self._on_host_cpus():
+                result = raw.stream(lines, WINDOW, realtime=True)
+            raw_bangs = raw_ctl.dump()["bangs"]
+        finally:
+            raw.close()
+            raw_ctl.close()
+        return [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
 
     # P3 ---------------------------------------------------------------------------
 
