@@ -9,6 +9,11 @@
 - P2 realtime latency: `machine.feedhold` written to the socket to `!` read
   by the controller, while a job streams at full rate with 50 subscribers on
   `status` and `job`; baseline: `!` written by the raw loop mid-stream.
+- P2f realtime latency under a query flood: P2's `machine.feedhold` to `!`
+  on a machine streaming a job, while another client (bench/flood.py) keeps
+  200 `machine.send` queries unanswered, as single lines and in batches:
+  (A) on the same machine, (B) on a second machine of the same daemon. No
+  subscribers. Baseline: the raw loop's `!`, as P2's.
 - P3 fan-out: a status report written by the controller to its notification
   read by each of 100 `status` subscribers; baseline: one subscriber.
 - P4 memory: the daemon's peak RSS (VmHWM) streaming a 1,000,000-line file
@@ -48,11 +53,12 @@ from typing import Any
 
 from bench import profile as spy
 from bench.client import DaemonProcess, program
-from bench.procs import ControllerProcess, SubscriberFleet
+from bench.procs import ControllerProcess, Flooder, SubscriberFleet
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost
 
 WINDOW = 4
 MACHINE = "bench"
+SECOND = "other"  # P2f's second machine
 LONG_JOB = 1_000_000  # lines: a job that outlasts the samples taken while it streams
 
 
@@ -64,6 +70,8 @@ class Settings:
     hold_spacing: float = 0.02  # s between a `~` and the next `!`
     resume_after: float = 0.005  # s between a `!` and its `~`
     hold_subscribers: int = 50
+    flood_outstanding: int = 200  # P2f: queries the flooder keeps unanswered
+    flood_batch: int = 10  # P2f: requests in each of its batches
     fanout_subscribers: int = 100
     fanout_reports: int = 200
     fanout_rate: float = 50.0  # status reports a second
@@ -79,6 +87,22 @@ class Settings:
             fanout_reports=100,
             memory_large=200_000,
         )
+
+
+@dataclass
+class Flooded:
+    """One P2f scenario: holds on MACHINE while the flooder floods one machine."""
+
+    latencies: list[float]
+    acked: int  # job lines acked while the samples were taken
+    seconds: float  # how long taking them took
+    state: str  # the job's state right after them
+    faults: list[str]  # active faults on MACHINE right after them
+    flood: dict[str, Any]  # the flooder's result (bench/flood.py)
+
+    @property
+    def kept_streaming(self) -> bool:
+        return self.acked > 0 and self.state == "running" and not self.faults
 
 
 @dataclass
@@ -391,6 +415,76 @@ class Bench:
             raw_ctl.close()
         return [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
 
+    # P2f --------------------------------------------------------------------------
+
+    def realtime_flood(self) -> None:
+        """P2's holds on MACHINE while a flooder floods MACHINE (A), then SECOND (B)."""
+        with self._machines("p2f", [MACHINE, SECOND]) as (daemon, controllers):
+            client = daemon.client()
+            try:
+                client.upload("p2f.gcode", program(LONG_JOB))
+                runs = [
+                    self._flooded(daemon, controllers[0], client, target)
+                    for target in (MACHINE, SECOND)
+                ]
+            finally:
+                client.close()
+        raw_lat = self._raw_realtime("raw-p2f")
+        for name, where, run in zip(
+            ("P2f-A", "P2f-B"), ("the same machine", "a second machine"), runs, strict=True
+        ):
+            flood = run.flood
+            error = f" (first: {flood['error']})" if flood["error"] else ""
+            self.rows.append(
+                Row(
+                    f"{name} `!` latency, {len(run.latencies)} holds, flood on {where}",
+                    spread(run.latencies),
+                    spread(raw_lat) + " raw",
+                    "p50/p99/max",
+                    "p99 < 1 ms",
+                    pct(run.latencies, 0.99) < 1e-3 and run.kept_streaming,
+                    [
+                        f"flooder ({self.s.flood_outstanding} outstanding, batches of "
+                        f"{self.s.flood_batch}): {flood['answered']:,} queries answered in "
+                        f"{flood['seconds']:.1f} s ({flood['answered'] / flood['seconds']:,.0f}/s),"
+                        f" {flood['errors']} errors{error}",
+                        f"job on {MACHINE} acked {run.acked:,} lines during the samples "
+                        f"({run.acked / run.seconds:,.0f}/s), then {run.state}; "
+                        f"active faults: {', '.join(run.faults) or 'none'}; "
+                        f"kept streaming: {'yes' if run.kept_streaming else 'NO'}",
+                    ],
+                )
+            )
+
+    def _flooded(
+        self, daemon: DaemonProcess, controller: ControllerProcess, client: Any, target: str
+    ) -> Flooded:
+        """Holds on MACHINE (its job streaming) while the flooder floods `target`."""
+        name = f"p2f-{target}"
+        title = f"P2f holds on {MACHINE}, queries flooding {target}"
+        with self._streaming(daemon, controller, client, MACHINE, "p2f.gcode") as job_id:
+            flooder = Flooder(daemon.socket, target, self.s.flood_outstanding, self.s.flood_batch)
+            try:
+                time.sleep(0.3)  # the flood at full rate
+                before = client.call("job.get", job=job_id)["lines_acked"]
+                with self._profiled(daemon, name, title):
+                    t0 = time.monotonic()
+                    sent_at = self._feedholds(client, MACHINE)
+                    seconds = time.monotonic() - t0
+                job = client.call("job.get", job=job_id)
+                flood = flooder.stop()
+            finally:
+                flooder.kill()
+            faults = client.call("fault.list", machine=MACHINE)
+        return Flooded(
+            self._latencies(controller, sent_at, name),
+            job["lines_acked"] - before,
+            seconds,
+            job["state"],
+            [f["id"] for f in faults if f["active"]],
+            flood,
+        )
+
     # P3 ---------------------------------------------------------------------------
 
     def fanout(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
@@ -490,6 +584,9 @@ class Bench:
                     if wanted(name):
                         _progress(f"{name}...")
                         step(daemon, controller)
+        if wanted("p2f"):
+            _progress("p2f...")
+            self.realtime_flood()
         if wanted("p4"):
             _progress("p4...")
             self.memory()
@@ -523,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PY_SPY",
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
-    parser.add_argument("--only", help="comma-separated subset: p1,p2,p3,p4 (p5 comes with p1)")
+    parser.add_argument("--only", help="comma-separated subset: p1,p2,p2f,p3,p4 (p5 comes with p1)")
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
         "--no-pin", action="store_true", help="let the scheduler place the processes"
@@ -534,11 +631,16 @@ def main(argv: list[str] | None = None) -> int:
         help="the daemon's entry module (to try a patched daemon; default hostd.service)",
     )
     parser.add_argument("--hold-subscribers", type=int, help="P2's subscribers (default 50)")
+    parser.add_argument(
+        "--flood-outstanding", type=int, help="P2f's queries kept unanswered (default 200)"
+    )
     args = parser.parse_args(argv)
 
     settings = Settings.quick() if args.quick else Settings()
     if args.hold_subscribers is not None:
         settings.hold_subscribers = args.hold_subscribers
+    if args.flood_outstanding is not None:
+        settings.flood_outstanding = args.flood_outstanding
     py_spy = None
     if args.profile:
         py_spy = spy.find_py_spy(args.profile)
