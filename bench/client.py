@@ -17,7 +17,7 @@ import subprocess
 import sys
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -129,7 +129,11 @@ def program(lines: int) -> str:
 
 
 class DaemonProcess:
-    """`python -m hostd.service` with a config of one machine on `data_port`."""
+    """`python -m hostd.service` with a config of one machine on `data_port`.
+
+    `also` adds further machines (id -> data port), configured like the first;
+    `machine` (the first) stays the one the helpers ask about by default.
+    """
 
     def __init__(
         self,
@@ -137,6 +141,7 @@ class DaemonProcess:
         data_port: str,
         *,
         machine: str = "bench",
+        also: Mapping[str, str] | None = None,
         window: int = 4,
         log_level: str = "info",
         extra: str = "",
@@ -145,17 +150,18 @@ class DaemonProcess:
     ) -> None:
         self.workdir = workdir
         self.machine = machine
+        self.machines = {machine: data_port, **(also or {})}
         self.socket = str(workdir / "hostd.sock")
         self.config = workdir / "hostd.toml"
         self.config.write_text(
             "[daemon]\n"
             f'socket = "{self.socket}"\n'
             f'state_dir = "{workdir / "state"}"\n'
-            f'log_level = "{log_level}"\n\n'
-            "[[machines]]\n"
-            f'id = "{machine}"\n'
-            f'data_port = "{data_port}"\n'
-            f"window = {window}\n" + extra
+            f'log_level = "{log_level}"\n'
+            + "".join(
+                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n' + extra
+                for id_, port in self.machines.items()
+            )
         )
         self.log = workdir / "hostd.log"
         self.cpus = cpus
@@ -179,7 +185,10 @@ class DaemonProcess:
                 raise RuntimeError(f"daemon exited {self.proc.returncode}; see {self.log}")
             try:
                 with contextlib.closing(Client(self.socket)) as client:
-                    if client.call("machine.status", machine=self.machine)["supervisor"] == "idle":
+                    if all(
+                        client.call("machine.status", machine=m)["supervisor"] == "idle"
+                        for m in self.machines
+                    ):
                         break
             except (OSError, ConnectionError, RpcFailure):
                 pass
@@ -195,10 +204,11 @@ class DaemonProcess:
     def client(self) -> Client:
         return Client(self.socket)
 
-    def wait_idle(self, timeout: float = 10.0) -> None:
+    def wait_idle(self, timeout: float = 10.0, machine: str | None = None) -> None:
         deadline = time.monotonic() + timeout
+        machine = machine or self.machine
         with contextlib.closing(self.client()) as client:
-            while client.call("machine.status", machine=self.machine)["supervisor"] != "idle":
+            while client.call("machine.status", machine=machine)["supervisor"] != "idle":
                 if time.monotonic() > deadline:
                     raise TimeoutError("machine not idle")
                 time.sleep(0.02)

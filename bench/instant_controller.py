@@ -14,7 +14,9 @@ What it does, just enough like g2core for the daemon's handshake and jobs:
   watched with a short poll, never with a blocking read.
 - Every line gets one `{"r":...,"f":[1,0,N]}` (N: the line's length + 1,
   + 2 for a `{`-line, as the daemon's line-mode sender expects). A GET of
-  `sr` is answered with the current `stat`; SETs are echoed.
+  `sr` (`{"sr":null}`, which is also what the daemon makes of `?` and
+  `{"sr":n}`) is answered with the current `stat`, a GET of any other key
+  with 0 (`{"r":{"xvm":0},"f":[1,0,13]}`); SETs are echoed.
 - The first G-code line of a job sends `{"sr":{"stat":5}}`; the expected
   number of lines (`expect N` on stdin; the report follows 10 ms after the
   last line's answer, as a board's follows its last move), or a short idle,

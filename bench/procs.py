@@ -1,4 +1,4 @@
-"""The bench's helper processes: the instant controller and the subscriber fleet."""
+"""The bench's helper processes: the instant controller, the subscriber fleet, the flooder."""
 
 from __future__ import annotations
 
@@ -63,24 +63,13 @@ class ControllerProcess:
                 self.proc.wait()
 
 
-class SubscriberFleet:
-    """bench/subscribers.py: `count` clients subscribed to `topics`, read continuously."""
+class _Helper:
+    """A helper process (`python -m module args`) that prints `ready`, runs until it reads
+    `stop` on stdin, then prints its result as one JSON line."""
 
-    def __init__(self, socket: str, count: int, topics: str, machine: str) -> None:
+    def __init__(self, module: str, *args: str) -> None:
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "bench.subscribers",
-                "--socket",
-                socket,
-                "--count",
-                str(count),
-                "--topics",
-                topics,
-                "--machine",
-                machine,
-            ],
+            [sys.executable, "-m", module, *args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -88,8 +77,8 @@ class SubscriberFleet:
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline().strip()
         if line != "ready":
-            self.proc.kill()
-            raise RuntimeError(f"subscriber fleet did not start: {line!r}")
+            self.kill()
+            raise RuntimeError(f"{module} did not start: {line!r}")
 
     def stop(self) -> dict[str, Any]:
         assert self.proc.stdin is not None and self.proc.stdout is not None
@@ -103,3 +92,25 @@ class SubscriberFleet:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+class SubscriberFleet(_Helper):
+    """bench/subscribers.py: `count` clients subscribed to `topics`, read continuously."""
+
+    def __init__(self, socket: str, count: int, topics: str, machine: str) -> None:
+        super().__init__(
+            "bench.subscribers",
+            *("--socket", socket, "--count", str(count)),
+            *("--topics", topics, "--machine", machine),
+        )
+
+
+class Flooder(_Helper):
+    """bench/flood.py: one client keeping `outstanding` `machine.send` queries unanswered."""
+
+    def __init__(self, socket: str, machine: str, outstanding: int = 200, batch: int = 10) -> None:
+        super().__init__(
+            "bench.flood",
+            *("--socket", socket, "--machine", machine),
+            *("--outstanding", str(outstanding), "--batch", str(batch)),
+        )

@@ -9,6 +9,11 @@
 - P2 realtime latency: `machine.feedhold` written to the socket to `!` read
   by the controller, while a job streams at full rate with 50 subscribers on
   `status` and `job`; baseline: `!` written by the raw loop mid-stream.
+- P2f realtime latency under a query flood: P2's `machine.feedhold` to `!`
+  on a machine streaming a job, while another client (bench/flood.py) keeps
+  200 `machine.send` queries unanswered, as single lines and in batches:
+  (A) on the same machine, (B) on a second machine of the same daemon. No
+  subscribers. Baseline: the raw loop's `!`, as P2's.
 - P3 fan-out: a status report written by the controller to its notification
   read by each of 100 `status` subscribers; baseline: one subscriber.
 - P4 memory: the daemon's peak RSS (VmHWM) streaming a 1,000,000-line file
@@ -48,11 +53,13 @@ from typing import Any
 
 from bench import profile as spy
 from bench.client import DaemonProcess, program
-from bench.procs import ControllerProcess, SubscriberFleet
+from bench.procs import ControllerProcess, Flooder, SubscriberFleet
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost
 
 WINDOW = 4
 MACHINE = "bench"
+SECOND = "other"  # P2f's second machine
+LONG_JOB = 1_000_000  # lines: a job that outlasts the samples taken while it streams
 
 
 @dataclass
@@ -63,6 +70,8 @@ class Settings:
     hold_spacing: float = 0.02  # s between a `~` and the next `!`
     resume_after: float = 0.005  # s between a `!` and its `~`
     hold_subscribers: int = 50
+    flood_outstanding: int = 200  # P2f: queries the flooder keeps unanswered
+    flood_batch: int = 10  # P2f: requests in each of its batches
     fanout_subscribers: int = 100
     fanout_reports: int = 200
     fanout_rate: float = 50.0  # status reports a second
@@ -78,6 +87,22 @@ class Settings:
             fanout_reports=100,
             memory_large=200_000,
         )
+
+
+@dataclass
+class Flooded:
+    """One P2f scenario: holds on MACHINE while the flooder floods one machine."""
+
+    latencies: list[float]
+    acked: int  # job lines acked while the samples were taken
+    seconds: float  # how long taking them took
+    state: str  # the job's state right after them
+    faults: list[str]  # active faults on MACHINE right after them
+    flood: dict[str, Any]  # the flooder's result (bench/flood.py)
+
+    @property
+    def kept_streaming(self) -> bool:
+        return self.acked > 0 and self.state == "running" and not self.faults
 
 
 @dataclass
@@ -146,23 +171,38 @@ class Bench:
 
     @contextlib.contextmanager
     def _daemon(self, name: str) -> Iterator[tuple[DaemonProcess, ControllerProcess]]:
+        with self._machines(name, [MACHINE]) as (daemon, controllers):
+            yield daemon, controllers[0]
+
+    @contextlib.contextmanager
+    def _machines(
+        self, name: str, ids: list[str]
+    ) -> Iterator[tuple[DaemonProcess, list[ControllerProcess]]]:
+        """A daemon of one machine per id, each on its own instant controller."""
         where = self._dir(name)
-        controller = ControllerProcess(str(where / "ttyBENCH"))
-        daemon = DaemonProcess(
-            where,
-            controller.link,
-            machine=MACHINE,
-            window=WINDOW,
-            cpus=self.host_cpus,
-            module=self.module,
-        )
+        controllers: list[ControllerProcess] = []
+        daemon = None
         try:
+            for machine in ids:
+                controllers.append(ControllerProcess(str(where / f"tty{machine.upper()}")))
+            links = {machine: c.link for machine, c in zip(ids, controllers, strict=True)}
+            first = links.pop(ids[0])
+            daemon = DaemonProcess(
+                where,
+                first,
+                machine=ids[0],
+                also=links,
+                window=WINDOW,
+                cpus=self.host_cpus,
+                module=self.module,
+            )
             daemon.start()
-            yield daemon, controller
+            yield daemon, controllers
         finally:
-            code = daemon.stop()
-            controller.close()
-            if code not in (0, None):
+            code = daemon.stop() if daemon is not None else None
+            for controller in controllers:
+                controller.close()
+            if daemon is not None and code not in (0, None):
                 self.notes.append(f"{name}: daemon exited {code}; log in {daemon.log}")
 
     @contextlib.contextmanager
@@ -201,7 +241,8 @@ class Bench:
                 d_cpu.append(cpu / n * 10_000)
             if self.py_spy:
                 client.upload("profile.gcode", program(5 * n))
-                self._profiled_job(daemon, controller, client, "profile.gcode", 5 * n)
+                with self._profiled(daemon, "p1", "P1 job (streaming, one follower)"):
+                    self._job(daemon, controller, client, "profile.gcode", 5 * n)
         finally:
             client.close()
             raw.close()
@@ -254,88 +295,45 @@ class Bench:
             raise RuntimeError(f"job ended {job['state']} with {job['lines_acked']} of {n}")
         return n / seconds, cpu
 
-    def _profiled_job(
-        self, daemon: DaemonProcess, controller: ControllerProcess, client: Any, file: str, n: int
-    ) -> None:
-        assert self.py_spy is not None
-        out = self.workdir / "p1-profile.txt"
+    @contextlib.contextmanager
+    def _profiled(self, daemon: DaemonProcess, name: str, title: str) -> Iterator[None]:
+        """With --profile, py-spy samples the daemon during the block."""
+        if not self.py_spy:
+            yield
+            return
+        out = self.workdir / f"{name}-profile.txt"
         recorder = spy.start(self.py_spy, daemon.pid, out)
-        time.sleep(0.5)  # attached before the job starts
+        time.sleep(0.5)  # attached before the block starts
         try:
-            self._job(daemon, controller, client, file, n)
+            yield
         finally:
             err = spy.stop(recorder)
         if out.exists():
-            self.profiles.append(("P1 job (streaming, one follower)", spy.summarise(out)))
+            self.profiles.append((title, spy.summarise(out)))
         else:
             self.notes.append(f"py-spy wrote nothing: {err[-500:]}")
 
     # P2 ---------------------------------------------------------------------------
 
     def realtime(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
-        samples = self.s.hold_samples
-        long_lines = 1_000_000
         client = daemon.client()
         fleet = None
         try:
-            client.upload("p2.gcode", program(long_lines))
+            client.upload("p2.gcode", program(LONG_JOB))
             fleet = SubscriberFleet(daemon.socket, self.s.hold_subscribers, "status,job", MACHINE)
-            daemon.wait_idle()
-            controller.expect(long_lines)
-            controller.dump()
-            job_id = client.call("job.start", machine=MACHINE, file="p2.gcode")["job"]
-            time.sleep(0.3)  # streaming at full rate
-            sent_at: list[float] = []
-            recorder = None
-            if self.py_spy:
-                recorder = spy.start(self.py_spy, daemon.pid, self.workdir / "p2-profile.txt")
-                time.sleep(0.5)
-            for _ in range(samples):
-                msg_id, data = client.request("machine.feedhold", machine=MACHINE)
-                t0 = time.monotonic()
-                client.send(data)
-                sent_at.append(t0)
-                client.answer(msg_id)
-                time.sleep(self.s.resume_after)
-                client.call("machine.cycle_start", machine=MACHINE)
-                time.sleep(self.s.hold_spacing)
-            if recorder is not None:
-                spy.stop(recorder)
-                out = self.workdir / "p2-profile.txt"
-                if out.exists():
-                    title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
-                    self.profiles.append((title, spy.summarise(out)))
-            job = client.call("job.get", job=job_id)
-            acked = job["lines_acked"]
-            client.call("job.cancel", machine=MACHINE)
+            title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
+            with self._streaming(daemon, controller, client, MACHINE, "p2.gcode") as job_id:
+                with self._profiled(daemon, "p2", title):
+                    sent_at = self._feedholds(client, MACHINE)
+                acked = client.call("job.get", job=job_id)["lines_acked"]
             fleet_result = fleet.stop()
             fleet = None
         finally:
             if fleet is not None:
                 fleet.kill()
             client.close()
-        bangs = controller.dump()["bangs"]
-        if len(bangs) != len(sent_at):
-            raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
-        latencies = [b - s for b, s in zip(bangs, sent_at, strict=True)]
-        (self.workdir / "p2-samples.json").write_text(
-            json.dumps({"sent_at": sent_at, "bangs": bangs})
-        )
-
-        # baseline: `!` written by the raw loop mid-stream
-        raw_ctl = ControllerProcess(str(self._dir("raw-rt") / "ttyRAW"))
-        raw = RawHost(raw_ctl.link)
-        try:
-            n = REALTIME_EVERY * (samples + 1) + RESUME_AFTER
-            lines = [line.encode() + b"\n" for line in program(n).splitlines()]
-            raw_ctl.expect(n)
-            with self._on_host_cpus():
-                result = raw.stream(lines, WINDOW, realtime=True)
-            raw_bangs = raw_ctl.dump()["bangs"]
-        finally:
-            raw.close()
-            raw_ctl.close()
-        raw_lat = [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
+        latencies = self._latencies(controller, sent_at, "p2")
+        raw_lat = self._raw_realtime("raw-rt")
         p99 = pct(latencies, 0.99)
         self.rows.append(
             Row(
@@ -351,6 +349,140 @@ class Bench:
                     f"{fleet_result['closed']} subscribers disconnected"
                 ],
             )
+        )
+
+    @contextlib.contextmanager
+    def _streaming(
+        self,
+        daemon: DaemonProcess,
+        controller: ControllerProcess,
+        client: Any,
+        machine: str,
+        file: str,
+    ) -> Iterator[int]:
+        """A job of LONG_JOB lines streaming at full rate on `machine` (its id), cancelled after.
+
+        The controller's records are cleared first: its `bangs` are this job's.
+        """
+        daemon.wait_idle(machine=machine)
+        controller.expect(LONG_JOB)
+        controller.dump()
+        job_id: int = client.call("job.start", machine=machine, file=file)["job"]
+        time.sleep(0.3)  # streaming at full rate
+        yield job_id
+        if client.call("job.get", job=job_id)["state"] in ("running", "paused"):
+            client.call("job.cancel", machine=machine)
+
+    def _feedholds(self, client: Any, machine: str) -> list[float]:
+        """`machine.feedhold`/`machine.cycle_start` pairs: when each feedhold was written."""
+        sent_at: list[float] = []
+        for _ in range(self.s.hold_samples):
+            msg_id, data = client.request("machine.feedhold", machine=machine)
+            t0 = time.monotonic()
+            client.send(data)
+            sent_at.append(t0)
+            client.answer(msg_id)
+            time.sleep(self.s.resume_after)
+            client.call("machine.cycle_start", machine=machine)
+            time.sleep(self.s.hold_spacing)
+        return sent_at
+
+    def _latencies(
+        self, controller: ControllerProcess, sent_at: list[float], name: str
+    ) -> list[float]:
+        """Each feedhold's write to its `!` read by the controller (samples kept in the workdir)."""
+        bangs = controller.dump()["bangs"]
+        if len(bangs) != len(sent_at):
+            raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
+        (self.workdir / f"{name}-samples.json").write_text(
+            json.dumps({"sent_at": sent_at, "bangs": bangs})
+        )
+        return [b - s for b, s in zip(bangs, sent_at, strict=True)]
+
+    def _raw_realtime(self, name: str) -> list[float]:
+        """The baseline: `!` written by the raw loop mid-stream to its read, hold_samples times."""
+        raw_ctl = ControllerProcess(str(self._dir(name) / "ttyRAW"))
+        raw = RawHost(raw_ctl.link)
+        try:
+            n = REALTIME_EVERY * (self.s.hold_samples + 1) + RESUME_AFTER
+            lines = [line.encode() + b"\n" for line in program(n).splitlines()]
+            raw_ctl.expect(n)
+            with self._on_host_cpus():
+                result = raw.stream(lines, WINDOW, realtime=True)
+            raw_bangs = raw_ctl.dump()["bangs"]
+        finally:
+            raw.close()
+            raw_ctl.close()
+        return [b - s for b, s in zip(raw_bangs, result.bangs_at, strict=True)]
+
+    # P2f --------------------------------------------------------------------------
+
+    def realtime_flood(self) -> None:
+        """P2's holds on MACHINE while a flooder floods MACHINE (A), then SECOND (B)."""
+        with self._machines("p2f", [MACHINE, SECOND]) as (daemon, controllers):
+            client = daemon.client()
+            try:
+                client.upload("p2f.gcode", program(LONG_JOB))
+                runs = [
+                    self._flooded(daemon, controllers[0], client, target)
+                    for target in (MACHINE, SECOND)
+                ]
+            finally:
+                client.close()
+        raw_lat = self._raw_realtime("raw-p2f")
+        for name, where, run in zip(
+            ("P2f-A", "P2f-B"), ("the same machine", "a second machine"), runs, strict=True
+        ):
+            flood = run.flood
+            error = f" (first: {flood['error']})" if flood["error"] else ""
+            self.rows.append(
+                Row(
+                    f"{name} `!` latency, {len(run.latencies)} holds, flood on {where}",
+                    spread(run.latencies),
+                    spread(raw_lat) + " raw",
+                    "p50/p99/max",
+                    "p99 < 1 ms",
+                    pct(run.latencies, 0.99) < 1e-3 and run.kept_streaming,
+                    [
+                        f"flooder ({self.s.flood_outstanding} outstanding, batches of "
+                        f"{self.s.flood_batch}): {flood['answered']:,} queries answered in "
+                        f"{flood['seconds']:.1f} s ({flood['answered'] / flood['seconds']:,.0f}/s),"
+                        f" {flood['errors']} errors{error}",
+                        f"job on {MACHINE} acked {run.acked:,} lines during the samples "
+                        f"({run.acked / run.seconds:,.0f}/s), then {run.state}; "
+                        f"active faults: {', '.join(run.faults) or 'none'}; "
+                        f"kept streaming: {'yes' if run.kept_streaming else 'NO'}",
+                    ],
+                )
+            )
+
+    def _flooded(
+        self, daemon: DaemonProcess, controller: ControllerProcess, client: Any, target: str
+    ) -> Flooded:
+        """Holds on MACHINE (its job streaming) while the flooder floods `target`."""
+        name = f"p2f-{target}"
+        title = f"P2f holds on {MACHINE}, queries flooding {target}"
+        with self._streaming(daemon, controller, client, MACHINE, "p2f.gcode") as job_id:
+            flooder = Flooder(daemon.socket, target, self.s.flood_outstanding, self.s.flood_batch)
+            try:
+                time.sleep(0.3)  # the flood at full rate
+                before = client.call("job.get", job=job_id)["lines_acked"]
+                with self._profiled(daemon, name, title):
+                    t0 = time.monotonic()
+                    sent_at = self._feedholds(client, MACHINE)
+                    seconds = time.monotonic() - t0
+                job = client.call("job.get", job=job_id)
+                flood = flooder.stop()
+            finally:
+                flooder.kill()
+            faults = client.call("fault.list", machine=MACHINE)
+        return Flooded(
+            self._latencies(controller, sent_at, name),
+            job["lines_acked"] - before,
+            seconds,
+            job["state"],
+            [f["id"] for f in faults if f["active"]],
+            flood,
         )
 
     # P3 ---------------------------------------------------------------------------
@@ -452,6 +584,9 @@ class Bench:
                     if wanted(name):
                         _progress(f"{name}...")
                         step(daemon, controller)
+        if wanted("p2f"):
+            _progress("p2f...")
+            self.realtime_flood()
         if wanted("p4"):
             _progress("p4...")
             self.memory()
@@ -485,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PY_SPY",
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
-    parser.add_argument("--only", help="comma-separated subset: p1,p2,p3,p4 (p5 comes with p1)")
+    parser.add_argument("--only", help="comma-separated subset: p1,p2,p2f,p3,p4 (p5 comes with p1)")
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
         "--no-pin", action="store_true", help="let the scheduler place the processes"
@@ -496,11 +631,16 @@ def main(argv: list[str] | None = None) -> int:
         help="the daemon's entry module (to try a patched daemon; default hostd.service)",
     )
     parser.add_argument("--hold-subscribers", type=int, help="P2's subscribers (default 50)")
+    parser.add_argument(
+        "--flood-outstanding", type=int, help="P2f's queries kept unanswered (default 200)"
+    )
     args = parser.parse_args(argv)
 
     settings = Settings.quick() if args.quick else Settings()
     if args.hold_subscribers is not None:
         settings.hold_subscribers = args.hold_subscribers
+    if args.flood_outstanding is not None:
+        settings.flood_outstanding = args.flood_outstanding
     py_spy = None
     if args.profile:
         py_spy = spy.find_py_spy(args.profile)
