@@ -57,9 +57,11 @@ def _parse_text(raw: bytes) -> Message:
 
 def _parse_json(raw: bytes) -> Message:
     try:
-        obj = json.loads(raw)
+        obj = json.loads(raw, parse_constant=_no_number)
     except (ValueError, RecursionError):  # UnicodeDecodeError is a ValueError
-        return Unparseable("malformed JSON", raw)
+        obj = _loads_firmware_forms(raw)
+        if obj is None:
+            return Unparseable("malformed JSON", raw)
     if not isinstance(obj, dict):
         return Unparseable("JSON that is not an object", raw)
     if "r" in obj:
@@ -77,6 +79,54 @@ def _parse_json(raw: bytes) -> Message:
     if "qr" in obj and obj.keys() <= {"qr", "qi", "qo"}:
         return _parse_queue_report(obj, raw)
     return Notice(obj, raw)
+
+
+# One token of a line as the firmware prints it: a JSON string, the punctuation,
+# or a bare word (a number, a JSON literal, or what strict JSON would refuse).
+_TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|[{}\[\]:,]|[^\s{}\[\]:,"]+|\s+')
+_NUMBER = re.compile(r"-?(?:0|[1-9]\d*)(?:\.\d+)?(?:[eE][+-]?\d+)?")
+# What the firmware's printf prints for a float that is not a number (report.cpp,
+# json_parser.cpp `%f` of NaN and infinities): read as null, an unknown value.
+_NOT_A_NUMBER = frozenset({"nan", "-nan", "inf", "-inf", "+inf", "+nan"})
+
+
+def _loads_firmware_forms(raw: bytes) -> Any:
+    """Strict JSON failed: read the forms real boards print, or None if it is still not JSON.
+
+    Bare `nan` and `inf` (any case, signed) become null; an unquoted word that is
+    not a number nor a JSON literal (older builds print some strings bare) becomes
+    a string. Only the slow path: a line strict JSON reads never comes here.
+    """
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    out: list[str] = []
+    pos = 0
+    for m in _TOKEN.finditer(text):
+        if m.start() != pos:
+            return None  # a stray quote: not something the firmware prints
+        token = m.group()
+        pos = m.end()
+        if token[0] in '"{}[]:,' or token.isspace() or token in ("true", "false", "null"):
+            out.append(token)
+        elif _NUMBER.fullmatch(token):
+            out.append(token)
+        elif token.lower() in _NOT_A_NUMBER:
+            out.append("null")
+        else:
+            out.append(json.dumps(token))
+    if pos != len(text):
+        return None
+    try:
+        return json.loads("".join(out), parse_constant=_no_number)
+    except (ValueError, RecursionError):
+        return None
+
+
+def _no_number(_constant: str) -> None:
+    """NaN and the infinities are no value a client could use: null, as `nan` is."""
+    return None
 
 
 def _parse_response(obj: JsonObject, raw: bytes) -> Message:

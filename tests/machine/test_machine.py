@@ -177,3 +177,14 @@ async def test_two_machines_are_independent(tmp_path: Path) -> None:
         await a.sim.unplug()
         assert (await a.job_ended(job_a.id)).state == "interrupted"
         assert (await b.job_ended(job_b.id)).state == "completed"
+
+
+async def test_nan_in_a_report_mid_job_is_no_lexical_fault(bench: Bench) -> None:
+    bench.write("part.gcode", PROGRAM)
+    job = await bench.machine.start_make("part.gcode")
+    await bench.sim.wait_state(S.RUN)
+    bench.sim.inject_garbage(b'{"sr":{"vel":nan,"feed":inf}}\n')  # as real firmware prints
+    row = await bench.job_ended(job.id)
+    assert row.state == "completed"
+    assert [f.id for f in bench.machine.faults.active()] == []
+    assert bench.machine.snapshot()["velocity"] is not None  # later reports still read

@@ -207,3 +207,34 @@ def test_the_plain_answer_fast_path_agrees_with_the_json_parser() -> None:
         slow = parse_line(raw.replace(b'{"r":{}', b'{"r": {}'))  # not the fast shape
         assert isinstance(fast, Response) and isinstance(slow, Response)
         assert (fast.body, fast.status, fast.count) == (slow.body, slow.status, slow.count)
+
+
+# Forms real boards print that strict JSON refuses (issue 12, item 5). A float that
+# is not a number is printed by the firmware's printf as `nan` / `inf`; 100.x builds
+# print some strings bare (the fbs git-describe string).
+FIRMWARE_FORMS = [
+    (b'{"sr":{"posx":nan,"vel":inf,"feed":-inf,"stat":5}}', {"posx": None, "vel": None}),
+    (b'{"sr":{"posx":-nan,"posy":INF}}', {"posx": None, "posy": None}),
+    (b'{"sr":{"posx":NaN,"posy":-Infinity}}', {"posx": None, "posy": None}),
+]
+
+
+@pytest.mark.parametrize(("raw", "expected"), FIRMWARE_FORMS)
+def test_nan_and_inf_are_read_as_unknown_values(raw: bytes, expected: dict[str, object]) -> None:
+    msg = parse_line(raw)
+    assert isinstance(msg, StatusReport)
+    assert expected.items() <= msg.fields.items()
+
+
+def test_an_unquoted_string_from_an_older_build_is_read_as_a_string() -> None:
+    msg = parse_line(b'{"r":{"fbs":100.26-5-gabcd,"fb":100.26},"f":[1,0,10]}')
+    assert isinstance(msg, Response)
+    assert msg.body == {"fbs": "100.26-5-gabcd", "fb": 100.26}
+
+
+@pytest.mark.parametrize(
+    "raw",
+    [b'{"r":{"a":}}', b"{xx yy}", b'{"r":{},"f":[1,0,4]x}', b'{"sr":{"posx":1}} junk"', b"{nan}"],
+)
+def test_what_is_really_unintelligible_stays_unparseable(raw: bytes) -> None:
+    assert isinstance(parse_line(raw), Unparseable)
