@@ -84,7 +84,7 @@ def _parse_json(raw: bytes) -> Message:
 # One token of a line as the firmware prints it: a JSON string, the punctuation,
 # or a bare word (a number, a JSON literal, or what strict JSON would refuse).
 _TOKEN = re.compile(r'"(?:[^"\\]|\\.)*"|[{}\[\]:,]|[^\s{}\[\]:,"]+|\s+')
-_NUMBER = re.compile(r"-?(?:0|[1-9]\d*)(?:\.\d+)?(?:[eE][+-]?\d+)?")
+_JSON_WORD = re.compile(r"true|false|null|-?(?:0|[1-9]\d*)(?:\.\d+)?(?:[eE][+-]?\d+)?")
 # What the firmware's printf prints for a float that is not a number (report.cpp,
 # json_parser.cpp `%f` of NaN and infinities): read as null, an unknown value.
 _NOT_A_NUMBER = frozenset({"nan", "-nan", "inf", "-inf", "+inf", "+nan"})
@@ -108,9 +108,7 @@ def _loads_firmware_forms(raw: bytes) -> Any:
             return None  # a stray quote: not something the firmware prints
         token = m.group()
         pos = m.end()
-        if token[0] in '"{}[]:,' or token.isspace() or token in ("true", "false", "null"):
-            out.append(token)
-        elif _NUMBER.fullmatch(token):
+        if token[0] in '"{}[]:,' or token.isspace() or _JSON_WORD.fullmatch(token):
             out.append(token)
         elif token.lower() in _NOT_A_NUMBER:
             out.append("null")
