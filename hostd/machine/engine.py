@@ -85,7 +85,7 @@ from hostd.protocol.messages import (
 from hostd.protocol.parser import parse_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.states import MachineState
-from hostd.protocol.status import Status, message
+from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
 
 log = structlog.get_logger(__name__)
 
@@ -93,15 +93,6 @@ STATUS_KEYS = ("stat", "line", "posx", "posy", "posz", "vel", "feed", "unit")
 FLUSH_CONFIRM_TIMEOUT = 2.0
 RECONNECT_BACKOFF = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
-# Exception reports that announce a lockout before the status report does.
-_LOCKOUT_BY_STATUS: dict[int, MachineState] = {
-    Status.ALARM: MachineState.ALARM,
-    Status.LIMIT_SWITCH_HIT: MachineState.ALARM,
-    **{code: MachineState.ALARM for code in range(220, 234)},  # soft limits
-    Status.SHUTDOWN: MachineState.SHUTDOWN,
-    Status.PANIC: MachineState.PANIC,
-    **{code: MachineState.PANIC for code in range(86, 100)},  # assertion failures
-}
 _NOT_TEXT = frozenset({"not valid UTF-8", "control characters in a text line"})
 # Statuses that call a line malformed: for the daemon's own lines, a daemon bug (`syntax`).
 _MALFORMED = frozenset(
@@ -187,7 +178,7 @@ class Engine:
         self._outbox: deque[_Queued] = deque()  # data-channel lines, under the window
         self._lane: deque[_Queued] = deque()  # queries and in-hold lines, the control lane
         self._flush: _Flush | None = None
-        self._await_report = False  # an `er` came: job lines wait for a status report
+        self._await_report = False  # an `er` came: actions and job lines wait for a report
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._settings_pending = False  # refused in a lockout: sent again when it ends
         self._halted = False  # an internal fault: nothing but halts and reset is written
@@ -436,15 +427,17 @@ class Engine:
         self._job_log().warning("controller exception", status=report.status, msg=report.message)
         if self.hub.active:
             self.hub.publish(ExceptionRaised(self.id, report.fields))
-        lockout = _LOCKOUT_BY_STATUS.get(report.status or -1)
-        if lockout is not None:
+        raised = LOCKOUT_RAISED_BY.get(report.status or -1)
+        if raised is not None:
+            lockout = MachineState[raised]
             self.model.state = lockout
             self._on_state(lockout)
         elif report.status == Status.KILL_JOB and self._flush is not None:
             self._confirm_flush(kill_seen=True)
-        else:
-            self._await_report = True
-            self._query_status()
+            return
+        # Nothing of ours is written until a status report says where the board is.
+        self._await_report = True
+        self._query_status()
 
     def _on_banner(self, banner: Banner) -> None:
         if self._banner is not None and not self._banner.done():
@@ -524,10 +517,11 @@ class Engine:
         state = self.model.state
         context = self._context()
         flushing = self._flush is not None
+        unsure = flushing or self._await_report  # the board may be anywhere now
         lane = self._lane
         while lane and self.sender.control_room:
-            if flushing and lane[0].context is not Context.ANY:
-                break  # queries run during a flush; an in-hold line waits to see how it ends
+            if unsure and lane[0].context is not Context.ANY:
+                break  # queries run now; an in-hold line waits to see where the board is
             queued = lane.popleft()
             if self._admissible(queued, state, context) and not self._write(
                 queued.encoded, queued.future, Channel.CONTROL
@@ -538,8 +532,11 @@ class Engine:
         batch: list[bytes] = []
         while True:
             if self._outbox:
-                if not self.sender.room(self._outbox[0].encoded):
+                head = self._outbox[0]
+                if not self.sender.room(head.encoded):
                     break  # in order: a client's lines never overtake each other
+                if self._await_report and head.context in (Context.FREE, Context.HOLD):
+                    break  # an exception report: actions wait for the next status report
                 self._flush_batch(link, batch)
                 queued = self._outbox.popleft()
                 if self._admissible(queued, state, context) and not self._write(

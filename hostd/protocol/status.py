@@ -36,7 +36,7 @@ from enum import IntEnum
 from types import MappingProxyType
 from typing import Final
 
-__all__ = ["MESSAGES", "Status", "StatusInfo", "lookup", "message", "name"]
+__all__ = ["LOCKOUT_RAISED_BY", "MESSAGES", "Status", "StatusInfo", "lookup", "message", "name"]
 
 
 class Status(IntEnum):
@@ -426,3 +426,40 @@ def name(code: int) -> str:
 def lookup(code: int) -> StatusInfo:
     """Code, name and message together. Never raises, for the same reason as `message()`."""
     return StatusInfo(code=int(code), name=name(code), message=message(code))
+
+
+# What an exception report announces, before the status report that follows says so:
+# the codes g2core's own alarm, shutdown and panic paths raise (cm_alarm, cm_shutdown,
+# cm_panic in synthetos/g2 edge-preview and master, g2core/*.cpp; see docs/protocol.md).
+# Values are the lockout's name in hostd.protocol.states.MachineState.
+LOCKOUT_RAISED_BY: dict[int, str] = {
+    # cm_alarm: host or input (alarm.cpp, canonical_machine.cpp), limit switch
+    # (controller.cpp), soft limits (canonical_machine.cpp, plan_arc.cpp), probing
+    # (cycle_probing.cpp), arc offsets (plan_arc.cpp), heaters (temperature.cpp), and
+    # an encoder that stopped answering (kinematics_four_cable.h).
+    Status.ALARM: "ALARM",
+    Status.LIMIT_SWITCH_HIT: "ALARM",
+    **dict.fromkeys(range(220, 234), "ALARM"),
+    Status.PROBE_CYCLE_FAILED: "ALARM",
+    Status.PROBE_TRAVEL_TOO_SMALL: "ALARM",
+    Status.NO_PROBE_INPUT_CONFIGURED: "ALARM",
+    Status.PROBE_IS_ALREADY_TRIPPED: "ALARM",
+    Status.FEEDRATE_NOT_SPECIFIED: "ALARM",
+    Status.AXIS_IS_MISSING: "ALARM",
+    Status.ARC_OFFSETS_MISSING_FOR_SELECTED_PLANE: "ALARM",
+    Status.TEMPERATURE_CONTROL_ERROR: "ALARM",
+    Status.ENCODER_ASSERTION_FAILURE: "ALARM",
+    # cm_shutdown: host, e-stop input (safety_manager.h).
+    Status.SHUTDOWN: "SHUTDOWN",
+    # cm_panic: host or input, the *_test_assertions() of each module, the planner,
+    # stepper and report paths that "never" fail, and an arc with no plane.
+    Status.PANIC: "PANIC",
+    Status.BUFFER_FULL_FATAL: "PANIC",
+    Status.INTERNAL_ERROR: "PANIC",
+    Status.PREP_LINE_MOVE_TIME_IS_INFINITE: "PANIC",
+    Status.PREP_LINE_MOVE_TIME_IS_NAN: "PANIC",
+    Status.FAILED_GET_PLANNER_BUFFER: "PANIC",
+    **dict.fromkeys((89, 90, 91, 93, 94, 95, 96), "PANIC"),  # assertion failures
+    Status.ACTIVE_PLANE_IS_MISSING: "PANIC",
+    Status.ACTIVE_PLANE_IS_INVALID: "PANIC",
+}

@@ -33,7 +33,12 @@ async def state(rig: Rig, want: S) -> None:
         await rig.engine.wait_for(lambda: rig.engine.model.state is want)
 
 
+def status_requests(rig: Rig) -> int:
+    return sum(r.data == b'{"sr":null}' for r in rig.sim.received)
+
+
 async def lock(rig: Rig, kind: S) -> None:
+    asked = status_requests(rig)
     if kind is S.ALARM:
         rig.sim.limit_switch("x")
     elif kind is S.SHUTDOWN:
@@ -41,6 +46,8 @@ async def lock(rig: Rig, kind: S) -> None:
     else:
         rig.sim.panic()
     await state(rig, kind)
+    # The exception report made the engine ask where the board is: let that settle.
+    await rig.sim.wait_for(lambda: status_requests(rig) > asked)
 
 
 async def finished(stream: JobStream) -> None:

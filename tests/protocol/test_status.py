@@ -6,7 +6,15 @@ import dataclasses
 
 import pytest
 
-from hostd.protocol.status import MESSAGES, Status, StatusInfo, lookup, message, name
+from hostd.protocol.status import (
+    LOCKOUT_RAISED_BY,
+    MESSAGES,
+    Status,
+    StatusInfo,
+    lookup,
+    message,
+    name,
+)
 
 
 @pytest.mark.parametrize(
@@ -140,3 +148,26 @@ def test_lookup_gives_a_plain_int_and_is_frozen() -> None:
 def test_table_is_read_only() -> None:
     with pytest.raises(TypeError):
         MESSAGES[0] = "changed"  # type: ignore[index]
+
+
+# Codes g2core's cm_alarm / cm_shutdown / cm_panic raise (issue 12, item 6; the call
+# sites are cited in docs/protocol.md).
+@pytest.mark.parametrize(
+    ("code", "lockout"),
+    [
+        (18, "ALARM"), (203, "ALARM"), (221, "ALARM"), (233, "ALARM"),
+        (250, "ALARM"), (251, "ALARM"), (252, "ALARM"), (254, "ALARM"),
+        (142, "ALARM"), (134, "ALARM"), (157, "ALARM"), (209, "ALARM"),
+        (92, "ALARM"),  # an encoder that stopped answering: kinematics raise an alarm
+        (5, "SHUTDOWN"),
+        (6, "PANIC"), (14, "PANIC"), (20, "PANIC"), (30, "PANIC"), (31, "PANIC"),
+        (36, "PANIC"), (89, "PANIC"), (96, "PANIC"), (140, "PANIC"), (141, "PANIC"),
+    ],
+)  # fmt: skip
+def test_exception_codes_the_firmware_raises_as_lockouts(code: int, lockout: str) -> None:
+    assert LOCKOUT_RAISED_BY[code] == lockout
+
+
+@pytest.mark.parametrize("code", [0, 40, 100, 207, 113, 204, 205, 206, 240])
+def test_other_exception_codes_announce_no_lockout(code: int) -> None:
+    assert code not in LOCKOUT_RAISED_BY
