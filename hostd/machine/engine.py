@@ -91,6 +91,9 @@ log = structlog.get_logger(__name__)
 
 STATUS_KEYS = ("stat", "line", "posx", "posy", "posz", "vel", "feed", "unit")
 FLUSH_CONFIRM_TIMEOUT = 2.0
+BANNER_WAIT = 1.0  # s for a banner before asking the version (a UART link prints none)
+OLDEST_BUILD = 100.0  # g2core builds before 100 had other status codes
+TINYG_BUILDS = 400.0  # TinyG's builds are 400 and up
 RECONNECT_BACKOFF = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
 _NOT_TEXT = frozenset({"not valid UTF-8", "control characters in a text line"})
@@ -697,14 +700,24 @@ class Engine:
         self._banner = asyncio.get_running_loop().create_future()
         timeout = self.config.handshake_timeout
         banner: Banner | None = None
+        # After 0x18 the board boots and always prints its banner. A board on a UART
+        # link prints it only at boot, not when a host opens the port: if none comes
+        # soon, ask it for its version instead (g2core.md section 10).
+        rebooting = self._restart_deadline is not None
+        banner_wait = timeout if rebooting else min(BANNER_WAIT, timeout / 2)
+        identity: float | None = None
         try:
             async with asyncio.timeout(timeout):
-                banner = await self._banner
-                if banner.is_tinyg:
-                    raise NotConnected(
-                        f"TinyG firmware (build {banner.fb}) is not supported: "
-                        "its status codes differ from g2core's"
-                    )
+                try:
+                    async with asyncio.timeout(banner_wait):
+                        banner = await asyncio.shield(self._banner)
+                    identity = banner.fb
+                except TimeoutError:
+                    if rebooting:
+                        raise
+                    answer = await self._ask(encode_get("fv", "fb"))
+                    identity = _build(answer.body.get("fb"))
+                _check_firmware(identity)
                 for setting in self._settings():
                     response = await self._ask(encode_set(setting))
                     if response.status in _LOCKOUT_REJECTIONS:
@@ -717,7 +730,13 @@ class Engine:
                         )
                 await self._ask(encode_get("sr"))
         except TimeoutError:
-            step = "SYSTEM READY banner" if banner is None else "answer to its settings"
+            step = (
+                "answer to its settings"
+                if identity is not None
+                else "SYSTEM READY banner"
+                if rebooting
+                else "SYSTEM READY banner, nor an answer to a version request,"
+            )
             raise NotConnected(f"no {step} from the controller within {timeout:g} s") from None
         finally:
             self._banner = None
@@ -1022,6 +1041,25 @@ def _discarded(kind: Realtime) -> MachineError:
 
 def _locked(state: MachineState | None) -> bool:
     return state is not None and state.is_lockout
+
+
+def _build(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def _check_firmware(fb: float | None) -> None:
+    """g2core from build 100 only: TinyG's codes differ, and before 100 so did g2core's."""
+    if fb is None:
+        raise NotConnected("the controller did not say its firmware build (fb)")
+    if fb >= TINYG_BUILDS:
+        raise NotConnected(
+            f"TinyG firmware (build {fb:g}) is not supported: its status codes differ from g2core's"
+        )
+    if fb < OLDEST_BUILD:
+        raise NotConnected(
+            f"g2core build {fb:g} is older than {OLDEST_BUILD:.2f}, whose status codes hostd "
+            "relies on (204 meant something else before): update the firmware"
+        )
 
 
 def _context_changed(machine: str, admitted: Context, now: Context) -> str:

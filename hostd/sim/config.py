@@ -29,6 +29,9 @@ class SimConfig:
     status_interval: float = 0.25  # s, the initial `si`
     travel: dict[str, float] = field(default_factory=_default_travel)  # axis -> max mm
     fb: float = 101.06  # firmware build in the banner; 440.xx makes it look like TinyG
+    # A board on a UART link (a Due programming port, a USB-serial adapter): SYSTEM
+    # READY only when it boots (after 0x18), not when a host opens the port.
+    uart: bool = False
     boot_time: float = 0.05  # s the board is gone after a reset (0x18)
     rx_budget: int = 1024  # bytes of unprocessed input per port, like the board's RX ring
     # Entries kept in `received` and `sent` (None: all, for tests). A board that

@@ -67,6 +67,7 @@ class SimController:
         self._reading = True
         self._silent = False
         self._resetting = False
+        self._booted = False  # a UART board prints its banner once after a boot
         self._closed = False
         self._wake: asyncio.Event | None = None
         self._changed: asyncio.Event | None = None
@@ -303,9 +304,13 @@ class SimController:
             self._primary = name
             self._board.connected()
             self._cancel_banner()
-            self._banner = "pending"
-            loop = asyncio.get_running_loop()
-            self._banner_timer = loop.call_later(BANNER_FALLBACK, self._banner_fallback)
+            if not self.config.uart or self._booted:
+                self._booted = False
+                self._banner = "pending"
+                loop = asyncio.get_running_loop()
+                self._banner_timer = loop.call_later(BANNER_FALLBACK, self._banner_fallback)
+            else:
+                self._banner = "done"  # it booted long ago, and said so to nobody
         self._active.add(name)
         self._kick()
 
@@ -434,6 +439,7 @@ class SimController:
                 port.unplug()
             await asyncio.sleep(self.config.boot_time)
             self._board.power_on()
+            self._booted = True
             for scanner in self._scanners.values():
                 scanner.reset()
         finally:

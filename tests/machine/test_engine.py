@@ -7,6 +7,7 @@ the engine's own ordered event stream (`Recorder`).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -400,3 +401,34 @@ async def test_dual_port_lines_on_data_realtime_and_queries_on_control(tmp_path:
     assert ports[b"G0 X1"] == "data"
     assert ports[b'{"xvm":null}'] == "control"
     assert ports[b"!"] == "control"
+
+
+async def test_a_uart_board_without_a_banner_is_asked_its_version(tmp_path: Path) -> None:
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=dataclasses.replace(FAST, uart=True)) as sim:
+        engine = Engine(machine_config(path))
+        async with running(engine):
+            await engine.connect()
+            assert engine.ready and engine.model.state is not None
+            assert b'{"fv":null,"fb":null}' in [r.data for r in sim.received]
+            # After 0x18 the board boots and prints its banner: that is waited for.
+            await engine.reset()
+            assert engine.ready
+
+
+@pytest.mark.parametrize(
+    ("fb", "refusal"),
+    [(440.21, "TinyG firmware \\(build 440.21\\)"), (99.02, "g2core build 99.02 is older")],
+)
+async def test_firmware_hostd_cannot_drive_is_refused_by_its_version(
+    tmp_path: Path, fb: float, refusal: str
+) -> None:
+    path = str(tmp_path / "ttyG2")
+    # Without a banner too: the version answer is enough to tell.
+    for uart in (False, True):
+        config = SimConfig(instant=True, fb=fb, uart=uart)
+        async with SimController(path, config=config):
+            engine = Engine(machine_config(path))
+            async with running(engine):
+                with pytest.raises(NotConnected, match=refusal):
+                    await engine.connect()
