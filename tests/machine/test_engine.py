@@ -432,3 +432,20 @@ async def test_firmware_hostd_cannot_drive_is_refused_by_its_version(
             async with running(engine):
                 with pytest.raises(NotConnected, match=refusal):
                     await engine.connect()
+
+
+async def test_a_board_reset_by_its_own_button_gets_the_daemons_settings_again(
+    tmp_path: Path,
+) -> None:
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=FAST) as sim:
+        engine = Engine(machine_config(path, auto_connect=True))
+        async with running(engine):
+            await engine.connect()
+            applied = sum(r.data == b'{"jv":4}' for r in sim.received)
+            await sim.reset()  # the board restarts with its defaults, not the host's doing
+            await sim.wait_received(
+                lambda: sum(r.data == b'{"jv":4}' for r in sim.received) > applied
+            )
+            await engine.connect()
+            assert (await engine.send("{jv:n}")).body["jv"] == 4
