@@ -89,7 +89,11 @@ from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
 
 log = structlog.get_logger(__name__)
 
-STATUS_KEYS = ("stat", "line", "posx", "posy", "posz", "vel", "feed", "unit")
+# The status report list the handshake sets: the board reports these on change.
+STATUS_KEYS = (
+    *("stat", "line", "posx", "posy", "posz", "mpox", "mpoy", "mpoz", "vel", "feed", "unit"),
+    *("coor", "dist", "frmo", "momo", "hold", "tool", "home"),
+)
 FLUSH_CONFIRM_TIMEOUT = 2.0
 BANNER_WAIT = 1.0  # s for a banner before asking the version (a UART link prints none)
 OLDEST_BUILD = 100.0  # g2core builds before 100 had other status codes
@@ -414,6 +418,7 @@ class Engine:
             self._write_realtime(Realtime.JOB_KILL)
 
     def _on_status(self, fields: dict[str, Any]) -> None:
+        before = self.model.state
         changed = self.model.apply_status(fields)
         if "stat" in fields:
             self._await_report = False
@@ -421,7 +426,7 @@ class Engine:
             if self._awaiting_rest:
                 self._check_stream_complete()
         if changed is not None:
-            self._on_state(changed)
+            self._on_state(changed, before)
         if self.hub.active:
             self.hub.publish(StatusChanged(self.id, fields, self.model.snapshot()))
 
@@ -449,8 +454,10 @@ class Engine:
         # SYSTEM READY mid-session: the board restarted under us.
         raise _SessionEnd("controller restarted (unexpected SYSTEM READY)")
 
-    def _on_state(self, state: MachineState) -> None:
+    def _on_state(self, state: MachineState, before: MachineState | None = None) -> None:
         self._job_log().info("controller state", state=state.name)
+        if before is MachineState.HOMING:
+            self._ask_homed()  # a homing cycle ended, done or failed
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -728,6 +735,9 @@ class Engine:
                             f"controller refused {setting}: {response.status} "
                             f"({message(response.status)})"
                         )
+                homed = await self._ask(encode_get("home"))
+                if homed.ok:
+                    self.model.apply_status({"home": homed.body.get("home")})
                 await self._ask(encode_get("sr"))
         except TimeoutError:
             step = (
@@ -750,6 +760,16 @@ class Engine:
             {"si": round(self.config.status_interval * 1000)},
             {"sr": dict.fromkeys((*STATUS_KEYS, *self.config.signals.keys()), True)},
         ]
+
+    def _ask_homed(self) -> None:
+        """`{home:n}`: whether the board is homed comes from the board, never a guess."""
+        future = _future()
+        future.add_done_callback(self._homed_answered)
+        self._write(encode_get("home"), future, Channel.CONTROL, urgent=True, own=True)
+
+    def _homed_answered(self, future: asyncio.Future[Response]) -> None:
+        if not future.cancelled() and future.exception() is None and future.result().ok:
+            self.model.apply_status({"home": future.result().body.get("home")})
 
     def _reapply_settings(self) -> None:
         self._settings_pending = False

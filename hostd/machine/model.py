@@ -16,6 +16,15 @@ from hostd.protocol.status import Status
 
 AXES = ("x", "y", "z", "a", "b", "c")
 _UNITS = {0: "in", 1: "mm"}
+# g2core's enums as the G-code word that sets each (canonical_machine.h: coor,
+# dist, frmo, momo), so a client reads "G55", not 2.
+_WCS = {0: "G53", 1: "G54", 2: "G55", 3: "G56", 4: "G57", 5: "G58", 6: "G59"}
+_DISTANCE = {0: "G90", 1: "G91"}
+_FEED_MODE = {0: "G93", 1: "G94", 2: "G95"}
+_MOTION = {0: "G0", 1: "G1", 2: "G2", 3: "G3", 4: "G80"}
+# Status report keys read as one of the codes above.
+_MODAL = {"coor": ("wcs", _WCS), "dist": ("distance", _DISTANCE)}
+_MODAL |= {"frmo": ("feed_mode", _FEED_MODE), "momo": ("motion", _MOTION)}
 # A limit switch unhomes the machine (seed 000); so does SHUTDOWN.
 _UNHOMING_STATUS = frozenset({Status.LIMIT_SWITCH_HIT})
 
@@ -30,6 +39,10 @@ class MachineModel:
     feed: float | None = None
     units: str | None = None
     homed: bool | None = None
+    machine_position: dict[str, float] = field(default_factory=dict)
+    modal: dict[str, str | None] = field(default_factory=dict)  # wcs, distance, ...
+    hold: int | None = None
+    tool: int | None = None
     last_exception: JsonObject | None = None
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
@@ -50,6 +63,15 @@ class MachineModel:
                 self.units = _UNITS.get(value, self.units) if _is_number(value) else self.units
             elif key == "home" and _is_number(value):
                 self.homed = bool(value)
+            elif key.startswith("mpo") and key[3:] in AXES and _is_number(value):
+                self.machine_position[key[3:]] = float(value)
+            elif key in _MODAL:
+                name, codes = _MODAL[key]
+                self.modal[name] = codes.get(int(value)) if _is_number(value) else None
+            elif key == "hold" and _is_number(value):
+                self.hold = int(value)
+            elif key == "tool" and _is_number(value):
+                self.tool = int(value)
         if self.state is MachineState.SHUTDOWN:
             self.homed = False
         return self.state if self.state is not before else None
@@ -70,6 +92,9 @@ class MachineModel:
         self.line = self.velocity = self.feed = None
         self.units = None
         self.homed = None
+        self.machine_position.clear()
+        self.modal.clear()
+        self.hold = self.tool = None
 
     def snapshot(self) -> dict[str, Any]:
         state = self.state
@@ -82,6 +107,14 @@ class MachineModel:
             "feed": self.feed,
             "units": self.units,
             "homed": self.homed,
+            "work_position": dict(self.position),
+            "machine_position": dict(self.machine_position),
+            "wcs": self.modal.get("wcs"),
+            "distance": self.modal.get("distance"),
+            "feed_mode": self.modal.get("feed_mode"),
+            "motion": self.modal.get("motion"),
+            "hold": self.hold,
+            "tool": self.tool,
             "last_exception": self.last_exception,
         }
 

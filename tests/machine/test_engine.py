@@ -449,3 +449,30 @@ async def test_a_board_reset_by_its_own_button_gets_the_daemons_settings_again(
             )
             await engine.connect()
             assert (await engine.send("{jv:n}")).body["jv"] == 4
+
+
+async def test_the_snapshot_shows_what_real_boards_report(rig: Rig) -> None:
+    snap = rig.engine.model.snapshot()
+    assert snap["homed"] is False  # asked of the board at connect, not guessed
+    await rig.engine.send("G55")
+    await rig.engine.send("G91 G1 X3 F600")
+    await state(rig, S.PROGRAM_STOP)
+    await rig.engine.send("{sr:n}")
+    snap = rig.engine.model.snapshot()
+    assert (snap["wcs"], snap["distance"], snap["feed_mode"], snap["motion"]) == (
+        "G55",
+        "G91",
+        "G94",
+        "G1",
+    )
+    assert snap["machine_position"]["x"] == pytest.approx(3.0)
+    assert snap["work_position"] == snap["position"]
+    assert snap["tool"] == 0 and snap["hold"] == 0
+
+
+async def test_homed_is_asked_again_when_a_homing_cycle_ends(rig: Rig) -> None:
+    assert rig.engine.model.homed is False
+    await rig.engine.send("G28.2 X0 Y0 Z0")
+    await rig.engine.wait_for(lambda: rig.engine.model.homed is True)
+    asked = [r.data for r in rig.sim.received].count(b'{"home":null}')
+    assert asked >= 2  # at connect, and after the cycle
