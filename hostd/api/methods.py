@@ -36,6 +36,7 @@ from hostd.machine.events import (
     ExceptionRaised,
     FaultChanged,
     JobChanged,
+    ProbeReported,
     StatusChanged,
     SupervisorChanged,
 )
@@ -49,8 +50,8 @@ log = structlog.get_logger(__name__)
 
 API_VERSION = 1
 STORAGE: Final = 1009  # docs/api.md: the jobs directory is full, over its quota, or failing
-TOPICS = ("status", "exception", "supervisor", "fault", "job", "console")
-Topic = Literal["status", "exception", "supervisor", "fault", "job", "console"]
+TOPICS = ("status", "exception", "supervisor", "fault", "job", "console", "probe")
+Topic = Literal["status", "exception", "supervisor", "fault", "job", "console", "probe"]
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
 SettingKey = Annotated[str, Field(min_length=1, max_length=16, pattern=r"^[A-Za-z0-9_]+$")]
 SettingValue = bool | int | float | str  # bounded by hostd.protocol.settings.check_values
@@ -277,6 +278,10 @@ class Api:
                 )
         elif isinstance(event, ExceptionRaised):
             subs.deliver("exception", mid, {"machine": mid, "report": event.report})
+        elif isinstance(event, ProbeReported):
+            subs.deliver(
+                "probe", mid, {"machine": mid, "report": event.report, "probe": event.probe}
+            )
         elif isinstance(event, SupervisorChanged):
             subs.deliver(
                 "supervisor",

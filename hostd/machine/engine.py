@@ -58,6 +58,7 @@ from hostd.machine.events import (
     FaultDetected,
     Hub,
     LinkChanged,
+    ProbeReported,
     StatusChanged,
 )
 from hostd.machine.linemode import InFlight, LineModeSender, SenderError
@@ -78,6 +79,7 @@ from hostd.protocol.messages import (
     Banner,
     ExceptionReport,
     Message,
+    Notice,
     Response,
     StatusReport,
     Unparseable,
@@ -371,6 +373,8 @@ class Engine:
             self._detected(kind, self._lines_in, f"{msg.reason}: {msg.raw[:60]!r}")
             self._changed.set()
             return
+        elif isinstance(msg, Notice) and isinstance(msg.fields.get("prb"), dict):
+            self._on_probe(msg.fields["prb"])
         else:
             self._log.debug("controller said", message=_kind(msg))
         self._lines_in += 1
@@ -446,6 +450,13 @@ class Engine:
         # Nothing of ours is written until a status report says where the board is.
         self._await_report = True
         self._query_status()
+
+    def _on_probe(self, report: dict[str, Any]) -> None:
+        """A probe cycle's result (cycle_probing.cpp `_send_probe_report`): kept and told."""
+        probe = self.model.apply_probe(report)
+        self._job_log().info("probe", ok=probe["ok"], position=probe["position"])
+        if self.hub.active:
+            self.hub.publish(ProbeReported(self.id, report, probe))
 
     def _on_banner(self, banner: Banner) -> None:
         if self._banner is not None and not self._banner.done():

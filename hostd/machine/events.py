@@ -33,6 +33,13 @@ class ExceptionRaised:
 
 
 @dataclass(frozen=True, slots=True)
+class ProbeReported:
+    machine: str
+    report: JsonObject  # as the board printed it
+    probe: dict[str, Any]  # the snapshot's `probe`: {"ok", "position"}
+
+
+@dataclass(frozen=True, slots=True)
 class Console:
     machine: str
     direction: str  # "tx" | "rx"
@@ -80,6 +87,7 @@ class FaultChanged:
 Event = (
     StatusChanged
     | ExceptionRaised
+    | ProbeReported
     | Console
     | LinkChanged
     | SupervisorChanged

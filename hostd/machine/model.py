@@ -43,6 +43,7 @@ class MachineModel:
     modal: dict[str, str | None] = field(default_factory=dict)  # wcs, distance, ...
     hold: int | None = None
     tool: int | None = None
+    probe: dict[str, Any] | None = None  # the last probe cycle's result
     last_exception: JsonObject | None = None
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
@@ -81,6 +82,12 @@ class MachineModel:
         if report.status in _UNHOMING_STATUS:
             self.homed = False
 
+    def apply_probe(self, report: JsonObject) -> dict[str, Any]:
+        """`{"prb":{"e":1,"x":..}}`: e is 1 when the probe made contact, 0 when it did not."""
+        position = {a: float(v) for a, v in report.items() if a in AXES and _is_number(v)}
+        self.probe = {"ok": report.get("e") == 1, "position": position}
+        return self.probe
+
     def last_exception_message(self) -> str | None:
         msg = (self.last_exception or {}).get("msg")
         return msg if isinstance(msg, str) and msg else None
@@ -95,6 +102,7 @@ class MachineModel:
         self.machine_position.clear()
         self.modal.clear()
         self.hold = self.tool = None
+        self.probe = None
 
     def snapshot(self) -> dict[str, Any]:
         state = self.state
@@ -115,6 +123,7 @@ class MachineModel:
             "motion": self.modal.get("motion"),
             "hold": self.hold,
             "tool": self.tool,
+            "probe": self.probe,
             "last_exception": self.last_exception,
         }
 
