@@ -381,12 +381,23 @@ class Engine:
         self._changed.set()
 
     def _on_response(self, response: Response) -> None:
+        if response.count < 2:
+            # No line of ours is answered with fewer than 2 (a data line of L >= 1
+            # bytes gets L + 1): a report shaped as an answer (report.cpp startup
+            # messages, status 15; cycle_homing.cpp's failed homing, status 240).
+            self._unbooked(response)
+            return
         try:
-            entry = self.sender.answered(response)
+            entry, skipped = self.sender.answered(response)
         except SenderError:
             self._job_log().warning("answer with no line waiting", raw=response.raw)
             self._detected("lexical", None, f"an answer with no line waiting: {response.raw!r}")
             return
+        for lost in skipped:
+            self._job_log().warning("the controller never answered a line", line=lost.line)
+            self._settle_unanswered(lost, ControllerError(0, "the controller never answered"))
+            if isinstance(lost.source, JobStream):
+                self._fail_job_line(lost.source, lost, "got no answer from the controller")
         if entry.own and response.status in _MALFORMED:
             # The board calls a line the daemon wrote malformed: a daemon bug.
             line = entry.line.rstrip(b"\n").decode(errors="replace")
@@ -399,6 +410,23 @@ class Engine:
             self._on_job_answer(source, entry, response)
         elif not source.done():
             source.set_result(response)
+
+    def _unbooked(self, response: Response) -> None:
+        """An `{r}` that answers no line: startup chatter is noted; anything else is an event."""
+        if response.status == Status.INITIALIZING:
+            self._log.info("controller initializing", msg=response.body.get("msg"))
+            return
+        body_msg = response.body.get("msg")
+        msg = body_msg if isinstance(body_msg, str) else ""
+        fields = {"st": response.status, "msg": msg}
+        self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
+
+    def _fail_job_line(self, stream: JobStream, entry: InFlight, what: str) -> None:
+        """A job line went wrong on the board: the job fails, and what follows it must not run."""
+        if stream.done:
+            return
+        stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
+        self._write_realtime(Realtime.JOB_KILL)
 
     def _on_job_answer(self, stream: JobStream, entry: InFlight, response: Response) -> None:
         if response.ok:
@@ -440,6 +468,9 @@ class Engine:
         if self.hub.active:
             self.hub.publish(ExceptionRaised(self.id, report.fields))
         raised = LOCKOUT_RAISED_BY.get(report.status or -1)
+        if report.status == Status.JSON_OUTPUT_TOO_LONG:
+            # json_parser.cpp sends this instead of the answer of the line it is on.
+            self._answer_too_long()
         if raised is not None:
             lockout = MachineState[raised]
             self.model.state = lockout
@@ -450,6 +481,16 @@ class Engine:
         # Nothing of ours is written until a status report says where the board is.
         self._await_report = True
         self._query_status()
+
+    def _answer_too_long(self) -> None:
+        """The answer to the control line being run did not fit: that line fails with 113."""
+        entry = self.sender.oldest_control()
+        if entry is None:
+            return
+        error = ControllerError(Status.JSON_OUTPUT_TOO_LONG, message(Status.JSON_OUTPUT_TOO_LONG))
+        self._settle_unanswered(entry, error)
+        if isinstance(entry.source, JobStream):
+            self._fail_job_line(entry.source, entry, "its answer was too long for the controller")
 
     def _on_probe(self, report: dict[str, Any]) -> None:
         """A probe cycle's result (cycle_probing.cpp `_send_probe_report`): kept and told."""

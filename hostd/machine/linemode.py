@@ -101,12 +101,29 @@ class LineModeSender:
             raise SenderError(f"{kind} of {budget} exceeded")
         (self._control if entry.control else self._data).append(entry)
 
-    def answered(self, response: Response) -> InFlight:
-        """The line this `{r}` answers, removed from the books."""
+    def answered(self, response: Response) -> tuple[InFlight, list[InFlight]]:
+        """The line this `{r}` answers, removed from the books, and the lines it skips.
+
+        The board answered nothing for a skipped line (an answer too large for
+        its buffer can vanish): when the count does not fit the oldest line
+        waiting but fits a later one of the same kind exactly, the ones before
+        it are given up, so no later answer is matched one line off. When it
+        fits none, the oldest takes it, as the order says.
+        """
         queue = self._queue_for(response)
         if not queue:
             raise SenderError(f"an answer with no line waiting: {response.raw!r}")
-        return queue.popleft()
+        skipped: list[InFlight] = []
+        if queue[0].expected_count() != response.count:
+            for index, entry in enumerate(queue):
+                if entry.expected_count() == response.count:
+                    skipped = [queue.popleft() for _ in range(index)]
+                    break
+        return queue.popleft(), skipped
+
+    def oldest_control(self) -> InFlight | None:
+        """The control line the board is answering now, if any: the first unanswered one."""
+        return self._control.popleft() if self._control else None
 
     def dropped(self) -> list[InFlight]:
         """After `%` or 0x04: the data lines the board discarded unanswered, oldest first.

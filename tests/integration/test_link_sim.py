@@ -79,7 +79,7 @@ async def test_line_mode_exchange_answers_every_line_in_order(sim: SimController
                     msg = parse_line(event.line)
                     if isinstance(msg, Response):
                         assert msg.ok
-                        entry = sender.answered(msg)
+                        entry = sender.answered(msg)[0]
                         assert entry.file_line is not None
                         answered.append(entry.file_line)
         assert answered == list(range(1, 21))

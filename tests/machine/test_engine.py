@@ -14,7 +14,7 @@ import pytest
 
 from hostd.machine.engine import Engine, LinkState
 from hostd.machine.errors import Busy, ControllerError, NotConnected, Rejected
-from hostd.machine.events import Console, Hub, LinkChanged
+from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
 from hostd.machine.stream import JobStream, StreamEnd
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.states import MachineState as S
@@ -476,3 +476,28 @@ async def test_homed_is_asked_again_when_a_homing_cycle_ends(rig: Rig) -> None:
     await rig.engine.wait_for(lambda: rig.engine.model.homed is True)
     asked = [r.data for r in rig.sim.received].count(b'{"home":null}')
     assert asked >= 2  # at connect, and after the cycle
+
+
+# -- answers that answer no line (issue 12, item 4) --------------------------------
+
+
+async def test_a_failed_homings_extra_answer_is_booked_to_no_line(rig: Rig) -> None:
+    # cycle_homing.cpp `_homing_error_exit` prints this before the real answer.
+    rig.sim.set_ack_delay(0.3)
+    asked = asyncio.create_task(rig.engine.send("G0 X1"))
+    await rig.sim.wait_received(b"G0 X1")
+    rig.sim.inject_garbage(b'{"r":{"msg":"X axis Homing error"},"f":[1,240,1]}\n')
+    response = await asked
+    assert response.ok  # the real answer reached the line, not the homing report
+    report = await rig.recorder.wait_for(lambda e: isinstance(e, ExceptionRaised))
+    assert isinstance(report, ExceptionRaised) and report.report["st"] == 240
+    assert not [e for e in rig.recorder.events if isinstance(e, FaultDetected)]
+
+
+async def test_startup_messages_are_no_answers(rig: Rig) -> None:
+    # report.cpp `_startup_helper`: status 15, printed on a UART link at boot.
+    rig.sim.inject_garbage(
+        b'{"r":{"fv":0.99,"fb":101.06,"msg":"Loading configs from EEPROM"},"f":[1,15,0]}\n'
+    )
+    assert (await rig.engine.send("{xvm:n}")).body == {"xvm": 6000}
+    assert not [e for e in rig.recorder.events if isinstance(e, FaultDetected)]

@@ -35,7 +35,7 @@ def test_answers_come_back_in_order_with_their_file_lines() -> None:
     sender = LineModeSender(window=4)
     for n in (3, 5, 6):
         sender.sent(data(f"G1 X{n}", n))
-    assert [sender.answered(answer(6)).file_line for _ in range(3)] == [3, 5, 6]
+    assert [sender.answered(answer(6))[0].file_line for _ in range(3)] == [3, 5, 6]
     assert len(sender) == 0
 
 
@@ -68,17 +68,17 @@ def test_control_answer_that_overtakes_waiting_data_lines_is_matched_by_count() 
     sender = LineModeSender(window=8)
     sender.sent(data("G1 X10 Y10", 1))  # 10 bytes: answered with 11
     sender.sent(control('{"sr":null}'))  # 11 bytes + LF: answered with 13
-    got = sender.answered(answer(13, {"sr": {"stat": 5}}))
+    got = sender.answered(answer(13, {"sr": {"stat": 5}}))[0]
     assert got.line == b'{"sr":null}\n'
-    assert sender.answered(answer(11, {"n": 0})).file_line == 1
+    assert sender.answered(answer(11, {"n": 0}))[0].file_line == 1
 
 
 def test_equal_counts_are_told_apart_by_the_body() -> None:
     sender = LineModeSender(window=8)
     sender.sent(data("G1 X1 Y2 Z3 "))  # 12 bytes: answered with 13
     sender.sent(control('{"sr":null}'))  # 11 bytes and its LF: also 13
-    assert sender.answered(answer(13, {"sr": {}})).control
-    assert not sender.answered(answer(13, {"n": 7})).control
+    assert sender.answered(answer(13, {"sr": {}}))[0].control
+    assert not sender.answered(answer(13, {"n": 7}))[0].control
 
 
 def test_flush_drops_the_data_lines_the_board_discarded() -> None:
@@ -100,3 +100,35 @@ def test_an_answer_with_nothing_waiting_is_an_error() -> None:
 def test_window_below_one_is_refused() -> None:
     with pytest.raises(ValueError):
         LineModeSender(window=0)
+
+
+def test_a_line_the_board_never_answered_is_given_up_not_matched_one_off() -> None:
+    # `{"xvm":null}` (12 + LF: 14) got no answer; the next one's count says so.
+    sender = LineModeSender(window=4)
+    sender.sent(control('{"xvm":null}'))
+    sender.sent(control('{"yvm":null}'))
+    sender.sent(control('{"travel":null}'))  # 15 bytes: answered with 17
+    entry, skipped = sender.answered(answer(17, {"travel": 1}))
+    assert entry.line == b'{"travel":null}\n'
+    assert [e.line for e in skipped] == [b'{"xvm":null}\n', b'{"yvm":null}\n']
+    assert len(sender) == 0
+
+
+def test_a_count_that_fits_no_line_goes_to_the_oldest() -> None:
+    sender = LineModeSender(window=4)
+    sender.sent(data("G1 X1", 1))
+    entry, skipped = sender.answered(answer(99))
+    assert (entry.file_line, skipped) == (1, [])
+
+
+def test_an_answer_too_long_gives_up_the_control_line_being_run() -> None:
+    # json_parser.cpp sends `er` 113 instead of the answer to the `{`-line it is on:
+    # the oldest control line; data lines waiting for planner room are not it.
+    sender = LineModeSender(window=4)
+    sender.sent(data("G1 X1", 1))
+    sender.sent(control('{"xvm":null}'))
+    sender.sent(control('{"yvm":null}'))
+    given_up = sender.oldest_control()
+    assert given_up is not None and given_up.line == b'{"xvm":null}\n'
+    assert sender.answered(answer(14, {"yvm": 1}))[0].line == b'{"yvm":null}\n'
+    assert sender.answered(answer(6))[0].file_line == 1
