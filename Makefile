@@ -40,7 +40,9 @@ bench: $(STAMP)
 	$(BIN)/python -m bench $(BENCH_ARGS)
 
 # Long fault runs, not part of `make test`: against the daemon process (bench/soak.py),
-# and unplug/re-plug and alarm cycles over real ptys (bench/soak_link.py).
+# unplug/re-plug and alarm cycles over real ptys (bench/soak_link.py), and the
+# model-based test (tests/stateful) with many more, longer, random examples.
 soak: $(STAMP)
 	$(BIN)/python -m bench.soak $(SOAK_ARGS)
 	$(BIN)/python -m bench.soak_link
+	HOSTD_STATEFUL_PROFILE=soak $(BIN)/pytest tests/stateful --timeout=0
