@@ -128,7 +128,8 @@ class Context(StrEnum):
 
     FREE = "free"  # no job running, no hold: an ordinary line under the window
     HOLD = "hold"  # the board is in a hold: run inside it, in its secondary planner
-    JOB = "job"  # a job is streaming: no client action fits
+    JOB = "job"  # an operation runs (a job streaming, settings, a jog): no client action fits
+    OPERATION = "operation"  # a line of the running operation itself
     ANY = "any"  # queries and clears: fit every context
     OWN = "own"  # the daemon's own line
 
@@ -191,6 +192,7 @@ class Engine:
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._settings_pending = False  # refused in a lockout: sent again when it ends
         self._halted = False  # an internal fault: nothing but halts and reset is written
+        self._operation = False  # the machine runs an operation: client actions are busy
         self._lines_in = 0  # lines read and understood this session (the serial fault's value)
         self._restart_deadline: float | None = None  # a reset is under way until then
         self._last_rx = 0.0
@@ -539,7 +541,12 @@ class Engine:
     def _context(self) -> Context:
         if self.model.state is MachineState.HOLD:
             return Context.HOLD
-        return Context.JOB if self._job_running() else Context.FREE
+        return Context.JOB if self._job_running() or self._operation else Context.FREE
+
+    def set_operation(self, running: bool) -> None:
+        """The machine started or ended an operation; waiting client actions are judged again."""
+        self._operation = running
+        self._recheck_waiting()
 
     def _admissible(self, queued: _Queued, state: MachineState | None, context: Context) -> bool:
         """May this waiting line be written now? If not, its asker is told why, once."""
@@ -548,6 +555,8 @@ class Engine:
             self._fail(queued.future, Rejected(verdict, self._locked_message()))
             return False
         if queued.context in (Context.ANY, Context.OWN) or queued.context is context:
+            return True
+        if queued.context is Context.OPERATION and self._operation:
             return True
         self._fail(queued.future, Busy(_context_changed(self.id, queued.context, context)))
         return False
@@ -597,7 +606,8 @@ class Engine:
                 head = self._outbox[0]
                 if not self.sender.room(head.encoded):
                     break  # in order: a client's lines never overtake each other
-                if self._await_report and head.context in (Context.FREE, Context.HOLD):
+                waits = (Context.FREE, Context.HOLD, Context.OPERATION)
+                if self._await_report and head.context in waits:
                     break  # an exception report: actions wait for the next status report
                 self._flush_batch(link, batch)
                 queued = self._outbox.popleft()
@@ -870,8 +880,12 @@ class Engine:
         if self.link_state is not LinkState.READY:
             raise NotConnected(f"{self.id} is not connected")
 
-    async def send(self, line: str, timeout: float = 10.0) -> Response:
-        """One line from a client, answered by the board (ControllerError for a non-zero status)."""
+    async def send(self, line: str, timeout: float = 10.0, *, operation: bool = False) -> Response:
+        """One line from a client, answered by the board (ControllerError for a non-zero status).
+
+        `operation`: the line is the running operation's own (a settings batch, a
+        jog's G90), not a client's; it fits while that operation runs.
+        """
         self._require_ready()
         if self._halted:
             raise self._write_refused()
@@ -887,6 +901,8 @@ class Engine:
             self._lane.append(_Queued(_as_json_query(text), cls, future, Context.ANY))
         elif cls is CommandClass.CLEAR:
             self._outbox.append(_Queued(encode_line(text), cls, future, Context.ANY))
+        elif operation and self._operation and self._context() is Context.JOB:
+            self._outbox.append(_Queued(encode_line(text), cls, future, Context.OPERATION))
         else:
             self._admit_action(text, cls, future)
         self._pump()
@@ -900,7 +916,7 @@ class Engine:
             raise Busy(
                 f"{self.id}: the job is still entering its hold; send again once it holds"
                 if pausing
-                else f"{self.id} is running a job"
+                else f"{self.id} is running {'a job' if self._job_running() else 'an operation'}"
             )
         if context is Context.FREE:
             self._outbox.append(_Queued(encode_line(text), cls, future, context))
@@ -1137,7 +1153,7 @@ def _check_firmware(fb: float | None) -> None:
 def _context_changed(machine: str, admitted: Context, now: Context) -> str:
     what = {
         Context.HOLD: "a hold began",
-        Context.JOB: "a job started",
+        Context.JOB: "an operation started",
         Context.FREE: "the hold ended",
     }[now]
     if admitted is Context.HOLD and now is not Context.HOLD:

@@ -149,6 +149,9 @@ class Machine:
 
     def _on_transition(self, t: Transition) -> None:
         self._log.info("supervisor", source=t.source.value, target=t.target.value, on=t.event.value)
+        # From start-operation to operation-stopped no client action fits (1003), even
+        # before the job streams or while a settings batch or a jog runs.
+        self.engine.set_operation(t.target in (SupState.OPERATION, SupState.PAUSED))
         self.hub.publish(SupervisorChanged(self.id, t.source.value, t.target.value, t.event.value))
 
     # -- faults ------------------------------------------------------------
@@ -241,7 +244,7 @@ class Machine:
         result = StreamResult(StreamEnd.FAILED, 1005, "the settings operation was abandoned")
         try:
             for line in lines:
-                response = await self.engine.send(line)
+                response = await self.engine.send(line, operation=True)
                 bodies.append(response.body)
                 self._record(lines_sent=len(bodies), lines_acked=len(bodies))
             result = StreamResult(StreamEnd.COMPLETED)
@@ -371,7 +374,7 @@ class Machine:
         try:
             async with asyncio.timeout(5):  # a stop by `!` and `%` passes through a hold
                 await self.engine.wait_for(self.engine.out_of_hold)
-            await self.engine.send("G90")
+            await self.engine.send("G90", operation=True)
         except TimeoutError:
             self._log.warning("could not restore G90 after a jog: the board stayed in a hold")
         except MachineError as exc:

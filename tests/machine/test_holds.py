@@ -114,7 +114,7 @@ async def test_a_waiting_line_fails_when_a_job_starts_instead_of_running_inside_
     await rig.sim.wait_received(lambda: len(rig.received_lines()) >= before + 4)
     assert not late.done()  # the window is full: it waits on the host
     rig.job(["G1 X1 F600"])
-    with pytest.raises(Busy, match="a job started before the line was written"):
+    with pytest.raises(Busy, match="an operation started before the line was written"):
         await late
     assert b"G0 Y9" not in rig.received_lines()
     for task in first:
@@ -284,3 +284,16 @@ async def test_a_probe_failure_report_mid_job_stops_the_job_as_an_alarm(bench: B
     row = await bench.job_ended(job.id)
     assert (row.state, row.error is not None and row.error.code) == ("failed", 204)
     assert row.lines_acked < 300
+
+
+async def test_a_client_action_during_a_settings_operation_is_busy(bench: Bench) -> None:
+    bench.sim.set_ack_delay(0.3)  # the operation's line waits for its answer
+    operation = asyncio.create_task(bench.machine.settings(['{"xvm":7000}']))
+    await bench.sim.wait_received(b'{"xvm":7000}')
+    before = len(bench.sim.received)
+    with pytest.raises(Busy, match="running an operation"):
+        await bench.machine.engine.send("G0 Z1")
+    job, _ = await operation
+    assert b"G0 Z1" not in [r.data for r in bench.sim.received[before:]]
+    row = await bench.store.get(job.id)
+    assert row is not None and row.state == "completed"
