@@ -29,7 +29,6 @@ import structlog
 
 from hostd.config import MachineConfig
 from hostd.machine.engine import Engine
-from hostd.machine.errors import Busy, FaultActive, MachineError
 from hostd.machine.events import (
     Event,
     FaultChanged,
@@ -43,13 +42,15 @@ from hostd.machine.events import (
 from hostd.machine.faults import Fault, FaultTable
 from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, now
 from hostd.machine.signals import fault_conditions
-from hostd.machine.stream import JobStream, StreamEnd, StreamResult
+from hostd.machine.stream import JobStream, StreamResult
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.gcode import jog_line
 from hostd.protocol.program import program_lines
+from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState
 
 log = structlog.get_logger(__name__)

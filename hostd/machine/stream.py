@@ -14,18 +14,11 @@ import asyncio
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from enum import StrEnum
 
 from hostd.protocol.commands import InvalidCommand, encode_line
+from hostd.protocol.session import StreamEnd
 
 _PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
-
-
-class StreamEnd(StrEnum):
-    COMPLETED = "completed"
-    FAILED = "failed"
-    CANCELLED = "cancelled"
-    INTERRUPTED = "interrupted"
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,6 +29,8 @@ class StreamResult:
 
 
 class JobStream:
+    """A job's lines for the session (a `hostd.protocol.session.LineSource`), and its outcome."""
+
     def __init__(self, lines: Iterator[tuple[int, str]], job_id: int | None = None) -> None:
         self._lines = lines
         self.job_id = job_id  # the job row it belongs to, for the logs

@@ -212,7 +212,7 @@ async def test_a_daemon_line_refused_as_malformed_is_syntax_cleared_only_by_rese
 ) -> None:
     engine = laser.hostd.daemon.machines["sim1"].engine
     laser.sim.stop_reading()  # the board leaves our status query unread...
-    engine._query_status()
+    engine.query_status()
     laser.sim.inject_garbage(b'{"r":{},"f":[1,111,13]}\n')  # ...and it is answered 111
     await laser.fault("syntax", True)
     laser.sim.resume_reading()
@@ -242,7 +242,7 @@ async def test_an_internal_fault_stops_writing_until_reset(
     def broken(report: dict[str, Any]) -> None:
         raise RuntimeError("invariant broken")
 
-    monkeypatch.setattr(engine, "_on_status", broken)  # a bug in the daemon, not the link
+    monkeypatch.setattr(engine.session, "_on_status", broken)  # a bug in the daemon, not the link
     await laser.rpc.call("machine.send", machine="sim1", line="G0 X5")  # moves: reports come
     await laser.fault("internal", True)
     monkeypatch.undo()

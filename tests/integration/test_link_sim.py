@@ -10,8 +10,8 @@ import pytest
 import pytest_asyncio
 
 from hostd.link import Channel, LineReceived, Link, LinkLost
-from hostd.machine.linemode import InFlight, LineModeSender
 from hostd.protocol.commands import Realtime, encode_get, encode_line, encode_realtime
+from hostd.protocol.linemode import InFlight, LineModeSender
 from hostd.protocol.messages import Banner, Message, Response, StatusReport, Unparseable
 from hostd.protocol.parser import parse_line
 from hostd.protocol.states import MachineState

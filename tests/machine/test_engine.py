@@ -13,10 +13,11 @@ from pathlib import Path
 import pytest
 
 from hostd.machine.engine import Engine, LinkState
-from hostd.machine.errors import Busy, ControllerError, NotConnected, Rejected
 from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
-from hostd.machine.stream import JobStream, StreamEnd
+from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState as S
 from hostd.sim import SimConfig, SimController
 from tests.machine.conftest import FAST, Recorder, Rig, machine_config, running

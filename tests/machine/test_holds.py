@@ -11,10 +11,10 @@ import contextlib
 
 import pytest
 
-from hostd.machine.errors import Busy, MachineError
 from hostd.machine.events import Event, SupervisorChanged
 from hostd.machine.supervisor import State as Sup
 from hostd.protocol.commands import Realtime
+from hostd.protocol.errors import Busy, MachineError
 from hostd.protocol.states import MachineState as S
 from hostd.sim import SimController
 from tests.machine.conftest import Bench, Rig
@@ -272,7 +272,7 @@ async def test_a_query_is_answered_while_a_flush_is_unconfirmed(rig: Rig) -> Non
     rig.engine.realtime(Realtime.QUEUE_FLUSH)
     response = await rig.engine.send("{xvm:n}")
     assert response.body == {"xvm": 6000}
-    assert rig.engine._flush is not None  # answered before the flush was settled
+    assert rig.engine.session.flushing()  # answered before the flush was settled
 
 
 async def test_a_probe_failure_report_mid_job_stops_the_job_as_an_alarm(bench: Bench) -> None:

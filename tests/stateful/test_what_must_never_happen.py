@@ -45,10 +45,10 @@ from hostd.api.methods import Api, build_methods
 from hostd.api.rpc import Methods, dispatch
 from hostd.config import parse_config
 from hostd.daemon import Daemon
-from hostd.machine.errors import NotConnected
 from hostd.machine.events import JobChanged, StatusChanged, SupervisorChanged
 from hostd.machine.jobstore import Job, JobStore
 from hostd.machine.machine import Machine
+from hostd.protocol.errors import NotConnected
 from hostd.protocol.states import MachineState
 from hostd.sim import SimController
 from tests.machine.conftest import FAST, machine_config

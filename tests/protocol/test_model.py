@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from hostd.machine.model import MachineModel
 from hostd.protocol.messages import ExceptionReport
+from hostd.protocol.model import MachineModel
 from hostd.protocol.parser import parse_line
 from hostd.protocol.states import MachineState
 

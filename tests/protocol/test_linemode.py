@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from hostd.machine.linemode import InFlight, LineModeSender, SenderError
+from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import Response
 
 

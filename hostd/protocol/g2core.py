@@ -1,0 +1,981 @@
+"""g2core's session: every rule of the controller, with no I/O (see session.py).
+
+Every write is decided by the state the board last reported, applied before
+the write:
+- a client's line is admitted twice: when it arrives, and again at the moment
+  it is written. It carries the context it was admitted in (free, in a hold,
+  any); if that context is gone by then (a hold began or ended, a job
+  started, a lockout began), it fails with a clear error instead of running
+  where it was never meant to. Waiting lines are re-checked on every change;
+- lines pass the command class table (`classes.py`) in ALARM, SHUTDOWN and
+  PANIC; job lines are not written at all then;
+- job lines are not written while the job is paused (from its `!` to its
+  `~`) nor while the board reports a hold; in-hold lines (`{"gc2":...}`) and
+  queries go at once, past the window, through a bounded control lane;
+- an exception report stops job lines until a status report says where the
+  board is (an `er` may announce an alarm before its status report does);
+- after `%` or 0x04 no data line is written until the board shows the flush
+  happened (stat 3/4, or `er` 207): until then its answers to lines read
+  before the flush still arrive and are matched; then the rest, which it
+  discarded, are dropped from the books and accounted;
+- a clear is written only when none of our data lines is unanswered: the
+  board runs a `{`-line ahead of waiting G-code, and a stale line must not
+  run after the alarm is cleared.
+
+The handshake (g2core.md section 10): the banner, or after `BANNER_WAIT` on
+a link that prints none a version request; the firmware build checked; the
+protocol settings; `{home:n}`; a full status report. Then the heartbeat: a
+board silent for `heartbeat` seconds is asked for a report, and one that
+does not answer within as long again is gone.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from enum import Enum, auto
+from typing import Any
+
+import structlog
+
+from hostd.protocol.classes import CommandClass, admit, classify, classify_realtime
+from hostd.protocol.commands import (
+    Realtime,
+    encode_clear,
+    encode_get,
+    encode_in_hold,
+    encode_line,
+    encode_realtime,
+    encode_set,
+    validate_line,
+)
+from hostd.protocol.errors import (
+    Busy,
+    ControllerError,
+    FaultActive,
+    MachineError,
+    NotConnected,
+    Rejected,
+)
+from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
+from hostd.protocol.messages import (
+    Banner,
+    ExceptionReport,
+    Notice,
+    Response,
+    StatusReport,
+    Unparseable,
+)
+from hostd.protocol.model import MachineModel
+from hostd.protocol.parser import parse_line
+from hostd.protocol.relaxed import parse_relaxed
+from hostd.protocol.session import (
+    Closing,
+    Context,
+    Detected,
+    Event,
+    Excepted,
+    Lane,
+    LineSource,
+    Phase,
+    Probed,
+    Ready,
+    Reported,
+    Settled,
+    StreamEnd,
+)
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
+
+log = structlog.get_logger(__name__)
+
+# The status report list the handshake sets: the board reports these on change.
+STATUS_KEYS = (
+    *("stat", "line", "posx", "posy", "posz", "mpox", "mpoy", "mpoz", "vel", "feed", "unit"),
+    *("coor", "dist", "frmo", "momo", "hold", "tool", "home"),
+)
+FLUSH_CONFIRM_TIMEOUT = 2.0
+BANNER_WAIT = 1.0  # s for a banner before asking the version (a UART link prints none)
+OLDEST_BUILD = 100.0  # g2core builds before 100 had other status codes
+TINYG_BUILDS = 400.0  # TinyG's builds are 400 and up
+
+_NOT_TEXT = frozenset({"not valid UTF-8", "control characters in a text line"})
+# Statuses that call a line malformed: for the daemon's own lines, a daemon bug (`syntax`).
+_MALFORMED = frozenset(
+    {
+        Status.INVALID_OR_MALFORMED_COMMAND,
+        Status.BAD_NUMBER_FORMAT,
+        Status.UNSUPPORTED_TYPE,
+        Status.JSON_SYNTAX_ERROR,
+        Status.JSON_TOO_MANY_PAIRS,
+        Status.VALUE_TYPE_ERROR,
+    }
+)
+_LOCKOUT_REJECTIONS = frozenset(
+    {
+        Status.COMMAND_REJECTED_BY_ALARM,
+        Status.COMMAND_REJECTED_BY_SHUTDOWN,
+        Status.COMMAND_REJECTED_BY_PANIC,
+    }
+)
+# States in which the board has run its flush (cycle ended, planner empty).
+_FLUSH_CONFIRMED = frozenset({MachineState.PROGRAM_STOP, MachineState.PROGRAM_END})
+
+
+class _Own(Enum):
+    """What a line of the session's own is for; its answer goes back to that."""
+
+    VERSION = auto()  # {fv:n,fb:n}: a board that printed no banner
+    SETTING = auto()  # a protocol setting of the handshake
+    HOMED = auto()  # {home:n}, in the handshake and after homing
+    FIRST_REPORT = auto()  # the handshake's last step: a full status report
+    HEARTBEAT = auto()  # a silent board asked for a report
+    QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
+    REAPPLY = auto()  # a setting sent again once a lockout ended
+
+
+@dataclass(slots=True)
+class _Queued:
+    """A line waiting for a slot: a client's, or the daemon's own clear."""
+
+    encoded: bytes
+    cls: CommandClass
+    token: Any
+    context: Context
+
+    @property
+    def own(self) -> bool:
+        return self.context is Context.OWN
+
+
+class G2Session:
+    """One g2core board's protocol, across the connections of a daemon's life.
+
+    `open()` starts a connection's handshake and `close()` settles
+    everything a connection carried; between the two, `receive()` takes each
+    line the board prints and the request methods take what clients ask.
+    """
+
+    def __init__(
+        self,
+        machine_id: str,
+        *,
+        window: int = 4,
+        status_interval: float = 0.25,
+        heartbeat: float = 2.0,
+        handshake_timeout: float = 5.0,
+        signal_keys: Iterable[str] = (),
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.id = machine_id
+        self.status_interval = status_interval
+        self.heartbeat = heartbeat
+        self.handshake_timeout = handshake_timeout
+        self.signal_keys = tuple(signal_keys)
+        self.clock = clock
+        self.model = MachineModel(machine_id)
+        self.sender = LineModeSender(window)
+        self.phase = Phase.CLOSED
+        self.stream: LineSource | None = None
+        self.halted = False  # an internal fault: nothing but halts and reset is written
+        self._out: list[tuple[Lane, bytes]] = []
+        self._events: list[Event] = []
+        self._outbox: deque[_Queued] = deque()  # data-channel lines, under the window
+        self._lane: deque[_Queued] = deque()  # queries and in-hold lines, the control lane
+        self._flush: Realtime | None = None  # QUEUE_FLUSH or JOB_KILL, awaiting its proof
+        self._flush_deadline: float | None = None
+        self._await_report = False  # an `er` came: actions and job lines wait for a report
+        self._awaiting_rest = False  # the job is answered: waiting for the board to stop
+        self._settings_pending = False  # refused in a lockout: sent again when it ends
+        self._operation = False  # the machine runs an operation: client actions are busy
+        self._lines_in = 0  # lines read and understood this connection (the serial fault's value)
+        self._last_rx = 0.0
+        # The handshake: its deadlines, what it learnt, the settings still to send.
+        self._rebooting = False
+        self._banner_deadline: float | None = None
+        self._handshake_deadline: float | None = None
+        self._identity: float | None = None
+        self._to_set: deque[dict[str, Any]] = deque()
+        self._heartbeat_deadline: float | None = None  # a heartbeat query is unanswered
+        self._closing_reason: str | None = None  # asked to be closed: nothing more is due
+        self._log = log.bind(machine=machine_id)
+
+    # -- outputs -------------------------------------------------------------
+
+    def data_to_send(self) -> list[tuple[Lane, bytes]]:
+        """Everything to write now, in order (the waiting lines that fit are taken first)."""
+        self._pump()
+        out, self._out = self._out, []
+        return out
+
+    def events(self) -> list[Event]:
+        events, self._events = self._events, []
+        return events
+
+    def next_deadline(self) -> float | None:
+        if self._closing_reason is not None:
+            return None
+        deadlines = [
+            d
+            for d in (
+                self._banner_deadline,
+                self._handshake_deadline,
+                self._flush_deadline,
+                self._heartbeat_deadline,
+            )
+            if d is not None
+        ]
+        if self.phase is Phase.READY and self.heartbeat and self._heartbeat_deadline is None:
+            deadlines.append(self._last_rx + self.heartbeat)
+        return min(deadlines, default=None)
+
+    # -- the connection --------------------------------------------------------
+
+    def open(self, *, rebooting: bool = False) -> None:
+        """The link is open: begin the handshake. After 0x18 only the banner will do."""
+        now = self.clock()
+        self.phase = Phase.HANDSHAKE
+        self._closing_reason = None
+        self._rebooting = rebooting
+        self._identity = None
+        self._last_rx = now
+        self._handshake_deadline = now + self.handshake_timeout
+        # A board on a UART link prints its banner only at boot, not when a host
+        # opens the port: if none comes soon, ask for the version instead.
+        wait = min(BANNER_WAIT, self.handshake_timeout / 2)
+        self._banner_deadline = None if rebooting else now + wait
+
+    def close(self, reason: str, *, restarted: bool = False) -> None:
+        """The link is gone: settle every line and request it carried."""
+        self.phase = Phase.CLOSED
+        self._flush = None
+        self._banner_deadline = self._handshake_deadline = None
+        self._flush_deadline = self._heartbeat_deadline = None
+        lost = NotConnected(f"link lost: {reason}")
+        for entry in self.sender.clear():
+            self._settle_unanswered(entry, lost)
+        for waiting in (self._outbox, self._lane):
+            while waiting:
+                self._settle(waiting.popleft().token, lost)
+        if self.stream is not None and not self.stream.done:
+            if restarted:
+                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            else:
+                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+        self._await_report = self._awaiting_rest = False
+        self._settings_pending = False
+        self._to_set.clear()
+        self._lines_in = 0
+        self._out.clear()
+        self.model.reset()
+
+    @property
+    def ready(self) -> bool:
+        return self.phase is Phase.READY
+
+    # -- reading ---------------------------------------------------------------
+
+    def receive(self, line: bytes) -> None:
+        """One line the board printed (without its line end)."""
+        self._last_rx = self.clock()
+        msg = parse_line(line)
+        self._log.debug("rx", line=line)
+        if isinstance(msg, Response):
+            self._on_response(msg)
+        elif isinstance(msg, StatusReport):
+            self._on_status(msg.fields)
+        elif isinstance(msg, ExceptionReport):
+            self._on_exception(msg)
+        elif isinstance(msg, Banner):
+            self._on_banner(msg)
+        elif isinstance(msg, Unparseable):
+            self._job_log().warning("unparseable controller output", reason=msg.reason, raw=msg.raw)
+            kind = "serial" if msg.reason in _NOT_TEXT else "lexical"
+            self._detected(kind, self._lines_in, f"{msg.reason}: {msg.raw[:60]!r}")
+            return
+        elif isinstance(msg, Notice) and isinstance(msg.fields.get("prb"), dict):
+            self._on_probe(msg.fields["prb"])
+        else:
+            self._log.debug("controller said", message=type(msg).__name__)
+        self._lines_in += 1
+
+    def _on_response(self, response: Response) -> None:
+        if response.count < 2:
+            # No line of ours is answered with fewer than 2 (a data line of L >= 1
+            # bytes gets L + 1): a report shaped as an answer (report.cpp startup
+            # messages, status 15; cycle_homing.cpp's failed homing, status 240).
+            self._unbooked(response)
+            return
+        try:
+            entry, skipped = self.sender.answered(response)
+        except SenderError:
+            self._job_log().warning("answer with no line waiting", raw=response.raw)
+            self._detected("lexical", None, f"an answer with no line waiting: {response.raw!r}")
+            return
+        for lost in skipped:
+            self._job_log().warning("the controller never answered a line", line=lost.line)
+            self._settle_unanswered(lost, ControllerError(0, "the controller never answered"))
+            if lost.file_line is not None:
+                self._fail_job_line(lost.source, lost, "got no answer from the controller")
+        if entry.own and response.status in _MALFORMED:
+            # The board calls a line the daemon wrote malformed: a daemon bug.
+            line = entry.line.rstrip(b"\n").decode(errors="replace")
+            self._detected("syntax", line, f"{line!r} refused: {message(response.status)}")
+        report = response.status_report
+        if report is not None:
+            self._on_status(report)
+        source = entry.source
+        if entry.file_line is not None:
+            self._on_job_answer(source, entry, response)
+        elif isinstance(source, _Own):
+            self._own_answered(source, entry, response)
+        else:
+            self._settle(source, response)
+
+    def _unbooked(self, response: Response) -> None:
+        """An `{r}` that answers no line: startup chatter is noted; anything else is an event."""
+        if response.status == Status.INITIALIZING:
+            self._log.info("controller initializing", msg=response.body.get("msg"))
+            return
+        body_msg = response.body.get("msg")
+        msg = body_msg if isinstance(body_msg, str) else ""
+        fields = {"st": response.status, "msg": msg}
+        self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
+
+    def _fail_job_line(self, stream: LineSource, entry: InFlight, what: str) -> None:
+        """A job line went wrong on the board: the job fails, and what follows it must not run."""
+        if stream.done:
+            return
+        stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
+        self._write_realtime(Realtime.JOB_KILL)
+
+    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+        if response.ok:
+            stream.acknowledged(entry.file_line)
+            self._check_stream_complete()
+            return
+        stream.rejected += 1
+        if stream.done:
+            return  # already ended (an alarm, a cancel): this answer is accounted, no more
+        status = response.status
+        text = message(status)
+        if status in _LOCKOUT_REJECTIONS:
+            stream.finish(StreamEnd.FAILED, status, text)
+        else:
+            stream.finish(
+                StreamEnd.FAILED,
+                ControllerError.code,
+                f"line {entry.file_line}: controller answered {status}: {text}",
+            )
+            # Lines already sent behind the bad one must not run: kill the job on the board.
+            self._write_realtime(Realtime.JOB_KILL)
+
+    def _on_status(self, fields: dict[str, Any]) -> None:
+        before = self.model.state
+        changed = self.model.apply_status(fields)
+        if "stat" in fields:
+            self._await_report = False
+            self._confirm_flush()
+            if self._awaiting_rest:
+                self._check_stream_complete()
+        if changed is not None:
+            self._on_state(changed, before)
+        self._events.append(Reported(fields, self.model.snapshot()))
+
+    def _on_exception(self, report: ExceptionReport) -> None:
+        self.model.apply_exception(report)
+        self._job_log().warning("controller exception", status=report.status, msg=report.message)
+        self._events.append(Excepted(report.fields))
+        raised = LOCKOUT_RAISED_BY.get(report.status or -1)
+        if report.status == Status.JSON_OUTPUT_TOO_LONG:
+            # json_parser.cpp sends this instead of the answer of the line it is on.
+            self._answer_too_long()
+        if raised is not None:
+            lockout = MachineState[raised]
+            self.model.state = lockout
+            self._on_state(lockout)
+        elif report.status == Status.KILL_JOB and self._flush is not None:
+            self._confirm_flush(kill_seen=True)
+            return
+        # Nothing of ours is written until a status report says where the board is.
+        self._await_report = True
+        self._query_status()
+
+    def _answer_too_long(self) -> None:
+        """The answer to the control line being run did not fit: that line fails with 113."""
+        entry = self.sender.oldest_control()
+        if entry is None:
+            return
+        error = ControllerError(Status.JSON_OUTPUT_TOO_LONG, message(Status.JSON_OUTPUT_TOO_LONG))
+        self._settle_unanswered(entry, error)
+        if entry.file_line is not None:
+            self._fail_job_line(entry.source, entry, "its answer was too long for the controller")
+
+    def _on_probe(self, report: dict[str, Any]) -> None:
+        """A probe cycle's result (cycle_probing.cpp `_send_probe_report`): kept and told."""
+        probe = self.model.apply_probe(report)
+        self._job_log().info("probe", ok=probe["ok"], position=probe["position"])
+        self._events.append(Probed(report, probe))
+
+    def _on_banner(self, banner: Banner) -> None:
+        if self.phase is Phase.HANDSHAKE:
+            if (self._identity is None and self._banner_deadline is not None) or self._rebooting:
+                self._banner_deadline = None
+                self._rebooting = False
+                self._identified(banner.fb)
+            return  # a banner while we already asked for the version: that answer decides
+        # SYSTEM READY mid-session: the board restarted under us.
+        self._closing("controller restarted (unexpected SYSTEM READY)")
+
+    def _on_state(self, state: MachineState, before: MachineState | None = None) -> None:
+        self._job_log().info("controller state", state=state.name)
+        if before is MachineState.HOMING:
+            self._ask_own(encode_get("home"), _Own.HOMED)  # a homing cycle ended, done or failed
+        stream = self.stream
+        if state is MachineState.RUN and stream is not None:
+            stream.program_pause_sent = False
+        elif (
+            state in _FLUSH_CONFIRMED
+            and stream is not None
+            and not stream.done
+            and not stream.program_pause_sent
+            and self._flush is None
+            and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
+            and stream.peek() is not None  # lines still on the host (not only "not looked yet")
+        ):
+            # The board ran out of moves while the job still had lines on the host.
+            where = f"after file line {stream.last_acked_line}"
+            self._detected("underflow", stream.acked, f"the controller stopped {where}")
+        if state.is_lockout:
+            refusal = admit(CommandClass.ACTION, state)
+            assert refusal is not None
+            text = self.model.last_exception_message() or message(refusal)
+            if self.stream is not None and not self.stream.done:
+                # Drain: the job's remaining lines are dropped on the host at once.
+                self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+        elif self._settings_pending and self.phase is Phase.READY:
+            self._settings_pending = False
+            for setting in self._settings():
+                self._ask_own(encode_set(setting), _Own.REAPPLY)
+        self._recheck_waiting()
+
+    # -- timers ----------------------------------------------------------------
+
+    def tick(self) -> None:
+        """A deadline passed (or the engine woke early: nothing is due then)."""
+        now = self.clock()
+        if self._closing_reason is not None:
+            return
+        if self._handshake_deadline is not None and now >= self._handshake_deadline:
+            self._handshake_timed_out()
+            return
+        if self._banner_deadline is not None and now >= self._banner_deadline:
+            self._banner_deadline = None
+            self._ask_own(encode_get("fv", "fb"), _Own.VERSION)
+        if self._flush_deadline is not None and now >= self._flush_deadline:
+            # The board did not flush (not in a hold): its lines will be answered as usual.
+            self._log.warning("flush not confirmed by the controller")
+            self._flush = self._flush_deadline = None
+        if self.phase is not Phase.READY or not self.heartbeat:
+            return
+        if self._heartbeat_deadline is not None:
+            if now >= self._heartbeat_deadline:
+                silent = 2 * self.heartbeat
+                self._closing(f"controller silent for {silent:g} s (no answer to a status request)")
+        elif now >= self._last_rx + self.heartbeat:
+            # A silent board is asked for a report; one that stays silent is gone.
+            self._heartbeat_deadline = now + self.heartbeat
+            self._ask_own(encode_get("sr"), _Own.HEARTBEAT)
+
+    # -- the handshake ---------------------------------------------------------
+
+    def _identified(self, fb: float | None) -> None:
+        try:
+            _check_firmware(fb)
+        except NotConnected as exc:
+            self._closing(exc.message)
+            return
+        self._identity = fb
+        self._to_set = deque(self._settings())
+        self._next_setting()
+
+    def _next_setting(self) -> None:
+        if self._to_set:
+            self._ask_own(encode_set(self._to_set[0]), _Own.SETTING)
+        else:
+            self._ask_own(encode_get("home"), _Own.HOMED)
+            self._ask_own(encode_get("sr"), _Own.FIRST_REPORT)
+
+    def _own_answered(self, own: _Own, entry: InFlight, response: Response) -> None:
+        if own is _Own.VERSION and self.phase is Phase.HANDSHAKE:
+            self._identified(_build(response.body.get("fb")))
+        elif own is _Own.SETTING and self._to_set:
+            setting = self._to_set.popleft()
+            if response.status in _LOCKOUT_REJECTIONS:
+                # A board in ALARM refuses every SET: sent again once it is cleared.
+                self._settings_pending = True
+            elif not response.ok:
+                status = response.status
+                self._closing(f"controller refused {setting}: {status} ({message(status)})")
+                return
+            self._next_setting()
+        elif own is _Own.HOMED and response.ok:
+            self.model.apply_status({"home": response.body.get("home")})
+        elif own is _Own.FIRST_REPORT and self.phase is Phase.HANDSHAKE:
+            self.phase = Phase.READY
+            self._handshake_deadline = None
+            self._events.append(Ready())
+        elif own is _Own.HEARTBEAT:
+            self._heartbeat_deadline = None
+        elif own is _Own.REAPPLY and not response.ok:
+            self._log.error("controller refused a setting", setting=entry.line)
+
+    def _handshake_timed_out(self) -> None:
+        step = (
+            "answer to its settings"
+            if self._identity is not None
+            else "SYSTEM READY banner"
+            if self._banner_deadline is None and self._rebooting
+            else "SYSTEM READY banner, nor an answer to a version request,"
+        )
+        timeout = self.handshake_timeout
+        self._closing(f"no {step} from the controller within {timeout:g} s")
+
+    def _settings(self) -> list[dict[str, Any]]:
+        return [
+            {"ej": 1},
+            {"jv": 4},
+            {"sv": 1},
+            {"qv": 0},
+            {"si": round(self.status_interval * 1000)},
+            {"sr": dict.fromkeys((*STATUS_KEYS, *self.signal_keys), True)},
+        ]
+
+    def _closing(self, reason: str) -> None:
+        if self._closing_reason is None:
+            self._closing_reason = reason
+            self._events.append(Closing(reason))
+
+    # -- admission -------------------------------------------------------------
+
+    def _context(self) -> Context:
+        if self.model.state is MachineState.HOLD:
+            return Context.HOLD
+        return Context.JOB if self._job_running() or self._operation else Context.FREE
+
+    def set_operation(self, running: bool) -> None:
+        """The machine started or ended an operation; waiting client actions are judged again."""
+        self._operation = running
+        self._recheck_waiting()
+
+    def _admissible(self, queued: _Queued, state: MachineState | None, context: Context) -> bool:
+        """May this waiting line be written now? If not, its asker is told why, once."""
+        verdict = admit(queued.cls, state)
+        if verdict is not None:
+            self._settle(queued.token, Rejected(verdict, self._locked_message()))
+            return False
+        if queued.context in (Context.ANY, Context.OWN) or queued.context is context:
+            return True
+        if queued.context is Context.OPERATION and self._operation:
+            return True
+        self._settle(queued.token, Busy(_context_changed(self.id, queued.context, context)))
+        return False
+
+    def _recheck_waiting(self) -> None:
+        """After any change of context, fail the waiting lines it no longer admits.
+
+        Not while a flush is under way: the board passes through a hold on its
+        way to the stop that ends it, and nothing is written before then, so
+        the write itself decides.
+        """
+        if self._flush is not None:
+            return
+        state, context = self.model.state, self._context()
+        self._outbox = deque(q for q in self._outbox if self._admissible(q, state, context))
+        self._lane = deque(q for q in self._lane if self._admissible(q, state, context))
+
+    # -- writing ---------------------------------------------------------------
+
+    def _pump(self) -> None:
+        """Fill the lane and the window: client lines first, then the job's lines.
+
+        Every waiting line is admitted again here, against the state and
+        context of this moment.
+        """
+        if self.phase is not Phase.READY or self.halted:
+            return
+        state = self.model.state
+        context = self._context()
+        flushing = self._flush is not None
+        unsure = flushing or self._await_report  # the board may be anywhere now
+        lane = self._lane
+        sender = self.sender
+        while lane and sender.control_room:
+            if unsure and lane[0].context is not Context.ANY:
+                break  # queries run now; an in-hold line waits to see where the board is
+            queued = lane.popleft()
+            if self._admissible(queued, state, context):
+                self._book(queued.encoded, queued.token, Lane.CONTROL)
+        if flushing:
+            return  # no data line until the board shows what it discarded
+        while self._outbox:
+            head = self._outbox[0]
+            if not sender.room(head.encoded):
+                return  # in order: a client's lines never overtake each other
+            waits = (Context.FREE, Context.HOLD, Context.OPERATION)
+            if self._await_report and head.context in waits:
+                return  # an exception report: actions wait for the next status report
+            if head.cls is CommandClass.CLEAR and not self.no_data_in_flight():
+                return  # a stale line must not run after the clear
+            queued = self._outbox.popleft()
+            if self._admissible(queued, state, context):
+                self._book(queued.encoded, queued.token, _lane_of(queued.encoded), own=queued.own)
+        stream = self.stream
+        if (
+            stream is None
+            or stream.done
+            or stream.paused
+            or self._await_report
+            or (state is not None and (state.is_lockout or state is MachineState.HOLD))
+        ):
+            return
+        out = self._out
+        while sender.has_room:
+            nxt = stream.peek()
+            if nxt is None:
+                self._check_stream_complete()
+                return
+            number, encoded = nxt
+            try:
+                sender.sent(InFlight(encoded, stream, number))
+            except SenderError as exc:
+                self.halt(str(exc))
+                return
+            stream.take()
+            out.append((Lane.DATA, encoded))
+
+    def _book(self, encoded: bytes, source: Any, lane: Lane, *, own: bool = False) -> None:
+        """Write one line and put it on the books; an urgent one may pass its budget."""
+        if self.halted:
+            self._settle(source, self._write_refused())
+            return
+        try:
+            self.sender.sent(InFlight(encoded, source, None, own), urgent=own)
+        except SenderError as exc:
+            self.halt(str(exc))
+            self._settle(source, self._write_refused())
+            return
+        self._out.append((lane, encoded))
+
+    def _ask_own(self, encoded: bytes, purpose: _Own) -> None:
+        """A line of the session's own, ahead of anything queued."""
+        if self.phase is not Phase.CLOSED:
+            self._book(encoded, purpose, Lane.CONTROL, own=True)
+
+    def _write_realtime(self, command: Realtime) -> None:
+        self._out.append((Lane.REALTIME, encode_realtime(command)))
+        if command in (Realtime.QUEUE_FLUSH, Realtime.JOB_KILL):
+            # Whether the board flushes depends on its state *now*, which the last
+            # report may not show yet: expect a flush, and let the confirmation
+            # (or its absence) decide what happened to the lines in flight.
+            self._begin_flush(command)
+
+    def _query_status(self) -> None:
+        """Ask for a full status report, ahead of anything queued."""
+        self._ask_own(encode_get("sr"), _Own.QUERY)
+
+    def query_status(self) -> None:
+        self._query_status()
+
+    # -- flushes ---------------------------------------------------------------
+
+    def _begin_flush(self, kind: Realtime) -> None:
+        self._flush = kind
+        self._flush_deadline = self.clock() + FLUSH_CONFIRM_TIMEOUT
+        if self.stream is not None and not self.stream.done:
+            reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
+            self.stream.finish(StreamEnd.CANCELLED, None, reason)
+
+    def _confirm_flush(self, *, kill_seen: bool = False) -> None:
+        kind = self._flush
+        if kind is None or (not kill_seen and self.model.state not in _FLUSH_CONFIRMED):
+            return
+        self._flush = self._flush_deadline = None
+        for entry in self.sender.dropped():
+            self._settle_unanswered(entry, _discarded(kind))
+
+    def _settle_unanswered(self, entry: InFlight, error: MachineError) -> None:
+        source = entry.source
+        if entry.file_line is not None:
+            source.discarded += 1
+        elif isinstance(source, _Own):
+            if source is _Own.HEARTBEAT:
+                self._heartbeat_deadline = None  # it was read: the board lives
+        else:
+            self._settle(source, error)
+
+    def _settle(self, token: Any, outcome: Response | MachineError) -> None:
+        if not isinstance(token, _Own):
+            self._events.append(Settled(token, outcome))
+
+    # -- stream completion -----------------------------------------------------
+
+    def _check_stream_complete(self) -> None:
+        """{r} means queued, not run: a job is done when all is answered and the board rests."""
+        stream = self.stream
+        if stream is None or stream.done or not stream.exhausted:
+            return
+        if stream.acked < stream.sent:
+            return
+        if not self._awaiting_rest:
+            self._awaiting_rest = True
+            self._query_status()  # its answer, or any later report, tells whether it rests
+            return
+        # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
+        if self.model.state is not None and self.model.state.is_resting:
+            self._awaiting_rest = False
+            stream.finish(StreamEnd.COMPLETED)
+
+    # -- requests --------------------------------------------------------------
+
+    def _require_ready(self) -> None:
+        if self.phase is not Phase.READY:
+            raise NotConnected(f"{self.id} is not connected")
+
+    def send(self, line: str, token: Any, *, operation: bool = False) -> None:
+        """One line from a client; its answer or error comes back as `Settled(token, ...)`.
+
+        Refused at once (raises) if it may not be written in this state.
+        `operation`: the line is the running operation's own (a settings
+        batch, a jog's G90), not a client's; it fits while that operation runs.
+        """
+        self._require_ready()
+        if self.halted:
+            raise self._write_refused()
+        validate_line(line)
+        cls = classify(line)
+        text = line.strip()
+        verdict = admit(cls, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        if cls is CommandClass.QUERY:
+            # As a JSON GET it is run on arrival: it never waits behind queued G-code.
+            self._lane.append(_Queued(_as_json_query(text), cls, token, Context.ANY))
+        elif cls is CommandClass.CLEAR:
+            self._outbox.append(_Queued(encode_line(text), cls, token, Context.ANY))
+        elif operation and self._operation and self._context() is Context.JOB:
+            self._outbox.append(_Queued(encode_line(text), cls, token, Context.OPERATION))
+        else:
+            self._admit_action(text, cls, token)
+
+    def _admit_action(self, text: str, cls: CommandClass, token: Any) -> None:
+        """An action line: in a hold, run inside it at once; free, under the window; else busy."""
+        context = self._context()
+        if context is Context.JOB:
+            pausing = self.stream is not None and self.stream.paused
+            raise Busy(
+                f"{self.id}: the job is still entering its hold; send again once it holds"
+                if pausing
+                else f"{self.id} is running {'a job' if self._job_running() else 'an operation'}"
+            )
+        if context is Context.FREE:
+            self._outbox.append(_Queued(encode_line(text), cls, token, context))
+            return
+        if text.startswith("$"):
+            # A text line is data: the board would keep it until the hold ends.
+            raise Busy(f"{self.id} is in a hold: send settings as JSON ({{key:value}})")
+        encoded = encode_in_hold(text) if _is_gcode(text) else encode_line(text)
+        self._lane.append(_Queued(encoded, cls, token, context))
+
+    def cancel(self, token: Any) -> None:
+        """The asker gave up: a line not yet written is not written."""
+        self._outbox = deque(q for q in self._outbox if q.token is not token)
+        self._lane = deque(q for q in self._lane if q.token is not token)
+
+    def realtime(self, command: Realtime) -> None:
+        """Write a realtime byte now (it never waits), if the state admits it."""
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        cls = classify_realtime(command)
+        verdict = admit(cls, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
+            raise self._write_refused()
+        self._write_realtime(command)
+
+    def reset(self) -> None:
+        """0x18: the board reboots; so do the session's books when it comes back."""
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        self._write_realtime(Realtime.RESET)
+        self.halted = False
+
+    def clear(self, token: Any) -> bool:
+        """`{clear:n}` for ALARM or SHUTDOWN, once no data line of ours is unanswered.
+
+        False if there is nothing to clear; PANIC is refused (only a reset leaves it).
+        """
+        self._require_ready()
+        state = self.model.state
+        if state is MachineState.PANIC:
+            raise Rejected(Status.COMMAND_REJECTED_BY_PANIC, "PANIC is left only by a reset")
+        if state not in (MachineState.ALARM, MachineState.SHUTDOWN):
+            return False
+        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, token, Context.OWN))
+        return True
+
+    def admit_action(self) -> None:
+        """Rejected (204/205/206) if an action may not reach the board now."""
+        verdict = admit(CommandClass.ACTION, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+
+    def start_stream(self, stream: LineSource) -> None:
+        self._require_ready()
+        if self._job_running():
+            raise Busy(f"{self.id} is running a job")
+        self.admit_action()
+        self.stream = stream
+        self._awaiting_rest = False
+        self._recheck_waiting()  # a client line still waiting was not admitted into a job
+
+    def pause_stream(self) -> None:
+        """The job's pause: `!`, and none of its lines is written until `resume_stream`."""
+        stream = self._live_stream()
+        self.realtime(Realtime.FEEDHOLD)
+        stream.paused = True
+
+    def resume_stream(self) -> None:
+        """The job's resume: `~`, and its lines flow again."""
+        stream = self._live_stream()
+        if not stream.paused:
+            raise Busy(f"{self.id}: the job is not paused")
+        self.realtime(Realtime.CYCLE_START)
+        stream.paused = False
+
+    def stop_stream(self, code: int, text: str) -> None:
+        """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
+        if self.stream is None or self.stream.done:
+            return
+        self.stream.finish(StreamEnd.FAILED, code, text)
+        if self.phase is not Phase.CLOSED:
+            self._write_realtime(Realtime.FEEDHOLD)
+            self._write_realtime(Realtime.QUEUE_FLUSH)
+
+    def halt(self, text: str) -> None:
+        """The daemon broke one of its own invariants: write nothing more until reset."""
+        self.halted = True
+        if self.stream is not None and not self.stream.done:
+            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
+        self._detected("internal", None, text)
+
+    # -- views -----------------------------------------------------------------
+
+    def _live_stream(self) -> LineSource:
+        stream = self.stream
+        if stream is None or stream.done:
+            raise Busy(f"{self.id} has no job streaming")
+        return stream
+
+    def out_of_hold(self) -> bool:
+        """No hold on the board and no flush under way: a free line is written as it is."""
+        return self._flush is None and self.model.state is not MachineState.HOLD
+
+    def locked(self) -> bool:
+        state = self.model.state
+        return state is not None and state.is_lockout
+
+    def flushing(self) -> bool:
+        return self._flush is not None
+
+    def _job_running(self) -> bool:
+        return self.stream is not None and not self.stream.done
+
+    def no_data_in_flight(self) -> bool:
+        return not self.sender.data_in_flight
+
+    def quiet(self) -> bool:
+        """Nothing of the host's queued or unanswered, but for queries."""
+        return not self._outbox and self.no_data_in_flight() and not self._job_running()
+
+    # -- helpers -----------------------------------------------------------------
+
+    def _job_log(self) -> Any:
+        """The machine's logger, with `job=` while a job runs."""
+        stream = self.stream
+        if stream is None or stream.done or stream.job_id is None:
+            return self._log
+        return self._log.bind(job=stream.job_id)
+
+    def _detected(self, fault: str, value: Any, text: str) -> None:
+        self._events.append(Detected(fault, value, text))
+
+    def _write_refused(self) -> MachineError:
+        if self.halted:
+            return FaultActive(
+                f"{self.id}: internal fault, nothing is written until machine.reset", ["internal"]
+            )
+        return NotConnected(f"{self.id}: link lost")
+
+    def _locked_message(self) -> str:
+        state = self.model.state
+        name = state.name if state is not None else "an unknown state"
+        detail = self.model.last_exception_message()
+        return f"{self.id} is in {name}" + (f": {detail}" if detail else "")
+
+
+def _lane_of(encoded: bytes) -> Lane:
+    return Lane.CONTROL if encoded.startswith(b"{") else Lane.DATA
+
+
+def _discarded(kind: Realtime) -> MachineError:
+    status = Status.KILL_JOB if kind is Realtime.JOB_KILL else Status.NOOP
+    what = "job kill" if kind is Realtime.JOB_KILL else "queue flush"
+    return ControllerError(int(status), f"discarded by the controller's {what} before it ran")
+
+
+def _build(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def _check_firmware(fb: float | None) -> None:
+    """g2core from build 100 only: TinyG's codes differ, and before 100 so did g2core's."""
+    if fb is None:
+        raise NotConnected("the controller did not say its firmware build (fb)")
+    if fb >= TINYG_BUILDS:
+        raise NotConnected(
+            f"TinyG firmware (build {fb:g}) is not supported: its status codes differ from g2core's"
+        )
+    if fb < OLDEST_BUILD:
+        raise NotConnected(
+            f"g2core build {fb:g} is older than {OLDEST_BUILD:.2f}, whose status codes hostd "
+            "relies on (204 meant something else before): update the firmware"
+        )
+
+
+def _context_changed(machine: str, admitted: Context, now: Context) -> str:
+    what = {
+        Context.HOLD: "a hold began",
+        Context.JOB: "an operation started",
+        Context.FREE: "the hold ended",
+    }[now]
+    if admitted is Context.HOLD and now is not Context.HOLD:
+        what = "the hold ended"
+    return f"{machine}: {what} before the line was written; it was not sent"
+
+
+def _is_gcode(text: str) -> bool:
+    return not text.startswith(("{", "$", "?"))
+
+
+def _as_json_query(text: str) -> bytes:
+    """Every query as a strict JSON GET, which the board runs at once on any port."""
+    if text == "?":
+        return encode_get("sr")
+    if text.startswith("$"):
+        return encode_get(text[1:].strip().lower())
+    obj = parse_relaxed(text)
+    return encode_get(*obj) if obj else encode_line(text)
