@@ -1,0 +1,109 @@
+"""A g2core session driven by plain calls: the lines a board prints in, the bytes it writes out.
+
+`Wire` keeps everything the session wrote and every event it gave, and
+answers lines the way g2core does: an `{r}` whose footer count is the
+line's length as the board counts it (a data line of L bytes is answered
+with L + 1, a control line with L + 2). No ports and no clock but the one
+the test moves.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from hostd.protocol.g2core import G2Session
+from hostd.protocol.session import Event, Lane, Settled
+
+BANNER = (
+    '{"r":{"fv":1.0,"fb":101.06,"hp":3,"hv":0,"id":"3X3566-YMB","msg":"SYSTEM READY"},"f":[1,0,1]}'
+)
+REPORT = {"stat": 1, "posx": 0, "posy": 0, "posz": 0, "unit": 1}
+
+
+class Wire:
+    def __init__(self, **options: Any) -> None:
+        self.now = 0.0
+        self.session = G2Session("m1", clock=lambda: self.now, **options)
+        self.written: list[tuple[Lane, bytes]] = []
+        self.events: list[Event] = []
+        self.unanswered: list[bytes] = []  # written lines the test has not answered yet
+
+    # -- moving the session --------------------------------------------------
+
+    def pump(self) -> list[tuple[Lane, bytes]]:
+        out = self.session.data_to_send()
+        self.written += out
+        self.unanswered += [data for lane, data in out if lane is not Lane.REALTIME]
+        self.events += self.session.events()
+        return out
+
+    def feed(self, *lines: str | bytes) -> list[tuple[Lane, bytes]]:
+        for line in lines:
+            self.session.receive(line.encode() if isinstance(line, str) else line)
+        return self.pump()
+
+    def at(self, now: float) -> list[tuple[Lane, bytes]]:
+        self.now = now
+        self.session.tick()
+        return self.pump()
+
+    def answer(self, line: bytes, body: dict[str, Any] | None = None, status: int = 0) -> None:
+        """The board's answer to one written line (it must be unanswered)."""
+        self.unanswered.remove(line)
+        count = len(line) - 1 + (2 if line.startswith(b"{") else 1)
+        reply = _echo(line) if body is None else body
+        self.feed(json.dumps({"r": reply, "f": [1, status, count]}))
+
+    def answer_all(self, *, data: bool = True) -> int:
+        """Answer every unanswered line, control lines first (the board runs them first)."""
+        done = 0
+        while True:
+            pending = [x for x in self.unanswered if x.startswith(b"{")]
+            if data:
+                pending += [x for x in self.unanswered if not x.startswith(b"{")]
+            if not pending:
+                return done
+            self.answer(pending[0])
+            done += 1
+
+    def connect(self, report: dict[str, Any] | None = None) -> None:
+        """Banner, settings, `{home:n}` and the first report: the session is ready."""
+        self.session.open()
+        self.pump()
+        self.feed(BANNER)
+        while not self.session.ready:
+            line = self.unanswered[0]
+            self.answer(line, _echo(line, report))
+        self.clear()
+
+    def report(self, **fields: Any) -> None:
+        self.feed(json.dumps({"sr": fields}))
+
+    def clear(self) -> None:
+        self.written.clear()
+        self.events.clear()
+
+    # -- reading what happened -----------------------------------------------
+
+    def lines(self, lane: Lane | None = None) -> list[bytes]:
+        return [data for kind, data in self.written if lane is None or kind is lane]
+
+    def settled(self, token: object) -> Settled | None:
+        found = [e for e in self.events if isinstance(e, Settled) and e.token is token]
+        assert len(found) <= 1, "a token is settled once"
+        return found[0] if found else None
+
+    def of(self, kind: type[Any]) -> list[Any]:
+        return [e for e in self.events if isinstance(e, kind)]
+
+
+def _echo(line: bytes, report: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What g2core puts in an answer's body: the pairs of the line, with GETs filled in."""
+    if not line.startswith(b"{"):
+        return {}
+    body: dict[str, Any] = json.loads(line)
+    for key, value in body.items():
+        if value is None:
+            body[key] = (report or REPORT) if key == "sr" else {"home": 1, "fb": 101.06}.get(key, 0)
+    return body

@@ -1,0 +1,418 @@
+"""g2core's session by plain calls: every rule of the controller, without a port or a clock.
+
+The same rules are tested end to end over ptys in tests/machine/; here each
+is pinned at the level where it lives, thousands of steps a second.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from hostd.machine.stream import JobStream
+from hostd.protocol.commands import Realtime
+from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.g2core import BANNER_WAIT, FLUSH_CONFIRM_TIMEOUT
+from hostd.protocol.messages import Response
+from hostd.protocol.session import (
+    Closing,
+    Detected,
+    Excepted,
+    Lane,
+    Phase,
+    Probed,
+    Ready,
+    Reported,
+    StreamEnd,
+)
+from hostd.protocol.states import MachineState as S
+from tests.protocol.g2wire import BANNER, Wire
+
+pytestmark = pytest.mark.asyncio
+
+
+def job(*lines: str) -> JobStream:
+    return JobStream(iter(enumerate(lines, start=1)), job_id=1)
+
+
+def moves(n: int) -> JobStream:
+    return job(*(f"G1 X{i % 100} F1000" for i in range(n)))
+
+
+def ready(**options: object) -> Wire:
+    wire = Wire(**options)  # type: ignore[arg-type]
+    wire.connect()
+    return wire
+
+
+# -- the handshake -------------------------------------------------------------
+
+
+async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time() -> None:
+    wire = Wire()
+    wire.session.open()
+    assert wire.pump() == []
+    wire.feed(BANNER)
+    first = wire.lines()
+    assert first == [b'{"ej":1}\n']  # the next setting waits for this answer
+    wire.answer(first[0])
+    assert wire.lines()[-1] == b'{"jv":4}\n'
+
+
+async def test_the_handshake_ends_ready_after_settings_home_and_a_report() -> None:
+    wire = Wire(status_interval=0.1, signal_keys=["in1"])
+    wire.session.open()
+    wire.feed(BANNER)
+    while not wire.session.ready:
+        wire.answer(wire.unanswered[0])
+    sent = [json.loads(x) for x in wire.lines()]
+    assert [next(iter(x)) for x in sent] == ["ej", "jv", "sv", "qv", "si", "sr", "home", "sr"]
+    assert sent[4] == {"si": 100}
+    assert sent[5]["sr"]["in1"] is True and sent[5]["sr"]["mpox"] is True
+    assert wire.of(Ready) == [Ready()]
+    assert wire.session.model.homed is True and wire.session.model.state is S.READY
+
+
+async def test_a_board_that_prints_no_banner_is_asked_its_version() -> None:
+    wire = Wire()
+    wire.session.open()
+    assert wire.session.next_deadline() == BANNER_WAIT
+    assert wire.at(BANNER_WAIT) == [(Lane.CONTROL, b'{"fv":null,"fb":null}\n')]
+    wire.answer(wire.unanswered[0], {"fv": 1.0, "fb": 101.06})
+    assert wire.lines()[-1] == b'{"ej":1}\n'
+
+
+async def test_after_a_reset_only_the_banner_will_do() -> None:
+    wire = Wire(handshake_timeout=5.0)
+    wire.session.open(rebooting=True)
+    assert wire.at(BANNER_WAIT) == []
+    wire.at(5.0)
+    assert wire.of(Closing) == [Closing("no SYSTEM READY banner from the controller within 5 s")]
+
+
+@pytest.mark.parametrize(
+    ("fb", "why"), [(440.2, "TinyG"), (99.5, "older than 100"), (None, "did not say")]
+)
+async def test_firmware_that_is_not_g2core_100_or_later_is_refused(
+    fb: float | None, why: str
+) -> None:
+    wire = Wire()
+    wire.session.open()
+    wire.at(BANNER_WAIT)
+    wire.answer(wire.unanswered[0], {"fv": 1.0, "fb": fb})
+    (closing,) = wire.of(Closing)
+    assert why in closing.reason
+    assert not wire.session.ready
+
+
+async def test_a_refused_setting_fails_the_handshake_with_its_status() -> None:
+    wire = Wire()
+    wire.session.open()
+    wire.feed(BANNER)
+    wire.answer(wire.unanswered[0], {}, status=100)
+    (closing,) = wire.of(Closing)
+    assert "controller refused {'ej': 1}: 100" in closing.reason
+
+
+async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared() -> None:
+    wire = Wire()
+    wire.session.open()
+    wire.feed(BANNER)
+    while not wire.session.ready:
+        line = wire.unanswered[0]
+        if line.startswith(b'{"ej"'):
+            wire.answer(line, {}, status=204)
+        else:
+            wire.answer(line, None if b"sr" not in line else {"sr": {"stat": 2}})
+    assert wire.session.model.state is S.ALARM
+    wire.clear()
+    wire.report(stat=1)
+    assert [next(iter(json.loads(x))) for x in wire.lines()] == ["ej", "jv", "sv", "qv", "si", "sr"]
+
+
+# -- flow control --------------------------------------------------------------
+
+
+async def test_a_job_never_has_more_than_the_window_unanswered() -> None:
+    wire = ready(window=4)
+    stream = moves(2_000)
+    wire.session.start_stream(stream)
+    most = 0
+    while not stream.done:
+        wire.pump()
+        data = [x for x in wire.unanswered if not x.startswith(b"{")]
+        most = max(most, len(data))
+        if not wire.answer_all():
+            wire.report(stat=4)  # the board rests
+    assert most == 4
+    assert stream.result.result().end is StreamEnd.COMPLETED
+    assert (stream.sent, stream.acked) == (2_000, 2_000)
+
+
+async def test_queries_take_the_control_lane_not_the_jobs_window() -> None:
+    wire = ready(window=4)
+    wire.session.start_stream(moves(100))
+    tokens = [object() for _ in range(10)]
+    for token in tokens:
+        wire.session.send("?", token)
+    wire.pump()
+    control = [x for x in wire.unanswered if x.startswith(b"{")]
+    data = [x for x in wire.unanswered if not x.startswith(b"{")]
+    assert len(data) == 4 and len(control) == 4  # the lane is four deep; the rest wait
+    assert control[0] == b'{"sr":null}\n'
+    wire.answer_all(data=False)
+    wire.answer_all(data=False)
+    wire.answer_all(data=False)
+    assert all(wire.settled(t) for t in tokens)
+
+
+async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait() -> None:
+    wire = ready()
+    a, b = object(), object()
+    wire.session.send("G0 X1", a)
+    wire.session.send("{xvm:n}", b)
+    wire.pump()
+    wire.answer(b'{"xvm":null}\n', {"xvm": 6000})  # the board runs the {-line first
+    settled = wire.settled(b)
+    assert settled is not None and isinstance(settled.outcome, Response)
+    assert settled.outcome.body == {"xvm": 6000}
+    assert wire.settled(a) is None
+
+
+async def test_an_answer_to_no_line_is_a_lexical_fault_and_books_nothing() -> None:
+    wire = ready()
+    wire.feed('{"r":{},"f":[1,0,9]}')
+    (fault,) = wire.of(Detected)
+    assert fault.fault == "lexical"
+
+
+async def test_a_short_count_answer_is_a_report_not_an_answer() -> None:
+    wire = ready()
+    token = object()
+    wire.session.send("G28.2 X0", token)
+    wire.pump()
+    wire.feed('{"r":{"msg":"Homing error - Switches misconfigured"},"f":[1,240,1]}')
+    assert wire.settled(token) is None  # cycle_homing.cpp's extra answer is not booked
+    (report,) = wire.of(Excepted)
+    assert report.fields["st"] == 240
+    wire.answer(b"G28.2 X0\n", {}, status=240)
+    settled = wire.settled(token)
+    assert settled is not None and isinstance(settled.outcome, Response)
+    assert settled.outcome.status == 240
+
+
+async def test_an_answer_too_long_fails_the_control_line_being_run() -> None:
+    wire = ready()
+    token = object()
+    wire.session.send("{sys:n}", token)
+    wire.pump()
+    wire.feed('{"er":{"fb":101.06,"st":113,"msg":"JSON output too long"}}')
+    settled = wire.settled(token)
+    assert settled is not None and isinstance(settled.outcome, ControllerError)
+    assert settled.outcome.status == 113
+
+
+# -- holds ---------------------------------------------------------------------
+
+
+async def test_a_paused_job_writes_nothing_until_resumed() -> None:
+    wire = ready(window=4)
+    stream = moves(50)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.session.pause_stream()
+    assert wire.pump() == [(Lane.REALTIME, b"!\n")]
+    wire.answer_all()  # the window empties while the board enters its hold...
+    wire.report(stat=6)
+    assert len(wire.lines(Lane.DATA)) == 4  # ...and nothing more of the job is written
+    wire.session.resume_stream()
+    wire.report(stat=5)
+    assert wire.lines(Lane.REALTIME)[-1] == b"~\n"
+    assert len(wire.lines(Lane.DATA)) == 8
+
+
+async def test_a_line_sent_in_a_hold_runs_inside_it_at_once() -> None:
+    wire = ready()
+    wire.report(stat=6)
+    token = object()
+    wire.session.send("M5", token)
+    assert wire.pump() == [(Lane.CONTROL, b'{"gc2":"M5"}\n')]
+    with pytest.raises(Busy, match="send settings as JSON"):
+        wire.session.send("$xvm=1000", object())
+
+
+async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent() -> None:
+    wire = ready(window=1)
+    first, second = object(), object()
+    wire.session.send("G0 X1", first)
+    wire.session.send("G0 X2", second)
+    wire.pump()
+    wire.report(stat=6)  # the hold begins with X2 still on the host
+    settled = wire.settled(second)
+    assert settled is not None and isinstance(settled.outcome, Busy)
+    assert "a hold began" in settled.outcome.message
+    wire.answer_all()
+    assert b"G0 X2\n" not in wire.lines()
+
+
+async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pass() -> None:
+    wire = ready()
+    wire.session.set_operation(True)
+    with pytest.raises(Busy, match="running an operation"):
+        wire.session.send("G0 X1", object())
+    wire.session.send("G90", object(), operation=True)
+    assert wire.pump() == [(Lane.DATA, b"G90\n")]
+
+
+# -- lockouts, clears, flushes -------------------------------------------------
+
+
+async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared() -> None:
+    wire = ready()
+    stream = moves(50)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.feed('{"er":{"fb":101.06,"st":203,"msg":"Limit switch hit"}}')
+    assert stream.result.result().end is StreamEnd.FAILED
+    assert stream.result.result().code == 204
+    with pytest.raises(Rejected) as refused:
+        wire.session.send("G0 X1", object())
+    assert refused.value.code == 204 and "Limit switch hit" in refused.value.message
+    query = object()
+    wire.session.send("{pos:n}", query)  # queries still go
+    wire.pump()
+    assert b'{"pos":null}\n' in wire.lines(Lane.CONTROL)
+
+
+async def test_a_clear_waits_until_no_data_line_is_unanswered() -> None:
+    wire = ready()
+    wire.session.send("G0 X1", object())
+    wire.pump()
+    wire.feed('{"er":{"fb":101.06,"st":203,"msg":"Limit switch hit"}}')
+    wire.report(stat=2)
+    token = object()
+    assert wire.session.clear(token)
+    wire.pump()
+    assert b'{"clear":null}\n' not in wire.lines()  # G0 X1 could still run after it
+    wire.answer(b"G0 X1\n", {}, status=204)
+    wire.pump()
+    assert wire.lines()[-1] == b'{"clear":null}\n'
+
+
+async def test_panic_is_left_only_by_a_reset() -> None:
+    wire = ready()
+    wire.feed('{"er":{"fb":101.06,"st":20,"msg":"Internal error"}}')  # raises PANIC
+    with pytest.raises(Rejected, match="only by a reset"):
+        wire.session.clear(object())
+    wire.session.reset()
+    assert wire.pump()[-1] == (Lane.REALTIME, b"\x18\n")
+
+
+async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush() -> None:
+    wire = ready()
+    stream = moves(50)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.pump()
+    assert stream.result.result().end is StreamEnd.CANCELLED
+    token = object()
+    wire.session.send("{xvm:n}", token)  # queries still run meanwhile
+    wire.session.set_operation(False)
+    wire.pump()
+    assert wire.settled(token) is None and b'{"xvm":null}\n' in wire.lines()
+    wire.report(stat=4)  # the flush happened: the four lines in flight were discarded
+    assert stream.discarded == 4
+
+
+async def test_an_unconfirmed_flush_gives_up_after_its_timeout() -> None:
+    wire = ready()
+    wire.session.realtime(Realtime.QUEUE_FLUSH)
+    wire.pump()
+    assert wire.session.flushing()
+    wire.at(FLUSH_CONFIRM_TIMEOUT)
+    assert not wire.session.flushing()
+
+
+async def test_an_exception_holds_actions_until_a_status_report() -> None:
+    wire = ready()
+    wire.feed('{"er":{"fb":101.06,"st":107,"msg":"Input exceeds max length"}}')
+    assert wire.lines() == [b'{"sr":null}\n']
+    token = object()
+    wire.session.send("G0 X1", token)
+    assert wire.pump() == []
+    wire.report(stat=1)
+    assert wire.pump() == [] and wire.lines()[-1] == b"G0 X1\n"
+
+
+# -- what the board tells ------------------------------------------------------
+
+
+async def test_reports_carry_the_snapshot_they_left() -> None:
+    wire = ready()
+    wire.report(stat=5, posx=1.5)
+    wire.report(stat=3)
+    first, second = wire.of(Reported)
+    assert first.snapshot["state"]["name"] == "RUN" and first.snapshot["position"]["x"] == 1.5
+    assert second.snapshot["state"]["name"] == "PROGRAM_STOP"
+
+
+async def test_a_probe_result_is_kept_and_told() -> None:
+    wire = ready()
+    wire.feed('{"prb":{"e":1,"x":1.5,"y":2.0,"z":-3.25}}')
+    (probe,) = wire.of(Probed)
+    assert probe.probe == {"ok": True, "position": {"x": 1.5, "y": 2.0, "z": -3.25}}
+    assert wire.session.model.probe == probe.probe
+
+
+async def test_homed_is_asked_when_homing_ends() -> None:
+    wire = ready()
+    wire.report(stat=9)
+    wire.report(stat=1)
+    assert wire.lines()[-1] == b'{"home":null}\n'
+
+
+async def test_a_banner_mid_session_closes_it() -> None:
+    wire = ready()
+    wire.feed(BANNER)
+    assert wire.of(Closing) == [Closing("controller restarted (unexpected SYSTEM READY)")]
+
+
+async def test_a_silent_board_is_asked_then_given_up() -> None:
+    wire = ready(heartbeat=2.0)
+    assert wire.at(2.0) == [(Lane.CONTROL, b'{"sr":null}\n')]
+    wire.at(3.9)
+    assert wire.of(Closing) == []
+    wire.at(4.0)
+    (closing,) = wire.of(Closing)
+    assert "silent for 4 s" in closing.reason
+
+
+async def test_closing_settles_every_request_and_interrupts_the_job() -> None:
+    wire = ready()
+    stream = moves(50)
+    wire.session.start_stream(stream)
+    waiting, queued = object(), object()
+    wire.session.send("{xvm:n}", waiting)
+    wire.pump()
+    wire.session.close("unplugged")
+    wire.pump()
+    settled = wire.settled(waiting)
+    assert settled is not None and isinstance(settled.outcome, NotConnected)
+    assert stream.result.result().end is StreamEnd.INTERRUPTED
+    assert wire.session.phase is Phase.CLOSED
+    with pytest.raises(NotConnected):
+        wire.session.send("G0 X1", queued)
+
+
+async def test_a_long_job_streams_in_plain_calls() -> None:
+    """The session alone moves a 10,000-line job: no port, no event loop turn a line."""
+    wire = ready(window=8)
+    stream = moves(10_000)
+    wire.session.start_stream(stream)
+    while not stream.done:
+        wire.pump()
+        if not wire.answer_all():
+            wire.report(stat=4)
+    assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
