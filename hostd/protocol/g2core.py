@@ -34,7 +34,6 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from enum import Enum, auto
 from typing import Any
 
@@ -54,7 +53,6 @@ from hostd.protocol.commands import (
 from hostd.protocol.errors import (
     Busy,
     ControllerError,
-    FaultActive,
     MachineError,
     NotConnected,
     Rejected,
@@ -68,22 +66,20 @@ from hostd.protocol.messages import (
     StatusReport,
     Unparseable,
 )
-from hostd.protocol.model import MachineModel
 from hostd.protocol.parser import parse_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import (
-    Closing,
     Context,
-    Detected,
-    Event,
     Excepted,
     Lane,
     LineSource,
+    OwnLine,
     Phase,
     Probed,
+    Queued,
     Ready,
     Reported,
-    Settled,
+    SessionBase,
     StreamEnd,
 )
 from hostd.protocol.states import MachineState
@@ -124,7 +120,7 @@ _LOCKOUT_REJECTIONS = frozenset(
 _FLUSH_CONFIRMED = frozenset({MachineState.PROGRAM_STOP, MachineState.PROGRAM_END})
 
 
-class _Own(Enum):
+class _Own(OwnLine, Enum):
     """What a line of the session's own is for; its answer goes back to that."""
 
     VERSION = auto()  # {fv:n,fb:n}: a board that printed no banner
@@ -136,21 +132,7 @@ class _Own(Enum):
     REAPPLY = auto()  # a setting sent again once a lockout ended
 
 
-@dataclass(slots=True)
-class _Queued:
-    """A line waiting for a slot: a client's, or the daemon's own clear."""
-
-    encoded: bytes
-    cls: CommandClass
-    token: Any
-    context: Context
-
-    @property
-    def own(self) -> bool:
-        return self.context is Context.OWN
-
-
-class G2Session:
+class G2Session(SessionBase):
     """One g2core board's protocol, across the connections of a daemon's life.
 
     `open()` starts a connection's handshake and `close()` settles
@@ -169,27 +151,15 @@ class G2Session:
         signal_keys: Iterable[str] = (),
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.id = machine_id
+        super().__init__(machine_id, clock)
         self.status_interval = status_interval
         self.heartbeat = heartbeat
         self.handshake_timeout = handshake_timeout
         self.signal_keys = tuple(signal_keys)
-        self.clock = clock
-        self.model = MachineModel(machine_id)
         self.sender = LineModeSender(window)
-        self.phase = Phase.CLOSED
-        self.stream: LineSource | None = None
-        self.halted = False  # an internal fault: nothing but halts and reset is written
-        self._out: list[tuple[Lane, bytes]] = []
-        self._events: list[Event] = []
-        self._outbox: deque[_Queued] = deque()  # data-channel lines, under the window
-        self._lane: deque[_Queued] = deque()  # queries and in-hold lines, the control lane
         self._flush: Realtime | None = None  # QUEUE_FLUSH or JOB_KILL, awaiting its proof
         self._flush_deadline: float | None = None
-        self._await_report = False  # an `er` came: actions and job lines wait for a report
-        self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._settings_pending = False  # refused in a lockout: sent again when it ends
-        self._operation = False  # the machine runs an operation: client actions are busy
         self._lines_in = 0  # lines read and understood this connection (the serial fault's value)
         self._last_rx = 0.0
         # The handshake: its deadlines, what it learnt, the settings still to send.
@@ -199,20 +169,8 @@ class G2Session:
         self._identity: float | None = None
         self._to_set: deque[dict[str, Any]] = deque()
         self._heartbeat_deadline: float | None = None  # a heartbeat query is unanswered
-        self._closing_reason: str | None = None  # asked to be closed: nothing more is due
-        self._log = log.bind(machine=machine_id)
 
     # -- outputs -------------------------------------------------------------
-
-    def data_to_send(self) -> list[tuple[Lane, bytes]]:
-        """Everything to write now, in order (the waiting lines that fit are taken first)."""
-        self._pump()
-        out, self._out = self._out, []
-        return out
-
-    def events(self) -> list[Event]:
-        events, self._events = self._events, []
-        return events
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
@@ -270,10 +228,6 @@ class G2Session:
         self._lines_in = 0
         self._out.clear()
         self.model.reset()
-
-    @property
-    def ready(self) -> bool:
-        return self.phase is Phase.READY
 
     # -- reading ---------------------------------------------------------------
 
@@ -553,48 +507,7 @@ class G2Session:
             {"sr": dict.fromkeys((*STATUS_KEYS, *self.signal_keys), True)},
         ]
 
-    def _closing(self, reason: str) -> None:
-        if self._closing_reason is None:
-            self._closing_reason = reason
-            self._events.append(Closing(reason))
-
     # -- admission -------------------------------------------------------------
-
-    def _context(self) -> Context:
-        if self.model.state is MachineState.HOLD:
-            return Context.HOLD
-        return Context.JOB if self._job_running() or self._operation else Context.FREE
-
-    def set_operation(self, running: bool) -> None:
-        """The machine started or ended an operation; waiting client actions are judged again."""
-        self._operation = running
-        self._recheck_waiting()
-
-    def _admissible(self, queued: _Queued, state: MachineState | None, context: Context) -> bool:
-        """May this waiting line be written now? If not, its asker is told why, once."""
-        verdict = admit(queued.cls, state)
-        if verdict is not None:
-            self._settle(queued.token, Rejected(verdict, self._locked_message()))
-            return False
-        if queued.context in (Context.ANY, Context.OWN) or queued.context is context:
-            return True
-        if queued.context is Context.OPERATION and self._operation:
-            return True
-        self._settle(queued.token, Busy(_context_changed(self.id, queued.context, context)))
-        return False
-
-    def _recheck_waiting(self) -> None:
-        """After any change of context, fail the waiting lines it no longer admits.
-
-        Not while a flush is under way: the board passes through a hold on its
-        way to the stop that ends it, and nothing is written before then, so
-        the write itself decides.
-        """
-        if self._flush is not None:
-            return
-        state, context = self.model.state, self._context()
-        self._outbox = deque(q for q in self._outbox if self._admissible(q, state, context))
-        self._lane = deque(q for q in self._lane if self._admissible(q, state, context))
 
     # -- writing ---------------------------------------------------------------
 
@@ -686,9 +599,6 @@ class G2Session:
         """Ask for a full status report, ahead of anything queued."""
         self._ask_own(encode_get("sr"), _Own.QUERY)
 
-    def query_status(self) -> None:
-        self._query_status()
-
     # -- flushes ---------------------------------------------------------------
 
     def _begin_flush(self, kind: Realtime) -> None:
@@ -716,33 +626,9 @@ class G2Session:
         else:
             self._settle(source, error)
 
-    def _settle(self, token: Any, outcome: Response | MachineError) -> None:
-        if not isinstance(token, _Own):
-            self._events.append(Settled(token, outcome))
-
     # -- stream completion -----------------------------------------------------
 
-    def _check_stream_complete(self) -> None:
-        """{r} means queued, not run: a job is done when all is answered and the board rests."""
-        stream = self.stream
-        if stream is None or stream.done or not stream.exhausted:
-            return
-        if stream.acked < stream.sent:
-            return
-        if not self._awaiting_rest:
-            self._awaiting_rest = True
-            self._query_status()  # its answer, or any later report, tells whether it rests
-            return
-        # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
-        if self.model.state is not None and self.model.state.is_resting:
-            self._awaiting_rest = False
-            stream.finish(StreamEnd.COMPLETED)
-
     # -- requests --------------------------------------------------------------
-
-    def _require_ready(self) -> None:
-        if self.phase is not Phase.READY:
-            raise NotConnected(f"{self.id} is not connected")
 
     def send(self, line: str, token: Any, *, operation: bool = False) -> None:
         """One line from a client; its answer or error comes back as `Settled(token, ...)`.
@@ -762,11 +648,11 @@ class G2Session:
             raise Rejected(verdict, self._locked_message())
         if cls is CommandClass.QUERY:
             # As a JSON GET it is run on arrival: it never waits behind queued G-code.
-            self._lane.append(_Queued(_as_json_query(text), cls, token, Context.ANY))
+            self._lane.append(Queued(_as_json_query(text), cls, token, Context.ANY))
         elif cls is CommandClass.CLEAR:
-            self._outbox.append(_Queued(encode_line(text), cls, token, Context.ANY))
+            self._outbox.append(Queued(encode_line(text), cls, token, Context.ANY))
         elif operation and self._operation and self._context() is Context.JOB:
-            self._outbox.append(_Queued(encode_line(text), cls, token, Context.OPERATION))
+            self._outbox.append(Queued(encode_line(text), cls, token, Context.OPERATION))
         else:
             self._admit_action(text, cls, token)
 
@@ -781,18 +667,13 @@ class G2Session:
                 else f"{self.id} is running {'a job' if self._job_running() else 'an operation'}"
             )
         if context is Context.FREE:
-            self._outbox.append(_Queued(encode_line(text), cls, token, context))
+            self._outbox.append(Queued(encode_line(text), cls, token, context))
             return
         if text.startswith("$"):
             # A text line is data: the board would keep it until the hold ends.
             raise Busy(f"{self.id} is in a hold: send settings as JSON ({{key:value}})")
         encoded = encode_in_hold(text) if _is_gcode(text) else encode_line(text)
-        self._lane.append(_Queued(encoded, cls, token, context))
-
-    def cancel(self, token: Any) -> None:
-        """The asker gave up: a line not yet written is not written."""
-        self._outbox = deque(q for q in self._outbox if q.token is not token)
-        self._lane = deque(q for q in self._lane if q.token is not token)
+        self._lane.append(Queued(encoded, cls, token, context))
 
     def realtime(self, command: Realtime) -> None:
         """Write a realtime byte now (it never waits), if the state admits it."""
@@ -824,107 +705,22 @@ class G2Session:
             raise Rejected(Status.COMMAND_REJECTED_BY_PANIC, "PANIC is left only by a reset")
         if state not in (MachineState.ALARM, MachineState.SHUTDOWN):
             return False
-        self._outbox.append(_Queued(encode_clear(), CommandClass.CLEAR, token, Context.OWN))
+        self._outbox.append(Queued(encode_clear(), CommandClass.CLEAR, token, Context.OWN))
         return True
 
-    def admit_action(self) -> None:
-        """Rejected (204/205/206) if an action may not reach the board now."""
-        verdict = admit(CommandClass.ACTION, self.model.state)
-        if verdict is not None:
-            raise Rejected(verdict, self._locked_message())
+    def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
+        return admit(cls, state)
 
-    def start_stream(self, stream: LineSource) -> None:
-        self._require_ready()
-        if self._job_running():
-            raise Busy(f"{self.id} is running a job")
-        self.admit_action()
-        self.stream = stream
-        self._awaiting_rest = False
-        self._recheck_waiting()  # a client line still waiting was not admitted into a job
-
-    def pause_stream(self) -> None:
-        """The job's pause: `!`, and none of its lines is written until `resume_stream`."""
-        stream = self._live_stream()
-        self.realtime(Realtime.FEEDHOLD)
-        stream.paused = True
-
-    def resume_stream(self) -> None:
-        """The job's resume: `~`, and its lines flow again."""
-        stream = self._live_stream()
-        if not stream.paused:
-            raise Busy(f"{self.id}: the job is not paused")
-        self.realtime(Realtime.CYCLE_START)
-        stream.paused = False
-
-    def stop_stream(self, code: int, text: str) -> None:
-        """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
-        if self.stream is None or self.stream.done:
-            return
-        self.stream.finish(StreamEnd.FAILED, code, text)
-        if self.phase is not Phase.CLOSED:
-            self._write_realtime(Realtime.FEEDHOLD)
-            self._write_realtime(Realtime.QUEUE_FLUSH)
-
-    def halt(self, text: str) -> None:
-        """The daemon broke one of its own invariants: write nothing more until reset."""
-        self.halted = True
-        if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
-        self._detected("internal", None, text)
-
-    # -- views -----------------------------------------------------------------
-
-    def _live_stream(self) -> LineSource:
-        stream = self.stream
-        if stream is None or stream.done:
-            raise Busy(f"{self.id} has no job streaming")
-        return stream
-
-    def out_of_hold(self) -> bool:
-        """No hold on the board and no flush under way: a free line is written as it is."""
-        return self._flush is None and self.model.state is not MachineState.HOLD
-
-    def locked(self) -> bool:
-        state = self.model.state
-        return state is not None and state.is_lockout
+    def _stop_board(self) -> None:
+        """A fault's stop: feedhold, then flush what the board holds."""
+        self._write_realtime(Realtime.FEEDHOLD)
+        self._write_realtime(Realtime.QUEUE_FLUSH)
 
     def flushing(self) -> bool:
         return self._flush is not None
 
-    def _job_running(self) -> bool:
-        return self.stream is not None and not self.stream.done
-
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight
-
-    def quiet(self) -> bool:
-        """Nothing of the host's queued or unanswered, but for queries."""
-        return not self._outbox and self.no_data_in_flight() and not self._job_running()
-
-    # -- helpers -----------------------------------------------------------------
-
-    def _job_log(self) -> Any:
-        """The machine's logger, with `job=` while a job runs."""
-        stream = self.stream
-        if stream is None or stream.done or stream.job_id is None:
-            return self._log
-        return self._log.bind(job=stream.job_id)
-
-    def _detected(self, fault: str, value: Any, text: str) -> None:
-        self._events.append(Detected(fault, value, text))
-
-    def _write_refused(self) -> MachineError:
-        if self.halted:
-            return FaultActive(
-                f"{self.id}: internal fault, nothing is written until machine.reset", ["internal"]
-            )
-        return NotConnected(f"{self.id}: link lost")
-
-    def _locked_message(self) -> str:
-        state = self.model.state
-        name = state.name if state is not None else "an unknown state"
-        detail = self.model.last_exception_message()
-        return f"{self.id} is in {name}" + (f": {detail}" if detail else "")
 
 
 def _lane_of(encoded: bytes) -> Lane:
@@ -954,17 +750,6 @@ def _check_firmware(fb: float | None) -> None:
             f"g2core build {fb:g} is older than {OLDEST_BUILD:.2f}, whose status codes hostd "
             "relies on (204 meant something else before): update the firmware"
         )
-
-
-def _context_changed(machine: str, admitted: Context, now: Context) -> str:
-    what = {
-        Context.HOLD: "a hold began",
-        Context.JOB: "an operation started",
-        Context.FREE: "the hold ended",
-    }[now]
-    if admitted is Context.HOLD and now is not Context.HOLD:
-        what = "the hold ended"
-    return f"{machine}: {what} before the line was written; it was not sent"
 
 
 def _is_gcode(text: str) -> bool:

@@ -20,12 +20,22 @@ controller's answer or the error the request ends in.
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, Protocol
 
-from hostd.protocol.errors import MachineError
+import structlog
+
+from hostd.protocol.classes import CommandClass
+from hostd.protocol.commands import Realtime
+from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
 from hostd.protocol.messages import JsonObject, Response
+from hostd.protocol.model import MachineModel
+from hostd.protocol.states import MachineState
+
+log = structlog.get_logger(__name__)
 
 
 class Lane(StrEnum):
@@ -136,3 +146,265 @@ class Closing:
 
 
 Event = Settled | Reported | Excepted | Probed | Detected | Ready | Closing
+
+
+class OwnLine:
+    """A mixin for the tokens of a session's own lines: they are never `Settled` out."""
+
+
+@dataclass(slots=True)
+class Queued:
+    """A line waiting for a slot: a client's, or the session's own clear."""
+
+    encoded: bytes
+    cls: CommandClass
+    token: Any
+    context: Context
+
+    @property
+    def own(self) -> bool:
+        return self.context is Context.OWN
+
+
+class SessionBase:
+    """The rules of behaviour.md that hold over every dialect; a dialect fills in the rest.
+
+    A dialect gives: `_admit` (its command class table), `_pump` (its flow
+    control), `_query_status`, `_stop_board` (a fault's stop), `flushing`
+    and `no_data_in_flight`; and takes the board's lines, the timers and
+    the requests that differ (`receive`, `tick`, `send`, `realtime`,
+    `clear`, `reset`, `open`, `close`).
+    """
+
+    def __init__(self, machine_id: str, clock: Callable[[], float]) -> None:
+        self.id = machine_id
+        self.clock = clock
+        self.model = MachineModel(machine_id)
+        self.phase = Phase.CLOSED
+        self.stream: LineSource | None = None
+        self.halted = False  # an internal fault: nothing but halts and reset is written
+        self._out: list[tuple[Lane, bytes]] = []
+        self._events: list[Event] = []
+        self._outbox: deque[Queued] = deque()  # lines under the flow control, in order
+        self._lane: deque[Queued] = deque()  # lines that go past it (queries, in-hold lines)
+        self._await_report = False  # an exception came: actions and job lines wait for a report
+        self._awaiting_rest = False  # the job is answered: waiting for the board to stop
+        self._operation = False  # the machine runs an operation: client actions are busy
+        self._closing_reason: str | None = None  # asked to be closed: nothing more is due
+        self._log = log.bind(machine=machine_id)
+
+    # -- what a dialect gives --------------------------------------------------
+
+    def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
+        raise NotImplementedError
+
+    def _pump(self) -> None:
+        raise NotImplementedError
+
+    def _query_status(self) -> None:
+        raise NotImplementedError
+
+    def query_status(self) -> None:
+        """Ask the board for a full status report now."""
+        self._query_status()
+
+    def _stop_board(self) -> None:
+        raise NotImplementedError
+
+    def flushing(self) -> bool:
+        """A stop is under way whose outcome the board has not shown yet."""
+        raise NotImplementedError
+
+    def no_data_in_flight(self) -> bool:
+        raise NotImplementedError
+
+    def realtime(self, command: Realtime) -> None:
+        """Write a realtime command now (it never waits), if the state admits it."""
+        raise NotImplementedError
+
+    # -- outputs ---------------------------------------------------------------
+
+    def data_to_send(self) -> list[tuple[Lane, bytes]]:
+        """Everything to write now, in order (the waiting lines that fit are taken first)."""
+        self._pump()
+        out, self._out = self._out, []
+        return out
+
+    def events(self) -> list[Event]:
+        events, self._events = self._events, []
+        return events
+
+    @property
+    def ready(self) -> bool:
+        return self.phase is Phase.READY
+
+    def _closing(self, reason: str) -> None:
+        if self._closing_reason is None:
+            self._closing_reason = reason
+            self._events.append(Closing(reason))
+
+    def _context(self) -> Context:
+        if self.model.state is MachineState.HOLD:
+            return Context.HOLD
+        return Context.JOB if self._job_running() or self._operation else Context.FREE
+
+    def set_operation(self, running: bool) -> None:
+        """The machine started or ended an operation; waiting client actions are judged again."""
+        self._operation = running
+        self._recheck_waiting()
+
+    def _admissible(self, queued: Queued, state: MachineState | None, context: Context) -> bool:
+        """May this waiting line be written now? If not, its asker is told why, once."""
+        verdict = self._admit(queued.cls, state)
+        if verdict is not None:
+            self._settle(queued.token, Rejected(verdict, self._locked_message()))
+            return False
+        if queued.context in (Context.ANY, Context.OWN) or queued.context is context:
+            return True
+        if queued.context is Context.OPERATION and self._operation:
+            return True
+        self._settle(queued.token, Busy(_context_changed(self.id, queued.context, context)))
+        return False
+
+    def _recheck_waiting(self) -> None:
+        """After any change of context, fail the waiting lines it no longer admits.
+
+        Not while a flush is under way: the board passes through a hold on its
+        way to the stop that ends it, and nothing is written before then, so
+        the write itself decides.
+        """
+        if self.flushing():
+            return
+        state, context = self.model.state, self._context()
+        self._outbox = deque(q for q in self._outbox if self._admissible(q, state, context))
+        self._lane = deque(q for q in self._lane if self._admissible(q, state, context))
+
+    def _settle(self, token: Any, outcome: Response | MachineError) -> None:
+        if not isinstance(token, OwnLine):
+            self._events.append(Settled(token, outcome))
+
+    def _check_stream_complete(self) -> None:
+        """{r} means queued, not run: a job is done when all is answered and the board rests."""
+        stream = self.stream
+        if stream is None or stream.done or not stream.exhausted:
+            return
+        if stream.acked < stream.sent:
+            return
+        if not self._awaiting_rest:
+            self._awaiting_rest = True
+            self._query_status()  # its answer, or any later report, tells whether it rests
+            return
+        # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
+        if self.model.state is not None and self.model.state.is_resting:
+            self._awaiting_rest = False
+            stream.finish(StreamEnd.COMPLETED)
+
+    def _require_ready(self) -> None:
+        if self.phase is not Phase.READY:
+            raise NotConnected(f"{self.id} is not connected")
+
+    def cancel(self, token: Any) -> None:
+        """The asker gave up: a line not yet written is not written."""
+        self._outbox = deque(q for q in self._outbox if q.token is not token)
+        self._lane = deque(q for q in self._lane if q.token is not token)
+
+    def admit_action(self) -> None:
+        """Rejected (204/205/206) if an action may not reach the board now."""
+        verdict = self._admit(CommandClass.ACTION, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+
+    def start_stream(self, stream: LineSource) -> None:
+        self._require_ready()
+        if self._job_running():
+            raise Busy(f"{self.id} is running a job")
+        self.admit_action()
+        self.stream = stream
+        self._awaiting_rest = False
+        self._recheck_waiting()  # a client line still waiting was not admitted into a job
+
+    def pause_stream(self) -> None:
+        """The job's pause: `!`, and none of its lines is written until `resume_stream`."""
+        stream = self._live_stream()
+        self.realtime(Realtime.FEEDHOLD)
+        stream.paused = True
+
+    def resume_stream(self) -> None:
+        """The job's resume: `~`, and its lines flow again."""
+        stream = self._live_stream()
+        if not stream.paused:
+            raise Busy(f"{self.id}: the job is not paused")
+        self.realtime(Realtime.CYCLE_START)
+        stream.paused = False
+
+    def stop_stream(self, code: int, text: str) -> None:
+        """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
+        if self.stream is None or self.stream.done:
+            return
+        self.stream.finish(StreamEnd.FAILED, code, text)
+        if self.phase is not Phase.CLOSED:
+            self._stop_board()
+
+    def halt(self, text: str) -> None:
+        """The daemon broke one of its own invariants: write nothing more until reset."""
+        self.halted = True
+        if self.stream is not None and not self.stream.done:
+            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
+        self._detected("internal", None, text)
+
+    def _live_stream(self) -> LineSource:
+        stream = self.stream
+        if stream is None or stream.done:
+            raise Busy(f"{self.id} has no job streaming")
+        return stream
+
+    def out_of_hold(self) -> bool:
+        """No hold on the board and no flush under way: a free line is written as it is."""
+        return not self.flushing() and self.model.state is not MachineState.HOLD
+
+    def locked(self) -> bool:
+        state = self.model.state
+        return state is not None and state.is_lockout
+
+    def _job_running(self) -> bool:
+        return self.stream is not None and not self.stream.done
+
+    def quiet(self) -> bool:
+        """Nothing of the host's queued or unanswered, but for queries."""
+        return not self._outbox and self.no_data_in_flight() and not self._job_running()
+
+    # -- helpers -----------------------------------------------------------------
+
+    def _job_log(self) -> Any:
+        """The machine's logger, with `job=` while a job runs."""
+        stream = self.stream
+        if stream is None or stream.done or stream.job_id is None:
+            return self._log
+        return self._log.bind(job=stream.job_id)
+
+    def _detected(self, fault: str, value: Any, text: str) -> None:
+        self._events.append(Detected(fault, value, text))
+
+    def _write_refused(self) -> MachineError:
+        if self.halted:
+            return FaultActive(
+                f"{self.id}: internal fault, nothing is written until machine.reset", ["internal"]
+            )
+        return NotConnected(f"{self.id}: link lost")
+
+    def _locked_message(self) -> str:
+        state = self.model.state
+        name = state.name if state is not None else "an unknown state"
+        detail = self.model.last_exception_message()
+        return f"{self.id} is in {name}" + (f": {detail}" if detail else "")
+
+
+def _context_changed(machine: str, admitted: Context, now: Context) -> str:
+    what = {
+        Context.HOLD: "a hold began",
+        Context.JOB: "an operation started",
+        Context.FREE: "the hold ended",
+    }[now]
+    if admitted is Context.HOLD and now is not Context.HOLD:
+        what = "the hold ended"
+    return f"{machine}: {what} before the line was written; it was not sent"

@@ -1,0 +1,226 @@
+"""grbl 1.1 and grblHAL on the wire: what the board prints, and the lines a host may write.
+
+Sources: grblHAL/core report.c (`report_realtime_status`, `report_status_message`,
+`report_alarm_message`, the `[...]` feedback), protocol.c
+(`protocol_enqueue_realtime_command`: which bytes are picked out of the
+stream), grbl.h (the realtime command bytes), stream.h (CRLF line ends); the
+grbl wiki's "Interface" page for classic grbl 1.1.
+
+A realtime byte is picked out of the input wherever it appears (protocol.c),
+so a `!` inside a comment holds the machine: the host writes no `?`, `!` or
+`~` inside a line, and strips comments from a job's lines before it sends
+them. Every line the board prints ends in CRLF (`ASCII_EOL`).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from enum import Enum
+
+from hostd.protocol.classes import CommandClass
+from hostd.protocol.commands import InvalidCommand, Refusal
+
+# Line-mode bytes of grbl.h: `?`, `~`, `!` (legacy, printable) and the 0x8x ones.
+STATUS = b"?"
+CYCLE_START = b"~"
+FEEDHOLD = b"!"
+RESET = b"\x18"
+SAFETY_DOOR = b"\x84"
+JOG_CANCEL = b"\x85"
+# The overrides, 0x90-0x9D (grbl.h CMD_OVERRIDE_*), and what each does.
+OVERRIDES = {
+    "feed_reset": b"\x90",
+    "feed_plus_10": b"\x91",
+    "feed_minus_10": b"\x92",
+    "feed_plus_1": b"\x93",
+    "feed_minus_1": b"\x94",
+    "rapid_reset": b"\x95",
+    "rapid_50": b"\x96",
+    "rapid_25": b"\x97",
+    "spindle_reset": b"\x99",
+    "spindle_plus_10": b"\x9a",
+    "spindle_minus_10": b"\x9b",
+    "spindle_plus_1": b"\x9c",
+    "spindle_minus_1": b"\x9d",
+}
+CLASSIC_RX_BUFFER = 128  # grbl 1.1's serial receive buffer (gnea/grbl config.h)
+CLASSIC_BLOCKS = 15  # grbl 1.1's planner (BLOCK_BUFFER_SIZE on the 328p)
+
+
+# -- what the board prints -------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Ok:
+    """`ok`: the oldest unanswered line was read and executed or planned."""
+
+
+@dataclass(frozen=True, slots=True)
+class Error:
+    """`error:N`: the oldest unanswered line was refused."""
+
+    code: int
+
+
+@dataclass(frozen=True, slots=True)
+class Alarm:
+    """`ALARM:N`: the board entered its alarm state."""
+
+    code: int
+
+
+@dataclass(frozen=True, slots=True)
+class Welcome:
+    """`Grbl 1.1h ['$' for help]` or `GrblHAL 1.1f ['$' or '$HELP' for help]`: after a reset."""
+
+    flavour: str  # "grbl" or "grblHAL"
+    version: str
+
+
+@dataclass(frozen=True, slots=True)
+class StatusReport:
+    """`<Idle|MPos:0.000,0.000,0.000|FS:0,0>`: the state, its substate and the fields."""
+
+    state: str  # Idle, Run, Hold, Jog, Alarm, Door, Check, Home, Sleep, Tool
+    sub: int | None  # Hold:0/1, Door:0-4, Alarm:N on grblHAL
+    fields: dict[str, str]
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """`[KIND:text]`: MSG, GC, PRB, VER, OPT, HLP, echo, the `$#` offsets (G54, TLO, ...)."""
+
+    kind: str
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Setting:
+    """`$N=V`: one line of `$$` (or `$Nn=` startup lines)."""
+
+    key: str
+    value: str
+
+
+@dataclass(frozen=True, slots=True)
+class Other:
+    """A printable line of no kind above (a startup line's `>G54:ok`, help text)."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Garbage:
+    reason: str
+    raw: bytes
+
+
+Message = Ok | Error | Alarm | Welcome | StatusReport | Feedback | Setting | Other | Garbage
+
+_WELCOME = re.compile(r"(Grbl|GrblHAL) (\S+) \[.*\]")
+_FEEDBACK = re.compile(r"\[([A-Za-z0-9.]+):(.*)\]")
+_SETTING = re.compile(r"\$(N?\d+)=(.*)")
+_NUMBER = re.compile(r"-?\d+")
+
+
+def parse(line: bytes) -> Message:
+    """One line as the board printed it, without its CRLF."""
+    try:
+        text = line.decode("ascii")
+    except UnicodeDecodeError:
+        return Garbage("not valid ASCII", line)
+    text = text.strip("\r")
+    if text == "ok":
+        return Ok()
+    if any(c < " " or c == "\x7f" for c in text):
+        return Garbage("control characters in a line", line)
+    head, _, rest = text.partition(":")
+    if head == "error" and _NUMBER.fullmatch(rest):
+        return Error(int(rest))
+    if head == "ALARM" and _NUMBER.fullmatch(rest):
+        return Alarm(int(rest))
+    if text.startswith("<") and text.endswith(">"):
+        return _status(text[1:-1], line)
+    if match := _FEEDBACK.fullmatch(text):
+        return Feedback(match[1], match[2])
+    if match := _SETTING.fullmatch(text):
+        return Setting(match[1], match[2])
+    if match := _WELCOME.fullmatch(text):
+        return Welcome(match[1], match[2])
+    if not text:
+        return Other("")
+    return Other(text)
+
+
+def _status(body: str, raw: bytes) -> Message:
+    state, *parts = body.split("|")
+    name, _, sub = state.partition(":")
+    if not name.isalpha() or (sub and not sub.isdigit()):
+        return Garbage("a status report with no state", raw)
+    fields: dict[str, str] = {}
+    for part in parts:
+        key, sep, value = part.partition(":")
+        if not key:
+            return Garbage("a status report field with no name", raw)
+        fields[key] = value if sep else ""
+    return StatusReport(name, int(sub) if sub else None, fields)
+
+
+def numbers(text: str) -> list[float] | None:
+    """`1.000,-2.500,0` as numbers; None if any is not one."""
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        return None
+
+
+# -- what the host writes --------------------------------------------------------
+
+_COMMENT = re.compile(r"\([^)]*\)|;.*")
+_PICKED_OUT = re.compile(r"[?!~]")
+_VIEWS = frozenset({"$", "$$", "$#", "$G", "$I", "$N", "$HELP", "$ES", "$ESH", "$EA", "$EAH"})
+_CLEARS = frozenset({"$X", "$H"})
+
+
+class GrblLine(Enum):
+    """How a client's line is written to a grbl board."""
+
+    REALTIME = "realtime"  # `?`: picked out at once, answered by a status report
+    LINE = "line"  # counted against the receive buffer, answered `ok` or `error:N`
+
+
+def classify(text: str) -> CommandClass:
+    """The class of one client line, as grbl reads it (spec: behaviour.md, the class table).
+
+    `?` and the `$` views are queries; `$X` and `$H` are what grbl accepts to
+    leave an alarm; everything else (G-code, `$J=`, `$N=V`, `$C`, `$RST`,
+    `$SLP`) is an action. M2 and M30 do not clear a grbl alarm.
+    """
+    upper = text.strip().upper()
+    if upper == "?" or upper in _VIEWS:
+        return CommandClass.QUERY
+    if upper in _CLEARS or (upper.startswith("$H") and upper[2:].isalpha()):
+        return CommandClass.CLEAR  # $H, $HX, $HY: homing, one axis or all
+    return CommandClass.ACTION
+
+
+def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
+    """A line to write: comments removed, no byte the board would pick out, LF-terminated.
+
+    InvalidCommand if it holds a byte grbl does not read as part of a line,
+    or would not fit the board's receive buffer with its LF.
+    """
+    code = _COMMENT.sub("", text).strip()
+    if not code.isascii() or any(c < " " or c == "\x7f" for c in code):
+        raise InvalidCommand(Refusal.NOT_TEXT, "only printable ASCII reaches a grbl board")
+    if _PICKED_OUT.search(code):
+        raise InvalidCommand(
+            Refusal.REALTIME,
+            "a '?', '!' or '~' inside a line is taken by grbl as a realtime command",
+        )
+    if len(code) + 1 > max_bytes:
+        raise InvalidCommand(
+            Refusal.TOO_LONG, f"longer than the board's receive buffer ({max_bytes} bytes)"
+        )
+    return code.encode() + b"\n"
