@@ -1,0 +1,1052 @@
+"""The simulated grbl 1.1h / grblHAL: its receive buffer, main loop, planner and reports.
+
+The firmware's main loop without the hardware, like the g2core board
+(hostd/sim/board.py): the controller feeds received bytes to `receive()`
+(the serial interrupt: realtime characters are acted on at once, the rest
+go into the receive ring or are lost when it is full) and calls `tick()`
+until it reports no progress, then sleeps until `next_deadline()` or new
+input. Output leaves as text lines through `emit`; the controller adds the
+firmware's CRLF (stream.h ASCII_EOL "\\r\\n", gnea/grbl report.c "\\r\\n").
+No I/O and no asyncio here; the clock is injected.
+
+Sources, read from grblHAL/core (f80fc34) and gnea/grbl (bfb67f0, 1.1h);
+"HAL" marks a grblHAL-only rule, "classic" a grbl 1.1-only one:
+
+- receive ring: gnea/grbl serial.c (RX_BUFFER_SIZE 128, a byte arriving at a
+  full ring is dropped); grblHAL drivers' serial.c (`next_head == tail`:
+  `rxbuf.overflow = On`, the byte is dropped). Realtime bytes never enter it
+  (protocol_enqueue_realtime_command / serial.c ISR).
+- lines: protocol.c protocol_main_loop: CR or LF ends a line; an empty line
+  answers `ok`; HAL skips the second byte of a CR LF pair unless the line
+  before it failed (`eol = '\\0'`), classic answers it `ok` too. `$` lines go
+  to system_execute_line; other lines in Alarm/E-stop/Jog answer error:9.
+- HAL error latch (COMPATIBILITY_LEVEL 0): a G-code line runs only while
+  gc_state.last_error is OK; otherwise it answers that same error. It is
+  cleared by an empty line, by any `$` command (which sets it to its own
+  result), and by 0x18 (the CAN read from the stream); 0x85 also cancels
+  the read buffer, which inserts a CAN.
+- planner: a line whose block finds the planner full waits (mc_line loops on
+  plan_check_full_buffer), and its `ok` comes once it is queued;
+  `[OPT:]` / `Bf:` give BLOCK_BUFFER_SIZE-1 (classic) or $398 (HAL) blocks.
+- alarms: system_raise_alarm prints `ALARM:N`; critical ones (hard limit,
+  soft limit, HAL e-stop; alarms.h alarm_is_critical) also print
+  `[MSG:Reset to continue]` (HAL e-stop: its own message) and block until a
+  reset: classic reads no lines at all then; HAL (protocol_poll_cmd) answers
+  `$` commands marked allow_blocking and refuses the rest with error:79,
+  G-code with error:9. After a reset in Alarm: `[MSG:'$H'|'$X' to unlock]`.
+- reset (0x18, mc_reset): in Run/Jog/Homing or while a hold decelerates the
+  position is lost: ALARM:3 (ALARM:6 when homing) is printed, then the
+  banner (grbllib.c / main.c print it on every reset), then the unlock
+  message. HAL ignores 0x18 while the e-stop input is active.
+- states and substates: report.c report_realtime_status; state_machine.c
+  (HAL Door:0 closed, 1 ajar, 2 retracting, 4 resuming; classic 3 restoring).
+- homing: motion_control.c mc_homing_cycle: HAL forces one status report as
+  homing starts; `?` is not serviced during the cycle (limits_go_home only
+  looks at reset/door; $10 bit "report when homing" is off by default), so a
+  `?` sent then is answered once, when the cycle ends. HAL prints `[MSG:]`
+  after a successful `$H` (feedback_message(Message_None)).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import structlog
+
+from hostd.sim.config import AXES
+from hostd.sim.gcode import Move
+from hostd.sim.grbl import parser
+from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
+from hostd.sim.grbl.config import GrblConfig
+from hostd.sim.grbl.parser import Executed, Modal, Probe
+from hostd.sim.motion import Active, start_block
+
+log = structlog.get_logger(__name__)
+
+# Realtime characters (grbl.h CMD_*).
+RESET, STATUS, HOLD, CYCLE_START = 0x18, ord("?"), ord("!"), ord("~")
+DOOR, JOG_CANCEL = 0x84, 0x85
+FEED_OVR = range(0x90, 0x95)
+RAPID_OVR = range(0x95, 0x98)
+SPINDLE_OVR = range(0x99, 0x9F)
+COOLANT_OVR = (0xA0, 0xA1)
+REALTIME = frozenset(
+    {RESET, STATUS, HOLD, CYCLE_START, DOOR, JOG_CANCEL, 0xA0, 0xA1}
+    | set(FEED_OVR)
+    | set(RAPID_OVR)
+    | set(SPINDLE_OVR)
+)
+
+CLASSIC_VERSION, CLASSIC_BUILD = "1.1h", "20190830"  # gnea/grbl grbl.h
+HAL_VERSION, HAL_BUILD = "1.1f", "20260817"  # grblHAL/core grbl.h
+CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
+HOMING_PULLOFF = 1.0  # mm, $27; homing toward +: the home position is -pulloff
+WCO_BUSY, WCO_IDLE, OVR_BUSY, OVR_IDLE = 30, 10, 20, 10  # REPORT_*_REFRESH_*_COUNT
+BUSY_STATES = frozenset({"Home", "Run", "Hold", "Jog", "Door"})
+
+# $$ as the firmware defaults have it (gnea/grbl defaults.h DEFAULTS_GENERIC; grblHAL
+# config.h agrees for these). $10, $20, $21, $22, $32 change behaviour; the rest are kept.
+_SETTINGS: dict[int, float] = {
+    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
+    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0,
+    32: 0, 100: 250.0, 101: 250.0, 102: 250.0, 110: 500.0, 111: 500.0, 112: 500.0,
+    120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
+}  # fmt: skip
+_FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 27} | set(range(100, 133)))
+# HAL $10 (status report options): machine position, buffer state, line numbers,
+# feed & speed, pin state, WCO, overrides (config.h DEFAULT_REPORT_*).
+HAL_REPORT_MASK = 0b1111111
+
+
+@dataclass
+class _Wait:
+    """What the line being executed waits for before its response (None: nothing)."""
+
+    kind: str  # "room", "sync", "dwell", "home", "probe"
+    line: str
+    result: Executed | None = None
+    until: float = 0.0
+
+
+class GrblBoard:
+    """One grbl or grblHAL board; see the module docstring for how it is driven."""
+
+    def __init__(
+        self, config: GrblConfig, *, emit: Callable[[str], None], clock: Callable[[], float]
+    ) -> None:
+        self.config = config
+        self.hal = config.hal
+        self._emit = emit
+        self._clock = clock
+        # Inputs are wired to the machine: a reset keeps them.
+        self.limits: set[str] = set()
+        self.estop = False
+        self.door_open = False
+        self.probe = False
+        self.rx_dropped = 0  # bytes lost to a full receive ring, ever
+        self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
+        self.modal = Modal()
+        self.homed = False
+        self.alarm: Alarm | None = None
+        self.state = "Idle"
+        self.power_on()
+
+    # --- power, reset
+
+    def power_on(self) -> None:
+        """A cold start: default settings, nothing homed, then what a reset does."""
+        self.settings = dict(_SETTINGS)
+        cfg = self.config
+        self.settings[10] = HAL_REPORT_MASK if self.hal else 1
+        self.settings[20] = int(cfg.soft_limits)
+        self.settings[21] = int(cfg.hard_limits)
+        self.settings[22] = int(cfg.homing) | (4 if cfg.homing_init_lock else 0)
+        self.settings[32] = int(cfg.laser_mode)
+        for i, travel in enumerate(cfg.max_travel):
+            self.settings[130 + i] = travel
+        for i in range(3):
+            self.settings[110 + i] = cfg.rapid_rate
+        self.position = dict.fromkeys(AXES, 0.0)
+        self.modal = Modal()
+        self.homed = False
+        self.alarm = None
+        self.state = "Idle"
+        self._cold = True
+        self._init()
+        self._startup()
+
+    def _init(self) -> None:
+        """grbllib.c / main.c's re-initialisation after power-on or a reset."""
+        self.rx: deque[int] = deque()
+        self._line = bytearray()
+        self._overflow = False
+        self._eol = 0
+        self._comment = False
+        self.last_error = Error.OK
+        self.planner: deque[Move] = deque()
+        self.active: Active | None = None
+        self._jogging = False  # the planner holds a jog
+        self._wait: _Wait | None = None
+        self.hold = 0  # 0 none, 1 decelerating, 2 complete (HAL holding_state: Hold:n-1)
+        self.door = 0  # parking_state while in Door
+        self._resume_to: str | None = None
+        self._cancel_after_stop = False  # jog cancel / classic hold in jog: flush when stopped
+        self.blocking = False  # a critical alarm: only reset gets out
+        self.feed_ovr = self.rapid_ovr = self.spindle_ovr = 100
+        self.flood = self.mist = False
+        self.modal.reset()
+        self.modal.position = dict(self.position)
+        self._status_pending = False
+        self._wco_counter = self._ovr_counter = 0  # report_init_message zeroes them
+        self._report_flags: set[str] = {"overrides"}  # report_add_realtime(Report_Overrides)
+
+    def _startup(self) -> None:
+        """The banner, then protocol_main_loop's start-up checks."""
+        self._emit("")
+        if self.hal:
+            self._emit(f"GrblHAL {HAL_VERSION} ['$' or '$HELP' for help]")
+        else:
+            self._emit(f"Grbl {CLASSIC_VERSION} ['$' for help]")
+        if self.hal and self.estop:
+            self._raise(Alarm.ESTOP)
+            self._message(Msg.ESTOP)
+        elif self.hal and self._homing_required():
+            self._raise(Alarm.HOMING_REQUIRED)
+            self._message(Msg.HOMING_CYCLE_REQUIRED)
+        elif (not self.hal and self._cold and self.settings[22]) or self.state in (
+            "Alarm",
+            "EStop",
+        ):
+            # Classic: HOMING_INIT_LOCK puts a homing machine in Alarm at power-up only.
+            self.state = "Alarm"
+            self._message(Msg.ALARM_LOCK)
+        else:
+            self.state = "Idle"
+            if self.door_open:
+                self._door_event()
+        self._cold = False
+
+    def _bits(self, key: int) -> int:
+        return int(self.settings[key])
+
+    def _homing_required(self) -> bool:
+        """HAL limits_homing_required(): homing on, init lock on, not homed."""
+        return bool(self._bits(22) & 1) and bool(self._bits(22) & 4) and not self.homed
+
+    def soft_reset(self) -> None:
+        """0x18: mc_reset, then the re-initialisation (see the module docstring)."""
+        if self.hal and self.estop:
+            return  # protocol.c CMD_RESET: `if(!hal.control.get_state().e_stop) mc_reset()`
+        now = self._clock()
+        moving = self.state in ("Run", "Jog", "Home") or self.hold == 1
+        if self.active is not None:
+            self.position = self.active.position(now)
+        if moving and not self.blocking:
+            lost = Alarm.HOMING_FAIL_RESET if self.state == "Home" else Alarm.ABORT_CYCLE
+            self.homed = False
+            self._raise(lost, force=True)
+        if self.state in ("Run", "Jog", "Home", "Hold", "Door", "Check", "Sleep"):
+            self.state = "Idle"
+        self._init()
+        self._startup()
+
+    # --- input: the serial interrupt
+
+    def receive(self, data: bytes) -> None:
+        """Bytes from the host: realtime ones act now, the rest queue or are lost."""
+        capacity = self.config.rx_capacity
+        for byte in data:
+            if byte in REALTIME:
+                self.realtime(byte)
+            elif byte >= 0x80 and self.hal:
+                continue  # protocol_enqueue_realtime_command drops other top-bit bytes
+            elif len(self.rx) >= capacity:
+                self.rx_dropped += 1
+            else:
+                self.rx.append(byte)
+
+    @property
+    def rx_free(self) -> int:
+        """What `Bf:` reports as free receive buffer."""
+        return self.config.rx_capacity - len(self.rx)
+
+    def realtime(self, char: int) -> None:
+        now = self._clock()
+        if char == RESET:
+            self.soft_reset()
+        elif char == STATUS:
+            self._status_pending = True
+            if self.state != "Home":
+                self._flush_status()
+        elif char == HOLD:
+            self._feed_hold(now)
+        elif char == CYCLE_START:
+            self._cycle_start()
+        elif char == DOOR:
+            if self.state != "Door":
+                self._door_event()
+        elif char == JOG_CANCEL:
+            self._jog_cancel(now)
+        elif char in FEED_OVR or char in RAPID_OVR or char in SPINDLE_OVR or char in COOLANT_OVR:
+            self._override(char)
+
+    # --- pins
+
+    def set_limit(self, axis: str, active: bool) -> None:
+        """A limit switch: with $21 on, triggering it is a hard limit (ALARM:1)."""
+        if not active:
+            self.limits.discard(axis)
+            return
+        self.limits.add(axis)
+        if self.settings[21] and self.state not in ("Alarm", "EStop"):
+            # machine_limits.c limit_interrupt_handler: mc_reset() then Alarm_HardLimit.
+            self._stop_motion()
+            self.homed = False
+            self._critical(Alarm.HARD_LIMIT)
+
+    def set_estop(self, active: bool) -> None:
+        """HAL e-stop input: ALARM:10 at once; reset is refused while it is held."""
+        self.estop = active
+        if active and self.hal and self.state != "EStop":
+            self._stop_motion()
+            self.homed = False
+            self._critical(Alarm.ESTOP)
+
+    def set_door(self, active: bool) -> None:
+        self.door_open = active
+        if active and self.state != "Door":
+            self._door_event()
+        elif not active and self.state == "Door" and self.door == 1:
+            self.door = 0  # EXEC_DOOR_CLOSED: ready to resume
+
+    def set_probe(self, active: bool) -> None:
+        self.probe = active
+        wait = self._wait
+        if wait is not None and wait.kind == "probe" and wait.result is not None:
+            probe = wait.result.probe
+            if probe is not None and active == probe.toward and self.active is not None:
+                self._probe_contact()
+
+    # --- the main loop
+
+    def tick(self) -> bool:
+        """Do one thing that is due; False when nothing is."""
+        now = self._clock()
+        if self._advance(now):
+            return True
+        if self.blocking:
+            return self.hal and self._read_line(critical=True)
+        if self._wait is not None:
+            return self._resume_wait(now)
+        return self._read_line(critical=False)
+
+    def next_deadline(self) -> float | None:
+        times: list[float] = []
+        if self.active is not None:
+            times.append(self.active.end)
+        if self._wait is not None and self._wait.kind in ("dwell", "home"):
+            times.append(self._wait.until)
+        return min(times) if times else None
+
+    def _advance(self, now: float) -> bool:
+        """Motion: finish the running block, start the next, settle states."""
+        active = self.active
+        if active is not None:
+            if now < active.end:
+                return False
+            if active.decelerating:
+                self._stopped(now)
+            else:
+                self._finish(active)
+            return True
+        if self.blocking or self.state in ("Alarm", "EStop", "Home", "Sleep"):
+            return False
+        if self.hold or self.state == "Door":
+            return False
+        if self.planner:
+            self._start(now)
+            return True
+        if self.state in ("Run", "Jog"):
+            self.state = "Idle"
+            self._jogging = False
+            return True
+        return False
+
+    def _start(self, now: float) -> None:
+        move = self.planner[0]
+        if not move.rapid and self.feed_ovr != 100:
+            move = Move(move.target, move.feed * self.feed_ovr / 100, move.n, arc=move.arc)
+        self.active = start_block(
+            move,
+            self.position,
+            now,
+            speed_factor=self.config.speed_factor,
+            rapid_rate=self.settings[110] * self.rapid_ovr / 100,
+            instant=self.config.instant,
+        )
+        self.active.block = self.planner[0]
+        self.state = "Jog" if self._jogging else "Run"
+
+    def _finish(self, active: Active) -> None:
+        self.active = None
+        if active.move is not None:
+            self.position = dict(active.move.target)
+        if self.planner:
+            self.planner.popleft()
+        if self._wait is not None and self._wait.kind == "probe":
+            self._probe_end(contact=False)
+
+    def _stopped(self, now: float) -> None:
+        """A hold's deceleration reached standstill (EXEC_CYCLE_STOP)."""
+        active = self.active
+        assert active is not None
+        self.position = active.position(active.end)
+        rest = active.rest(active.end)
+        self.active = None
+        if self.planner:
+            self.planner.popleft()
+            if isinstance(rest, Move):
+                self.planner.appendleft(rest)
+        if self._cancel_after_stop:
+            self._cancel_after_stop = False
+            self._flush_planner()
+            self.hold = 0
+            self.state = "Idle"
+            return
+        if self.state == "Door":
+            self.door = 1 if self.door_open else 0
+        else:
+            self.hold = 2
+
+    # --- lines
+
+    def _read_line(self, *, critical: bool) -> bool:
+        """Take bytes from the ring up to one complete line and run it."""
+        if not self.rx:
+            return False
+        while self.rx:
+            c = self.rx.popleft()
+            if c in (0x0A, 0x0D):
+                if self.hal and not self._line and self._eol and self._eol != c:
+                    self._eol = 0  # the second half of a CR LF pair
+                    continue
+                self._eol = c
+                line = self._line.decode("latin-1")
+                overflow = self._overflow
+                self._line = bytearray()
+                self._overflow = False
+                self._comment = False
+                self._run_line(line, overflow, critical=critical)
+                return True
+            if self.hal:
+                if c <= (0x1F if self._line else 0x20) and c != 0x08:
+                    continue  # control characters and leading blanks
+            elif c <= 0x20:
+                continue  # classic drops every blank and control character
+            limit = (HAL_LINE if self.hal else CLASSIC_LINE) - 1
+            if len(self._line) >= limit:
+                self._overflow = True
+            else:
+                self._line.append(c)
+        return True
+
+    def _run_line(self, line: str, overflow: bool, *, critical: bool) -> None:
+        if critical:  # HAL protocol_poll_cmd, inside the critical-event loop
+            if not line:
+                status = Error.OK
+            elif line.startswith("$"):
+                answer = self._system(line)
+                status = Error.OK if answer is None else answer
+            else:
+                status = Error.SYSTEM_GC_LOCK
+            self.last_error = status
+            self._respond(status)
+            return
+        if overflow:
+            status = Error.OVERFLOW
+        elif not line:
+            status = Error.OK
+        elif line.startswith("$"):
+            answer = self._system(line)
+            if answer is None:
+                return  # the answer comes later (homing, a jog waiting for room)
+            status = answer
+        elif self.state in ("Alarm", "EStop", "Jog"):
+            status = Error.SYSTEM_GC_LOCK
+        elif self.hal and self.last_error != Error.OK:
+            status = self.last_error  # the error latch
+        else:
+            result = self._gcode(line)
+            if result is None:
+                return
+            status = result
+            if status != Error.OK:
+                self._eol = 0
+        if self.hal:
+            self.last_error = status
+        self._respond(status)
+
+    def _respond(self, status: Error) -> None:
+        self._emit("ok" if status == Error.OK else f"error:{int(status)}")
+
+    def _gcode(self, line: str) -> Error | None:
+        """gc_execute_block; None when the answer waits for the machine."""
+        result = parser.execute(self.modal, line, travel_ok=self._in_travel)
+        if isinstance(result, Error):
+            return result
+        if result.offsets_changed:
+            self._report_flags.add("wco")
+        if self.state == "Check":
+            return Error.OK  # parsed, nothing moves (the parser's position moved on)
+        for move in result.moves:
+            if self.settings[20] and not self._in_travel(move.target):
+                self._soft_limit()
+                return None
+        if result.moves or result.dwell is not None or result.probe or result.stop:
+            kind = "room" if result.moves and not (result.dwell or result.stop) else "sync"
+            self._wait = _Wait(kind, line, result)
+            return None
+        return Error.OK
+
+    def _resume_wait(self, now: float) -> bool:
+        wait = self._wait
+        assert wait is not None
+        result = wait.result
+        if wait.kind == "room":
+            if len(self.planner) >= self.config.blocks:
+                return False
+            assert result is not None
+            self.planner.extend(result.moves)
+            self._done()
+            return True
+        if wait.kind == "sync":
+            if self.planner or self.active is not None or self.hold or self.state == "Door":
+                return False
+            assert result is not None
+            return self._after_sync(result, now)
+        if wait.kind in ("dwell", "home"):
+            if now < wait.until:
+                return False
+            if wait.kind == "home":
+                self._homed()
+            else:
+                self._done()
+            return True
+        return False  # a probe ends from motion or the probe pin
+
+    def _after_sync(self, result: Executed, now: float) -> bool:
+        wait = self._wait
+        assert wait is not None
+        if result.dwell is not None:
+            wait.kind = "dwell"
+            wait.until = now + (0.0 if self.config.instant else result.dwell)
+            return True
+        if result.probe is not None:
+            return self._probe_start(result.probe, now)
+        if result.stop in ("M2", "M30"):
+            self._message(Msg.PROGRAM_END)
+        elif result.stop == "M0":
+            self.hold = 2
+            self.state = "Hold"
+        self._done()
+        return True
+
+    def _done(self, status: Error = Error.OK) -> None:
+        self._wait = None
+        if self.hal:
+            self.last_error = status
+        self._respond(status)
+
+    # --- system commands (system.c system_execute_line)
+
+    def _system(self, line: str) -> Error | None:
+        cmd, _, arg = line[1:].partition("=")
+        cmd = cmd.replace(" ", "").upper()
+        has_arg = "=" in line
+        state = self.state
+        if self.blocking and cmd not in ("G", "#", "$", "I", "N", "HELP", ""):
+            # HAL: only commands flagged allow_blocking run during a critical event.
+            return Error.NOT_ALLOWED_CRITICAL_EVENT
+        if cmd == "":
+            self._emit(self._help())
+            return Error.OK
+        if cmd == "J" and has_arg:
+            if state not in ("Idle", "Jog"):
+                return Error.IDLE_ERROR
+            return self._jog(arg)
+        if has_arg and cmd in ("G", "#", "$", "C", "X", "H", "I", "N"):
+            return Error.INVALID_STATEMENT
+        if cmd == "G":
+            self._emit(self._gc_modes())
+            return Error.OK
+        if cmd == "C":
+            return self._check_mode()
+        if cmd == "X":
+            return self._unlock()
+        if cmd == "H":
+            return self._home()
+        if cmd == "$":
+            if state in ("Run", "Hold"):
+                return Error.IDLE_ERROR
+            for key, value in sorted(self.settings.items()):
+                self._emit(f"${key}={_setting(key, value)}")
+            return Error.OK
+        idle = state in ("Idle", "Alarm") or (self.hal and state in ("EStop", "Check"))
+        if cmd == "#":
+            if not idle:
+                return Error.IDLE_ERROR
+            for text in self._parameters():
+                self._emit(text)
+            return Error.OK
+        if cmd == "I":
+            for text in self._build_info():
+                self._emit(text)
+            return Error.OK
+        if cmd == "N":
+            self._emit("$N0=")
+            self._emit("$N1=")
+            return Error.OK
+        if cmd.isdigit():
+            if not idle:
+                return Error.IDLE_ERROR
+            key = int(cmd)
+            if key not in self.settings:
+                return Error.INVALID_STATEMENT
+            if not has_arg:
+                self._emit(f"${key}={_setting(key, self.settings[key])}")
+                return Error.OK
+            return self._store(key, arg)
+        return Error.INVALID_STATEMENT
+
+    def _store(self, key: int, raw: str) -> Error:
+        try:
+            value = float(raw)
+        except ValueError:
+            return Error.BAD_NUMBER_FORMAT
+        if value < 0:
+            return Error.NEGATIVE_VALUE
+        if key == 20 and value and not self.settings[22]:
+            return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
+        self.settings[key] = value if key in _FLOAT_SETTINGS else int(value)
+        return Error.OK
+
+    def _check_mode(self) -> Error | None:
+        if self.state == "Check":
+            # system.c: leaving check mode is a reset; the `ok` goes out before the banner.
+            self._message(Msg.DISABLED)
+            self._respond(Error.OK)
+            self.last_error = Error.OK
+            self.state = "Idle"
+            self._init()
+            self._startup()
+            return _NO_ANSWER
+        if self.state != "Idle":
+            return Error.IDLE_ERROR
+        self.state = "Check"
+        self._message(Msg.ENABLED)
+        return Error.OK
+
+    def _unlock(self) -> Error:
+        if self.state not in ("Alarm", "EStop"):
+            return Error.OK  # "Otherwise, no effect."
+        if self.hal:
+            if self.estop:
+                return Error.ESTOP
+            if self.door_open:
+                return Error.CHECK_DOOR
+            if self._homing_required():
+                return Error.HOMING_REQUIRED
+        elif self.door_open:
+            return Error.CHECK_DOOR
+        self.state = "Idle"
+        self.alarm = None
+        self._message(Msg.ALARM_UNLOCK)
+        return Error.OK
+
+    def _home(self) -> Error | None:
+        if not self._bits(22) & 1:
+            return Error.HOMING_DISABLED
+        if self.state not in ("Idle", "Alarm"):
+            return Error.IDLE_ERROR
+        if self.door_open:
+            return Error.CHECK_DOOR
+        if self.hal and self.estop:
+            return Error.ESTOP
+        self.state = "Home"
+        if self.hal:
+            self._send_status()  # mc_homing_cycle: "Force a status report"
+        duration = 0.0 if self.config.instant else self.config.homing_time
+        self._wait = _Wait("home", "$H", until=self._clock() + duration)
+        return None
+
+    def _homed(self) -> None:
+        self.position = dict.fromkeys(AXES, -HOMING_PULLOFF)
+        self.modal.position = dict(self.position)
+        self.homed = True
+        if self._status_pending:
+            self._flush_status()  # the `?` that waited out the cycle, still in Home
+        self.state = "Idle"
+        self.alarm = None
+        self._report_flags.add("homed")
+        if self.hal:
+            self._message(Msg.NONE)
+        self._done()
+
+    def _jog(self, text: str) -> Error | None:
+        result = parser.execute(self.modal, text, travel_ok=self._jog_travel_ok, jog=True)
+        if isinstance(result, Error):
+            return result
+        if not result.moves:
+            return Error.OK
+        self._jogging = True
+        self._wait = _Wait("room", "$J=" + text, result)
+        return None
+
+    def _jog_travel_ok(self, target: Mapping[str, float]) -> bool:
+        return not self.settings[20] or self._in_travel(target)
+
+    def _in_travel(self, target: Mapping[str, float]) -> bool:
+        """system_check_travel_limits: homing toward +, the envelope is [-max travel, 0]."""
+        for i, axis in enumerate(AXES):
+            if not -self.settings[130 + i] - 1e-6 <= target[axis] <= 1e-6:
+                return False
+        return True
+
+    # --- realtime actions
+
+    def _feed_hold(self, now: float) -> None:
+        state = self.state
+        if state == "Jog":
+            if not self.hal:
+                self._jog_cancel(now)  # classic: a hold during a jog cancels it
+            return  # HAL state_set(STATE_HOLD): ignored while jogging
+        if state in ("Alarm", "EStop", "Hold", "Door", "Sleep", "Home", "Check"):
+            return
+        self.state = "Hold"
+        if self.active is not None and self.active.move is not None:
+            self.active.begin_hold(now, self.config.feedhold_decel)
+            self.hold = 1
+        else:
+            self.hold = 2  # nothing moving: the hold is complete at once
+
+    def _cycle_start(self) -> None:
+        if self.state == "Hold" and self.hold == 2:
+            self.hold = 0
+            self.modal.program_flow = ""  # M0 resumed
+            self.state = "Run" if self.planner else "Idle"
+        elif self.state == "Door" and self.door == 0 and self.active is None:
+            self.door = 0
+            self.state = "Run" if self.planner else "Idle"
+
+    def _door_event(self) -> None:
+        """EXEC_SAFETY_DOOR: stop like a hold, into Door (state_machine.c / protocol.c)."""
+        if self.state in ("Alarm", "EStop", "Sleep", "Check", "Home"):
+            return
+        self._message(Msg.SAFETY_DOOR_AJAR)
+        if self.state == "Jog":
+            self._jog_cancel(self._clock())
+        moving = self.active is not None and self.active.move is not None
+        if moving and self.hold != 1:
+            assert self.active is not None
+            self.active.begin_hold(self._clock(), self.config.feedhold_decel)
+        self.hold = 0
+        self.state = "Door"
+        self.door = 2 if moving else (1 if self.door_open else 0)
+
+    def _jog_cancel(self, now: float) -> None:
+        if self.hal:
+            # CMD_JOG_CANCEL: hal.stream.cancel_read_buffer(), which queues a CAN: the
+            # unread input and the line being assembled are gone, the latch is cleared.
+            self.rx.clear()
+            self._line = bytearray()
+            self._overflow = False
+            self.last_error = Error.OK
+        if self.state != "Jog":
+            return
+        if self._wait is not None and self._wait.line.startswith("$J="):
+            self._done()  # the jog line waiting for room is answered, not queued
+        if self.active is not None and self.active.move is not None:
+            if not self.active.decelerating:
+                self.active.begin_hold(now, self.config.feedhold_decel)
+            self._cancel_after_stop = True
+        else:
+            self._flush_planner()
+            self.state = "Idle"
+
+    def _override(self, char: int) -> None:
+        if char in FEED_OVR:
+            steps = {0x90: None, 0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}
+            step = steps[char]
+            self.feed_ovr = 100 if step is None else min(max(self.feed_ovr + step, 10), 200)
+        elif char in RAPID_OVR:
+            self.rapid_ovr = {0x95: 100, 0x96: 50, 0x97: 25}[char]
+        elif char == 0x9E:
+            pass  # spindle stop: only in Hold with the spindle on; not modelled
+        elif char in SPINDLE_OVR:
+            steps = {0x99: None, 0x9A: 10, 0x9B: -10, 0x9C: 1, 0x9D: -1}
+            step = steps[char]
+            self.spindle_ovr = 100 if step is None else min(max(self.spindle_ovr + step, 10), 200)
+        elif char == 0xA0:
+            self.flood = not self.flood
+        elif char == 0xA1:
+            self.mist = not self.mist
+        self._report_flags.add("overrides")
+        self._ovr_counter = 0
+
+    # --- alarms
+
+    def _raise(self, alarm: Alarm, *, force: bool = False) -> None:
+        """system_raise_alarm: print `ALARM:N` once per alarm and enter Alarm."""
+        if self.alarm == alarm and not force and self.state in ("Alarm", "EStop"):
+            return
+        self.alarm = alarm
+        self.state = "EStop" if alarm == Alarm.ESTOP else "Alarm"
+        self._emit(f"ALARM:{int(alarm)}")
+
+    def _critical(self, alarm: Alarm) -> None:
+        self._raise(alarm, force=True)
+        self._message(Msg.ESTOP if alarm == Alarm.ESTOP else Msg.CRITICAL_EVENT)
+        self.blocking = alarm in CRITICAL
+        self.rx.clear()  # hal.stream.reset_read_buffer(); classic stops reading
+        self._line = bytearray()
+        self._wait = None
+
+    def _soft_limit(self) -> None:
+        """limits_soft_check: hold, wait for standstill, reset, ALARM:2 (position kept)."""
+        if self.active is not None:
+            self.position = self.active.position(self._clock())
+        self._stop_motion()
+        self._critical(Alarm.SOFT_LIMIT)
+
+    def _stop_motion(self) -> None:
+        now = self._clock()
+        if self.active is not None:
+            self.position = self.active.position(now)
+            self.active = None
+        self._flush_planner()
+        self._wait = None
+        self.hold = 0
+
+    def _flush_planner(self) -> None:
+        self.planner.clear()
+        self._jogging = False
+        self.modal.position = dict(self.position)
+
+    # --- probing (motion_control.c mc_probe_cycle)
+
+    def _probe_start(self, probe: Probe, now: float) -> bool:
+        if self.probe == probe.toward:
+            self._raise(Alarm.PROBE_FAIL_INITIAL)
+            self._done()
+            return True
+        self.planner.append(probe.move)
+        self._wait = _Wait("probe", "", _probe_result(probe))
+        self._start(now)
+        return True
+
+    def _probe_contact(self) -> None:
+        active = self.active
+        assert active is not None
+        self.position = active.position(self._clock())
+        self.active = None
+        self.planner.clear()
+        self._probe_end(contact=True)
+
+    def _probe_end(self, *, contact: bool) -> None:
+        wait = self._wait
+        assert wait is not None and wait.result is not None and wait.result.probe is not None
+        self.state = "Idle"
+        self.modal.position = dict(self.position)
+        self.modal.probe_ok = contact
+        if contact:
+            self.modal.probe = dict(self.position)
+        elif wait.result.probe.fail_alarm:
+            self._raise(Alarm.PROBE_FAIL_CONTACT)
+        self._emit(f"[PRB:{_axes(self.modal.probe)}:{int(self.modal.probe_ok)}]")
+        self._done()
+
+    # --- reports
+
+    def _message(self, msg: Msg) -> None:
+        self._emit(f"[MSG:{msg.value}]")
+
+    def _flush_status(self) -> None:
+        if self._status_pending:
+            self._status_pending = False
+            self._send_status()
+
+    def _send_status(self) -> None:
+        self._emit(self.status_report())
+
+    def tool_position(self) -> dict[str, float]:
+        if self.active is not None:
+            return self.active.position(self._clock())
+        return dict(self.position)
+
+    def status_report(self) -> str:
+        """report.c report_realtime_status, field by field."""
+        now = self._clock()
+        mask = int(self.settings[10])
+        mpos = self.tool_position()
+        wco = self.modal.wco()
+        state = self._state_text()
+        fields = [state]
+        if mask & 1:
+            fields.append(f"MPos:{_axes(mpos)}")
+        else:
+            fields.append(f"WPos:{_axes({a: mpos[a] - wco[a] for a in AXES})}")
+        if mask & 2:
+            free = self.config.blocks - len(self.planner)
+            fields.append(f"Bf:{max(free, 0)},{self.rx_free}")
+        line = self.active.block.n if self.active is not None else 0
+        if self.hal and not line:
+            line = self.modal.line
+        if line:
+            fields.append(f"Ln:{line}")
+        rate = self.active.velocity(now) if self.active is not None else 0.0
+        speed = self.modal.speed * self.spindle_ovr / 100 if self.modal.spindle != "M5" else 0.0
+        fields.append(f"FS:{rate:.0f},{speed:.0f}")
+        pins = self._pins()
+        if pins:
+            fields.append(f"Pn:{pins}")
+        if self.hal:
+            fields.extend(self._hal_tail(state))
+        else:
+            fields.extend(self._classic_tail(wco))
+        return "<" + "|".join(fields) + ">"
+
+    def _state_text(self) -> str:
+        state = self.state
+        if state == "Hold":
+            # classic: 0 ready to resume, 1 holding; HAL holding_state - 1, the same numbers.
+            return "Hold:0" if self.hold == 2 else "Hold:1"
+        if state == "Door":
+            return f"Door:{self.door}"
+        if state == "EStop":
+            return "Alarm"
+        return state
+
+    def _pins(self) -> str:
+        limits = "".join(a.upper() for a in AXES if a in self.limits)
+        if not self.hal:  # classic order: P, XYZ, then D R H S
+            return ("P" if self.probe else "") + limits + ("D" if self.door_open else "")
+        # HAL: limits, then control signals in bit order "RHSDLTEOFM Q  P ".
+        ctrl = ("D" if self.door_open else "") + ("E" if self.estop else "")
+        return limits + ctrl + ("P" if self.probe else "")
+
+    def _classic_tail(self, wco: dict[str, float]) -> list[str]:
+        """gnea/grbl: WCO every 10 (idle) or 30 (busy) reports, Ov the report after."""
+        out: list[str] = []
+        busy = self.state in BUSY_STATES
+        if self._wco_counter > 0:
+            self._wco_counter -= 1
+        else:
+            self._wco_counter = (WCO_BUSY if busy else WCO_IDLE) - 1
+            if self._ovr_counter == 0:
+                self._ovr_counter = 1
+            out.append(f"WCO:{_axes(wco)}")
+        if self._ovr_counter > 0:
+            self._ovr_counter -= 1
+        else:
+            self._ovr_counter = (OVR_BUSY if busy else OVR_IDLE) - 1
+            out.append(f"Ov:{self.feed_ovr},{self.rapid_ovr},{self.spindle_ovr}")
+            accessories = self._accessories()
+            if accessories:
+                out.append(f"A:{accessories}")
+        return out
+
+    def _hal_tail(self, state: str) -> list[str]:
+        """grblHAL: Ov when its counter runs out or flagged; WCO likewise but never in the
+        same report as Ov unless forced (it is then flagged for the next report)."""
+        flags = self._report_flags
+        busy = self.state in BUSY_STATES
+        overrides = self._ovr_counter == 0 or "overrides" in flags
+        if overrides:
+            self._ovr_counter = (OVR_BUSY if busy else OVR_IDLE) - 1
+        else:
+            self._ovr_counter -= 1
+        if self._ovr_counter > OVR_IDLE - 1 and self.state == "Idle":
+            self._ovr_counter = OVR_IDLE - 1
+        wco = delayed_wco = False
+        if self._wco_counter == 0 or "wco" in flags:
+            self._wco_counter = (WCO_BUSY if busy else WCO_IDLE) - 1
+            wco = not overrides
+            delayed_wco = not wco
+        else:
+            self._wco_counter -= 1
+        if self._wco_counter > WCO_IDLE - 1 and self.state == "Idle":
+            self._wco_counter = WCO_IDLE - 1
+        out: list[str] = []
+        if wco:
+            out.append(f"WCO:{_axes(self.modal.wco())}")
+        if overrides:
+            out.append(f"Ov:{self.feed_ovr},{self.rapid_ovr},{self.spindle_ovr}")
+        accessories = self._accessories()
+        if overrides and accessories:
+            out.append(f"A:{accessories}")
+        if "homed" in flags and self._bits(22) & 1:
+            out.append(f"H:{int(self.homed)}")
+        self._report_flags = {"wco"} if delayed_wco else set()
+        return out
+
+    def _accessories(self) -> str:
+        spindle = {"M3": "S", "M4": "C"}.get(self.modal.spindle, "")
+        flood = "F" if self.flood or "M8" in self.modal.coolant else ""
+        mist = "M" if self.mist or "M7" in self.modal.coolant else ""
+        return spindle + flood + mist
+
+    def _gc_modes(self) -> str:
+        """report_gcode_modes: `[GC:...]`."""
+        m = self.modal
+        motion = {0.0: "G0", 1.0: "G1", 2.0: "G2", 3.0: "G3", 80.0: "G80"}.get(
+            m.motion, f"G{m.motion:g}"
+        )
+        parts = [motion, f"G{54 + m.coord}"]
+        if self.hal and any(m.g92.values()):
+            parts.append("G92")
+        parts += [f"G{m.plane}", "G21" if m.metric else "G20", "G90" if m.absolute else "G91"]
+        parts.append("G93" if m.inverse_time else "G94")
+        if self.hal:
+            parts += ["G40", "G49", "G98", "G50"]
+        if m.program_flow:
+            parts.append(m.program_flow)
+        parts.append(m.spindle)
+        if m.coolant:
+            parts += sorted(m.coolant)
+        else:
+            parts.append("M9")
+        feed = m.feed if m.metric else m.feed / parser.MM_PER_INCH
+        parts += [f"T{m.tool}", f"F{feed:.0f}", f"S{m.speed:.0f}"]
+        return "[GC:" + " ".join(parts) + "]"
+
+    def _parameters(self) -> list[str]:
+        """report_ngc_parameters: `$#`."""
+        m = self.modal
+        out = [f"[G{54 + i}:{_axes(m.wcs[i])}]" for i in range(6)]
+        zero = dict.fromkeys(AXES, 0.0)
+        out += [f"[G28:{_axes(zero)}]", f"[G30:{_axes(zero)}]", f"[G92:{_axes(m.g92)}]"]
+        if self.hal and self._bits(22) & 1:
+            home = dict.fromkeys(AXES, -HOMING_PULLOFF if self.homed else 0.0)
+            out.append(f"[HOME:{_axes(home)}:{7 if self.homed else 0}]")
+        out.append("[TLO:0.000]")
+        out.append(f"[PRB:{_axes(m.probe)}:{int(m.probe_ok)}]")
+        return out
+
+    def _build_info(self) -> list[str]:
+        """report_build_info: `$I`."""
+        if not self.hal:
+            return [
+                f"[VER:{CLASSIC_VERSION}.{CLASSIC_BUILD}:]",
+                f"[OPT:V,{self.config.blocks},{self.config.rx_size}]",
+            ]
+        opt = "VNM" + ("" if self._bits(22) & 4 else "L") + "+"
+        newopt = "ENUMS,RT+," + ("HOME," if self._bits(22) & 1 else "") + "ES,SED"
+        return [
+            f"[VER:{HAL_VERSION}.{HAL_BUILD}:]",
+            f"[OPT:{opt},{self.config.blocks},{self.config.rx_size},3,0]",
+            "[AXS:3:XYZ]",
+            f"[NEWOPT:{newopt}]",
+            "[FIRMWARE:grblHAL]",
+        ]
+
+    def _help(self) -> str:
+        if self.hal:
+            return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H $B ~ ! ? ctrl-x]"
+        return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
+
+
+_NO_ANSWER: None = None
+
+
+def _probe_result(probe: Probe) -> Executed:
+    return Executed(probe=probe)
+
+
+def _axes(values: dict[str, float]) -> str:
+    return ",".join(f"{values[a]:.3f}" for a in AXES)
+
+
+def _setting(key: int, value: float) -> str:
+    return f"{value:.3f}" if key in _FLOAT_SETTINGS else str(int(value))

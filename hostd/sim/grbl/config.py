@@ -1,0 +1,91 @@
+"""How a simulated grbl board is built: which firmware, its buffers, its settings."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+Flavour = Literal["grbl", "grblhal"]
+
+# gnea/grbl serial.h RX_BUFFER_SIZE and planner.h BLOCK_BUFFER_SIZE (16 slots, 15 usable).
+CLASSIC_RX = 128
+CLASSIC_BLOCKS = 15
+# grblHAL/core stream.h RX_BUFFER_SIZE; config.h DEFAULT_PLANNER_BUFFER_BLOCKS ($398).
+HAL_RX = 1024
+HAL_BLOCKS = 100
+
+
+@dataclass(frozen=True)
+class GrblConfig:
+    """A grbl 1.1h (`flavour="grbl"`) or grblHAL (`"grblhal"`) board.
+
+    `rx_buffer` and `planner_blocks` default to the firmware's own (None):
+    128 bytes and 15 blocks on grbl, 1024 and 100 on grblHAL. The settings
+    below are the power-on values of `$20` (soft limits), `$21` (hard
+    limits), `$22` (homing), `$32` (laser mode) and, on grblHAL, homing's
+    init lock (`$22` bit 2: ALARM:11 until homed). Times are real seconds;
+    `speed_factor` divides every move's duration, `instant` makes moves end
+    at once. `reset_on_open`: opening the port resets the board, as an
+    Arduino's DTR line does (None: True for grbl, False for grblHAL on
+    native USB, which says nothing until spoken to).
+    """
+
+    flavour: Flavour = "grbl"
+    rx_buffer: int | None = None
+    planner_blocks: int | None = None
+    soft_limits: bool = False
+    hard_limits: bool = False
+    homing: bool = False
+    homing_init_lock: bool = False
+    laser_mode: bool = False
+    max_travel: tuple[float, float, float] = (200.0, 200.0, 200.0)  # $130-$132, mm
+    speed_factor: float = 1.0
+    instant: bool = False
+    rapid_rate: float = 500.0  # mm/min, $110-$112 (the firmware defaults)
+    homing_time: float = 0.05  # s a homing cycle takes
+    feedhold_decel: float = 0.05  # s from `!` to standing still
+    reset_on_open: bool | None = None
+    history: int | None = None  # entries kept in `received` / `sent`; None keeps all
+
+    def __post_init__(self) -> None:
+        if self.flavour not in ("grbl", "grblhal"):
+            raise ValueError(f"flavour is 'grbl' or 'grblhal', not {self.flavour!r}")
+        if self.rx_buffer is not None and not 16 <= self.rx_buffer <= 65536:
+            raise ValueError("rx_buffer must be 16..65536 bytes")
+        if self.planner_blocks is not None and self.planner_blocks < 1:
+            raise ValueError("planner_blocks must be at least 1")
+        if self.speed_factor <= 0:
+            raise ValueError("speed_factor must be positive")
+        if self.homing_init_lock and self.flavour != "grblhal":
+            raise ValueError("homing_init_lock (ALARM:11) is a grblHAL setting")
+
+    @property
+    def hal(self) -> bool:
+        return self.flavour == "grblhal"
+
+    @property
+    def rx_size(self) -> int:
+        """What [OPT:] reports as the receive buffer size."""
+        if self.rx_buffer is not None:
+            return self.rx_buffer
+        return HAL_RX if self.hal else CLASSIC_RX
+
+    @property
+    def rx_capacity(self) -> int:
+        """Bytes the ring really holds before it drops one.
+
+        grbl's ring has RX_BUFFER_SIZE+1 slots (serial.c RX_RING_BUFFER), so
+        it holds all 128; grblHAL's drivers use RX_BUFFER_SIZE slots and
+        `next_head == tail` means full, so one fewer.
+        """
+        return self.rx_size - 1 if self.hal else self.rx_size
+
+    @property
+    def blocks(self) -> int:
+        if self.planner_blocks is not None:
+            return self.planner_blocks
+        return HAL_BLOCKS if self.hal else CLASSIC_BLOCKS
+
+    @property
+    def opens_with_reset(self) -> bool:
+        return (not self.hal) if self.reset_on_open is None else self.reset_on_open

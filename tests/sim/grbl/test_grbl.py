@@ -1,0 +1,377 @@
+"""The simulated grbl 1.1h / grblHAL over a real pty, spoken to in raw bytes."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from hostd.sim.grbl import GrblConfig, GrblSimController
+
+from .conftest import CLASSIC, HAL, GrblHost, connect, is_answer
+
+pytestmark = pytest.mark.asyncio
+
+# Moves take real time: 1 mm at F600 is 0.1 s (speed_factor 1).
+TIMED_HAL = replace(HAL, instant=False, feedhold_decel=0.02, homing_time=0.1)
+TIMED_CLASSIC = replace(CLASSIC, instant=False, feedhold_decel=0.02)
+
+
+class Board:
+    """A simulator plus a connected host, for tests that need their own config."""
+
+    def __init__(self, tmp_path: Path, config: GrblConfig) -> None:
+        self.sim = GrblSimController(str(tmp_path / "ttyG"), config)
+        self.host: GrblHost | None = None
+
+    async def __aenter__(self) -> tuple[GrblSimController, GrblHost]:
+        await self.sim.start()
+        self.host = await connect(self.sim)
+        return self.sim, self.host
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self.host is not None:
+            self.host.close()
+        await self.sim.stop()
+
+
+# --- banner, CRLF, $I
+
+
+async def test_classic_banner_is_crlf_framed(classic_host: GrblHost) -> None:
+    assert bytes(classic_host.raw).endswith(b"\r\nGrbl 1.1h ['$' for help]\r\n")
+
+
+async def test_grblhal_banner_is_crlf_framed(hal_host: GrblHost) -> None:
+    assert bytes(hal_host.raw).endswith(b"\r\nGrblHAL 1.1f ['$' or '$HELP' for help]\r\n")
+
+
+async def test_opening_an_arduino_grbl_resets_it(tmp_path: Path) -> None:
+    config = replace(CLASSIC, reset_on_open=None)  # classic default: DTR resets the board
+    async with GrblSimController(str(tmp_path / "ttyA"), config) as sim:
+        host = GrblHost(sim.path)
+        try:
+            assert await host.line() == ""
+            assert await host.line() == "Grbl 1.1h ['$' for help]"
+        finally:
+            host.close()
+
+
+async def test_build_info_gives_planner_blocks_and_rx_buffer(
+    classic_host: GrblHost, hal_host: GrblHost
+) -> None:
+    got = await classic_host.ask(b"$I\n")
+    assert got == ["[VER:1.1h.20190830:]", "[OPT:V,15,128]", "ok"]
+    got = await hal_host.ask(b"$I\n")
+    assert got[0] == "[VER:1.1f.20260817:]"
+    assert got[1] == "[OPT:VNML+,100,1024,3,0]"
+    assert "[FIRMWARE:grblHAL]" in got and got[-1] == "ok"
+
+
+async def test_every_output_line_ends_crlf(hal_host: GrblHost) -> None:
+    await hal_host.ask(b"$$\n")
+    await hal_host.ask(b"$#\n")
+    text = bytes(hal_host.raw)
+    assert text.count(b"\n") == text.count(b"\r\n") > 40
+
+
+# --- streaming and the receive buffer
+
+
+async def test_a_character_counted_stream_is_all_ok(classic: GrblSimController) -> None:
+    host = await connect(classic)
+    lines = [f"G1 X-{i % 50}.5 Y-{i % 7} F3000\n".encode() for i in range(1000)]
+    budget, in_flight, answers, sent = 128, [], [], 0
+    while len(answers) < len(lines):
+        while sent < len(lines) and sum(in_flight) + len(lines[sent]) <= budget:
+            host.send(lines[sent])
+            in_flight.append(len(lines[sent]))
+            sent += 1
+        answers.append(await host.until(is_answer))
+        in_flight.pop(0)
+    assert all(a[-1] == "ok" for a in answers)
+    assert classic.board.rx_dropped == 0
+    await classic.wait_state("Idle")
+    host.close()
+
+
+async def test_overfilling_the_receive_buffer_loses_characters(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_CLASSIC) as (sim, host):
+        host.send(b"G4 P0.3\n")  # the main loop is busy for 0.3 s: nothing is read
+        await sim.wait_for(lambda: sim.board._wait is not None and not sim.board.rx)
+        burst = b"G0 X-1\n" * 28 + b"G0 X"  # 200 bytes into a 128-byte ring
+        host.send(burst)
+        await sim.wait_for(lambda: sim.board.rx_dropped == 200 - 128)
+        answers = [(await host.until(is_answer))[-1] for _ in range(1 + 18)]
+        assert answers == ["ok"] * 19  # the dwell, then the 18 whole lines the ring kept
+        assert bytes(sim.board._line) == b"G0"  # what is left of the 19th line
+        host.send(b"\n")
+        assert await host.until(is_answer) == ["ok"]  # "G0": the rest of it was lost
+        assert (await host.status()).startswith("<Idle|")
+        assert sim.board.rx_dropped == 72
+
+
+async def test_a_full_planner_holds_the_next_line_until_a_block_finishes(tmp_path: Path) -> None:
+    config = replace(TIMED_CLASSIC, planner_blocks=2)
+    async with Board(tmp_path, config) as (sim, host):
+        for x in (1, 2, 3):
+            host.send(f"G1 X-{x} F600\n".encode())
+        assert await host.line() == "ok"
+        assert await host.line() == "ok"
+        assert sim.board._wait is not None  # the third waits for room
+        assert await host.line() == "ok"
+        assert len(sim.board.planner) <= 2
+
+
+# --- errors
+
+
+async def test_grblhal_error_latch_until_an_empty_line(hal_host: GrblHost) -> None:
+    assert await hal_host.ask(b"G1 X-1\n") == ["error:22"]  # no feed rate yet
+    assert await hal_host.ask(b"G0 X-1\n") == ["error:22"]  # latched: not run
+    assert await hal_host.ask(b"\n") == ["ok"]
+    assert await hal_host.ask(b"G0 X-1\n") == ["ok"]
+
+
+async def test_grblhal_error_latch_cleared_by_a_dollar_command(hal_host: GrblHost) -> None:
+    assert await hal_host.ask(b"G1 X-1\n") == ["error:22"]
+    assert (await hal_host.ask(b"$G\n"))[-1] == "ok"
+    assert await hal_host.ask(b"G0 X-1\n") == ["ok"]
+
+
+async def test_grblhal_crlf_after_an_error_is_an_empty_line(hal_host: GrblHost) -> None:
+    hal_host.send(b"G1 X-1\r\nG0 X-1\r\n")
+    got = [(await hal_host.until(is_answer))[-1] for _ in range(3)]
+    assert got == ["error:22", "ok", "ok"]  # the LF after the error clears the latch
+
+
+async def test_classic_grbl_has_no_latch(classic_host: GrblHost) -> None:
+    assert await classic_host.ask(b"G1 X-1\n") == ["error:22"]
+    assert await classic_host.ask(b"G0 X-1\n") == ["ok"]
+
+
+# --- alarms
+
+
+async def test_limit_switch_in_motion_on_grblhal(tmp_path: Path) -> None:
+    config = replace(TIMED_HAL, hard_limits=True)
+    async with Board(tmp_path, config) as (sim, host):
+        assert await host.ask(b"G1 X-20 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        sim.limit_switch("x")
+        assert await host.until(lambda s: s.startswith("[MSG")) == [
+            "ALARM:1",
+            "[MSG:Reset to continue]",
+        ]
+        assert await host.ask(b"$X\n") == ["error:79"]
+        assert await host.ask(b"G0 X0\n") == ["error:9"]
+        assert (await host.ask(b"$G\n"))[-1] == "ok"  # allowed while blocked
+        assert "Pn:X" in await host.status()
+        sim.limit_switch("x", active=False)
+        host.send(b"\x18")
+        got = await host.until(lambda s: s.startswith("[MSG"))
+        assert got[-2:] == ["GrblHAL 1.1f ['$' or '$HELP' for help]", "[MSG:'$H'|'$X' to unlock]"]
+        assert await host.ask(b"G0 X0\n") == ["error:9"]
+        assert await host.ask(b"$X\n") == ["[MSG:Caution: Unlocked]", "ok"]
+        assert await host.ask(b"G0 X-1\n") == ["ok"]
+
+
+async def test_limit_switch_on_classic_grbl_reads_no_lines_until_reset(tmp_path: Path) -> None:
+    config = replace(TIMED_CLASSIC, hard_limits=True)
+    async with Board(tmp_path, config) as (sim, host):
+        assert await host.ask(b"G1 X-20 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        sim.limit_switch("x")
+        assert await host.until(lambda s: s.startswith("[MSG")) == [
+            "ALARM:1",
+            "[MSG:Reset to continue]",
+        ]
+        host.send(b"$X\n")
+        assert (await host.status()).startswith("<Alarm|")  # `?` works, the line waits
+        assert sim.board.rx  # unread
+        sim.limit_switch("x", active=False)
+        host.send(b"\x18")
+        got = await host.until(lambda s: s.startswith("[MSG"))
+        assert got[-1] == "[MSG:'$H'|'$X' to unlock]"
+        assert await host.ask(b"$X\n") == ["[MSG:Caution: Unlocked]", "ok"]
+
+
+async def test_soft_limit_alarm_refuses_unlock_with_79(tmp_path: Path) -> None:
+    config = replace(HAL, homing=True, soft_limits=True)
+    async with Board(tmp_path, config) as (_sim, host):
+        assert (await host.ask(b"$H\n"))[-1] == "ok"
+        host.send(b"G0 X5\n")  # outside [-200, 0]
+        assert await host.until(lambda s: s.startswith("[MSG")) == [
+            "ALARM:2",
+            "[MSG:Reset to continue]",
+        ]
+        assert await host.ask(b"$X\n") == ["error:79"]
+        host.send(b"\x18")
+        await host.until(lambda s: s == "[MSG:'$H'|'$X' to unlock]")
+        assert await host.ask(b"$X\n") == ["[MSG:Caution: Unlocked]", "ok"]
+
+
+async def test_grblhal_homing_required_is_alarm_11(tmp_path: Path) -> None:
+    config = replace(HAL, homing=True, homing_init_lock=True)
+    async with Board(tmp_path, config) as (sim, host):
+        # ALARM:11 went out at power-on, to nobody; after the 0x18 the alarm is still 11,
+        # so system_raise_alarm does not print it again: only the message comes.
+        assert await host.line() == "[MSG:Homing cycle required]"
+        assert sim.board.alarm == 11
+        assert await host.ask(b"$X\n") == ["error:46"]
+        assert await host.ask(b"G0 X-1\n") == ["error:9"]
+        assert (await host.ask(b"$H\n"))[-2:] == ["[MSG:]", "ok"]
+        assert (await host.status()).startswith("<Idle|MPos:-1.000,-1.000,-1.000")
+
+
+async def test_grblhal_estop(hal: GrblSimController) -> None:
+    host = await connect(hal)
+    hal.estop(True)
+    assert await host.until(lambda s: s.startswith("[MSG")) == [
+        "ALARM:10",
+        "[MSG:Emergency stop - clear, then reset to continue]",
+    ]
+    host.send(b"\x18")  # refused while the input is held
+    status = await host.status()
+    assert status.startswith("<Alarm|") and "Pn:E" in status
+    hal.estop(False)
+    host.send(b"\x18")
+    got = await host.until(lambda s: s.startswith("[MSG"))
+    assert got[-1] == "[MSG:'$H'|'$X' to unlock]"
+    assert await host.ask(b"$X\n") == ["[MSG:Caution: Unlocked]", "ok"]
+    host.close()
+
+
+async def test_reset_in_motion_loses_position_alarm_3(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        assert await host.ask(b"G1 X-20 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        host.send(b"\x18")
+        got = await host.until(lambda s: s.startswith("[MSG"))
+        assert got == [
+            "ALARM:3",
+            "",
+            "GrblHAL 1.1f ['$' or '$HELP' for help]",
+            "[MSG:'$H'|'$X' to unlock]",
+        ]
+        assert (await host.status()).startswith("<Alarm|")
+
+
+async def test_reset_while_idle_keeps_idle(classic_host: GrblHost) -> None:
+    classic_host.send(b"\x18")
+    await classic_host.until(lambda s: s.startswith("Grbl "))
+    assert (await classic_host.status()).startswith("<Idle|")
+
+
+# --- hold, door, jog, probe, check mode
+
+
+async def test_hold_and_resume(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        assert await host.ask(b"G1 X-3 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        host.send(b"!")
+        await sim.wait_state("Hold:0")
+        x = sim.position["x"]
+        assert -3 < x < 0
+        assert (await host.status()).startswith("<Hold:0|")
+        host.send(b"~")
+        await sim.wait_state("Idle")
+        assert sim.position["x"] == -3
+
+
+async def test_door_stops_then_resumes_when_closed(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        assert await host.ask(b"G1 X-3 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        sim.door(True)
+        assert await host.line() == "[MSG:Check Door]"
+        await sim.wait_state("Door:1")
+        assert "Pn:D" in await host.status()
+        host.send(b"~")  # refused while ajar
+        assert (await host.status()).startswith("<Door:1|")
+        sim.door(False)
+        await sim.wait_state("Door:0")
+        host.send(b"~")
+        await sim.wait_state("Idle")
+        assert sim.position["x"] == -3
+
+
+async def test_jog_and_jog_cancel(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        assert await host.ask(b"G1 X-1\n") == ["error:22"]
+        assert await host.ask(b"$J=G91 X-10\n") == ["error:22"]  # a jog needs F
+        assert await host.ask(b"$J=G91 X-10 F600\n") == ["ok"]
+        await sim.wait_state("Jog")
+        assert await host.ask(b"G0 X0\n") == ["error:9"]
+        host.send(b"\x85")
+        await sim.wait_state("Idle")
+        assert -10 < sim.position["x"] < 0
+        assert (await host.ask(b"$G\n"))[0].startswith("[GC:G0 G54 G17 G21 G90")  # modes kept
+
+
+async def test_probe_cycle_reports_prb(tmp_path: Path) -> None:
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        host.send(b"G38.2 Z-10 F600\n")
+        await sim.wait_state("Run")
+        sim.probe(True)
+        got = await host.until(is_answer)
+        assert got[-1] == "ok"
+        z = sim.position["z"]
+        assert got[0] == f"[PRB:0.000,0.000,{z:.3f}:1]" and -10 < z < 0
+        assert (await host.ask(b"$#\n"))[-2] == f"[PRB:0.000,0.000,{z:.3f}:1]"
+
+
+async def test_probe_already_touching_is_alarm_4(
+    hal_host: GrblHost, hal: GrblSimController
+) -> None:
+    hal.probe(True)
+    assert await hal_host.ask(b"G38.2 Z-10 F600\n") == ["ALARM:4", "ok"]
+
+
+async def test_check_mode(classic_host: GrblHost, classic: GrblSimController) -> None:
+    assert await classic_host.ask(b"$C\n") == ["[MSG:Enabled]", "ok"]
+    assert await classic_host.ask(b"G0 X-50\n") == ["ok"]
+    assert (await classic_host.status()).startswith("<Check|MPos:0.000,0.000,0.000")
+    assert await classic_host.ask(b"$C\n") == ["[MSG:Disabled]", "ok"]
+    assert (await classic_host.until(lambda s: s.startswith("Grbl ")))[-1].startswith("Grbl 1.1h")
+    assert classic.state == "Idle"
+
+
+# --- status reports
+
+
+async def test_grblhal_status_report_fields(hal_host: GrblHost) -> None:
+    first = await hal_host.status()
+    assert first == "<Idle|MPos:0.000,0.000,0.000|Bf:100,1023|FS:0,0|Ov:100,100,100>"
+    second = await hal_host.status()
+    assert second == "<Idle|MPos:0.000,0.000,0.000|Bf:100,1023|FS:0,0|WCO:0.000,0.000,0.000>"
+    third = await hal_host.status()
+    assert third == "<Idle|MPos:0.000,0.000,0.000|Bf:100,1023|FS:0,0>"
+
+
+async def test_classic_status_report_fields(classic_host: GrblHost) -> None:
+    first = await classic_host.status()
+    assert first == "<Idle|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>"
+    assert await classic_host.status() == "<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>"
+    assert await classic_host.status() == "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
+
+
+async def test_status_is_not_answered_while_homing(tmp_path: Path) -> None:
+    config = replace(TIMED_HAL, homing=True)
+    async with Board(tmp_path, config) as (sim, host):
+        host.send(b"$H\n")
+        assert (await host.line()).startswith("<Home|MPos:0.000")  # forced as homing starts
+        await sim.wait_state("Home")
+        host.send(b"??")
+        got = await host.until(is_answer)
+        assert got[0].startswith("<Home|MPos:-1.000,-1.000,-1.000")  # one, at the end
+        assert got[1:] == ["[MSG:]", "ok"]
+
+
+async def test_overrides_show_in_the_next_report(hal_host: GrblHost) -> None:
+    await hal_host.status()
+    await hal_host.status()
+    hal_host.send(b"\x91\x91\x96")
+    assert "|Ov:120,50,100" in await hal_host.status()
