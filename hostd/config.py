@@ -49,7 +49,7 @@ class DaemonConfig(_Strict):
 
 class MachineConfig(_Strict):
     id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
-    dialect: Literal["g2core"] = "g2core"
+    dialect: Literal["g2core", "grbl"] = "g2core"
     data_port: Annotated[str, Field(min_length=1)]
     control_port: str | None = None
     baudrate: Annotated[int, Field(gt=0)] = 115200

@@ -53,7 +53,7 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
         (GOOD.replace('id = "demo"', 'id = "laser1"'), "duplicate machine id 'laser1'"),
         (GOOD.replace("baudrate = 115200", "baudrate = 1200"), "bootloader"),
         (GOOD.replace("[daemon]", "[deamon]"), "deamon: unknown key"),
-        (GOOD.replace('dialect = "g2core"', 'dialect = "grbl"'), "machines[0].dialect"),
+        (GOOD.replace('dialect = "g2core"', 'dialect = "marlin"'), "machines[0].dialect"),
         (GOOD.replace('data_port = "sim"', ""), "machines[1].data_port"),
         ("[[machines]\nid=", "not valid TOML"),
         (GOOD.replace("[daemon]", "[daemon]\njobs_quota = 0"), "daemon.jobs_quota"),

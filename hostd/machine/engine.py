@@ -48,6 +48,7 @@ from hostd.protocol.errors import (
     NotConnected,
 )
 from hostd.protocol.g2core import G2Session
+from hostd.protocol.grbl.session import GrblSession
 from hostd.protocol.linemode import LineModeSender
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
@@ -60,6 +61,7 @@ from hostd.protocol.session import (
     Probed,
     Ready,
     Reported,
+    SessionBase,
     Settled,
 )
 from hostd.protocol.status import message
@@ -81,14 +83,7 @@ class Engine:
         self.config = config
         self.id = config.id
         self.hub = hub or Hub()
-        self.session = G2Session(
-            config.id,
-            window=config.window,
-            status_interval=config.status_interval,
-            heartbeat=config.heartbeat,
-            handshake_timeout=config.handshake_timeout,
-            signal_keys=config.signals.keys(),
-        )
+        self.session = session_for(config)
         self.link: Link | None = None
         self.link_state = LinkState.DOWN
         self.console = False  # publish every line sent and received (someone listens)
@@ -113,6 +108,8 @@ class Engine:
 
     @property
     def sender(self) -> LineModeSender:
+        """g2core's line-mode books (tests read them)."""
+        assert isinstance(self.session, G2Session)
         return self.session.sender
 
     # -- lifecycle ---------------------------------------------------------
@@ -432,7 +429,11 @@ class Engine:
             raise ControllerTimeout(f"{self.id} did not leave {name}") from None
 
     async def reset(self, timeout: float = 10.0) -> None:
-        """0x18: the board reboots; reconnect, handshake again, and return once ready."""
+        """0x18: the board restarts; return once it is ready again.
+
+        A g2core board reboots (its USB device goes away: the engine reconnects);
+        a grbl board resets in place and its session re-syncs on the same link.
+        """
         if self.link is None:
             raise NotConnected(f"{self.id} is not connected")
         self._restart_deadline = time.monotonic() + timeout
@@ -441,7 +442,6 @@ class Engine:
         self._deliver()
         try:
             async with asyncio.timeout(timeout):
-                await self._down.wait()
                 await self._ready.wait()
         except TimeoutError:
             raise ControllerTimeout(f"{self.id} did not come back after reset") from None
@@ -504,6 +504,25 @@ class Engine:
     def _publish_link(self, up: bool, reason: str) -> None:
         if self.hub.active:
             self.hub.publish(LinkChanged(self.id, up, reason))
+
+
+def session_for(config: MachineConfig) -> SessionBase:
+    """The session of the machine's dialect: every protocol rule is in it."""
+    if config.dialect == "grbl":
+        return GrblSession(
+            config.id,
+            status_interval=config.status_interval,
+            heartbeat=config.heartbeat,
+            handshake_timeout=config.handshake_timeout,
+        )
+    return G2Session(
+        config.id,
+        window=config.window,
+        status_interval=config.status_interval,
+        heartbeat=config.heartbeat,
+        handshake_timeout=config.handshake_timeout,
+        signal_keys=config.signals.keys(),
+    )
 
 
 def _seen(future: asyncio.Future[Response]) -> None:

@@ -48,7 +48,6 @@ from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
-from hostd.protocol.gcode import jog_line
 from hostd.protocol.program import program_lines
 from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState
@@ -94,6 +93,7 @@ class Machine:
         self._signal_values: dict[str, Any] = {}  # the last value of every signal key
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
+        self._jog_restore: str | None = None
         self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
 
@@ -222,7 +222,9 @@ class Machine:
             raise
 
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
-        lines = [jog_line(axes, feed), "G90"]
+        lines = self.engine.session.jog_lines(axes, feed)
+        # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
+        self._jog_restore = lines[-1] if len(lines) > 1 else None
         return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
 
     async def read_settings(self, keys: list[str]) -> dict[str, Any]:
@@ -268,7 +270,7 @@ class Machine:
         handle: TextIO | None,
     ) -> Job:
         job = await self._begin(kind, file, total)
-        stream = JobStream(lines, job.id)
+        stream = JobStream(lines, job.id, self.engine.session.encode_job_line)
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:
@@ -324,8 +326,9 @@ class Machine:
                 else:
                     self._publish_job()
             kind = self.job.kind if self.job else None
-            if kind == "jog" and stream.result.result().end is not StreamEnd.COMPLETED:
-                await self._restore_absolute_mode()
+            stopped = stream.result.result().end is not StreamEnd.COMPLETED
+            if kind == "jog" and stopped and self._jog_restore is not None:
+                await self._restore_absolute_mode(self._jog_restore)
         finally:
             if handle is not None:
                 handle.close()
@@ -370,12 +373,12 @@ class Machine:
             self.supervisor.fire(SupEvent.OPERATION_STOPPED)
         self._settle()
 
-    async def _restore_absolute_mode(self) -> None:
+    async def _restore_absolute_mode(self, line: str) -> None:
         """A jog stopped mid-way may have left the board in G91: put G90 back."""
         try:
             async with asyncio.timeout(5):  # a stop by `!` and `%` passes through a hold
                 await self.engine.wait_for(self.engine.out_of_hold)
-            await self.engine.send("G90", operation=True)
+            await self.engine.send(line, operation=True)
         except TimeoutError:
             self._log.warning("could not restore G90 after a jog: the board stayed in a hold")
         except MachineError as exc:

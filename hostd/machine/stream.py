@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import re
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from hostd.protocol.commands import InvalidCommand, encode_line
@@ -31,8 +31,14 @@ class StreamResult:
 class JobStream:
     """A job's lines for the session (a `hostd.protocol.session.LineSource`), and its outcome."""
 
-    def __init__(self, lines: Iterator[tuple[int, str]], job_id: int | None = None) -> None:
+    def __init__(
+        self,
+        lines: Iterator[tuple[int, str]],
+        job_id: int | None = None,
+        encode: Callable[[str], bytes] = encode_line,
+    ) -> None:
         self._lines = lines
+        self._encode = encode  # the dialect's: what a job line becomes on the wire
         self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: tuple[int, bytes] | None = None
         self.exhausted = False
@@ -65,7 +71,7 @@ class JobStream:
                 self.exhausted = True
                 return None
             try:
-                self._next = (number, encode_line(text))
+                self._next = (number, self._encode(text))
             except InvalidCommand as exc:
                 self.finish(StreamEnd.FAILED, -32602, f"line {number}: {exc.message}")
                 return None

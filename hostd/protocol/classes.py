@@ -69,12 +69,20 @@ _CLEAR_KEYS = frozenset({"clear", "clr"})
 _PROGRAM_END = re.compile(r"[mM](?:2|30)")
 
 
-def admit(command: CommandClass, state: MachineState | None) -> Status | None:
-    """None if the command may be written in this state, else the rejection status."""
+Table = dict[CommandClass, tuple[Status | None, Status | None, Status | None]]
+
+
+def admit(
+    command: CommandClass, state: MachineState | None, table: Table = ADMISSION
+) -> Status | None:
+    """None if the command may be written in this state, else the rejection status.
+
+    `table` is a dialect's (g2core's by default; grbl's in grbl/session.py).
+    """
     column = _COLUMN.get(state) if state is not None else None
     if column is None:
         return FORWARD
-    return ADMISSION[command][column]
+    return table[command][column]
 
 
 def classify_realtime(command: Realtime) -> CommandClass:

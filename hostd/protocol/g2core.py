@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from enum import Enum, auto
 from typing import Any
 
@@ -57,6 +57,7 @@ from hostd.protocol.errors import (
     NotConnected,
     Rejected,
 )
+from hostd.protocol.gcode import jog_line
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import (
     Banner,
@@ -718,6 +719,13 @@ class G2Session(SessionBase):
 
     def flushing(self) -> bool:
         return self._flush is not None
+
+    def encode_job_line(self, text: str) -> bytes:
+        return encode_line(text)
+
+    def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
+        """A relative move, then G90 back: a jog is G-code on g2core."""
+        return [jog_line(axes, feed), "G90"]
 
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight

@@ -45,6 +45,10 @@ class MachineModel:
     tool: int | None = None
     probe: dict[str, Any] | None = None  # the last probe cycle's result
     last_exception: JsonObject | None = None
+    # What only some dialects report: the board's own state text (grbl: "Hold:0",
+    # "Door:1", "Check") and laser mode (grbl's $32).
+    board_state: str | None = None
+    laser_mode: bool | None = None
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
         """Take one status report (automatic or requested); return the new state if it changed."""
@@ -103,6 +107,8 @@ class MachineModel:
         self.modal.clear()
         self.hold = self.tool = None
         self.probe = None
+        self.board_state = None
+        self.laser_mode = None
 
     def snapshot(self) -> dict[str, Any]:
         state = self.state
@@ -125,6 +131,8 @@ class MachineModel:
             "tool": self.tool,
             "probe": self.probe,
             "last_exception": self.last_exception,
+            "board_state": self.board_state,
+            "laser_mode": self.laser_mode,
         }
 
 

@@ -21,7 +21,7 @@ controller's answer or the error the request ends in.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, Protocol
@@ -220,6 +220,47 @@ class SessionBase:
 
     def realtime(self, command: Realtime) -> None:
         """Write a realtime command now (it never waits), if the state admits it."""
+        raise NotImplementedError
+
+    # -- what a dialect takes --------------------------------------------------
+
+    def open(self, *, rebooting: bool = False) -> None:
+        """The link is open: begin the handshake (after a reset the board's banner is due)."""
+        raise NotImplementedError
+
+    def close(self, reason: str, *, restarted: bool = False) -> None:
+        """The link is gone: settle every line and request it carried."""
+        raise NotImplementedError
+
+    def receive(self, line: bytes) -> None:
+        """One line the board printed (without its line end)."""
+        raise NotImplementedError
+
+    def tick(self) -> None:
+        """A deadline passed (or the engine woke early: nothing is due then)."""
+        raise NotImplementedError
+
+    def next_deadline(self) -> float | None:
+        raise NotImplementedError
+
+    def send(self, line: str, token: Any, *, operation: bool = False) -> None:
+        """One line from a client; its answer or error comes back as `Settled(token, ...)`."""
+        raise NotImplementedError
+
+    def clear(self, token: Any) -> bool:
+        """Leave a lockout the way the board allows; False if there is nothing to clear."""
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        """0x18: the board restarts; so do the session's books."""
+        raise NotImplementedError
+
+    def encode_job_line(self, text: str) -> bytes:
+        """A job's line as it is written to this board."""
+        raise NotImplementedError
+
+    def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
+        """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------

@@ -1,0 +1,668 @@
+"""grbl 1.1's and grblHAL's session: the rules of a one-port, character-counted board.
+
+Sources are cited as grblHAL/core files (protocol.c, report.c, system.c,
+stream.h, grbl.h) and the grbl wiki's "Interface" page; docs/dialects.md sets
+the rules beside g2core's.
+
+- **Flow control**: character counting. grbl answers every line it takes
+  from its receive buffer with `ok` or `error:N`, in order; the host never
+  has more unanswered bytes than the buffer holds (a ring of N bytes holds
+  N - 1): 128 on classic grbl, what `[OPT:...,blocks,rx]` says on grblHAL.
+  An overfilled buffer loses characters.
+- **Realtime**: `?`, `!`, `~`, 0x18, 0x85 (jog cancel) are picked out of the
+  stream wherever they are (protocol.c); they take no buffer room and get no
+  answer. grbl pushes no status: the session asks `?` every
+  `status_interval`.
+- **Lockouts**: `ALARM:N` puts the board in ALARM; only `$X`, `$H` and 0x18
+  reach it (grbl answers anything else `error:9`). An e-stop (ALARM:10), a
+  failed self test or a motor fault, and Sleep, are left only by a reset: the
+  common SHUTDOWN.
+- **Holds**: grbl runs no line inside a hold (lines wait in its buffer), so
+  a client's line in a hold, or with the door open, is refused on the host.
+- **Stopping** (a cancel, a fault): feedhold, and once motion has stopped (a
+  report says Hold:0 or Idle) a soft reset, which empties the board's buffer
+  and planner; then a re-sync. A reset during motion loses the position
+  (grbl then raises ALARM:3), so the snapshot says `homed` false.
+- **Resets**: the board prints its banner again and forgets every line it
+  held; the session settles them and re-syncs (`$G`, `?`) on the same link.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from enum import Enum, auto
+from typing import Any
+
+from hostd.protocol.classes import FORWARD, CommandClass, Table, admit, classify_realtime
+from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
+from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
+from hostd.protocol.gcode import JOG_AXES
+from hostd.protocol.grbl import codec
+from hostd.protocol.grbl.codes import (
+    ALARM_STATE,
+    LOCKOUT_ERRORS,
+    POSITION_LOST,
+    alarm_text,
+    error_text,
+)
+from hostd.protocol.linemode import InFlight
+from hostd.protocol.messages import Response
+from hostd.protocol.numbers import format_distance, format_feed
+from hostd.protocol.session import (
+    Context,
+    Excepted,
+    Lane,
+    LineSource,
+    OwnLine,
+    Phase,
+    Probed,
+    Queued,
+    Ready,
+    Reported,
+    SessionBase,
+    StreamEnd,
+)
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
+
+BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints its banner
+STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
+HOMING_SILENCE = 120.0  # s a board may stay silent while it homes (it answers no `?`)
+
+# The board's state name -> the common state (report.c `report_realtime_status`).
+STATES: dict[str, MachineState] = {
+    "Idle": MachineState.READY,
+    "Run": MachineState.RUN,
+    "Hold": MachineState.HOLD,
+    "Jog": MachineState.JOG,
+    "Home": MachineState.HOMING,
+    "Alarm": MachineState.ALARM,
+    "Check": MachineState.READY,  # check mode: lines are parsed, nothing moves
+    "Door": MachineState.INTERLOCK,
+    "Sleep": MachineState.SHUTDOWN,  # left only by a reset
+    "Tool": MachineState.HOLD,  # a tool change waits for cycle start
+}
+_REFUSED_BY_ALARM = Status.COMMAND_REJECTED_BY_ALARM
+_REFUSED_BY_SHUTDOWN = Status.COMMAND_REJECTED_BY_SHUTDOWN
+_REFUSED_BY_PANIC = Status.COMMAND_REJECTED_BY_PANIC
+# g2core's table but for two rows: M2/M30 do not clear a grbl alarm (they are
+# actions), and `$X`/`$H` do not leave an e-stop or Sleep (a reset does).
+ADMISSION: Table = {
+    CommandClass.QUERY: (FORWARD, FORWARD, FORWARD),
+    CommandClass.CLEAR: (FORWARD, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
+    CommandClass.PROGRAM_END: (_REFUSED_BY_ALARM, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
+    CommandClass.RESET: (FORWARD, FORWARD, FORWARD),
+    CommandClass.HALT: (FORWARD, FORWARD, FORWARD),
+    CommandClass.ACTION: (_REFUSED_BY_ALARM, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
+}
+_AXES = "xyzabc"
+_GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
+
+
+class _Own(OwnLine, Enum):
+    BUILD = auto()  # $I: [VER:...] and [OPT:...,blocks,rx]
+    SETTINGS = auto()  # $$: laser mode ($32)
+    MODES = auto()  # $G: [GC:...]
+
+
+class GrblSession(SessionBase):
+    def __init__(
+        self,
+        machine_id: str,
+        *,
+        status_interval: float = 0.25,
+        heartbeat: float = 2.0,
+        handshake_timeout: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(machine_id, clock)
+        self.status_interval = status_interval
+        self.heartbeat = heartbeat
+        self.handshake_timeout = handshake_timeout
+        self.flavour: str | None = None  # "grbl" or "grblHAL"
+        self.version: str | None = None
+        self.rx_size = codec.CLASSIC_RX_BUFFER
+        self.blocks = codec.CLASSIC_BLOCKS
+        self.settings: dict[str, str] = {}
+        self._inflight: deque[InFlight] = deque()  # written, unanswered, in order
+        self._rx_used = 0  # bytes of them: never more than the board's buffer holds
+        self._said: list[str] = []  # what the board printed for the line it is answering
+        self._report_waiters: list[Any] = []  # clients' `?`: answered by the next report
+        self._wco: list[float] | None = None  # work coordinate offset, sent now and then
+        self._planner_free: int | None = None  # Bf: free planner blocks, when reported
+        self._asked_at: float | None = None  # a `?` unanswered since then
+        self._next_poll = 0.0
+        self._stopping: float | None = None  # a feedhold waiting for rest, until then
+        self._resetting = False  # 0x18 written: the banner is next
+        self._resync = False  # the handshake after a reset: only `$G` and a report
+        self._asked_build = False  # the handshake asked `$I`
+        self._first_report = False  # the handshake waits for its first report
+        self._banner_deadline: float | None = None
+        self._handshake_deadline: float | None = None
+        self._lines_in = 0
+
+    # -- the dialect's parts -----------------------------------------------------
+
+    def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
+        return admit(cls, state, ADMISSION)
+
+    def flushing(self) -> bool:
+        return self._stopping is not None or self._resetting
+
+    def no_data_in_flight(self) -> bool:
+        return not self._inflight
+
+    def encode_job_line(self, text: str) -> bytes:
+        return codec.encode(text, max_bytes=self.rx_size - 1)
+
+    def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
+        """`$J=G91 X1.5000 F600.000`: grbl allows no G1 in a jog (gcode.c), and 0x85 cancels it."""
+        if not axes:
+            raise InvalidCommand(Refusal.EMPTY, "a jog needs at least one axis")
+        words = []
+        for axis, distance in axes.items():
+            if axis not in JOG_AXES:
+                raise InvalidCommand(Refusal.UNREADABLE, f"unknown axis {axis!r}")
+            words.append(f"{axis.upper()}{format_distance(distance, f'{axis} distance')}")
+        return [f"$J=G91 {' '.join(words)} F{format_feed(feed)}"]
+
+    def next_deadline(self) -> float | None:
+        if self._closing_reason is not None:
+            return None
+        deadlines = [
+            d
+            for d in (self._banner_deadline, self._handshake_deadline, self._stopping)
+            if d is not None
+        ]
+        if self.phase is Phase.READY:
+            if self._asked_at is None:
+                deadlines.append(self._next_poll)
+            else:
+                deadlines.append(self._asked_at + self._silence_allowed())
+        return min(deadlines, default=None)
+
+    def _silence_allowed(self) -> float:
+        return HOMING_SILENCE if self.model.state is MachineState.HOMING else self.heartbeat
+
+    # -- the connection ------------------------------------------------------------
+
+    def open(self, *, rebooting: bool = False) -> None:
+        now = self.clock()
+        self.phase = Phase.HANDSHAKE
+        self._closing_reason = None
+        self._resync = self._asked_build = self._first_report = False
+        self._handshake_deadline = now + self.handshake_timeout
+        wait = min(BANNER_WAIT, self.handshake_timeout / 2)
+        self._banner_deadline = None if rebooting else now + wait
+
+    def close(self, reason: str, *, restarted: bool = False) -> None:
+        self.phase = Phase.CLOSED
+        self._banner_deadline = self._handshake_deadline = self._stopping = None
+        self._resetting = False
+        self._forget(NotConnected(f"link lost: {reason}"))
+        if self.stream is not None and not self.stream.done:
+            if restarted:
+                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            else:
+                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+        self._out.clear()
+        self._lines_in = 0
+        self.model.reset()
+
+    def _forget(self, error: MachineError) -> None:
+        """Every line the board held is gone (a reset, a lost link): settle each."""
+        for entry in self._inflight:
+            self._settle_lost(entry, error)
+        self._inflight.clear()
+        self._rx_used = 0
+        self._said.clear()
+        for waiting in (self._outbox, self._lane):
+            while waiting:
+                self._settle(waiting.popleft().token, error)
+        for token in self._report_waiters:
+            self._settle(token, error)
+        self._report_waiters.clear()
+        self._await_report = self._awaiting_rest = False
+        self._asked_at = None
+
+    def _settle_lost(self, entry: InFlight, error: MachineError) -> None:
+        if entry.file_line is not None:
+            entry.source.discarded += 1
+        else:
+            self._settle(entry.source, error)
+
+    # -- reading -----------------------------------------------------------------------
+
+    def receive(self, line: bytes) -> None:
+        msg = codec.parse(line)
+        if isinstance(msg, codec.Ok | codec.Error):
+            self._answered(msg)
+        elif isinstance(msg, codec.StatusReport):
+            self._on_report(msg)
+        elif isinstance(msg, codec.Alarm):
+            self._on_alarm(msg.code)
+        elif isinstance(msg, codec.Welcome):
+            self._on_welcome(msg)
+        elif isinstance(msg, codec.Feedback):
+            self._on_feedback(msg)
+        elif isinstance(msg, codec.Setting):
+            self.settings[msg.key] = msg.value
+            self._said.append(f"${msg.key}={msg.value}")
+            if msg.key == "32":
+                self.model.laser_mode = msg.value.strip() == "1"
+        elif isinstance(msg, codec.Garbage):
+            self._job_log().warning("unparseable controller output", reason=msg.reason, raw=line)
+            kind = "serial" if msg.reason == "not valid ASCII" else "lexical"
+            self._detected(kind, self._lines_in, f"{msg.reason}: {line[:60]!r}")
+            return
+        elif msg.text:
+            self._said.append(msg.text)
+        self._lines_in += 1
+
+    def _answered(self, msg: codec.Ok | codec.Error) -> None:
+        if not self._inflight:
+            self._job_log().warning("answer with no line waiting", answer=msg)
+            self._detected("lexical", None, f"an answer with no line waiting: {msg!r}")
+            return
+        entry = self._inflight.popleft()
+        self._rx_used -= len(entry.line)
+        status = 0 if isinstance(msg, codec.Ok) else msg.code
+        body: dict[str, Any] = {"lines": self._said} if self._said else {}
+        self._said = []
+        response = Response(body, status, 0, b"ok" if status == 0 else b"error:%d" % status)
+        source = entry.source
+        if entry.file_line is not None:
+            self._on_job_answer(source, entry, response)
+        elif isinstance(source, _Own):
+            self._own_answered(source, response)
+        else:
+            if status == 0 and entry.line.upper().startswith(b"$H"):
+                self.model.homed = True
+            self._settle(source, response)
+
+    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+        if response.ok:
+            stream.acknowledged(entry.file_line)
+            self._check_stream_complete()
+            return
+        stream.rejected += 1
+        if stream.done:
+            return
+        status = response.status
+        if status in LOCKOUT_ERRORS and self.locked():
+            code = self._admit(CommandClass.ACTION, self.model.state) or _REFUSED_BY_ALARM
+            stream.finish(StreamEnd.FAILED, code, error_text(status))
+            return
+        stream.finish(
+            StreamEnd.FAILED,
+            ControllerError.code,
+            f"line {entry.file_line}: controller answered error:{status}: {error_text(status)}",
+        )
+        if self.model.board_state != "Check":
+            # The lines behind it are in the board's buffer and would run: stop it.
+            self._begin_stop()
+
+    def _on_report(self, report: codec.StatusReport) -> None:
+        fields = self._fields(report)
+        before = self.model.state
+        self.model.board_state = report.state + ("" if report.sub is None else f":{report.sub}")
+        changed = self.model.apply_status(fields)
+        self._asked_at = None
+        self._await_report = False
+        if changed is not None:
+            self._on_state(changed, before)
+        self._events.append(Reported(fields, self.model.snapshot()))
+        waiters, self._report_waiters = self._report_waiters, []
+        for token in waiters:
+            self._settle(token, Response({"sr": fields}, 0, 0, b"?"))
+        if self._stopping is not None and self._at_rest_for_reset(report):
+            self._reset_now()
+        if self._awaiting_rest and (
+            self._planner_free is None or self._planner_free >= self.blocks
+        ):
+            self._check_stream_complete()
+        if self._first_report:
+            self._ready()
+
+    def _planner_empty(self) -> bool:
+        """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""
+        return self._planner_free is None or self._planner_free >= self.blocks
+
+    def _fields(self, report: codec.StatusReport) -> dict[str, Any]:
+        """A report's fields under the common names (model.py reads them)."""
+        state = STATES.get(report.state)
+        if report.state == "Alarm" and report.sub is not None:
+            state = ALARM_STATE.get(report.sub, MachineState.ALARM)
+        elif report.state == "Alarm" and self.model.state is MachineState.SHUTDOWN:
+            state = MachineState.SHUTDOWN  # an e-stop's alarm reads "Alarm" on classic grbl
+        fields: dict[str, Any] = {} if state is None else {"stat": int(state)}
+        raw = report.fields
+        if "WCO" in raw:
+            self._wco = codec.numbers(raw["WCO"])
+        mpos = codec.numbers(raw["MPos"]) if "MPos" in raw else None
+        wpos = codec.numbers(raw["WPos"]) if "WPos" in raw else None
+        wco = self._wco
+        if mpos is not None and wco is not None and len(wco) == len(mpos):
+            wpos = [m - o for m, o in zip(mpos, wco, strict=True)]
+        elif wpos is not None and wco is not None and len(wco) == len(wpos):
+            mpos = [w + o for w, o in zip(wpos, wco, strict=True)]
+        for prefix, values in (("mpo", mpos), ("pos", wpos)):
+            for axis, value in zip(_AXES, values or (), strict=False):
+                fields[f"{prefix}{axis}"] = value
+        speeds = codec.numbers(raw.get("FS") or raw.get("F") or "")
+        if speeds:
+            fields["vel"] = speeds[0]
+        if "Ln" in raw and raw["Ln"].isdigit():
+            fields["line"] = int(raw["Ln"])
+        if "Bf" in raw and (bf := codec.numbers(raw["Bf"])):
+            self._planner_free = int(bf[0])
+        if "H" in raw:
+            fields["home"] = 1 if raw["H"].startswith("1") else 0
+        if report.state == "Hold" and report.sub is not None:
+            fields["hold"] = report.sub
+        for key in ("Pn", "Ov", "A"):
+            if key in raw:
+                fields[key.lower()] = raw[key]
+        return fields
+
+    def _on_state(self, state: MachineState, before: MachineState | None) -> None:
+        self._job_log().info("controller state", state=state.name)
+        if state.is_lockout:
+            refusal = self._admit(CommandClass.ACTION, state)
+            text = self.model.last_exception_message() or "the controller is locked out"
+            if self.stream is not None and not self.stream.done and refusal is not None:
+                self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+        self._recheck_waiting()
+
+    def _on_alarm(self, code: int) -> None:
+        text = alarm_text(code)
+        state = ALARM_STATE.get(code, MachineState.ALARM)
+        report = {"alarm": code, "msg": text}
+        self.model.last_exception = report
+        if code in POSITION_LOST:
+            self.model.homed = False
+        self._job_log().warning("controller alarm", alarm=code, msg=text)
+        self._events.append(Excepted(report))
+        before, self.model.state = self.model.state, state
+        self._on_state(state, before)
+        # Nothing of ours is written until a report says where the board is.
+        self._await_report = True
+        self._query_status()
+
+    def _on_welcome(self, welcome: codec.Welcome) -> None:
+        self.flavour, self.version = welcome.flavour, welcome.version
+        if self.phase is Phase.HANDSHAKE and not self._resync:
+            self._ask_build()
+            return
+        # A reset: ours (a cancel, machine.reset) or the board's own. It forgot every line.
+        ours = self._resetting
+        self._resetting = False
+        self._stopping = None
+        if self.stream is not None and not self.stream.done:
+            self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+        what = "reset" if ours else "reset by itself"
+        self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
+        self._job_log().info("controller reset", ours=ours)
+        self.phase = Phase.HANDSHAKE
+        self._resync = True
+        self._handshake_deadline = self.clock() + self.handshake_timeout
+        self._ask_own("$G", _Own.MODES)
+
+    def _on_feedback(self, msg: codec.Feedback) -> None:
+        text = f"[{msg.kind}:{msg.text}]"
+        if msg.kind == "PRB":
+            self._on_probe(msg.text)
+        elif msg.kind == "GC":
+            self._modes(msg.text)
+        elif msg.kind == "OPT":
+            parts = msg.text.split(",")
+            if len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit():
+                self.blocks, self.rx_size = int(parts[1]), int(parts[2])
+        elif msg.kind == "MSG":
+            self._job_log().info("controller message", msg=msg.text)
+        self._said.append(text)
+
+    def _on_probe(self, text: str) -> None:
+        """`[PRB:1.000,2.000,-3.250:1]`: where the probe stopped, and whether it touched."""
+        where, _, touched = text.rpartition(":")
+        values = codec.numbers(where) or []
+        report: dict[str, Any] = {"e": 1 if touched == "1" else 0}
+        report |= {axis: v for axis, v in zip(_AXES, values, strict=False)}
+        probe = self.model.apply_probe(report)
+        self._events.append(Probed(report, probe))
+
+    def _modes(self, text: str) -> None:
+        """`[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`: the parser's modal state."""
+        modal = self.model.modal
+        for word in text.split():
+            if word in ("G20", "G21"):
+                self.model.units = "in" if word == "G20" else "mm"
+            elif word in ("G90", "G91"):
+                modal["distance"] = word
+            elif word in ("G93", "G94", "G95"):
+                modal["feed_mode"] = word
+            elif word.startswith("G5") and word[1:].replace(".", "").isdigit():
+                modal["wcs"] = word
+            elif word in ("G0", "G1", "G2", "G3", "G80") or word.startswith("G38"):
+                modal["motion"] = word
+            elif word.startswith("T") and word[1:].isdigit():
+                self.model.tool = int(word[1:])
+            elif word.startswith("F") and (feed := codec.numbers(word[1:])):
+                self.model.feed = feed[0]
+
+    # -- the handshake ---------------------------------------------------------------
+
+    def _own_answered(self, own: _Own, response: Response) -> None:
+        if own is _Own.BUILD:
+            self._ask_own("$$", _Own.SETTINGS)
+        elif own is _Own.SETTINGS:
+            self._ask_own("$G", _Own.MODES)
+        elif own is _Own.MODES and self.phase is Phase.HANDSHAKE:
+            self._first_report = True
+            self._ask_report()
+
+    def _ask_build(self) -> None:
+        """`$I`, once: after the banner, or when none came."""
+        self._banner_deadline = None
+        if not self._asked_build:
+            self._asked_build = True
+            self._ask_own("$I", _Own.BUILD)
+
+    def _ready(self) -> None:
+        self.phase = Phase.READY
+        self._handshake_deadline = None
+        self._resync = self._first_report = False
+        self._next_poll = self.clock() + self.status_interval
+        self._events.append(Ready())
+
+    def tick(self) -> None:
+        now = self.clock()
+        if self._closing_reason is not None:
+            return
+        if self._handshake_deadline is not None and now >= self._handshake_deadline:
+            step = "banner nor answer to $I" if self.flavour is None else "answers to $I, $$, $G, ?"
+            self._closing(f"no grbl {step} within {self.handshake_timeout:g} s")
+            return
+        if self._banner_deadline is not None and now >= self._banner_deadline:
+            self._ask_build()  # grblHAL on native USB prints no banner when a port opens
+        if self._stopping is not None and now >= self._stopping:
+            self.model.homed = False  # reset in motion, maybe: the position is not to be trusted
+            self._reset_now()
+        if self.phase is not Phase.READY:
+            return
+        if self._asked_at is not None:
+            if now >= self._asked_at + self._silence_allowed():
+                silent = now - self._asked_at
+                self._closing(f"controller silent for {silent:g} s (no answer to '?')")
+        elif now >= self._next_poll:
+            self._ask_report()
+
+    # -- writing -----------------------------------------------------------------------
+
+    def _room(self, line: bytes) -> bool:
+        return self._rx_used + len(line) <= self.rx_size - 1
+
+    def _pump(self) -> None:
+        if self.phase is not Phase.READY or self.halted or self.flushing():
+            return
+        state = self.model.state
+        context = self._context()
+        while self._outbox:
+            head = self._outbox[0]
+            if not self._room(head.encoded):
+                return  # in order: a client's lines never overtake each other
+            if self._await_report and head.context is not Context.ANY:
+                return
+            if head.cls is CommandClass.CLEAR and self._inflight:
+                return  # a stale line must not run after the unlock
+            queued = self._outbox.popleft()
+            if self._admissible(queued, state, context):
+                self._book(queued.encoded, queued.token)
+        stream = self.stream
+        if (
+            stream is None
+            or stream.done
+            or stream.paused
+            or self._await_report
+            or (state is not None and (state.is_lockout or state in _NO_JOB_LINES))
+        ):
+            return
+        while True:
+            nxt = stream.peek()
+            if nxt is None:
+                self._check_stream_complete()
+                return
+            number, encoded = nxt
+            if not self._room(encoded):
+                return
+            stream.take()
+            self._inflight.append(InFlight(encoded, stream, number))
+            self._rx_used += len(encoded)
+            self._out.append((Lane.DATA, encoded))
+
+    def _book(self, encoded: bytes, source: Any) -> None:
+        self._inflight.append(InFlight(encoded, source, None, isinstance(source, _Own)))
+        self._rx_used += len(encoded)
+        self._out.append((Lane.DATA, encoded))
+
+    def _ask_own(self, text: str, purpose: _Own) -> None:
+        """A line of the session's own: it goes now, budget or not (they are few and short)."""
+        if self.phase is not Phase.CLOSED:
+            self._book(codec.encode(text), purpose)
+
+    def _ask_report(self) -> None:
+        now = self.clock()
+        if self._asked_at is None:
+            self._asked_at = now
+        self._next_poll = now + self.status_interval
+        self._out.append((Lane.REALTIME, codec.STATUS))
+
+    def _query_status(self) -> None:
+        if self.phase is not Phase.CLOSED:
+            self._ask_report()
+
+    def _begin_stop(self) -> None:
+        """Stop the board and empty it: a jog is cancelled; anything else holds, then resets."""
+        if self.model.state is MachineState.JOG:
+            self._out.append((Lane.REALTIME, codec.JOG_CANCEL))
+            return
+        if self._resetting:
+            return
+        self._out.append((Lane.REALTIME, codec.FEEDHOLD))
+        self._stopping = self.clock() + STOP_TIMEOUT
+        self._ask_report()
+
+    @staticmethod
+    def _at_rest_for_reset(report: codec.StatusReport) -> bool:
+        """Motion has stopped: a reset now loses no position (Hold:0 is a finished hold)."""
+        return (report.state == "Hold" and report.sub == 0) or report.state in (
+            "Idle",
+            "Alarm",
+            "Check",
+            "Door",
+            "Sleep",
+        )
+
+    def _reset_now(self) -> None:
+        self._stopping = None
+        self._resetting = True
+        self._out.append((Lane.REALTIME, codec.RESET))
+
+    def _stop_board(self) -> None:
+        self._begin_stop()
+
+    # -- requests --------------------------------------------------------------------------
+
+    def send(self, line: str, token: Any, *, operation: bool = False) -> None:
+        self._require_ready()
+        if self.halted:
+            raise self._write_refused()
+        text = line.strip()
+        if text == "?":
+            self._report_waiters.append(token)
+            self._ask_report()
+            return
+        cls = codec.classify(text)
+        verdict = self._admit(cls, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        encoded = codec.encode(text, max_bytes=self.rx_size - 1)
+        if cls in (CommandClass.QUERY, CommandClass.CLEAR):
+            self._outbox.append(Queued(encoded, cls, token, Context.ANY))
+            return
+        context = self._context()
+        if operation and self._operation and context is Context.JOB:
+            self._outbox.append(Queued(encoded, cls, token, Context.OPERATION))
+        elif context is Context.JOB:
+            raise Busy(f"{self.id} is running {'a job' if self._job_running() else 'an operation'}")
+        elif context is Context.HOLD or self.model.state is MachineState.INTERLOCK:
+            raise Busy(f"{self.id} is in a hold: grbl runs no line inside one; resume first")
+        else:
+            self._outbox.append(Queued(encoded, cls, token, context))
+
+    def realtime(self, command: Realtime) -> None:
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        cls = classify_realtime(command)
+        verdict = self._admit(cls, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
+            raise self._write_refused()
+        if command is Realtime.FEEDHOLD:
+            self._out.append((Lane.REALTIME, codec.FEEDHOLD))
+        elif command is Realtime.CYCLE_START:
+            self._out.append((Lane.REALTIME, codec.CYCLE_START))
+        elif command is Realtime.ENQUIRY:
+            self._ask_report()
+        elif command is Realtime.RESET:
+            self.reset()
+        else:  # QUEUE_FLUSH, JOB_KILL: grbl has neither; it empties itself by a reset
+            if self.stream is not None and not self.stream.done:
+                reason = "job killed" if command is Realtime.JOB_KILL else "queue flushed"
+                self.stream.finish(StreamEnd.CANCELLED, None, reason)
+            self._begin_stop()
+
+    def reset(self) -> None:
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        self.halted = False
+        self._reset_now()
+
+    def clear(self, token: Any) -> bool:
+        """`$X` for an ALARM, once no line of ours is unanswered; an e-stop needs a reset."""
+        self._require_ready()
+        state = self.model.state
+        if state in (MachineState.SHUTDOWN, MachineState.PANIC):
+            raise Rejected(
+                _REFUSED_BY_SHUTDOWN, f"{self._locked_message()}: only a reset leaves it"
+            )
+        if state is not MachineState.ALARM:
+            return False
+        self._outbox.append(Queued(codec.encode("$X"), CommandClass.CLEAR, token, Context.OWN))
+        return True
+
+
+_NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})
