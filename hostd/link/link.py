@@ -140,8 +140,14 @@ class Link:
         return self._write(Channel.CONTROL if self.dual else Channel.DATA, data)
 
     def write_realtime(self, data: bytes) -> bool:
-        """A realtime byte (and its LF) on the control channel, ahead of every queued byte."""
-        _check_line(data)
+        """A realtime byte on the control channel, ahead of every queued byte.
+
+        With its LF (g2core swallows a terminator after a control character),
+        or alone (grbl picks realtime bytes out of the stream wherever they
+        are, and would answer an empty line `ok`).
+        """
+        if len(data) != 1:
+            _check_line(data)
         return self._channel(Channel.CONTROL).write(data, urgent=True)
 
     def _write(self, channel: Channel, data: bytes) -> bool:

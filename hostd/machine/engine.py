@@ -246,6 +246,7 @@ class Engine:
                 if not isinstance(event, LineReceived):
                     self._end(event.reason)
                     return
+                self._log.debug("rx", channel=event.channel.value, line=event.line)
                 if self.console:
                     self._publish_console("rx", event.channel, event.line)
                 try:

@@ -236,7 +236,6 @@ class G2Session(SessionBase):
         """One line the board printed (without its line end)."""
         self._last_rx = self.clock()
         msg = parse_line(line)
-        self._log.debug("rx", line=line)
         if isinstance(msg, Response):
             self._on_response(msg)
         elif isinstance(msg, StatusReport):

@@ -45,6 +45,10 @@ ALARM_STATE: dict[int, MachineState] = dict.fromkeys(ALARMS, MachineState.ALARM)
     16: MachineState.SHUTDOWN,
     17: MachineState.SHUTDOWN,
 }
+# Alarms the board leaves only through a reset: until then classic grbl reads
+# no line at all, grblHAL refuses `$X` with error 79 (grbl 1.1 protocol.c,
+# "Reset to continue"; grblHAL alarms.c `alarm_is_critical`).
+CRITICAL = frozenset({1, 2, 10, 17, 20})
 # Alarms after which the machine position is no longer known.
 POSITION_LOST = frozenset({1, 3, 6, 7, 8, 9, 10, 15, 18})
 

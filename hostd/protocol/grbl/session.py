@@ -42,6 +42,7 @@ from hostd.protocol.gcode import JOG_AXES
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import (
     ALARM_STATE,
+    CRITICAL,
     LOCKOUT_ERRORS,
     POSITION_LOST,
     alarm_text,
@@ -136,6 +137,7 @@ class GrblSession(SessionBase):
         self._next_poll = 0.0
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
         self._resetting = False  # 0x18 written: the banner is next
+        self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
         self._asked_build = False  # the handshake asked `$I`
         self._first_report = False  # the handshake waits for its first report
@@ -383,6 +385,8 @@ class GrblSession(SessionBase):
         self.model.last_exception = report
         if code in POSITION_LOST:
             self.model.homed = False
+        if code in CRITICAL:
+            self._needs_reset = code
         self._job_log().warning("controller alarm", alarm=code, msg=text)
         self._events.append(Excepted(report))
         before, self.model.state = self.model.state, state
@@ -399,11 +403,13 @@ class GrblSession(SessionBase):
         # A reset: ours (a cancel, machine.reset) or the board's own. It forgot every line.
         ours = self._resetting
         self._resetting = False
+        self._needs_reset = None
         self._stopping = None
         if self.stream is not None and not self.stream.done:
             self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
         self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
+        self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
         self._job_log().info("controller reset", ours=ours)
         self.phase = Phase.HANDSHAKE
         self._resync = True
@@ -608,6 +614,7 @@ class GrblSession(SessionBase):
         verdict = self._admit(cls, self.model.state)
         if verdict is not None:
             raise Rejected(verdict, self._locked_message())
+        self._refuse_until_reset()
         encoded = codec.encode(text, max_bytes=self.rx_size - 1)
         if cls in (CommandClass.QUERY, CommandClass.CLEAR):
             self._outbox.append(Queued(encoded, cls, token, Context.ANY))
@@ -621,6 +628,15 @@ class GrblSession(SessionBase):
             raise Busy(f"{self.id} is in a hold: grbl runs no line inside one; resume first")
         else:
             self._outbox.append(Queued(encoded, cls, token, context))
+
+    def _refuse_until_reset(self) -> None:
+        """After a critical alarm the board reads no line until it is reset (then `$X`)."""
+        if self._needs_reset is not None:
+            raise Rejected(
+                _REFUSED_BY_ALARM,
+                f"{self._locked_message()}: the controller reads nothing until a reset "
+                "(machine.reset), then clear",
+            )
 
     def realtime(self, command: Realtime) -> None:
         if self.phase is Phase.CLOSED:
@@ -661,6 +677,7 @@ class GrblSession(SessionBase):
             )
         if state is not MachineState.ALARM:
             return False
+        self._refuse_until_reset()
         self._outbox.append(Queued(codec.encode("$X"), CommandClass.CLEAR, token, Context.OWN))
         return True
 

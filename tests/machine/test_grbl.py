@@ -1,0 +1,262 @@
+"""The same machine layer over a grbl board: the simulated grbl 1.1h / grblHAL on a real pty.
+
+Every test drives `Machine` (supervisor, jobs, faults) exactly as the API
+does; only `dialect = "grbl"` differs from the g2core tests.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from hostd.machine.events import FaultChanged
+from hostd.machine.jobstore import JobStore
+from hostd.machine.machine import Machine
+from hostd.machine.supervisor import State as Sup
+from hostd.protocol.commands import Realtime
+from hostd.protocol.errors import Busy, ControllerError, Rejected
+from hostd.protocol.states import MachineState as S
+from hostd.sim.grbl import GrblConfig, GrblSimController
+from tests.machine.conftest import Bench, Recorder, machine_config
+
+pytestmark = pytest.mark.asyncio
+
+GRBL = GrblConfig(flavour="grbl", speed_factor=50.0, feedhold_decel=0.02)
+HAL = GrblConfig(flavour="grblhal", speed_factor=50.0, feedhold_decel=0.02)
+
+
+@dataclass
+class GrblBench(Bench):
+    grbl: GrblSimController | None = None
+
+    @property
+    def board(self) -> GrblSimController:
+        assert self.grbl is not None
+        return self.grbl
+
+
+@contextlib.asynccontextmanager
+async def grbl_bench(tmp_path: Path, config: GrblConfig = GRBL) -> AsyncIterator[GrblBench]:
+    path = str(tmp_path / "ttyACM0")
+    jobs = tmp_path / "jobs"
+    jobs.mkdir(exist_ok=True)
+    store = JobStore(tmp_path / "jobs.db")
+    async with GrblSimController(path, config) as sim:
+        machine = Machine(
+            machine_config(path, dialect="grbl", handshake_timeout=2.0, status_interval=0.1),
+            store,
+            jobs,
+        )
+        machine.engine.console = True  # the recorder reads the traffic
+        recorder = Recorder()
+        machine.hub.subscribe(recorder)
+        task = asyncio.create_task(machine.serve())
+        try:
+            await machine.connect()
+            bench = GrblBench(None, machine, store, recorder, jobs, sim)  # type: ignore[arg-type]
+            await bench.supervisor(Sup.IDLE)
+            yield bench
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            store.close()
+
+
+async def state(bench: GrblBench, want: S) -> None:
+    engine = bench.machine.engine
+    async with asyncio.timeout(5):
+        await engine.wait_for(lambda: engine.model.state is want)
+
+
+async def test_a_grbl_board_connects_to_idle_and_says_what_it_is(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path, GrblConfig(flavour="grbl", laser_mode=True)) as bench:
+        snap = bench.machine.snapshot()
+        assert snap["dialect"] == "grbl"
+        assert snap["state"]["name"] == "READY" and snap["board_state"] == "Idle"
+        assert snap["laser_mode"] is True
+        assert snap["units"] == "mm" and snap["wcs"] == "G54"
+        session = bench.machine.engine.session
+        assert (session.flavour, session.rx_size) == ("Grbl", 128)  # type: ignore[attr-defined]
+
+
+async def test_grblhal_without_a_banner_is_asked_and_its_buffer_read(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path, HAL) as bench:
+        session = bench.machine.engine.session
+        assert session.rx_size == 1024 and session.blocks == 100  # type: ignore[attr-defined]
+        assert bench.machine.snapshot()["board_state"] == "Idle"
+
+
+@pytest.mark.parametrize("config", [GRBL, HAL], ids=["grbl", "grblhal"])
+async def test_a_2000_line_job_never_overfills_the_receive_buffer(
+    tmp_path: Path, config: GrblConfig
+) -> None:
+    async with grbl_bench(tmp_path, config) as bench:
+        body = "".join(f"G1 X{i % 50}.5 Y{i % 7} F20000 (move {i}!)\n" for i in range(2000))
+        bench.write("long.nc", "G21 G90\n" + body)
+        job = await bench.machine.start_make("long.nc")
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed", done.error
+        assert done.lines_acked == done.lines_sent == 2001
+        assert bench.board.board.rx_dropped == 0
+        assert bench.machine.supervisor.state is Sup.IDLE
+
+
+async def test_hold_and_resume_a_grbl_job(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(60)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.machine.pause()
+        await state(bench, S.HOLD)
+        await bench.board.wait_state("Hold:0")
+        written = len(bench.board.received)
+        with pytest.raises(Busy, match="grbl runs no line inside"):
+            await bench.machine.engine.send("M5")
+        await state(bench, S.HOLD)  # a report later, still nothing more written
+        assert len([r for r in bench.board.received[written:] if r.kind == "line"]) == 0
+        bench.machine.resume()
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 60
+
+
+async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(
+    tmp_path: Path,
+) -> None:
+    config = GrblConfig(flavour="grbl", speed_factor=5.0, hard_limits=True)
+    async with grbl_bench(tmp_path, config) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(100)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.board.limit_switch("x")
+        done = await bench.job_ended(job.id)
+        assert done.state == "failed" and done.error is not None
+        assert done.error.code == 204 and "Hard limit" in done.error.message
+        engine = bench.machine.engine
+        with pytest.raises(Rejected) as refused:
+            await engine.send("G0 X1")
+        assert refused.value.code == 204
+        with pytest.raises(Rejected, match="reads nothing until a reset"):
+            await engine.clear()
+        bench.board.limit_switch("x", active=False)
+        await bench.machine.reset()
+        assert engine.model.homed is False  # a hard limit loses the position
+        await engine.clear()
+        await state(bench, S.READY)
+        assert (await engine.send("G0 X1")).ok
+
+
+async def test_estop_is_left_only_by_a_reset(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path, HAL) as bench:
+        engine = bench.machine.engine
+        bench.board.estop(True)
+        await state(bench, S.SHUTDOWN)
+        with pytest.raises(Rejected) as refused:
+            await engine.clear()
+        assert refused.value.code == 205
+        bench.board.estop(False)
+        await bench.machine.reset()
+        await state(bench, S.ALARM)  # grblHAL then asks for `$H` or `$X`
+        await engine.clear()
+        await state(bench, S.READY)
+
+
+async def test_an_open_door_stops_the_stream_and_refuses_lines(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(80)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.board.door(True)
+        await state(bench, S.INTERLOCK)
+        assert bench.machine.snapshot()["board_state"].startswith("Door")
+        held = bench.machine.current_job()
+        assert held is not None and held.state == "running"
+        bench.board.door(False)
+        bench.machine.engine.realtime(Realtime.CYCLE_START)
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 80
+
+
+async def test_cancel_holds_then_resets_and_resyncs_without_losing_position(
+    tmp_path: Path,
+) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(80)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        await bench.machine.cancel()
+        done = await bench.job_ended(job.id)
+        assert done.state == "cancelled"
+        await bench.supervisor(Sup.IDLE)
+        tx = bench.recorder.tx()
+        assert tx.index("!") < tx.index("\x18")  # the hold first, the reset at rest
+        assert bench.machine.engine.model.state is S.READY  # no ALARM:3: it had stopped
+        assert (await bench.machine.engine.send("G0 X1")).ok
+
+
+async def test_jog_and_jog_cancel(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=1.0)
+    async with grbl_bench(tmp_path, slow) as bench:
+        job = await bench.machine.jog({"x": 50.0}, 100.0)
+        await state(bench, S.JOG)
+        assert any(line.startswith("$J=G91 X50") for line in bench.recorder.tx())
+        bench.machine.jog_stop()
+        done = await bench.job_ended(job.id)
+        assert done.state in ("cancelled", "completed")
+        await state(bench, S.READY)
+        assert r"\x85" in bench.recorder.tx()  # 0x85, as the console shows a non-UTF-8 byte
+        assert bench.machine.engine.model.position["x"] < 50.0
+
+
+async def test_a_probe_result_reaches_the_snapshot(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path) as bench:
+        engine = bench.machine.engine
+        send = asyncio.ensure_future(engine.send("G38.2 Z-10 F100"))
+        await bench.board.wait_state("Run")
+        bench.board.probe(True)
+        assert (await send).ok
+        probe = bench.machine.snapshot()["probe"]
+        assert probe["ok"] is True and probe["position"]["z"] < 0
+
+
+async def test_check_mode_runs_no_motion_and_reports_errors(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path) as bench:
+        engine = bench.machine.engine
+        assert (await engine.send("$C")).ok
+        await engine.wait_for(lambda: engine.model.board_state == "Check")
+        bench.write("bad.nc", "G1 X10 F100\nG1 X20 Q5\nG1 X30\n")
+        job = await bench.machine.start_make("bad.nc")
+        done = await bench.job_ended(job.id)
+        assert done.state == "failed" and done.error is not None
+        assert "line 2" in done.error.message and "error:" in done.error.message
+        assert bench.board.position["x"] == 0.0
+
+
+async def test_grblhal_error_latch_fails_the_job_at_the_first_error(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path, HAL) as bench:
+        bench.write("bad.nc", "G1 X1 F100\nG1 X2 Q5\nG1 X3\nG1 X4\n")
+        job = await bench.machine.start_make("bad.nc")
+        done = await bench.job_ended(job.id)
+        assert done.state == "failed" and done.error is not None
+        assert "line 2" in done.error.message
+        await bench.supervisor(Sup.IDLE)
+        engine = bench.machine.engine
+        assert (await engine.send("G0 X0")).ok  # the latch was cleared by the re-sync
+
+
+async def test_garbage_from_the_board_is_a_lexical_fault(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path) as bench:
+        bench.board.inject_garbage(b"<Idle|MPos\x01:0,0>\r\n")
+        await bench.recorder.wait_for(
+            lambda e: isinstance(e, FaultChanged) and e.fault["id"] == "lexical"
+        )
+        with pytest.raises(ControllerError):
+            await bench.machine.engine.send("G1 X1 Q5")
