@@ -74,6 +74,12 @@ class MachineConfig(_Strict):
         return v
 
     @model_validator(mode="after")
+    def _grbl_is_single_port(self) -> MachineConfig:
+        if self.dialect == "grbl" and self.control_port is not None:
+            raise ValueError("a grbl board has one port: no control_port")
+        return self
+
+    @model_validator(mode="after")
     def _sim_is_single_port(self) -> MachineConfig:
         if self.control_port == SIM_PORT and self.data_port != SIM_PORT:
             raise ValueError('control_port = "sim" needs data_port = "sim"')

@@ -19,6 +19,7 @@ from hostd.config import Config, MachineConfig
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from hostd.sim import SimConfig, SimController
+from hostd.sim.grbl import GrblConfig, GrblSimController
 
 log = structlog.get_logger(__name__)
 
@@ -35,7 +36,9 @@ class Daemon:
         self.jobs_dir = self.state_dir / "jobs"
         self.machines: dict[str, Machine] = {}
         self.store: JobStore | None = None
-        self.sims: dict[str, SimController] = {}  # the simulated boards, by machine id
+        self.sims: dict[
+            str, SimController | GrblSimController
+        ] = {}  # the simulated boards, by machine id
         self._stop = asyncio.Event()
 
     def machine(self, machine_id: str) -> Machine | None:
@@ -82,8 +85,16 @@ class Daemon:
         await asyncio.to_thread(sim_dir.mkdir, mode=0o750, exist_ok=True)
         data = str(sim_dir / f"{config.id}-data")
         control = str(sim_dir / f"{config.id}-control") if config.control_port else None
-        board = SimConfig(speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER, history=SIM_HISTORY)
-        sim = SimController(data, control_path=control, config=board)
+        sim: SimController | GrblSimController
+        if config.dialect == "grbl":
+            # grbl 1.1h as most lasers run it, laser mode on ($32=1).
+            grbl = GrblConfig(speed_factor=SIM_SPEED, laser_mode=True, history=SIM_HISTORY)
+            sim = GrblSimController(data, grbl)
+        else:
+            board = SimConfig(
+                speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER, history=SIM_HISTORY
+            )
+            sim = SimController(data, control_path=control, config=board)
         await sim.start()
         self.sims[config.id] = sim
         return config.model_copy(update={"data_port": data, "control_port": control})

@@ -44,7 +44,7 @@ from hostd.machine.machine import Machine
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.gcode import JOG_AXES
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
-from hostd.protocol.settings import check_key, check_values, set_lines
+from hostd.protocol.settings import check_key, check_values
 
 log = structlog.get_logger(__name__)
 
@@ -402,8 +402,8 @@ class Api:
         return await self._machine(p.machine).read_settings(list(p.keys))
 
     async def settings_set(self, p: SettingsSetParams) -> dict[str, Any]:
-        _, bodies = await self._machine(p.machine).settings(set_lines(p.values))
-        return _merge(bodies)
+        _, bodies = await self._machine(p.machine).write_settings(dict(p.values))
+        return _merge(bodies) or dict(p.values)  # grbl answers a `$N=V` with a bare ok
 
     # -- files ---------------------------------------------------------------
 

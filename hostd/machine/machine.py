@@ -229,12 +229,16 @@ class Machine:
 
     async def read_settings(self, keys: list[str]) -> dict[str, Any]:
         """Read settings: queries, so served in every state while the link is up; no job row."""
-        lines = [json.dumps({key: None}) for key in keys]
+        session = self.engine.session
+        lines = session.settings_read(keys)
         answers = await asyncio.gather(*(self.engine.send(line) for line in lines))
-        merged: dict[str, Any] = {}
-        for response in answers:
-            merged.update(response.body)
-        return merged
+        return session.settings_found(keys, [response.body for response in answers])
+
+    async def write_settings(
+        self, values: dict[str, bool | int | float | str]
+    ) -> tuple[Job, list[dict[str, Any]]]:
+        """`settings` with the lines the board's dialect writes these values with."""
+        return await self.settings(self.engine.session.settings_write(values))
 
     async def settings(self, lines: list[str]) -> tuple[Job, list[dict[str, Any]]]:
         """A batch of settings lines run as one operation; the bodies the board answered.

@@ -31,6 +31,7 @@ does not answer within as long again is gone.
 
 from __future__ import annotations
 
+import json
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
@@ -62,6 +63,7 @@ from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import (
     Banner,
     ExceptionReport,
+    JsonObject,
     Notice,
     Response,
     StatusReport,
@@ -83,6 +85,7 @@ from hostd.protocol.session import (
     SessionBase,
     StreamEnd,
 )
+from hostd.protocol.settings import set_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
 
@@ -725,6 +728,18 @@ class G2Session(SessionBase):
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]
+
+    def settings_read(self, keys: list[str]) -> list[str]:
+        return [json.dumps({key: None}) for key in keys]
+
+    def settings_write(self, values: Mapping[str, bool | int | float | str]) -> list[str]:
+        return set_lines(values)  # the board answers each with the value it stored
+
+    def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
+        merged: dict[str, Any] = {}
+        for body in bodies:
+            merged.update(body)
+        return merged
 
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight

@@ -263,6 +263,18 @@ class SessionBase:
         """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
 
+    def settings_read(self, keys: list[str]) -> list[str]:
+        """The query lines that read these settings."""
+        raise NotImplementedError
+
+    def settings_write(self, values: Mapping[str, bool | int | float | str]) -> list[str]:
+        """The lines that set these settings (InvalidCommand for a value never to send)."""
+        raise NotImplementedError
+
+    def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
+        """The settings the answers' bodies hold, by the names they were asked by."""
+        raise NotImplementedError
+
     # -- outputs ---------------------------------------------------------------
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:

@@ -129,10 +129,17 @@ async def running_daemon(
     machines: int = 1,
     daemon: dict[str, Any] | None = None,
     clock: Callable[[], float] = time.monotonic,
+    per_machine: list[dict[str, Any]] | None = None,
     **extra: Any,
 ) -> AsyncIterator[Running]:
-    """Started as `hostd serve` starts it (service.py); `clock` times uploads' expiry."""
-    config = parse_config(config_data(tmp_path, machines, daemon, **extra))
+    """Started as `hostd serve` starts it (service.py); `clock` times uploads' expiry.
+
+    `per_machine[i]` goes to machine i only (a dialect, say).
+    """
+    data = config_data(tmp_path, machines, daemon, **extra)
+    for machine, own in zip(data["machines"], per_machine or [], strict=False):
+        machine.update(own)
+    config = parse_config(data)
     hostd = Daemon(config)
     api = Api(hostd, clock=clock)
     server = ApiServer(build_methods(api))

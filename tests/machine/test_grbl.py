@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from hostd.machine.events import FaultChanged
+from hostd.machine.events import FaultChanged, StatusChanged
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.supervisor import State as Sup
@@ -41,14 +41,18 @@ class GrblBench(Bench):
 
 
 @contextlib.asynccontextmanager
-async def grbl_bench(tmp_path: Path, config: GrblConfig = GRBL) -> AsyncIterator[GrblBench]:
+async def grbl_bench(
+    tmp_path: Path, config: GrblConfig = GRBL, **overrides: object
+) -> AsyncIterator[GrblBench]:
     path = str(tmp_path / "ttyACM0")
     jobs = tmp_path / "jobs"
     jobs.mkdir(exist_ok=True)
     store = JobStore(tmp_path / "jobs.db")
     async with GrblSimController(path, config) as sim:
         machine = Machine(
-            machine_config(path, dialect="grbl", handshake_timeout=2.0, status_interval=0.1),
+            machine_config(
+                path, dialect="grbl", handshake_timeout=2.0, status_interval=0.1, **overrides
+            ),
             store,
             jobs,
         )
@@ -165,6 +169,20 @@ async def test_estop_is_left_only_by_a_reset(tmp_path: Path) -> None:
         await state(bench, S.ALARM)  # grblHAL then asks for `$H` or `$X`
         await engine.clear()
         await state(bench, S.READY)
+
+
+async def test_a_signal_reads_grbls_pins(tmp_path: Path) -> None:
+    signals = {"estop": {"key": "pin_e", "equals": 1}}
+    async with grbl_bench(tmp_path, HAL, signals=signals) as bench:
+        assert bench.machine.faults.get("estop").active is False
+        quiet = await bench.recorder.wait_for(lambda e: isinstance(e, StatusChanged))
+        assert quiet.report["pin_e"] == 0  # type: ignore[union-attr]
+        bench.board.estop(True)
+        pressed = await bench.recorder.wait_for(
+            lambda e: isinstance(e, StatusChanged) and e.report.get("pin_e") == 1
+        )
+        assert pressed.report["pin_x"] == 0  # type: ignore[union-attr]
+        assert bench.machine.faults.get("estop").active
 
 
 async def test_an_open_door_stops_the_stream_and_refuses_lines(tmp_path: Path) -> None:

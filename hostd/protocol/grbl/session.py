@@ -49,7 +49,7 @@ from hostd.protocol.grbl.codes import (
     error_text,
 )
 from hostd.protocol.linemode import InFlight
-from hostd.protocol.messages import Response
+from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_distance, format_feed
 from hostd.protocol.session import (
     Context,
@@ -99,6 +99,7 @@ ADMISSION: Table = {
     CommandClass.ACTION: (_REFUSED_BY_ALARM, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
 }
 _AXES = "xyzabc"
+_PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
 _GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
 
 
@@ -169,6 +170,30 @@ class GrblSession(SessionBase):
                 raise InvalidCommand(Refusal.UNREADABLE, f"unknown axis {axis!r}")
             words.append(f"{axis.upper()}{format_distance(distance, f'{axis} distance')}")
         return [f"$J=G91 {' '.join(words)} F{format_feed(feed)}"]
+
+    def settings_read(self, keys: list[str]) -> list[str]:
+        _setting_numbers(keys)
+        return ["$$"]  # one line lists them all
+
+    def settings_write(self, values: Mapping[str, bool | int | float | str]) -> list[str]:
+        _setting_numbers(list(values))
+        lines = []
+        for key, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InvalidCommand(Refusal.BAD_VALUE, f"grbl setting ${key} takes a number")
+            lines.append(f"${key}={format_number(value)}")
+        return lines
+
+    def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
+        """`$N=V` lines of `$$`, by number; a setting the board has not is absent."""
+        found: dict[str, Any] = {}
+        for body in bodies:
+            for line in body.get("lines", ()):
+                key, _, value = str(line).removeprefix("$").partition("=")
+                if key in keys:
+                    numbers = codec.numbers(value)
+                    found[key] = numbers[0] if numbers and len(numbers) == 1 else value
+        return found
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
@@ -364,9 +389,13 @@ class GrblSession(SessionBase):
             fields["home"] = 1 if raw["H"].startswith("1") else 0
         if report.state == "Hold" and report.sub is not None:
             fields["hold"] = report.sub
-        for key in ("Pn", "Ov", "A"):
+        for key in ("Ov", "A"):
             if key in raw:
                 fields[key.lower()] = raw[key]
+        # Pins as keys a signal can name: pin_x .. pin_d (door), pin_p (probe), pin_e
+        # (e-stop). grbl leaves Pn out when no pin is active, so every key is always set.
+        active = raw.get("Pn", "")
+        fields |= {key: int(letter in active) for letter, key in _PINS.items()}
         return fields
 
     def _on_state(self, state: MachineState, before: MachineState | None) -> None:
@@ -680,6 +709,24 @@ class GrblSession(SessionBase):
         self._refuse_until_reset()
         self._outbox.append(Queued(codec.encode("$X"), CommandClass.CLEAR, token, Context.OWN))
         return True
+
+
+def _setting_numbers(keys: list[str]) -> None:
+    """grbl's settings are numbered (`$110`): a key is the number."""
+    for key in keys:
+        if not key.isdigit():
+            raise InvalidCommand(
+                Refusal.RESERVED_KEY,
+                f"{key!r} is not a grbl setting: name it by its number, as 110",
+            )
+
+
+def format_number(value: int | float) -> str:
+    if isinstance(value, int):
+        return str(value)
+    if value != value or value in (float("inf"), float("-inf")):
+        raise InvalidCommand(Refusal.BAD_NUMBER, "a setting must be a finite number")
+    return f"{value:.6f}".rstrip("0").rstrip(".")
 
 
 _NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})

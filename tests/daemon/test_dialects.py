@@ -1,0 +1,88 @@
+"""One daemon, one API, two dialects: a g2core board and a grbl laser side by side.
+
+Both are simulated boards on real ptys, reached through the real Unix
+socket; every call below is the same for both, but the lines on the wire.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.test_api import fails, job_end
+
+pytestmark = pytest.mark.asyncio
+
+MACHINES = ("sim1", "sim2")  # sim1 speaks g2core, sim2 grbl
+
+
+@pytest_asyncio.fixture
+async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
+        client = await d.client()
+        for machine in MACHINES:
+            await d.idle(client, machine)
+        yield d, client
+        await client.close()
+
+
+async def test_each_machine_says_its_dialect(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    listed = {m["id"]: m for m in await rpc.call("machine.list")}
+    assert listed["sim1"]["dialect"] == "g2core" and listed["sim2"]["dialect"] == "grbl"
+    grbl = await rpc.call("machine.status", machine="sim2")
+    assert grbl["board_state"] == "Idle" and grbl["laser_mode"] is True
+    assert grbl["state"]["name"] == "READY" and grbl["supervisor"] == "idle"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_the_same_job_runs_on_both(both: tuple[Running, Rpc], machine: str) -> None:
+    _, rpc = both
+    program = "".join(f"G1 X{i % 10} Y{i % 3} F6000 (pass {i})\n" for i in range(300))
+    await rpc.call("file.upload", name="square.nc", data="G21 G90\n" + program)
+    await rpc.call("subscribe", topics=["job"], machine=machine)
+    started = await rpc.call("job.start", machine=machine, file="square.nc")
+    done = await job_end(rpc, started["job"])
+    assert done["state"] == "completed" and done["lines_acked"] == 301
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_pause_resume_and_cancel_on_both(both: tuple[Running, Rpc], machine: str) -> None:
+    hostd, rpc = both
+    await rpc.call("file.upload", name="long.nc", data="G1 X100 F600\nG1 X0\n" * 20)
+    await rpc.call("subscribe", topics=["job"], machine=machine)
+    started = await rpc.call("job.start", machine=machine, file="long.nc")
+    assert (await rpc.call("job.pause", machine=machine))["state"] == "paused"
+    assert (await rpc.call("job.resume", machine=machine))["state"] == "running"
+    cancelled = await rpc.call("job.cancel", machine=machine)
+    assert cancelled["state"] == "cancelled"
+    done = await job_end(rpc, started["job"])
+    assert done["state"] == "cancelled"
+    await hostd.idle(rpc, machine)  # the board rests again (g2core: out of its hold)
+    assert (await rpc.call("machine.send", machine=machine, line="G0 X1"))["status"] == 0
+
+
+async def test_settings_by_the_boards_own_names(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    assert (await rpc.call("settings.get", machine="sim2", keys=["32", "110"])) == {
+        "32": 1,
+        "110": 500,
+    }
+    assert await rpc.call("settings.set", machine="sim2", values={"110": 750}) == {"110": 750}
+    assert (await rpc.call("settings.get", machine="sim2", keys=["110"])) == {"110": 750}
+    err = await fails(-32602, rpc.call("settings.get", machine="sim2", keys=["xvm"]))
+    assert "name it by its number" in err.message
+
+
+async def test_a_line_grbl_would_misread_never_reaches_it(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    # A comment goes before the line is written: grbl would hold on its '!'.
+    assert (await rpc.call("machine.send", machine="sim2", line="G0 X1 (go!)"))["status"] == 0
+    err = await fails(-32602, rpc.call("machine.send", machine="sim2", line="G0 X1 !"))
+    assert err.data["refusal"] == "realtime" and "realtime" in err.message
+    sim = hostd.daemon.sims["sim2"]
+    assert not any(r.kind == "realtime" and r.data == b"!" for r in sim.received)
