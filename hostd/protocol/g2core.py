@@ -336,7 +336,7 @@ class G2Session(SessionBase):
             self._await_report = False
             self._confirm_flush()
             if self._awaiting_rest:
-                self._check_stream_complete()
+                self._check_stream_complete(reported=True)
         if changed is not None:
             self._on_state(changed, before)
         self._events.append(Reported(fields, self.model.snapshot()))

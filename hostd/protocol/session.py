@@ -211,6 +211,10 @@ class SessionBase:
     def _stop_board(self) -> None:
         raise NotImplementedError
 
+    def _at_rest(self) -> bool:
+        """The board has run everything it was given (a dialect may know more than its state)."""
+        return self.model.state is not None and self.model.state.is_resting
+
     def flushing(self) -> bool:
         """A stop is under way whose outcome the board has not shown yet."""
         raise NotImplementedError
@@ -336,8 +340,12 @@ class SessionBase:
         if not isinstance(token, OwnLine):
             self._events.append(Settled(token, outcome))
 
-    def _check_stream_complete(self) -> None:
-        """{r} means queued, not run: a job is done when all is answered and the board rests."""
+    def _check_stream_complete(self, *, reported: bool = False) -> None:
+        """{r} means queued, not run: a job is done when all is answered and the board rests.
+
+        Only a report read after the last answer can say it rests (`reported`):
+        the state known before may be from before the job's moves began.
+        """
         stream = self.stream
         if stream is None or stream.done or not stream.exhausted:
             return
@@ -348,7 +356,7 @@ class SessionBase:
             self._query_status()  # its answer, or any later report, tells whether it rests
             return
         # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
-        if self.model.state is not None and self.model.state.is_resting:
+        if reported and self._at_rest():
             self._awaiting_rest = False
             stream.finish(StreamEnd.COMPLETED)
 

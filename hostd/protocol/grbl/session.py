@@ -346,16 +346,15 @@ class GrblSession(SessionBase):
             self._settle(token, Response({"sr": fields}, 0, 0, b"?"))
         if self._stopping is not None and self._at_rest_for_reset(report):
             self._reset_now()
-        if self._awaiting_rest and (
-            self._planner_free is None or self._planner_free >= self.blocks
-        ):
-            self._check_stream_complete()
+        if self._awaiting_rest:
+            self._check_stream_complete(reported=True)
         if self._first_report:
             self._ready()
 
-    def _planner_empty(self) -> bool:
+    def _at_rest(self) -> bool:
         """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""
-        return self._planner_free is None or self._planner_free >= self.blocks
+        planner_empty = self._planner_free is None or self._planner_free >= self.blocks
+        return super()._at_rest() and planner_empty
 
     def _fields(self, report: codec.StatusReport) -> dict[str, Any]:
         """A report's fields under the common names (model.py reads them)."""

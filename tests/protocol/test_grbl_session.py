@@ -1,0 +1,340 @@
+"""grbl's session by plain calls: the rules of a one-port, character-counted board.
+
+The board's side is written as grbl prints it (report.c): `ok`, `error:N`,
+`ALARM:N`, `<...>` reports, `[...]` feedback. The same rules are tested
+against the simulated firmware over ptys in tests/machine/test_grbl.py.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from hostd.machine.stream import JobStream
+from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.errors import Busy, Rejected
+from hostd.protocol.grbl import codec
+from hostd.protocol.grbl.session import BANNER_WAIT, STOP_TIMEOUT, GrblSession
+from hostd.protocol.messages import Response
+from hostd.protocol.session import Closing, Event, Excepted, Lane, Probed, Ready, Settled, StreamEnd
+from hostd.protocol.states import MachineState as S
+
+pytestmark = pytest.mark.asyncio
+
+
+class Grbl:
+    """A GrblSession and the board's side of the wire, by hand."""
+
+    def __init__(self, **options: float) -> None:
+        self.now = 0.0
+        self.session = GrblSession("m1", clock=lambda: self.now, **options)
+        self.written: list[tuple[Lane, bytes]] = []
+        self.events: list[Event] = []
+
+    def pump(self) -> list[tuple[Lane, bytes]]:
+        out = self.session.data_to_send()
+        self.written += out
+        self.events += self.session.events()
+        return out
+
+    def feed(self, *lines: str) -> list[tuple[Lane, bytes]]:
+        for line in lines:
+            self.session.receive(line.encode())
+        return self.pump()
+
+    def at(self, now: float) -> list[tuple[Lane, bytes]]:
+        self.now = now
+        self.session.tick()
+        return self.pump()
+
+    def lines(self) -> list[bytes]:
+        return [data for lane, data in self.written if lane is Lane.DATA]
+
+    def realtime(self) -> list[bytes]:
+        return [data for lane, data in self.written if lane is Lane.REALTIME]
+
+    def unanswered_bytes(self) -> int:
+        return self.session._rx_used
+
+    def connect(
+        self, opt: str = "V,15,128", report: str = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
+    ) -> None:
+        self.session.open()
+        self.feed("", "Grbl 1.1h ['$' for help]")
+        self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
+        self.feed("$32=1", "$110=500.000", "ok")
+        self.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
+        self.feed(report)
+        assert self.session.ready
+        self.written.clear()
+        self.events.clear()
+
+    def settled(self, token: object) -> Settled | None:
+        found = [e for e in self.events if isinstance(e, Settled) and e.token is token]
+        return found[0] if found else None
+
+
+IDLE = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
+
+
+def moves(n: int) -> JobStream:
+    lines = ((i, f"G1 X{i % 100} Y{i % 7} F1000 (step {i}!)") for i in range(1, n + 1))
+    return JobStream(lines, job_id=1, encode=codec.encode)
+
+
+async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> None:
+    grbl = Grbl()
+    grbl.session.open()
+    assert grbl.pump() == []  # nothing before the banner (an Arduino is still booting)
+    grbl.feed("Grbl 1.1h ['$' for help]")
+    assert grbl.lines() == [b"$I\n"]
+    grbl.feed("[VER:1.1h.20190830:]", "[OPT:V,15,128]", "ok")
+    assert grbl.lines()[-1] == b"$$\n"
+    grbl.feed("$32=1", "ok")
+    assert grbl.lines()[-1] == b"$G\n"
+    grbl.feed("[GC:G0 G55 G17 G20 G91 G94 M5 M9 T2 F0 S0]", "ok")
+    assert grbl.realtime() == [b"?"]
+    grbl.feed("<Idle|WPos:1.000,2.000,0.000|FS:0,0|WCO:10.000,0.000,0.000>")
+    assert grbl.events[-1] == Ready()
+    model = grbl.session.model
+    assert (model.units, model.modal["wcs"], model.modal["distance"], model.tool) == (
+        "in",
+        "G55",
+        "G91",
+        2,
+    )
+    assert model.laser_mode is True
+    assert model.position["x"] == 1.0 and model.machine_position["x"] == 11.0
+
+
+async def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
+    grbl = Grbl()
+    grbl.session.open()
+    grbl.at(BANNER_WAIT)
+    assert grbl.lines() == [b"$I\n"]
+    grbl.feed("[VER:1.1f.20240101:]", "[OPT:VNMSL,100,1024,3,0]", "ok")
+    assert (grbl.session.blocks, grbl.session.rx_size) == (100, 1024)
+
+
+async def test_a_board_that_never_answers_closes_the_handshake() -> None:
+    grbl = Grbl(handshake_timeout=5.0)
+    grbl.session.open()
+    grbl.at(5.0)
+    (closing,) = [e for e in grbl.events if isinstance(e, Closing)]
+    assert "no grbl banner nor answer to $I" in closing.reason
+
+
+async def test_character_counting_never_passes_the_receive_buffer() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(500)
+    grbl.session.start_stream(stream)
+    worst = 0
+    while not stream.done:
+        grbl.pump()
+        worst = max(worst, grbl.unanswered_bytes())
+        if grbl.session._inflight:
+            grbl.feed("ok")
+        else:
+            grbl.feed("<Idle|MPos:0.000,0.000,0.000|Bf:15,128|FS:0,0>")
+    assert 100 < worst <= 127  # a ring of 128 holds 127
+    assert stream.result.result().end is StreamEnd.COMPLETED
+    assert not any(b"!" in line or b"(" in line for line in grbl.lines())  # comments went
+
+
+async def test_a_job_is_not_done_while_the_planner_still_holds_blocks() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(3)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "ok", "ok")
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|Bf:12,110|FS:0,0>")  # the cycle not started yet
+    assert not stream.done
+    grbl.feed("<Idle|MPos:2.000,3.000,0.000|Bf:15,128|FS:0,0>")
+    assert stream.result.result().end is StreamEnd.COMPLETED
+
+
+async def test_answers_carry_what_the_board_printed_before_them() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    token = object()
+    grbl.session.send("$#", token)
+    grbl.pump()
+    grbl.feed("[G54:0.000,0.000,0.000]", "[PRB:0.000,0.000,0.000:0]", "ok")
+    settled = grbl.settled(token)
+    assert settled is not None and isinstance(settled.outcome, Response)
+    assert settled.outcome.body["lines"][0] == "[G54:0.000,0.000,0.000]"
+
+
+async def test_a_query_is_a_realtime_byte_answered_by_the_next_report() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    token = object()
+    grbl.session.send("?", token)
+    assert grbl.pump() == [(Lane.REALTIME, b"?")]
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:500,0>")
+    settled = grbl.settled(token)
+    assert settled is not None and isinstance(settled.outcome, Response)
+    assert settled.outcome.body["sr"]["stat"] == int(S.RUN)
+
+
+async def test_an_alarm_drains_the_job_and_only_unlock_or_home_get_through() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(50)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ALARM:9")
+    assert stream.result.result().end is StreamEnd.FAILED
+    assert stream.result.result().code == 204
+    assert isinstance(grbl.events[-1], Excepted) or any(
+        isinstance(e, Excepted) for e in grbl.events
+    )
+    with pytest.raises(Rejected) as refused:
+        grbl.session.send("G0 X1", object())
+    assert refused.value.code == 204 and "Could not find limit switch" in refused.value.message
+    with pytest.raises(Rejected):
+        grbl.session.send("M2", object())  # M2 does not clear a grbl alarm
+    grbl.session.send("$H", object())
+    grbl.session.send("$$", object())
+
+
+async def test_unlock_waits_for_every_line_to_be_answered() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.send("G0 X1", object())
+    grbl.pump()
+    grbl.feed("ALARM:2")
+    grbl.feed("error:9")  # G0 X1 refused by the alarm
+    grbl.feed("<Alarm|MPos:0.000,0.000,0.000|FS:0,0>")
+    with pytest.raises(Rejected, match="reads nothing until a reset"):
+        grbl.session.clear(object())  # a soft limit is critical: a reset comes first
+    grbl.session.reset()
+    grbl.pump()
+    grbl.feed("", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]", "[GC:G0 G54]", "ok")
+    grbl.feed("<Alarm|MPos:0.000,0.000,0.000|FS:0,0>")
+    assert grbl.session.ready and grbl.session.model.state is S.ALARM
+    token = object()
+    assert grbl.session.clear(token)
+    grbl.pump()
+    assert grbl.lines()[-1] == b"$X\n"
+
+
+async def test_an_estop_is_left_only_by_a_reset() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.feed("ALARM:10")
+    assert grbl.session.model.state is S.SHUTDOWN
+    with pytest.raises(Rejected) as refused:
+        grbl.session.clear(object())
+    assert refused.value.code == 205
+
+
+async def test_no_line_is_run_inside_a_hold() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.feed("<Hold:0|MPos:0.000,0.000,0.000|FS:0,0>")
+    with pytest.raises(Busy, match="grbl runs no line inside"):
+        grbl.session.send("M5", object())
+    grbl.feed("<Door:1|MPos:0.000,0.000,0.000|FS:0,0>")
+    assert grbl.session.model.state is S.INTERLOCK
+    with pytest.raises(Busy):
+        grbl.session.send("G0 X0", object())
+
+
+async def test_cancel_holds_then_resets_once_motion_rests() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(50)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.realtime(Realtime.JOB_KILL)
+    grbl.pump()
+    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert grbl.realtime()[-2:] == [b"!", b"?"]
+    grbl.feed("<Hold:1|MPos:1.500,0.000,0.000|FS:500,0>")
+    assert b"\x18" not in grbl.realtime()  # still decelerating: a reset now loses position
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    assert grbl.realtime()[-1] == b"\x18"
+    grbl.feed("", "Grbl 1.1h ['$' for help]")
+    assert not grbl.session.ready  # re-syncing: $G, then a report
+    assert grbl.lines()[-1] == b"$G\n"
+    grbl.feed(
+        "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok", "<Idle|MPos:1.600,0.000,0.000|FS:0,0>"
+    )
+    assert grbl.session.ready and stream.discarded > 0
+    assert grbl.session.model.homed is not False  # it had stopped: nothing lost
+
+
+async def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.model.homed = True
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.realtime(Realtime.QUEUE_FLUSH)
+    grbl.pump()
+    grbl.at(STOP_TIMEOUT)
+    assert grbl.realtime()[-1] == b"\x18"
+    assert grbl.session.model.homed is False
+
+
+async def test_a_jog_is_stopped_with_jog_cancel() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    assert grbl.session.jog_lines({"x": 1.5}, 600) == ["$J=G91 X1.5000 F600.000"]
+    grbl.feed("<Jog|MPos:1.000,0.000,0.000|FS:600,0>")
+    grbl.session.realtime(Realtime.QUEUE_FLUSH)
+    assert grbl.pump() == [(Lane.REALTIME, b"\x85")]
+
+
+async def test_a_probe_result_is_kept_and_told() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.feed("[PRB:1.000,2.000,-3.250:1]")
+    (probe,) = [e for e in grbl.events if isinstance(e, Probed)]
+    assert probe.probe == {"ok": True, "position": {"x": 1.0, "y": 2.0, "z": -3.25}}
+
+
+async def test_a_job_line_error_fails_the_job_and_stops_the_board() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(10)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>", "ok", "error:20")
+    result = stream.result.result()
+    assert result.end is StreamEnd.FAILED and "line 2" in (result.message or "")
+    assert "error:20" in (result.message or "")
+    assert grbl.realtime()[-2:] == [b"!", b"?"]  # the lines behind it would run: stop
+
+
+@pytest.mark.parametrize(
+    ("line", "why"),
+    [
+        ("G0 X1 !", "realtime"),
+        ("G0 X1 ~", "realtime"),
+        ("G0 X\u00e91", "not-text"),
+        ("G0 " + "X1 " * 60, "too-long"),
+    ],
+)
+async def test_lines_grbl_would_misread_are_refused(line: str, why: str) -> None:
+    grbl = Grbl()
+    grbl.connect()
+    with pytest.raises(InvalidCommand) as refused:
+        grbl.session.send(line, object())
+    assert refused.value.data["refusal"] == why
+
+
+async def test_a_silent_board_is_given_up_but_not_while_homing() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25)
+    grbl.connect()
+    grbl.at(0.25)
+    assert grbl.realtime() == [b"?"]
+    grbl.at(2.25)
+    assert any(isinstance(e, Closing) for e in grbl.events)
+    homing = Grbl(heartbeat=2.0, status_interval=0.25)
+    homing.connect("V,15,128", "<Home|MPos:0.000,0.000,0.000|FS:0,0>")
+    homing.at(0.25)
+    homing.at(10.0)
+    assert not any(isinstance(e, Closing) for e in homing.events)
