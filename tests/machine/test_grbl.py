@@ -42,8 +42,9 @@ class GrblBench(Bench):
 
 @contextlib.asynccontextmanager
 async def grbl_bench(
-    tmp_path: Path, config: GrblConfig = GRBL, **overrides: object
+    tmp_path: Path, config: GrblConfig = GRBL, *, idle: bool = True, **overrides: object
 ) -> AsyncIterator[GrblBench]:
+    """`idle`: wait for the supervisor to be idle (a board with homing on starts in ALARM)."""
     path = str(tmp_path / "ttyACM0")
     jobs = tmp_path / "jobs"
     jobs.mkdir(exist_ok=True)
@@ -63,7 +64,8 @@ async def grbl_bench(
         try:
             await machine.connect()
             bench = GrblBench(None, machine, store, recorder, jobs, sim)  # type: ignore[arg-type]
-            await bench.supervisor(Sup.IDLE)
+            if idle:
+                await bench.supervisor(Sup.IDLE)
             yield bench
         finally:
             task.cancel()
@@ -278,3 +280,25 @@ async def test_garbage_from_the_board_is_a_lexical_fault(tmp_path: Path) -> None
         )
         with pytest.raises(ControllerError):
             await bench.machine.engine.send("G1 X1 Q5")
+
+
+async def test_a_reset_mid_job_fails_it_loses_position_and_resyncs(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, homing=True)
+    async with grbl_bench(tmp_path, slow, idle=False) as bench:
+        engine = bench.machine.engine
+        assert engine.model.state is S.ALARM  # homing on: '$H'|'$X' to unlock
+        assert (await engine.send("$H")).ok
+        assert engine.model.homed is True
+        await bench.supervisor(Sup.IDLE)
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(80)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        await bench.machine.reset()  # 0x18 in motion: grbl says ALARM:3, then its banner
+        done = await bench.job_ended(job.id)
+        assert done.state == "failed" and done.error is not None
+        assert done.error.code == 204 and "in motion" in done.error.message
+        assert engine.ready and engine.model.state is S.ALARM
+        assert engine.model.homed is False  # the position is no longer known
+        assert bench.machine.snapshot()["last_exception"]["alarm"] == 3
+        await engine.clear()
+        await state(bench, S.READY)
