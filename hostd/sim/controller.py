@@ -60,9 +60,10 @@ class SimController:
         self._ports: dict[str, PtyPort] = {}
         self._scanners = {name: LineScanner(self._board.percent_is_control) for name in self._paths}
         self._active: set[str] = set()  # attached ports the board reads
-        self._flushed: set[str] = set()  # ports whose opener has flushed since attaching
+        self._flushed: dict[str, int] = {}  # flush bits each port's opener sent since attaching
         self._primary: str | None = None  # the port with the control role
         self._banner = "done"  # for the current open: pending, fallback or done
+        self._banner_at = 0  # the control port's `written` count when its banner went out
         self._banner_timer: asyncio.TimerHandle | None = None
         self._reading = True
         self._silent = False
@@ -296,7 +297,7 @@ class SimController:
 
     def port_attached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.discard(name)
+        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.open_rx(name)
         if not self._active:
@@ -316,7 +317,7 @@ class SimController:
 
     def port_detached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.discard(name)
+        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.close_rx(name)
         self._active.discard(name)
@@ -332,24 +333,32 @@ class SimController:
             self._board.disconnected()
         self._kick()
 
-    def port_flushed(self, port: PtyPort) -> None:
+    def port_flushed(self, port: PtyPort, bits: int) -> None:
         """The opener's tcflush: it discarded what was written before, so now the banner."""
         name = port.name
         if name not in self._active:
             return
-        if name in self._flushed:
-            # serialx ends every open with a flush, so a second one means the host closed
-            # and reopened faster than the hangup could be seen: treat it as a new open.
+        seen = self._flushed.get(name, 0)
+        if seen & bits:
+            # serialx flushes once per open (TCIOFLUSH: read as one packet, or as its
+            # two bits one after the other), so a bit seen again means the host closed
+            # and reopened faster than the hangup could be seen: a new open.
             log.debug("sim port reopened by host", port=name)
             self.port_detached(port)
             self.port_attached(port)
-        self._flushed.add(name)
+            seen = 0
+        self._flushed[name] = seen | bits
         if name != self._primary or self._banner == "done":
             return
         self._cancel_banner()
+        fallback = self._banner == "fallback"
         self._banner = "done"
-        # After a fallback banner this sends it again: the flush threw the first away.
-        self._board.banner()
+        if fallback and port.unread() >= port.written - self._banner_at:
+            # The fallback banner went out after the flush (the timer ran before the
+            # flush was read here): the host still has it, and everything after it.
+            return
+        # No banner yet, or the flush threw the fallback one away: send it now.
+        self._send_banner(port)
         self._kick()
 
     def port_data(self, port: PtyPort, data: bytes) -> None:
@@ -413,10 +422,16 @@ class SimController:
     def _banner_fallback(self) -> None:
         """An opener that does not flush (a plain open) still gets its banner."""
         self._banner_timer = None
-        if self._banner == "pending" and self._primary is not None:
+        port = self._ports.get(self._primary) if self._primary is not None else None
+        if self._banner == "pending" and port is not None:
             self._banner = "fallback"
-            self._board.banner()
+            self._send_banner(port)
             self._kick()
+
+    def _send_banner(self, port: PtyPort) -> None:
+        """SYSTEM READY, noting where in the port's output it starts."""
+        self._banner_at = port.written
+        self._board.banner()
 
     def _cancel_banner(self) -> None:
         if self._banner_timer is not None:
