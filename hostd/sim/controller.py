@@ -28,8 +28,10 @@ from types import TracebackType
 import structlog
 
 from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
 from hostd.sim.board import Board
-from hostd.sim.config import Kind, Received, SimConfig
+from hostd.sim.callsites import CallSite
+from hostd.sim.config import AXES, Kind, Received, SimConfig
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
@@ -64,6 +66,7 @@ class SimController:
         self._primary: str | None = None  # the port with the control role
         self._banner = "done"  # for the current open: pending, fallback or done
         self._banner_at = 0  # the control port's `written` count when its banner went out
+        self._banner_boot = False  # this open's banner is a UART board's boot messages
         self._banner_timer: asyncio.TimerHandle | None = None
         self._reading = True
         self._silent = False
@@ -224,6 +227,49 @@ class SimController:
         self._board.set_homed(homed)
         self._kick()
 
+    def firmware_exception(self, site: CallSite) -> None:
+        """The firmware calls cm_alarm / cm_shutdown / cm_panic as at `site` (callsites.py)."""
+        self._board.firmware_exception(site.status, site.path, site.detail)
+        self._kick()
+
+    def fail_homing(self, axis: str | None, status: int = Status.HOMING_CYCLE_FAILED) -> None:
+        """Homing `axis` fails from now on with `status` (240-247); None: homing works.
+
+        As cycle_homing.cpp `_homing_error_exit` does: an extra `{r}` with status
+        240 and the reason, no alarm, the axis not homed; the next lines run.
+        """
+        if axis is not None and axis not in AXES:
+            raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
+        self._board.homing_failure = None if axis is None else (axis, Status(status))
+        self._kick()
+
+    def probe_surface(self, axis: str | None, at: float = 0.0) -> None:
+        """The probe touches a surface at `at` (machine mm) on `axis`; None removes it.
+
+        A G38.2/G38.3 probe trips where its move reaches the surface; G38.4/G38.5
+        trip as the tool leaves it. Kept across resets (it is the workpiece).
+        """
+        if axis is not None and axis not in AXES:
+            raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
+        self._board.probe_surface = None if axis is None else (axis, float(at))
+        self._kick()
+
+    def set_output_buffer(self, size: int, *, reported: bool = True) -> None:
+        """Answers of `size` bytes or more are not printed: an `er` 113 instead, or nothing.
+
+        json_print_response() sends 113 when the answer does not fit its list; an
+        answer that is simply lost (`reported=False`) is the other way a board fails.
+        """
+        self._board.output_buffer = size
+        self._board.overflow_reported = reported
+        self._kick()
+
+    def glitch(self, key: str, value: float | None) -> None:
+        """Status key `key` reads `value` (`math.nan`, `math.inf`), printed bare as the
+        firmware's floattoa() prints it; None ends it."""
+        self._board.glitch(key, value)
+        self._kick()
+
     def set_input(self, n: int, value: int | bool) -> None:
         """Digital input `n` (1..8) reads `value` (0/1): `in<n>`, reported when listed."""
         if not _input_number(n, DIGITAL_INPUTS):
@@ -306,6 +352,7 @@ class SimController:
             self._board.connected()
             self._cancel_banner()
             if not self.config.uart or self._booted:
+                self._banner_boot = self.config.uart and self._booted
                 self._booted = False
                 self._banner = "pending"
                 loop = asyncio.get_running_loop()
@@ -429,9 +476,12 @@ class SimController:
             self._kick()
 
     def _send_banner(self, port: PtyPort) -> None:
-        """SYSTEM READY, noting where in the port's output it starts."""
+        """SYSTEM READY; after a UART board's boot, its boot messages (report.cpp)."""
         self._banner_at = port.written
-        self._board.banner()
+        if self._banner_boot:
+            self._board.boot_messages()
+        else:
+            self._board.banner()
 
     def _cancel_banner(self) -> None:
         if self._banner_timer is not None:
