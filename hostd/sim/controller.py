@@ -380,9 +380,9 @@ class SimController:
             self._board.disconnected()
         self._kick()
 
-    def port_flushed(self, port: PtyPort, bits: int) -> None:
+    def port_flushed(self, port: PtyPort) -> None:
         """The opener's tcflush: it discarded what was written before, so now the banner."""
-        name = port.name
+        name, bits = port.name, port.flush_bits
         if name not in self._active:
             return
         seen = self._flushed.get(name, 0)

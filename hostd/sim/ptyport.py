@@ -52,7 +52,7 @@ class PortListener(Protocol):
 
     def port_attached(self, port: PtyPort) -> None: ...
     def port_detached(self, port: PtyPort) -> None: ...
-    def port_flushed(self, port: PtyPort, bits: int) -> None: ...
+    def port_flushed(self, port: PtyPort) -> None: ...  # which bits: `port.flush_bits`
     def port_data(self, port: PtyPort, data: bytes) -> None: ...
     def port_drained(self, port: PtyPort) -> None: ...
 
@@ -74,6 +74,7 @@ class PtyPort:
         self._read_limit = 0
         self._backlog = bytearray()
         self.written = 0  # bytes the pty has taken from us, ever
+        self.flush_bits = 0  # the flush bits of the status packet last read
         self.attached = False
 
     @property
@@ -207,7 +208,8 @@ class PtyPort:
                 self._read_limit = max(self._read_limit - (len(packet) - 1), 0)
                 self._listener.port_data(self, packet[1:])
         elif packet[0] & _FLUSH_BITS:
-            self._listener.port_flushed(self, packet[0] & _FLUSH_BITS)
+            self.flush_bits = packet[0] & _FLUSH_BITS
+            self._listener.port_flushed(self)
 
     def _detach(self) -> None:
         self._stop_io()
