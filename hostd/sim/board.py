@@ -13,8 +13,10 @@ Which g2core behaviour each part follows is cited from ../shared/spec/g2core.md
 from __future__ import annotations
 
 import json
+import math
 from collections import deque
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
@@ -24,7 +26,7 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status, message
 from hostd.sim import gcode, relaxed, reports
 from hostd.sim.config import AXES, SimConfig
-from hostd.sim.gcode import Block, Home, Interpreter, Move, ProgramEnd, SetPosition
+from hostd.sim.gcode import Block, Home, Interpreter, Move, Probe, ProgramEnd, SetPosition
 from hostd.sim.motion import Active, start_block
 from hostd.sim.scanner import DataLine
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
@@ -35,12 +37,25 @@ ENQ, JOB_KILL, RESET = 0x05, 0x04, 0x18
 RX_REPORT = 254  # `{rx:n}` is a constant on ARM [7.1]
 INPUTS = {"x": 1, "y": 3, "z": 5}  # limit switch input numbers, for `er` details
 ESTOP_INPUT, PANIC_INPUT = 7, 9
+OUTPUT_BUFFER_LEN = 512  # controller.h: the buffer an answer is serialised into
+INIT_MESSAGE = "Initializing configs to default settings"  # settings_default.h
+LOADING_MESSAGE = "Loading configs from EEPROM"  # report.cpp
+MINIMUM_PROBE_TRAVEL = 0.254  # mm, cycle_probing.cpp
+PROBE_AXES = ("x", "y", "z", "a", "b", "c")  # the axes `_send_probe_report` prints
 _EPS = 1e-6
 
 _REJECTED_BY = {
     MachineState.ALARM: Status.COMMAND_REJECTED_BY_ALARM,
     MachineState.SHUTDOWN: Status.COMMAND_REJECTED_BY_SHUTDOWN,
     MachineState.PANIC: Status.COMMAND_REJECTED_BY_PANIC,
+}
+# States of a cycle under way, which ends in PROGRAM_STOP once nothing is left to run.
+_CYCLES = (MachineState.RUN, MachineState.HOMING, MachineState.PROBE)
+# What cm_alarm / cm_shutdown / cm_panic each leave the machine in (alarm.cpp).
+_LOCKOUT_PATHS = {
+    "alarm": MachineState.ALARM,
+    "shutdown": MachineState.SHUTDOWN,
+    "panic": MachineState.PANIC,
 }
 # cmMachineState (`macs`) for each combined state [4].
 _MACS = {
@@ -84,6 +99,12 @@ class Board:
         self.ack_delay = 0.0
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
         self.inputs: dict[str, float | int] = dict.fromkeys(reports.INPUT_KEYS, 0)
+        # So is the rest of the machine a test sets up: a reset keeps these too.
+        self.probe_surface: tuple[str, float] | None = None  # axis, machine mm the probe touches
+        self.homing_failure: tuple[str, Status] | None = None  # axis, why homing it fails
+        self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
+        self.overflow_reported = True  # as an `er` 113, or (False) not at all
+        self.glitches: dict[str, float] = {}  # status values computed wrong (nan, inf), by key
         self.power_on()
 
     # --- power and connection
@@ -110,6 +131,8 @@ class Board:
         self._sr_next = 0.0
         self._qr_last: int | None = None
         self._qi = self._qo = 0
+        self._probing: _ProbeCycle | None = None
+        self._init_message_due = False
         for port in self.rx:
             self.discard_rx(port)
 
@@ -132,8 +155,25 @@ class Board:
             head = _dumps({"r": body})[:-1] + ',"f":[1,0,1,'
             self._emit_line(f"{head}{_tinyg_checksum(head)}]}}")
             return
-        body = self.settings.identity | {"msg": "SYSTEM READY"}
-        self._emit({"r": body, "f": [1, 0, 1]})
+        self._startup_message(Status.OK, "SYSTEM READY")
+
+    def boot_messages(self) -> None:
+        """What a board prints as it boots, where a host can read it (a UART link).
+
+        config_init() prints "Loading configs from EEPROM" (status 15), then
+        SYSTEM READY (report.cpp); a native USB board prints them to nobody.
+        """
+        if self.config.fb < 400:
+            self._startup_message(Status.INITIALIZING, LOADING_MESSAGE)
+        self.banner()
+
+    def _startup_message(self, status: Status, msg: str, count: int = 1) -> None:
+        """report.cpp `_startup_helper`: an `{r}` of identity and `msg`, answering no line.
+
+        Its count is cs.linelen + 1: 1 at boot, a line's own count when a line prints it.
+        """
+        body = self.settings.identity | {"msg": msg}
+        self._emit({"r": body, "f": [1, int(status), count]})
 
     # --- input: the controller feeds scanned events here
 
@@ -205,6 +245,22 @@ class Board:
 
     def panic(self) -> None:
         self._lockout(MachineState.PANIC, Status.PANIC, f"input {PANIC_INPUT}")
+        self._flush_sr()
+
+    def firmware_exception(self, status: int, path: str, detail: str) -> None:
+        """One call of cm_alarm / cm_shutdown / cm_panic (see callsites.py)."""
+        state = _LOCKOUT_PATHS[path]
+        self._lockout(state, Status(status), detail, unhome=state == MachineState.SHUTDOWN)
+        self._flush_sr()
+
+    def glitch(self, key: str, value: float | None) -> None:
+        """Status key `key` reads `value` (nan, inf) until glitched back to None."""
+        if value is None:
+            self.glitches.pop(key, None)
+        else:
+            self.glitches[key] = value
+        if key in self.settings.sr_keys:
+            self._sr_now = True
         self._flush_sr()
 
     def interlock(self, active: bool) -> None:
@@ -297,7 +353,7 @@ class Board:
                 return True
             self._start(now)
             return True
-        if self.state in (MachineState.RUN, MachineState.HOMING) and not self._dispatchable():
+        if self.state in _CYCLES and not self._dispatchable():
             self._set_state(MachineState.PROGRAM_STOP)
             return True
         return False
@@ -315,6 +371,13 @@ class Board:
                 self.homed[axis] = True
             self._sr_requested = True
             return
+        if isinstance(block, Home) and self._homing_fails(block):
+            return
+        if isinstance(block, Probe):
+            started = self._probe_start(block)
+            if started is None:
+                return
+            block = started
         cfg = self.config
         self.active = start_block(
             block,
@@ -324,8 +387,108 @@ class Board:
             rapid_rate=cfg.rapid_rate,
             instant=cfg.instant,
         )
-        homing = isinstance(block, Home)
-        self._set_state(MachineState.HOMING if homing else MachineState.RUN)
+        if isinstance(block, Home):
+            self._set_state(MachineState.HOMING)
+        elif isinstance(block, Probe):
+            self._set_state(MachineState.PROBE)
+        else:
+            self._set_state(MachineState.RUN)
+
+    def _homing_fails(self, block: Home) -> bool:
+        """cycle_homing.cpp `_homing_error_exit`: the cycle starts and ends at once.
+
+        It prints `{"r":{"msg":"X axis <why>"},"f":[1,240,1]}`, an `{r}` that
+        answers no line (the count is cs.linelen + 1, reset by the last answer),
+        restores the G-code model and leaves the axis not homed. No alarm: the
+        lines after it run.
+        """
+        failure = self.homing_failure
+        if failure is None or failure[0] not in block.axes:
+            return False
+        axis, why = failure
+        self._pop()
+        self._set_state(MachineState.HOMING)
+        self._flush_sr()
+        body: dict[str, Any] = {}
+        if self._jv >= 2:  # nv_add_conditional_message: only from JV_MESSAGES
+            body["msg"] = f"{axis.upper()} axis {message(why)}"
+        if self._jv:  # json_print_response: nothing only when silent
+            self._emit({"r": body, "f": [1, int(Status.HOMING_CYCLE_FAILED), 1]})
+        self.interp.sync(self.position)  # the model's homing target was never reached
+        self._set_state(MachineState.PROGRAM_STOP)
+        return True
+
+    # --- G38.2-G38.5 probing (cycle_probing.cpp)
+
+    def _probe_start(self, block: Probe) -> Probe | None:
+        """`_probing_start`: check the travel and the input, then move until it trips."""
+        cycle = self._probing = _ProbeCycle(alarm=block.alarm)
+        target = block.move.target
+        travel = math.dist([self.position[a] for a in AXES], [target[a] for a in AXES])
+        if travel < MINIMUM_PROBE_TRAVEL:
+            self._probe_exception(Status.PROBE_TRAVEL_TOO_SMALL)
+            return None
+        if self._probe_touching(self.position) == block.on_contact:
+            self._probe_exception(Status.PROBE_IS_ALREADY_TRIPPED)
+            return None
+        trip = self._probe_trip(block)
+        if trip is not None:  # the move ends where the input trips
+            cycle.tripped = True
+            block = Probe(Move(trip, block.move.feed, block.n), block.on_contact, block.alarm)
+            self.planner[0] = block
+        return block
+
+    def _probe_touching(self, at: Mapping[str, float]) -> bool:
+        """The probe input: closed while the tool touches the surface (`probe_surface`)."""
+        surface = self.probe_surface
+        return surface is not None and abs(at[surface[0]] - surface[1]) < _EPS
+
+    def _probe_trip(self, block: Probe) -> dict[str, float] | None:
+        """Where on its way the probe input changes to the tripped state, if it does."""
+        surface = self.probe_surface
+        if surface is None:
+            return None
+        axis, at = surface
+        start, end = self.position, block.move.target
+        if not block.on_contact:
+            return dict(start)  # touching at the start: it trips as the tool leaves
+        if start[axis] == end[axis]:
+            return None
+        fraction = (at - start[axis]) / (end[axis] - start[axis])
+        if not 0.0 <= fraction <= 1.0:
+            return None
+        point = {a: start[a] + (end[a] - start[a]) * fraction for a in AXES}
+        point[axis] = at
+        return point
+
+    def _probe_exception(self, status: Status) -> None:
+        """`_probing_exception_exit`: settings restored, then cm_alarm(status, "probe error")."""
+        self._pop()
+        self._probing = None
+        self.interp.motion = None
+        self.interp.sync(self.position)
+        self._lockout(MachineState.ALARM, status, "probe error")
+
+    def _probe_finish(self) -> None:
+        """`_probing_finish`: keep where the tool is, alarm if it never tripped, report."""
+        cycle = self._probing
+        if cycle is None:
+            return
+        self._probing = None
+        self.interp.motion = None  # _probe_restore_settings: G80
+        self.interp.sync(self.position)
+        if not cycle.tripped and cycle.alarm:
+            self._lockout(MachineState.ALARM, Status.PROBE_CYCLE_FAILED, "probing failed")
+        self._sr_requested = True
+        # `_send_probe_report` (when `prbr`, on by default): sprintf'd, %0.5f per axis.
+        values = ",".join(f'"{a}":{self.position.get(a, 0.0):0.5f}' for a in PROBE_AXES)
+        self._emit_line(f'{{"prb":{{"e":{1 if cycle.tripped else 0},{values}}}}}')
+
+    def _abort_probe(self) -> None:
+        """`cm_abort_probing`: a lockout or a flush ended the cycle; reported, no alarm."""
+        if self._probing is not None:
+            self._probing.tripped = self._probing.alarm = False
+            self._probe_finish()
 
     def _finish(self, active: Active) -> None:
         self.active = None
@@ -335,6 +498,8 @@ class Board:
         if isinstance(block, Home):
             for axis in block.axes:
                 self.homed[axis] = True
+        elif isinstance(block, Probe):
+            self._probe_finish()
         self._sr_requested = True
 
     def _pop(self) -> Block:
@@ -363,6 +528,8 @@ class Board:
     def _dispatchable(self) -> bool:
         if self._ack is not None or self.output_blocked:
             return False
+        if self._probing is not None or any(isinstance(b, Probe) for b in self.planner):
+            return False  # cm_probing_cycle_callback: nothing is read until the cycle ends
         if not self.state.is_lockout and len(self.planner) >= self.config.planner_depth:
             return False  # in a lockout lines are drained and rejected regardless [10]
         return any(self.rx.values())
@@ -490,12 +657,28 @@ class Board:
             return self._get(key, body)  # functions run the same either way
         if key in reports.SR_KEYS:
             return Status.PARAMETER_IS_READ_ONLY
+        if key == "defa":
+            return self._defaults(value, body)
         if key not in self.settings:
             return Status.UNRECOGNIZED_NAME
         status = self.settings.set(key, value)
         if status == Status.OK:
             body[key] = self.settings.get(key)
         return status
+
+    def _defaults(self, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        """config.cpp `set_defaults`: every setting back to the profile's default.
+
+        `_set_defa` prints its startup message ("Initializing configs...", status
+        15) before the line's answer, and the answer is `{"defa":true}` [11].
+        """
+        if not value:
+            return Status.OK  # help_defa: a help screen (text), which hostd never asks for
+        self.settings = Settings(self.config)
+        self._sr_last = {}
+        self._init_message_due = True
+        body["defa"] = True
+        return Status.OK
 
     def _set_sr(self, value: relaxed.Value, body: dict[str, Any]) -> Status:
         """`{sr:{...}}` replaces the report list; the answer is a full report [4]."""
@@ -518,6 +701,8 @@ class Board:
             return self._gcode_in_hold(text)
         outcome = self.interp.execute(text, self._soft_limits)
         self._soft_limit_alarm(outcome.status)
+        if outcome.alarm:  # cm_straight_probe refused it with cm_alarm()
+            self._lockout(MachineState.ALARM, outcome.status, outcome.alarm)
         for block in outcome.blocks:
             self.planner.append(block)
             self._qi += 1
@@ -614,6 +799,7 @@ class Board:
         self._leave_hold()
         self._flush_motion(now)
         self.discard_rx()
+        self._abort_probe()  # cycle_feedhold.cpp `_run_queue_flush`
         self._set_state(MachineState.PROGRAM_STOP)
 
     def _job_kill(self, now: float) -> None:
@@ -630,6 +816,7 @@ class Board:
             self._leave_hold()
         self._flush_motion(now)
         self.discard_rx()
+        self._abort_probe()
         self.interp.program_end()
         self._exception(Status.KILL_JOB, "Job killed by ^d")
         self._set_state(MachineState.PROGRAM_END)
@@ -666,6 +853,11 @@ class Board:
             self.homed = dict.fromkeys(AXES, False)
         log.info("sim board lockout", state=state.name, status=int(status), detail=detail)
         self._exception(status, detail)
+        if state == MachineState.PANIC:
+            # cm_panic() requests no status report (alarm.cpp); one asked for shows it.
+            self.state = state
+            return
+        self._abort_probe()  # cm_probing_cycle_callback, seeing ALARM or SHUTDOWN
         self._set_state(state)
 
     def _clear(self) -> None:
@@ -704,7 +896,24 @@ class Board:
             return
         if n and jv >= 4:
             body["n"] = n
+        if self._init_message_due:
+            # `{defa:1}` printed its startup message while the line ran: that took the
+            # line's count, and json_print_response reset cs.linelen to 0.
+            self._init_message_due = False
+            self._startup_message(Status.INITIALIZING, INIT_MESSAGE, linelen + 1)
+            linelen = 0
+        if self.config.fb >= 400:  # TinyG 440: strlen(line)+1 and a checksum [2]
+            count = linelen + 1 if data else linelen
+            head = _dumps({"r": body})[:-1] + f',"f":[1,{int(status)},{count},'
+            self._emit_line(f"{head}{_tinyg_checksum(head)}]}}")
+            return
         obj = {"r": body, "f": [1, int(status), linelen + 1]}
+        if len(_dumps(obj)) >= self.output_buffer:
+            # json_print_response: an answer the board cannot hold is not printed; when
+            # its nv list runs out it says so with an `er` 113 instead.
+            if self.overflow_reported:
+                self._exception(Status.JSON_OUTPUT_TOO_LONG, "json_print_response() json too long")
+            return
         if data and self.ack_delay > 0:
             self._ack = (self._clock() + self.ack_delay, obj)
             return
@@ -777,6 +986,8 @@ class Board:
             cycle = 1
         elif state == MachineState.HOMING:
             cycle = 2
+        elif state == MachineState.PROBE:
+            cycle = 3
         values: dict[str, float | int] = {
             "line": running,
             "n": interp.line,
@@ -806,14 +1017,41 @@ class Board:
             values[f"mpo{axis}"] = machine[axis]
             values[f"ofs{axis}"] = interp.offsets[axis] / scale
             values[f"hom{axis}"] = 1 if self.homed[axis] else 0
-        return {key: reports.number(v, reports.places(key)) for key, v in values.items()}
+        out = {key: reports.number(v, reports.places(key)) for key, v in values.items()}
+        return out | self.glitches
 
     def _emit(self, obj: dict[str, Any]) -> None:
         self._emit_line(_dumps(obj))
 
 
+@dataclass
+class _ProbeCycle:
+    """A G38.x cycle under way: whether its input tripped, whether failing is an alarm."""
+
+    alarm: bool
+    tripped: bool = False
+
+
 def _dumps(obj: dict[str, Any]) -> str:
-    return json.dumps(obj, separators=(",", ":"))
+    """As the firmware serialises: floattoa() prints a NaN as `nan` and an
+    infinity as `inf` or `-inf`, bare, where strict JSON has no word (util.cpp)."""
+    text = json.dumps(obj, separators=(",", ":"))
+    if "NaN" not in text and "Infinity" not in text:
+        return text
+    marked = json.dumps(_floattoa_marked(obj), separators=(",", ":"))
+    return marked.replace('"\\u0001', "").replace('\\u0001"', "")
+
+
+def _floattoa_marked(value: Any) -> Any:
+    """Each non-finite float as its floattoa() word between two U+0001 (never in our text)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        word = "nan" if math.isnan(value) else "-inf" if value < 0 else "inf"
+        return f"\x01{word}\x01"
+    if isinstance(value, dict):
+        return {k: _floattoa_marked(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_floattoa_marked(v) for v in value]
+    return value
 
 
 def _echo(value: relaxed.Value) -> Any:

@@ -28,8 +28,10 @@ from types import TracebackType
 import structlog
 
 from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
 from hostd.sim.board import Board
-from hostd.sim.config import Kind, Received, SimConfig
+from hostd.sim.callsites import CallSite
+from hostd.sim.config import AXES, Kind, Received, SimConfig
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
@@ -60,9 +62,11 @@ class SimController:
         self._ports: dict[str, PtyPort] = {}
         self._scanners = {name: LineScanner(self._board.percent_is_control) for name in self._paths}
         self._active: set[str] = set()  # attached ports the board reads
-        self._flushed: set[str] = set()  # ports whose opener has flushed since attaching
+        self._flushed: dict[str, int] = {}  # flush bits each port's opener sent since attaching
         self._primary: str | None = None  # the port with the control role
         self._banner = "done"  # for the current open: pending, fallback or done
+        self._banner_at = 0  # the control port's `written` count when its banner went out
+        self._banner_boot = False  # this open's banner is a UART board's boot messages
         self._banner_timer: asyncio.TimerHandle | None = None
         self._reading = True
         self._silent = False
@@ -223,6 +227,49 @@ class SimController:
         self._board.set_homed(homed)
         self._kick()
 
+    def firmware_exception(self, site: CallSite) -> None:
+        """The firmware calls cm_alarm / cm_shutdown / cm_panic as at `site` (callsites.py)."""
+        self._board.firmware_exception(site.status, site.path, site.detail)
+        self._kick()
+
+    def fail_homing(self, axis: str | None, status: int = Status.HOMING_CYCLE_FAILED) -> None:
+        """Homing `axis` fails from now on with `status` (240-247); None: homing works.
+
+        As cycle_homing.cpp `_homing_error_exit` does: an extra `{r}` with status
+        240 and the reason, no alarm, the axis not homed; the next lines run.
+        """
+        if axis is not None and axis not in AXES:
+            raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
+        self._board.homing_failure = None if axis is None else (axis, Status(status))
+        self._kick()
+
+    def probe_surface(self, axis: str | None, at: float = 0.0) -> None:
+        """The probe touches a surface at `at` (machine mm) on `axis`; None removes it.
+
+        A G38.2/G38.3 probe trips where its move reaches the surface; G38.4/G38.5
+        trip as the tool leaves it. Kept across resets (it is the workpiece).
+        """
+        if axis is not None and axis not in AXES:
+            raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
+        self._board.probe_surface = None if axis is None else (axis, float(at))
+        self._kick()
+
+    def set_output_buffer(self, size: int, *, reported: bool = True) -> None:
+        """Answers of `size` bytes or more are not printed: an `er` 113 instead, or nothing.
+
+        json_print_response() sends 113 when the answer does not fit its list; an
+        answer that is simply lost (`reported=False`) is the other way a board fails.
+        """
+        self._board.output_buffer = size
+        self._board.overflow_reported = reported
+        self._kick()
+
+    def glitch(self, key: str, value: float | None) -> None:
+        """Status key `key` reads `value` (`math.nan`, `math.inf`), printed bare as the
+        firmware's floattoa() prints it; None ends it."""
+        self._board.glitch(key, value)
+        self._kick()
+
     def set_input(self, n: int, value: int | bool) -> None:
         """Digital input `n` (1..8) reads `value` (0/1): `in<n>`, reported when listed."""
         if not _input_number(n, DIGITAL_INPUTS):
@@ -296,7 +343,7 @@ class SimController:
 
     def port_attached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.discard(name)
+        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.open_rx(name)
         if not self._active:
@@ -305,6 +352,7 @@ class SimController:
             self._board.connected()
             self._cancel_banner()
             if not self.config.uart or self._booted:
+                self._banner_boot = self.config.uart and self._booted
                 self._booted = False
                 self._banner = "pending"
                 loop = asyncio.get_running_loop()
@@ -316,7 +364,7 @@ class SimController:
 
     def port_detached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.discard(name)
+        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.close_rx(name)
         self._active.discard(name)
@@ -334,22 +382,30 @@ class SimController:
 
     def port_flushed(self, port: PtyPort) -> None:
         """The opener's tcflush: it discarded what was written before, so now the banner."""
-        name = port.name
+        name, bits = port.name, port.flush_bits
         if name not in self._active:
             return
-        if name in self._flushed:
-            # serialx ends every open with a flush, so a second one means the host closed
-            # and reopened faster than the hangup could be seen: treat it as a new open.
+        seen = self._flushed.get(name, 0)
+        if seen & bits:
+            # serialx flushes once per open (TCIOFLUSH: read as one packet, or as its
+            # two bits one after the other), so a bit seen again means the host closed
+            # and reopened faster than the hangup could be seen: a new open.
             log.debug("sim port reopened by host", port=name)
             self.port_detached(port)
             self.port_attached(port)
-        self._flushed.add(name)
+            seen = 0
+        self._flushed[name] = seen | bits
         if name != self._primary or self._banner == "done":
             return
         self._cancel_banner()
+        fallback = self._banner == "fallback"
         self._banner = "done"
-        # After a fallback banner this sends it again: the flush threw the first away.
-        self._board.banner()
+        if fallback and port.unread() >= port.written - self._banner_at:
+            # The fallback banner went out after the flush (the timer ran before the
+            # flush was read here): the host still has it, and everything after it.
+            return
+        # No banner yet, or the flush threw the fallback one away: send it now.
+        self._send_banner(port)
         self._kick()
 
     def port_data(self, port: PtyPort, data: bytes) -> None:
@@ -413,10 +469,19 @@ class SimController:
     def _banner_fallback(self) -> None:
         """An opener that does not flush (a plain open) still gets its banner."""
         self._banner_timer = None
-        if self._banner == "pending" and self._primary is not None:
+        port = self._ports.get(self._primary) if self._primary is not None else None
+        if self._banner == "pending" and port is not None:
             self._banner = "fallback"
-            self._board.banner()
+            self._send_banner(port)
             self._kick()
+
+    def _send_banner(self, port: PtyPort) -> None:
+        """SYSTEM READY; after a UART board's boot, its boot messages (report.cpp)."""
+        self._banner_at = port.written
+        if self._banner_boot:
+            self._board.boot_messages()
+        else:
+            self._board.banner()
 
     def _cancel_banner(self) -> None:
         if self._banner_timer is not None:

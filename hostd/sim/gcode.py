@@ -6,7 +6,8 @@ blocks, or into the status code g2core would answer with. Time, the planner
 and the machine state are the board's business (board.py); this is pure.
 
 Supported: N; G0 G1 G2 G3 (arcs with I/J/K offsets or R), G4 P (seconds),
-G17-G19, G20/G21, G28.2 (homing), G28.3 (set position), G40, G49, G53 (one
+G17-G19, G20/G21, G28.2 (homing), G28.3 (set position), G38.2-G38.5
+(straight probes, cycle_probing.cpp), G40, G49, G53 (one
 block in machine coordinates), G54-G59 (accepted, no offsets), G61 G61.1
 G64, G80, G90/G91, G90.1/G91.1, G92/G92.1, G93/G94; M0 M1 (accepted, no
 pause), M2/M30 (program end), M3 M4 M5 M6 M7 M8 M9 (accepted); F S T and
@@ -27,7 +28,8 @@ MM_PER_INCH = 25.4
 
 _WORD = re.compile(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))")
 _SUPPORTED_G = frozenset(
-    {0, 1, 2, 3, 4, 17, 18, 19, 20, 21, 28.2, 28.3, 40, 49, 53, 54, 55, 56, 57, 58, 59}
+    {0, 1, 2, 3, 4, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 49, 53}
+    | {54, 55, 56, 57, 58, 59}
     | {61, 61.1, 64, 80, 90, 91, 90.1, 91.1, 92, 92.1, 93, 94}
 )
 _SUPPORTED_M = frozenset({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 30})
@@ -87,20 +89,44 @@ class SetPosition:
 
 
 @dataclass(frozen=True, slots=True)
+class Probe:
+    """G38.2-G38.5: a straight feed toward `move.target` until the probe input trips.
+
+    `on_contact`: it trips when the probe touches (G38.2/3), else when it stops
+    touching (G38.4/5); `alarm`: a probe that never trips is an alarm (G38.2/4).
+    """
+
+    move: Move
+    on_contact: bool
+    alarm: bool
+
+    @property
+    def n(self) -> int:
+        return self.move.n
+
+
+@dataclass(frozen=True, slots=True)
 class ProgramEnd:
     n: int
 
 
-Block = Move | Dwell | Home | SetPosition | ProgramEnd
+Block = Move | Dwell | Home | SetPosition | Probe | ProgramEnd
+# G38.x: (trips on contact, alarms when it never trips) [cycle_probing.cpp cm_straight_probe]
+_PROBES = {38.2: (True, True), 38.3: (True, False), 38.4: (False, True), 38.5: (False, False)}
 
 
 @dataclass(frozen=True, slots=True)
 class Outcome:
-    """What a line did: its status, the blocks it queues, and its own N word (0 if none)."""
+    """What a line did: its status, the blocks it queues, and its own N word (0 if none).
+
+    `alarm` is the detail of the cm_alarm() the firmware raises with that status
+    (a probe refused in cycle_probing.cpp), or empty when the status is only an answer.
+    """
 
     status: Status
     blocks: tuple[Block, ...] = ()
     n: int = 0
+    alarm: str = ""
 
 
 def normalize(line: str) -> str:
@@ -195,7 +221,7 @@ class Interpreter:
         try:
             blocks = work._run(words, n, limits)
         except _Refused as refused:
-            return Outcome(refused.status, n=n)
+            return Outcome(refused.status, n=n, alarm=refused.alarm)
         if n:
             work.line = n
         for name in work.__dataclass_fields__:
@@ -284,6 +310,10 @@ class Interpreter:
         elif 92.1 in gset:
             self.offsets = dict.fromkeys(AXES, 0.0)
 
+        probe = next((g for g in gcodes if g in _PROBES), None)
+        if probe is not None:
+            blocks.append(self._probe(axes, line, *_PROBES[probe]))
+            axes_used = True
         for g in (0, 1, 2, 3):
             if g in gset:
                 self.motion = int(g)
@@ -329,6 +359,24 @@ class Interpreter:
         self.position = target
         return Move(target, self.feed or 0.0, line, rapid=rapid, arc=arc)
 
+    def _probe(self, axes: dict[str, float], line: int, on_contact: bool, alarm: bool) -> Probe:
+        """cm_straight_probe: refusals raise an alarm; no soft limits while probing."""
+        if not self.feed:
+            raise _Refused(Status.FEEDRATE_NOT_SPECIFIED, alarm="Feedrate is zero")
+        if not axes:
+            raise _Refused(Status.AXIS_IS_MISSING, alarm="Axis is missing")
+        target = dict(self.position)
+        for a, v in axes.items():
+            if self.absolute:
+                target[a] = v * self.scale + self.offsets[a]
+            else:
+                target[a] = self.position[a] + v * self.scale
+        # _probe_restore_settings: the motion mode is cancelled when the cycle ends;
+        # where the tool ends up is known only then (the board syncs this model).
+        self.motion = None
+        self.position = target
+        return Probe(Move(target, self.feed, line), on_contact, alarm)
+
     def _arc(self, target: dict[str, float], params: dict[str, float]) -> Arc:
         first, second, off1, off2 = _PLANES[self.plane]
         x0, y0 = self.position[first], self.position[second]
@@ -370,9 +418,10 @@ class Interpreter:
 
 
 class _Refused(Exception):
-    def __init__(self, status: Status) -> None:
+    def __init__(self, status: Status, *, alarm: str = "") -> None:
         super().__init__(status.name)
         self.status = status
+        self.alarm = alarm
 
 
 def _words(text: str) -> list[tuple[str, float]] | Status:

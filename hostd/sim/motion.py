@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass, replace
 
 from hostd.sim.config import AXES
-from hostd.sim.gcode import Arc, Block, Dwell, Home, Move
+from hostd.sim.gcode import Arc, Block, Dwell, Home, Move, Probe
 
 
 def path_length(start: dict[str, float], move: Move) -> float:
@@ -137,8 +137,8 @@ class Active:
         fraction = self.fraction(now)
         if fraction >= 1.0 - 1e-12:
             return None
-        if isinstance(block, Home):
-            return block  # homing is started over
+        if isinstance(block, Home | Probe):
+            return block  # homing is started over; a straight probe runs on to its target
         return remainder(self.move, fraction)
 
 
@@ -162,6 +162,8 @@ def start_block(
         move = Move(target, rapid_rate, block.n, rapid=True)
     elif isinstance(block, Move):
         move = block
+    elif isinstance(block, Probe):
+        move = block.move
     else:
         return Active(block, dict(position), now, 0.0)
     feed = rapid_rate if move.rapid else move.feed

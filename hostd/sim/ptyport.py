@@ -9,6 +9,11 @@ about Linux ptys (measured, see ../shared/notes/python-stack.md section 2):
 - In packet mode (TIOCPKT) every master read is one packet: a zero byte then
   data, or a single status byte; a host's tcflush (serialx ends its open
   with TCIOFLUSH) arrives as a status byte with the flush bits set.
+  TCIOFLUSH sets its two bits one after the other (FLUSHREAD: the host's
+  input was discarded; then FLUSHWRITE: what it wrote and we did not read),
+  so a master that reads in between sees them as two packets.
+- FIONREAD on a slave fd counts what the host has not read yet: a fd of our
+  own, opened for a moment, tells whether bytes we wrote survived a flush.
 - While no host has the slave open the master polls POLLHUP and reads EIO.
   Registering it with the event loop then would spin, so attachment is
   polled with a short timer, and the reader is added only once a host is
@@ -38,7 +43,8 @@ import structlog
 log = structlog.get_logger(__name__)
 
 ATTACH_POLL = 0.005  # s between looks at the master while no reader is registered
-_FLUSH_BITS = 0x01 | 0x02  # TIOCPKT_FLUSHREAD | TIOCPKT_FLUSHWRITE
+FLUSHREAD, FLUSHWRITE = 0x01, 0x02  # TIOCPKT_FLUSHREAD, TIOCPKT_FLUSHWRITE
+_FLUSH_BITS = FLUSHREAD | FLUSHWRITE
 
 
 class PortListener(Protocol):
@@ -46,7 +52,7 @@ class PortListener(Protocol):
 
     def port_attached(self, port: PtyPort) -> None: ...
     def port_detached(self, port: PtyPort) -> None: ...
-    def port_flushed(self, port: PtyPort) -> None: ...
+    def port_flushed(self, port: PtyPort) -> None: ...  # which bits: `port.flush_bits`
     def port_data(self, port: PtyPort, data: bytes) -> None: ...
     def port_drained(self, port: PtyPort) -> None: ...
 
@@ -67,6 +73,8 @@ class PtyPort:
         self._writer_on = False
         self._read_limit = 0
         self._backlog = bytearray()
+        self.written = 0  # bytes the pty has taken from us, ever
+        self.flush_bits = 0  # the flush bits of the status packet last read
         self.attached = False
 
     @property
@@ -82,6 +90,22 @@ class PtyPort:
     def backlog(self) -> int:
         """Bytes written that the host has not taken yet."""
         return len(self._backlog)
+
+    def unread(self) -> int:
+        """Bytes the pty holds that the host has not read (its input queue)."""
+        if self._tty is None:
+            return 0
+        try:
+            fd = os.open(self._tty, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError:
+            return 0
+        try:
+            (count,) = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))
+        except OSError:
+            count = 0
+        finally:
+            os.close(fd)
+        return int(count)
 
     # --- plugging
 
@@ -184,6 +208,7 @@ class PtyPort:
                 self._read_limit = max(self._read_limit - (len(packet) - 1), 0)
                 self._listener.port_data(self, packet[1:])
         elif packet[0] & _FLUSH_BITS:
+            self.flush_bits = packet[0] & _FLUSH_BITS
             self._listener.port_flushed(self)
 
     def _detach(self) -> None:
@@ -209,6 +234,7 @@ class PtyPort:
             written = 0
         except OSError:
             return False  # the host just went; the reader or the poll will notice
+        self.written += written
         if written < len(data):
             self._backlog += data[written:]
             self._loop.add_writer(fd, self._on_writable)
@@ -225,6 +251,7 @@ class PtyPort:
             return
         except OSError:
             written = len(self._backlog)
+        self.written += written
         del self._backlog[:written]
         if not self._backlog:
             self._loop.remove_writer(fd)

@@ -371,23 +371,21 @@ async def test_a_board_that_does_not_answer_in_time_is_1006(rpc: Rpc, hostd: Run
     assert (await rpc.call("machine.send", machine="sim1", line="{yvm:n}"))["status"] == 0
 
 
-# As cycle_probing.cpp `_send_probe_report` prints it (%0.5f for each axis).
-PROBE_REPORT = (
-    b'{"prb":{"e":1,"x":12.50000,"y":-3.25000,"z":-1.00312,"a":0.00000,"b":0.00000,"c":0.00000}}\n'
-)
-
-
 async def test_a_probe_result_reaches_the_snapshot_and_its_topic(rpc: Rpc, hostd: Running) -> None:
+    sim = hostd.daemon.sims["sim1"]
     snap = await rpc.call("machine.status", machine="sim1")
     assert snap["probe"] is None
     await rpc.call("subscribe", topics=["probe"], machine="sim1")
-    hostd.daemon.sims["sim1"].inject_garbage(PROBE_REPORT)
+    # The simulated board probes as cycle_probing.cpp does and prints its report.
+    sim.probe_surface("z", -1.00312)
+    await rpc.call("machine.send", machine="sim1", line="G0 X12.5 Y-3.25")
+    await rpc.call("machine.send", machine="sim1", line="G38.2 Z-5 F300")
     note = await rpc.notification(lambda n: n["method"] == "probe")
     position = {"x": 12.5, "y": -3.25, "z": -1.00312, "a": 0.0, "b": 0.0, "c": 0.0}
     assert note["params"]["probe"] == {"ok": True, "position": position}
     snap = await rpc.call("machine.status", machine="sim1")
     assert snap["probe"]["ok"] is True and snap["probe"]["position"]["z"] == -1.00312
-    missed = PROBE_REPORT.replace(b'"e":1', b'"e":0')
-    hostd.daemon.sims["sim1"].inject_garbage(missed)
+    sim.probe_surface(None)  # G38.3: a probe that may miss without an alarm
+    await rpc.call("machine.send", machine="sim1", line="G38.3 Z-3 F300")
     note = await rpc.notification(lambda n: n["method"] == "probe")
     assert note["params"]["probe"]["ok"] is False

@@ -486,22 +486,33 @@ async def test_homed_is_asked_again_when_a_homing_cycle_ends(rig: Rig) -> None:
 
 
 async def test_a_failed_homings_extra_answer_is_booked_to_no_line(rig: Rig) -> None:
-    # cycle_homing.cpp `_homing_error_exit` prints this before the real answer.
+    # cycle_homing.cpp `_homing_error_exit` prints {"r":{"msg":..},"f":[1,240,1]}
+    # while the line after the G28.2 waits for its answer.
+    rig.sim.fail_homing("x", 246)
     rig.sim.set_ack_delay(0.3)
+    homing = asyncio.create_task(rig.engine.send("G28.2 X0"))
     asked = asyncio.create_task(rig.engine.send("G0 X1"))
     await rig.sim.wait_received(b"G0 X1")
-    rig.sim.inject_garbage(b'{"r":{"msg":"X axis Homing error"},"f":[1,240,1]}\n')
+    assert (await homing).ok
     response = await asked
     assert response.ok  # the real answer reached the line, not the homing report
     report = await rig.recorder.wait_for(lambda e: isinstance(e, ExceptionRaised))
     assert isinstance(report, ExceptionRaised) and report.report["st"] == 240
+    assert b'"f":[1,240,1]' in b"".join(s.data for s in rig.sim.sent)
     assert not [e for e in rig.recorder.events if isinstance(e, FaultDetected)]
 
 
-async def test_startup_messages_are_no_answers(rig: Rig) -> None:
+async def test_startup_messages_are_no_answers(tmp_path: Path) -> None:
     # report.cpp `_startup_helper`: status 15, printed on a UART link at boot.
-    rig.sim.inject_garbage(
-        b'{"r":{"fv":0.99,"fb":101.06,"msg":"Loading configs from EEPROM"},"f":[1,15,0]}\n'
-    )
-    assert (await rig.engine.send("{xvm:n}")).body == {"xvm": 6000}
-    assert not [e for e in rig.recorder.events if isinstance(e, FaultDetected)]
+    path = str(tmp_path / "ttyS")
+    async with SimController(path, config=dataclasses.replace(FAST, uart=True)) as sim:
+        hub = Hub()
+        recorder = Recorder()
+        hub.subscribe(recorder)
+        engine = Engine(machine_config(path), hub)
+        async with running(engine):
+            await engine.connect()
+            await engine.reset()  # it boots, and prints them where the host reads
+            assert any(b"Loading configs from EEPROM" in s.data for s in sim.sent)
+            assert (await engine.send("{xvm:n}")).body == {"xvm": 6000}
+    assert not [e for e in recorder.events if isinstance(e, FaultDetected)]

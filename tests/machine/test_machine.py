@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 from pathlib import Path
 
 import pytest
@@ -183,7 +184,11 @@ async def test_nan_in_a_report_mid_job_is_no_lexical_fault(bench: Bench) -> None
     bench.write("part.gcode", PROGRAM)
     job = await bench.machine.start_make("part.gcode")
     await bench.sim.wait_state(S.RUN)
-    bench.sim.inject_garbage(b'{"sr":{"vel":nan,"feed":inf}}\n')  # as real firmware prints
+    bench.sim.glitch("vel", math.nan)  # printed bare, as the firmware's floattoa() does
+    bench.sim.glitch("feed", math.inf)
+    await bench.sim.wait_for(lambda: any(b'"vel":nan' in s.data for s in bench.sim.sent))
+    bench.sim.glitch("vel", None)
+    bench.sim.glitch("feed", None)
     row = await bench.job_ended(job.id)
     assert row.state == "completed"
     assert [f.id for f in bench.machine.faults.active()] == []

@@ -103,7 +103,7 @@ async def test_errors_carry_g2core_status_codes(host: Host) -> None:
     assert (await host.ask(b"{bogus:n}\n")) == {"r": {"bogus": None}, "f": [1, 100, 11]}
     assert (await host.ask(b"{xvm:\n")) == {"r": {"err": "{xvm:"}, "f": [1, 111, 7]}
     assert (await host.ask(b"G1 X5\n"))["f"][1] == 142  # no feed rate yet
-    assert (await host.ask(b"G38.2 Z-1\n"))["f"][1] == 131
+    assert (await host.ask(b"G33 Z-1\n"))["f"][1] == 131
     assert (await host.ask(b"M100\n"))["f"][1] == 132
     assert (await host.ask(b"{fb:100}\n"))["f"][1] == 104
 

@@ -92,7 +92,7 @@ class TestGcode:
 
     def test_unsupported_codes(self) -> None:
         g = Interpreter()
-        assert g.execute("G38.2 Z-1", no_limits).status == Status.GCODE_COMMAND_UNSUPPORTED
+        assert g.execute("G33 Z-1", no_limits).status == Status.GCODE_COMMAND_UNSUPPORTED
         assert g.execute("M100", no_limits).status == Status.MCODE_COMMAND_UNSUPPORTED
 
     def test_a_refused_line_changes_nothing(self) -> None:

@@ -6,6 +6,7 @@ import asyncio
 import os
 import signal
 import sys
+import termios
 from pathlib import Path
 
 import pytest
@@ -258,3 +259,65 @@ async def test_the_simulator_runs_standalone(tmp_path: Path) -> None:
         async with asyncio.timeout(10):
             assert await proc.wait() == 0
     assert not is_link(path)
+
+
+async def banners_before_answer(raw: RawHost, sim: SimController) -> int:
+    """Ask `{xvm:n}` and read up to its answer: how many banners the host got.
+
+    The board reads a pending flush before any data, so once it has read the
+    line it has seen every flush: only then does the host read.
+    """
+    raw.write(b"{xvm:n}\n")
+    await sim.wait_received(b"{xvm:n}")
+    count = 0
+    while "xvm" not in (message := await raw.message()).get("r", {}):
+        count += message.get("r", {}).get("msg") == "SYSTEM READY"
+    return count
+
+
+async def test_a_flush_read_as_two_packets_is_one_open_with_one_banner(
+    sim: SimController,
+) -> None:
+    # TCIOFLUSH sets FLUSHREAD, then FLUSHWRITE; a board that reads in between sees
+    # two packets. The second is no new open, and brings no second banner.
+    raw = RawHost(sim.data_path)
+    try:
+        assert raw.fd is not None
+        await sim.wait_attached()
+        termios.tcflush(raw.fd, termios.TCIFLUSH)
+        await sim.wait_for(lambda: banners(sim) == 1)  # the flush was read: the banner
+        termios.tcflush(raw.fd, termios.TCOFLUSH)
+        assert await banners_before_answer(raw, sim) == 1
+        assert banners(sim) == 1
+    finally:
+        raw.close()
+
+
+async def test_a_fallback_banner_sent_after_the_flush_is_not_sent_again(
+    sim: SimController,
+) -> None:
+    # The opener flushes, but the board reads that flush only after its fallback
+    # timer has sent the banner: the banner survived the flush, once is enough.
+    sim.stop_reading()  # the flush waits in the pty, unread, while the timer runs
+    raw = RawHost(sim.data_path)
+    try:
+        assert raw.fd is not None
+        termios.tcflush(raw.fd, termios.TCIOFLUSH)
+        await sim.wait_for(lambda: banners(sim) == 1)  # the fallback banner, after the flush
+        sim.resume_reading()
+        assert await banners_before_answer(raw, sim) == 1
+        assert banners(sim) == 1
+    finally:
+        raw.close()
+
+
+async def test_a_fallback_banner_the_flush_threw_away_is_sent_again(sim: SimController) -> None:
+    raw = RawHost(sim.data_path)
+    try:
+        assert raw.fd is not None
+        await sim.wait_for(lambda: banners(sim) == 1)  # an opener slow to flush
+        termios.tcflush(raw.fd, termios.TCIOFLUSH)  # ...discards it
+        assert await banners_before_answer(raw, sim) == 1
+        assert banners(sim) == 2
+    finally:
+        raw.close()
