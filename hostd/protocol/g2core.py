@@ -162,6 +162,7 @@ class G2Session(SessionBase):
         self.signal_keys = tuple(signal_keys)
         self.sender = LineModeSender(window)
         self._flush: Realtime | None = None  # QUEUE_FLUSH or JOB_KILL, awaiting its proof
+        self._flush_out = False  # the flush's byte has been handed to the engine to write
         self._flush_deadline: float | None = None
         self._settings_pending = False  # refused in a lockout: sent again when it ends
         self._lines_in = 0  # lines read and understood this connection (the serial fault's value)
@@ -299,6 +300,13 @@ class G2Session(SessionBase):
         body_msg = response.body.get("msg")
         msg = body_msg if isinstance(body_msg, str) else ""
         fields = {"st": response.status, "msg": msg}
+        stream = self.stream
+        if response.status and stream is not None and not stream.done:
+            # cycle_homing.cpp answers the G28.2 itself with 0 and reports its failure
+            # apart; the board would run the moves after it from an unknown position.
+            what = f"controller reported {response.status}: {msg or message(response.status)}"
+            stream.finish(StreamEnd.FAILED, ControllerError.code, what)
+            self._write_realtime(Realtime.JOB_KILL)
         self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
 
     def _fail_job_line(self, stream: LineSource, entry: InFlight, what: str) -> None:
@@ -400,6 +408,7 @@ class G2Session(SessionBase):
             and not stream.program_pause_sent
             and self._flush is None
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
+            and not self._await_report  # the host held the lines back: no starving
             and stream.peek() is not None  # lines still on the host (not only "not looked yet")
         ):
             # The board ran out of moves while the job still had lines on the host.
@@ -606,14 +615,30 @@ class G2Session(SessionBase):
 
     def _begin_flush(self, kind: Realtime) -> None:
         self._flush = kind
+        self._flush_out = False
         self._flush_deadline = self.clock() + FLUSH_CONFIRM_TIMEOUT
         if self.stream is not None and not self.stream.done:
             reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
             self.stream.finish(StreamEnd.CANCELLED, None, reason)
 
     def _confirm_flush(self, *, kill_seen: bool = False) -> None:
+        """The board shows the flush happened: the data lines it held are dropped from the books.
+
+        A job kill is shown only by its `er` 207, which `_run_job_kill`
+        (cycle_feedhold.cpp) prints once it has flushed; in a lockout it does
+        nothing and prints nothing, and the timeout ends the wait. A queue
+        flush is shown by a stop (stat 3 or 4), read after the `%` went out:
+        a report read before then (in the batch that decided the flush) says
+        nothing of it.
+        """
         kind = self._flush
-        if kind is None or (not kill_seen and self.model.state not in _FLUSH_CONFIRMED):
+        if kind is None:
+            return
+        if kind is Realtime.JOB_KILL and not kill_seen:
+            return
+        if kind is Realtime.QUEUE_FLUSH and not (
+            self._flush_out and self.model.state in _FLUSH_CONFIRMED
+        ):
             return
         self._flush = self._flush_deadline = None
         for entry in self.sender.dropped():
@@ -713,6 +738,12 @@ class G2Session(SessionBase):
 
     def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
         return admit(cls, state)
+
+    def data_to_send(self) -> list[tuple[Lane, bytes]]:
+        out = super().data_to_send()
+        if self._flush is not None:
+            self._flush_out = True  # from now on a report may be the flush's proof
+        return out
 
     def _stop_board(self) -> None:
         """A fault's stop: feedhold, then flush what the board holds."""

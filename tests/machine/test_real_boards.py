@@ -20,7 +20,7 @@ from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.status import Status, message
 from hostd.sim.callsites import CALL_SITES, CallSite
-from tests.machine.conftest import Rig
+from tests.machine.conftest import Bench, Rig
 
 pytestmark = pytest.mark.asyncio
 
@@ -170,3 +170,20 @@ async def test_an_answer_the_board_never_printed_is_found_by_the_next_answers_co
     with pytest.raises(ControllerError, match="never answered"):
         await lost
     assert "sys" in (await rig.engine.send("{sys:n}")).body
+
+
+async def test_a_job_whose_homing_fails_fails_for_that_reason(bench: Bench) -> None:
+    """cycle_homing.cpp answers the G28.2 itself with 0 and reports the failure apart.
+
+    The board would go on to run the moves after it, from an unknown position:
+    the job fails naming the homing failure, and the board's queue is killed.
+    Holding job lines back after the report is not the planner starving.
+    """
+    bench.sim.fail_homing("x", Status.HOMING_ERROR_HOMING_INPUT_MISCONFIGURED)
+    bench.write("h.gcode", "G28.2 X0\n" + "\n".join(moves(30)) + "\n")
+    job = await bench.machine.start_make("h.gcode")
+    row = await bench.job_ended(job.id)
+    assert row.state == "failed"
+    assert row.error is not None and "Homing" in row.error.message
+    assert [f.id for f in bench.machine.faults.active()] == []
+    assert bench.machine.engine.model.homed is False

@@ -322,8 +322,26 @@ async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flus
     wire.session.set_operation(False)
     wire.pump()
     assert wire.settled(token) is None and b'{"xvm":null}\n' in wire.lines()
-    wire.report(stat=4)  # the flush happened: the four lines in flight were discarded
-    assert stream.discarded == 4
+    wire.report(stat=4)  # a stop is no proof of a kill: only its er 207 is
+    assert stream.discarded == 0 and wire.session.flushing()
+    wire.feed('{"er":{"fb":101.06,"st":207,"msg":"Kill job - Job killed by ^d"}}')
+    assert stream.discarded == 4  # the four lines in flight were discarded
+    assert not wire.session.flushing()
+
+
+async def test_a_stop_read_before_the_flush_went_out_proves_nothing() -> None:
+    wire = ready()
+    stream = moves(50)
+    wire.session.start_stream(stream)
+    wire.pump()
+    # One batch: the board says it stopped, and the host decides a flush; the
+    # stop was printed before the `%` reached the board.
+    wire.session.realtime(Realtime.QUEUE_FLUSH)
+    wire.session.receive(b'{"sr":{"stat":3}}')
+    assert wire.session.flushing() and stream.discarded == 0
+    wire.pump()  # the `%` goes out
+    wire.report(stat=3)
+    assert not wire.session.flushing() and stream.discarded == 4
 
 
 async def test_an_unconfirmed_flush_gives_up_after_its_timeout() -> None:
