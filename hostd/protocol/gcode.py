@@ -92,6 +92,11 @@ def _check_words(text: str) -> None:
 
 def jog_line(axes: Mapping[str, float], feed: float) -> str:
     """`G91 G1 X1.5000 F600.000`: a relative move, in the board's fixed-decimal words."""
+    return f"G91 G1 {jog_words(axes, feed)}"
+
+
+def jog_words(axes: Mapping[str, float], feed: float) -> str:
+    """`X1.5000 F600.000`: a jog's distances and feed, checked, in fixed decimals."""
     if not axes:
         raise InvalidCommand(Refusal.EMPTY, "a jog needs at least one axis")
     words = []
@@ -99,7 +104,7 @@ def jog_line(axes: Mapping[str, float], feed: float) -> str:
         if axis not in JOG_AXES:
             raise InvalidCommand(Refusal.UNREADABLE, f"unknown axis {axis!r}")
         words.append(f"{axis.upper()}{format_distance(distance, f'{axis} distance')}")
-    return f"G91 G1 {' '.join(words)} F{format_feed(feed)}"
+    return f"{' '.join(words)} F{format_feed(feed)}"
 
 
 def _code_part(text: str) -> str:

@@ -38,7 +38,7 @@ from typing import Any
 from hostd.protocol.classes import FORWARD, CommandClass, Table, admit, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
-from hostd.protocol.gcode import JOG_AXES
+from hostd.protocol.gcode import jog_words
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import (
     ALARM_STATE,
@@ -50,7 +50,6 @@ from hostd.protocol.grbl.codes import (
 )
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
-from hostd.protocol.numbers import format_distance, format_feed
 from hostd.protocol.session import (
     Context,
     Excepted,
@@ -162,14 +161,7 @@ class GrblSession(SessionBase):
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """`$J=G91 X1.5000 F600.000`: grbl allows no G1 in a jog (gcode.c), and 0x85 cancels it."""
-        if not axes:
-            raise InvalidCommand(Refusal.EMPTY, "a jog needs at least one axis")
-        words = []
-        for axis, distance in axes.items():
-            if axis not in JOG_AXES:
-                raise InvalidCommand(Refusal.UNREADABLE, f"unknown axis {axis!r}")
-            words.append(f"{axis.upper()}{format_distance(distance, f'{axis} distance')}")
-        return [f"$J=G91 {' '.join(words)} F{format_feed(feed)}"]
+        return [f"$J=G91 {jog_words(axes, feed)}"]
 
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
