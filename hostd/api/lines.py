@@ -39,6 +39,11 @@ class LineReader:
         self._scanned = 0  # bytes of _buffer known to hold no newline
         self._eof = False
 
+    @property
+    def pending(self) -> bool:
+        """Bytes read and not yet returned as a line."""
+        return bool(self._buffer)
+
     async def readline(self) -> bytes | None:
         """The next line without its newline; None at the end of the stream.
 

@@ -266,6 +266,8 @@ class ApiServer:
         given, becomes the socket file's group (the file is then 0660 so that
         the group can connect, the policy must still allow them; else 0600)."""
         self._methods = methods
+        # Names of the methods answered as their bytes arrive (`_answer_now`), as bytes.
+        self._immediate = [f'"{name}"'.encode() for name, m in methods.items() if m.immediate]
         self._policy = policy if policy is not None else AccessPolicy.default()
         self._socket_gid = socket_gid
         self._max_line = max_line
@@ -319,8 +321,10 @@ class ApiServer:
         bound = socketfile.bind(where, self._socket_gid)
         self._inode = bound.inode
         try:
-            self._server = await asyncio.start_unix_server(
-                self._accept, sock=bound.sock, limit=self._max_line
+            loop = asyncio.get_running_loop()
+            self._server = await loop.create_unix_server(
+                lambda: _Connection(asyncio.StreamReader(self._max_line, loop), self._accept),
+                sock=bound.sock,
             )
         except BaseException:
             bound.sock.close()
@@ -459,6 +463,9 @@ class ApiServer:
         lines = LineReader(reader, max_line=self._max_line, line_timeout=self._line_timeout)
         slots = asyncio.Semaphore(self._max_inflight)
         pending: set[asyncio.Task[None]] = set()
+        connection = client._writer.transport.get_protocol()
+        if isinstance(connection, _Connection):
+            connection.fast = lambda data: self._answer_now(client, reader, lines, data)
         while not client.closed:
             try:
                 line = await lines.readline()
@@ -492,6 +499,34 @@ class ApiServer:
             task = tg.create_task(self._handle(client, incoming, slots))
             pending.add(task)
             task.add_done_callback(pending.discard)
+
+    def _answer_now(
+        self, client: Client, reader: asyncio.StreamReader, lines: LineReader, data: bytes
+    ) -> bool:
+        """A realtime request answered as its bytes arrive, not a loop pass later; or False.
+
+        Only a chunk that is one whole line naming a realtime method, from a
+        client with nothing else unread (so nothing it sent before is
+        overtaken): the `!` of a client beside a query flood is written in
+        the very callback that read it.
+        """
+        if (
+            client.closed
+            or not data.endswith(b"\n")
+            or data.count(b"\n") != 1
+            or len(data) > self._max_line
+            or not any(name in data for name in self._immediate)
+            or lines.pending
+            or _unread(reader)
+        ):
+            return False
+        incoming = rpc.decode(data[:-1], max_batch=self._max_inflight)
+        if not rpc.is_immediate(incoming, self._methods):
+            return False
+        response = _run_now(rpc.answer(incoming, self._methods, client))
+        if response is not None:
+            client.send_line(response)
+        return True
 
     async def _handle(
         self, client: Client, incoming: rpc.Incoming, slots: asyncio.Semaphore
@@ -533,3 +568,35 @@ class ApiServer:
                 while not client.closed and await reader.read(1 << 16):
                     pass
         client.close("request line too long")
+
+
+class _Connection(asyncio.StreamReaderProtocol):
+    """A client's connection: a stream, and a fast path for realtime requests (`fast`)."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        connected: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Any],
+    ) -> None:
+        super().__init__(reader, connected)
+        self.fast: Callable[[bytes], bool] | None = None
+
+    def data_received(self, data: bytes) -> None:
+        fast = self.fast
+        if fast is None or not fast(data):
+            super().data_received(data)
+
+
+def _unread(reader: asyncio.StreamReader) -> bool:
+    """Bytes the reader holds that its task has not taken yet (asyncio keeps them in _buffer)."""
+    return bool(getattr(reader, "_buffer", b"x"))
+
+
+def _run_now(coroutine: Any) -> bytes | None:
+    """Run a coroutine that never suspends (an immediate method's answer) to its end, here."""
+    try:
+        coroutine.send(None)
+    except StopIteration as done:
+        return cast(bytes | None, done.value)
+    coroutine.close()
+    raise RuntimeError("an immediate method suspended")

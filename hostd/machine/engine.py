@@ -386,16 +386,29 @@ class Engine:
         return await self._answer(future, timeout)
 
     async def _answer(self, future: asyncio.Future[Response], timeout: float) -> Response:
+        """The board's answer, or ControllerTimeout; a line not yet written then never is.
+
+        One timer a request, not a timeout scope and a shield: a query flood
+        makes thousands of these a second, and a feedhold waits behind them.
+        """
+        timer = asyncio.get_running_loop().call_later(timeout, self._expire, future, timeout)
         try:
-            async with asyncio.timeout(timeout):
-                response = await asyncio.shield(future)
-        except TimeoutError:
-            self.session.cancel(future)
-            future.cancel()
-            raise ControllerTimeout(f"no answer from {self.id} within {timeout:g} s") from None
+            response = await future
+        except asyncio.CancelledError:
+            self.session.cancel(future)  # the asker is gone: its line, if still waiting, too
+            raise
+        finally:
+            timer.cancel()
         if not response.ok:
             raise ControllerError(response.status, message(response.status))
         return response
+
+    def _expire(self, future: asyncio.Future[Response], timeout: float) -> None:
+        if not future.done():
+            self.session.cancel(future)
+            future.set_exception(
+                ControllerTimeout(f"no answer from {self.id} within {timeout:g} s")
+            )
 
     def realtime(self, command: Realtime) -> None:
         """Write a realtime byte now (it never waits), if the state admits it."""
