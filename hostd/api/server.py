@@ -465,7 +465,9 @@ class ApiServer:
         pending: set[asyncio.Task[None]] = set()
         connection = client._writer.transport.get_protocol()
         if isinstance(connection, _Connection):
-            connection.fast = lambda data: self._answer_now(client, reader, lines, data)
+            connection.fast = lambda data: (
+                not pending and self._answer_now(client, reader, lines, data)
+            )
         while not client.closed:
             try:
                 line = await lines.readline()
@@ -492,8 +494,10 @@ class ApiServer:
                 continue
             for _ in range(incoming.requests):  # the reader is the only taker: no deadlock
                 await slots.acquire()
-            if rpc.is_immediate(incoming, self._methods):
+            if not pending and rpc.is_immediate(incoming, self._methods):
                 # A realtime byte: run it now, not a loop pass later in a task of its own.
+                # Not while an earlier request of this client waits to start: a feedhold
+                # must not run before the job.resume sent ahead of it.
                 await self._handle(client, incoming, slots)
                 continue
             task = tg.create_task(self._handle(client, incoming, slots))
@@ -506,9 +510,9 @@ class ApiServer:
         """A realtime request answered as its bytes arrive, not a loop pass later; or False.
 
         Only a chunk that is one whole line naming a realtime method, from a
-        client with nothing else unread (so nothing it sent before is
-        overtaken): the `!` of a client beside a query flood is written in
-        the very callback that read it.
+        client with nothing else unread nor under way (so nothing it sent
+        before is overtaken): the `!` of a client beside a query flood is
+        written in the very callback that read it.
         """
         if (
             client.closed

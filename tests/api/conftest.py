@@ -56,6 +56,7 @@ class Harness:
     slow_started: asyncio.Event = field(default_factory=asyncio.Event)
     disconnected: asyncio.Event = field(default_factory=asyncio.Event)
     counted: int = 0
+    order: list[str] = field(default_factory=list)  # `note` and `mark` calls, as run
     running: int = 0  # `slow` calls under way
     peak: int = 0  # the most `slow` calls ever under way at once
 
@@ -69,6 +70,17 @@ class Harness:
         m.register("count", None, self.count)
         m.register("whoami", None, self.whoami)
         m.register("flood", FloodParams, self.flood)
+        m.register("note", None, self.note)
+        m.register("machine.mark", None, self.mark, immediate=True)
+
+    async def note(self) -> str:
+        self.order.append("note")
+        return "noted"
+
+    async def mark(self) -> str:
+        """Shaped like a realtime method: never suspends, answered as it arrives."""
+        self.order.append("mark")
+        return "marked"
 
     async def echo(self, p: EchoParams) -> EchoParams:
         return p  # a pydantic model as the result: serialised with model_dump

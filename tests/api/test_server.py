@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import socket
 import stat
@@ -797,3 +798,33 @@ async def test_close_drops_clients_runs_their_hooks_and_removes_the_socket_file(
     assert server.clients == []
     assert await conn.closed_by_server()
     await conn.close()
+
+
+async def test_a_realtime_request_alone_is_answered_with_its_id(
+    conn: Conn, harness: Harness
+) -> None:
+    assert await conn.call("machine.mark", id=41) == {
+        "jsonrpc": "2.0",
+        "result": "marked",
+        "id": 41,
+    }
+    assert harness.order == ["mark"]
+
+
+async def test_a_realtime_request_never_overtakes_what_the_client_sent_before(
+    conn: Conn, harness: Harness
+) -> None:
+    first = {"jsonrpc": "2.0", "method": "note", "id": 1}
+    second = {"jsonrpc": "2.0", "method": "machine.mark", "id": 2}
+    await conn.send_raw(json.dumps(first).encode() + b"\n" + json.dumps(second).encode() + b"\n")
+    answers = {(await conn.recv())["id"], (await conn.recv())["id"]}
+    assert answers == {1, 2}
+    assert harness.order == ["note", "mark"]
+
+
+async def test_a_realtime_name_inside_a_broken_line_runs_nothing(
+    conn: Conn, harness: Harness
+) -> None:
+    await conn.send_raw(b'{"jsonrpc":"2.0","id":3,"method":"machine.mark"\n')
+    assert (await conn.recv())["error"]["code"] == -32700
+    assert harness.order == []
