@@ -19,6 +19,7 @@ from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import partial
+from typing import Protocol
 
 from hostd.link.serial import SerialChannel
 
@@ -46,10 +47,18 @@ class LinkLost:
 LinkEvent = LineReceived | LinkLost
 
 
+class Receiver(Protocol):
+    """Who takes a link's lines as they are read, in the read's own callback."""
+
+    def link_lines(self, channel: Channel, lines: list[bytes]) -> None: ...
+    def link_lost(self, reason: str) -> None: ...
+
+
 class Link:
     """`await Link.open(...)`, then `await link.read()` in one task; `await link.close()`."""
 
-    def __init__(self) -> None:
+    def __init__(self, receiver: Receiver | None = None) -> None:
+        self._receiver = receiver
         self._inbox: deque[LinkEvent] = deque()
         self._wakeup = asyncio.Event()
         self._channels: dict[Channel, SerialChannel] = {}
@@ -58,13 +67,19 @@ class Link:
 
     @classmethod
     async def open(
-        cls, data_path: str, control_path: str | None = None, baudrate: int = 115200
+        cls,
+        data_path: str,
+        control_path: str | None = None,
+        baudrate: int = 115200,
+        receiver: Receiver | None = None,
     ) -> Link:
         """Open the control port first, then the data port (g2core assigns roles by open order).
 
+        With a `receiver`, lines go to it as they are read (no inbox, no task
+        switch a line) and the loss too; `read()` is then not used.
         Raises LinkError with the device and the reason; nothing stays open on failure.
         """
-        link = cls()
+        link = cls(receiver)
         order = [(Channel.DATA, data_path)]
         if control_path is not None:
             order.insert(0, (Channel.CONTROL, control_path))
@@ -73,7 +88,7 @@ class Link:
                 link._channels[name] = await SerialChannel.open(
                     path,
                     baudrate,
-                    on_line=partial(link._on_line, name),
+                    on_lines=partial(link._on_lines, name),
                     on_lost=partial(link._on_lost, name),
                 )
         except BaseException:
@@ -106,8 +121,12 @@ class Link:
             self._set_reading(True)
         return events
 
-    def _on_line(self, channel: Channel, line: bytes) -> None:
-        self._inbox.append(LineReceived(channel, line, time.monotonic()))
+    def _on_lines(self, channel: Channel, lines: list[bytes]) -> None:
+        if self._receiver is not None:
+            self._receiver.link_lines(channel, lines)
+            return
+        at = time.monotonic()
+        self._inbox.extend(LineReceived(channel, line, at) for line in lines)
         self._wakeup.set()
         if len(self._inbox) >= INBOX_HIGH and not self._paused:
             self._set_reading(False)
@@ -115,6 +134,9 @@ class Link:
     def _on_lost(self, channel: Channel, reason: str) -> None:
         if self.lost is None:
             self.lost = LinkLost(channel, reason)
+            if self._receiver is not None:
+                self._receiver.link_lost(reason)
+                return
             self._inbox.append(self.lost)
             self._wakeup.set()
 

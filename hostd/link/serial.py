@@ -43,16 +43,16 @@ class LinkError(Exception):
     """A port could not be opened; the message says which and why."""
 
 
-LineSink = Callable[[bytes], None]
+LineSink = Callable[[list[bytes]], None]  # every line one read completed, in order
 LostSink = Callable[[str], None]
 
 
 class SerialChannel(asyncio.Protocol):
     """A device path opened through serialx, split into lines with `LineBuffer`."""
 
-    def __init__(self, path: str, on_line: LineSink, on_lost: LostSink) -> None:
+    def __init__(self, path: str, on_lines: LineSink, on_lost: LostSink) -> None:
         self.path = path
-        self._on_line = on_line
+        self._on_lines = on_lines
         self._on_lost = on_lost
         self._framer = LineBuffer()
         self._transport: asyncio.Transport | None = None
@@ -65,11 +65,11 @@ class SerialChannel(asyncio.Protocol):
 
     @classmethod
     async def open(
-        cls, path: str, baudrate: int, on_line: LineSink, on_lost: LostSink
+        cls, path: str, baudrate: int, on_lines: LineSink, on_lost: LostSink
     ) -> SerialChannel:
         if baudrate == BOOTLOADER_BAUD:
             raise LinkError(f"{path}: refusing {BOOTLOADER_BAUD} baud, the bootloader touch")
-        channel = cls(path, on_line, on_lost)
+        channel = cls(path, on_lines, on_lost)
         loop = asyncio.get_running_loop()
         try:
             await serialx.create_serial_connection(
@@ -89,8 +89,9 @@ class SerialChannel(asyncio.Protocol):
         transport.set_write_buffer_limits(high=0, low=0)
 
     def data_received(self, data: bytes) -> None:
-        for line in self._framer.feed(data):
-            self._on_line(line)
+        lines = self._framer.feed(data)
+        if lines:
+            self._on_lines(lines)
 
     def connection_lost(self, exc: Exception | None) -> None:
         if not self._closed.done():

@@ -30,7 +30,7 @@ from typing import Any
 import structlog
 
 from hostd.config import MachineConfig
-from hostd.link import Channel, LineReceived, Link, LinkError
+from hostd.link import Channel, Link, LinkError
 from hostd.machine.events import (
     Console,
     ExceptionRaised,
@@ -176,7 +176,9 @@ class Engine:
         self._down.clear()
         config = self.config
         try:
-            self.link = await Link.open(config.data_port, config.control_port, config.baudrate)
+            self.link = await Link.open(
+                config.data_port, config.control_port, config.baudrate, receiver=self
+            )
         except LinkError as exc:
             self._end_attempt(str(exc))
             self._teardown(str(exc))
@@ -186,18 +188,12 @@ class Engine:
             closed.set_result("disconnected")
         reason = "closed"
         try:
-            async with asyncio.TaskGroup() as tg:
-                reader = tg.create_task(self._read_loop(self.link))
-                self.link_state = LinkState.HANDSHAKE
-                self.session.open(rebooting=self._restart_deadline is not None)
-                self._deliver()
-                reason = await closed
-                reader.cancel()
-        except* Exception as group:
-            self._log.error("engine failure", exc_info=group.exceptions[0])
-            reason = f"internal error: {group.exceptions[0]!r}"
+            self.link_state = LinkState.HANDSHAKE
+            self.session.open(rebooting=self._restart_deadline is not None)
+            self._deliver()
+            reason = await closed
         finally:
-            was_ready = self.link_state is LinkState.READY or self._ready.is_set()
+            was_ready = self.link_state is LinkState.READY
             link, self.link = self.link, None
             try:
                 await link.close()  # released before anyone hears it is down
@@ -237,24 +233,30 @@ class Engine:
         self._down.set()
         self._changed.set()
 
-    # -- reading -----------------------------------------------------------
+    # -- reading: the link's callbacks -------------------------------------
 
-    async def _read_loop(self, link: Link) -> None:
+    def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
+        """Lines as the link read them, in its read callback: no inbox, no task switch."""
+        if self.link is None:
+            return  # a read that raced the teardown
         session = self.session
-        while True:
-            for event in await link.read():
-                if not isinstance(event, LineReceived):
-                    self._end(event.reason)
-                    return
-                self._log.debug("rx", channel=event.channel.value, line=event.line)
-                if self.console:
-                    self._publish_console("rx", event.channel, event.line)
-                try:
-                    session.receive(event.line)
-                except Exception as exc:  # a bug of ours: stop writing, keep reading
-                    self._log.exception("engine invariant broken")
-                    session.halt(f"{type(exc).__name__}: {exc}")
+        for line in lines:
+            self._log.debug("rx", channel=channel.value, line=line)
+            if self.console:
+                self._publish_console("rx", channel, line)
+            try:
+                session.receive(line)
+            except Exception as exc:  # a bug of ours: stop writing, keep reading
+                self._log.exception("engine invariant broken")
+                session.halt(f"{type(exc).__name__}: {exc}")
+        try:
             self._deliver()
+        except Exception as exc:  # never into the transport's callback: end the connection
+            self._log.exception("engine failure")
+            self._end(f"internal error: {exc!r}")
+
+    def link_lost(self, reason: str) -> None:
+        self._end(reason)
 
     # -- the delivery loop -------------------------------------------------
 
