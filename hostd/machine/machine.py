@@ -352,7 +352,7 @@ class Machine:
         if previous is not None:
             await asyncio.wait({previous})
         try:
-            await self.store.update(job_id, **fields)
+            await self.store.write(job_id, **fields)
         except Exception:
             self._log.exception("could not write the job row", job=job_id)
 
