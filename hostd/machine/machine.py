@@ -8,9 +8,11 @@ from the jobs directory and is the only pausable one.
 
 Progress is persisted at most `PERSIST_EVERY` seconds or `PERSIST_LINES`
 answered lines apart (the stream wakes its runner when it crosses the
-mark), so a crash loses at most that much of a row's
-`lines_acked`; it is only ever copied from the engine's count of lines the
-controller answered, so it never claims more. `job` events are published
+mark), but not more often than every `PERSIST_GAP` seconds: a crash loses at
+most 100 lines or 1 s of a row's `lines_acked` at the rates a machine runs
+(a laser raster's 1,000 lines/s), and a burst of 40,000 lines/s costs ten
+writes a second, not four hundred. `lines_acked` is only ever copied from
+the engine's count of lines the controller answered, so it never claims more. `job` events are published
 on every state change and at most every `PUBLISH_EVERY` seconds while a
 job runs.
 """
@@ -56,6 +58,7 @@ log = structlog.get_logger(__name__)
 
 PERSIST_EVERY = 1.0
 PERSIST_LINES = 100
+PERSIST_GAP = 0.1
 PUBLISH_EVERY = 0.1
 _JOB_STATE = {
     StreamEnd.COMPLETED: "completed",
@@ -311,7 +314,9 @@ class Machine:
         last = (0, 0)
         try:
             while not stream.done:
-                stream.wake_at = persisted_acked + PERSIST_LINES
+                gap_over = time.monotonic() - persisted_at >= PERSIST_GAP
+                # Within the gap the mark would wake the runner at every answer: wait it out.
+                stream.wake_at = persisted_acked + PERSIST_LINES if gap_over else None
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(PUBLISH_EVERY):
                         await stream.wake.wait()
@@ -321,9 +326,9 @@ class Machine:
                     continue
                 last = counts
                 clock = time.monotonic()
-                if (
-                    clock - persisted_at >= PERSIST_EVERY
-                    or counts[1] - persisted_acked >= PERSIST_LINES
+                since = clock - persisted_at
+                if since >= PERSIST_EVERY or (
+                    counts[1] - persisted_acked >= PERSIST_LINES and since >= PERSIST_GAP
                 ):
                     self._record(lines_sent=counts[0], lines_acked=counts[1])
                     persisted_at, persisted_acked = clock, counts[1]
