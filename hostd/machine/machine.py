@@ -12,9 +12,9 @@ mark), but not more often than every `PERSIST_GAP` seconds: a crash loses at
 most 100 lines or 1 s of a row's `lines_acked` at the rates a machine runs
 (a laser raster's 1,000 lines/s), and a burst of 40,000 lines/s costs ten
 writes a second, not four hundred. `lines_acked` is only ever copied from
-the engine's count of lines the controller answered, so it never claims more. `job` events are published
-on every state change and at most every `PUBLISH_EVERY` seconds while a
-job runs.
+the engine's count of lines the controller answered, so it never claims more.
+`job` events are published on every state change and at most every
+`PUBLISH_EVERY` seconds while a job runs.
 """
 
 from __future__ import annotations
