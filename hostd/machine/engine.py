@@ -22,8 +22,9 @@ as one, and reconnects with back-off.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from enum import StrEnum
 from typing import Any
 
@@ -284,6 +285,23 @@ class Engine:
             self._delivering = False
         self._changed.set()
         self._arm_timer()
+
+    @contextlib.contextmanager
+    def one_step(self) -> Iterator[None]:
+        """Several calls as one step: what they write goes out together, at the end.
+
+        The machine resumes a job and moves its supervisor in one step, so
+        that no job line is written, nor published, while it still says paused.
+        """
+        if self._delivering:
+            yield
+            return
+        self._delivering = True
+        try:
+            yield
+        finally:
+            self._delivering = False
+            self._deliver()
 
     def _write(self, writes: list[tuple[Lane, bytes]]) -> None:
         """Consecutive data lines go out in one write (one syscall, not one a line)."""

@@ -429,8 +429,9 @@ class Machine:
     def resume(self) -> Job:
         if not self._resumable():
             raise Busy(f"{self.id} has no paused job to resume")
-        self.engine.resume_stream()
-        self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
+        with self.engine.one_step():  # no job line goes out while the supervisor says paused
+            self.engine.resume_stream()
+            self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
         return self._set_job_state("running")
 
     async def cancel(self) -> Job:
