@@ -22,7 +22,7 @@ from functools import partial
 from typing import Annotated, Any, Final, Literal
 
 import structlog
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hostd import __version__
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
@@ -73,6 +73,20 @@ class Params(BaseModel):
 
 class MachineParams(Params):
     machine: MachineId
+
+
+class OverrideParams(MachineParams):
+    """Percentages; each optional, at least one."""
+
+    feed: Annotated[int, Field(strict=True, ge=1, le=1000)] | None = None
+    rapid: Annotated[int, Field(strict=True, ge=1, le=1000)] | None = None
+    spindle: Annotated[int, Field(strict=True, ge=1, le=1000)] | None = None
+
+    @model_validator(mode="after")
+    def _something(self) -> OverrideParams:
+        if self.feed is None and self.rapid is None and self.spindle is None:
+            raise ValueError("give feed, rapid or spindle")
+        return self
 
 
 class SendParams(MachineParams):
@@ -394,6 +408,10 @@ class Api:
         job = await self._machine(p.machine).jog(p.axes, p.feed)
         return {"job": job.id}
 
+    async def machine_override(self, p: OverrideParams) -> dict[str, Any]:
+        self._machine(p.machine).engine.override(p.feed, p.rapid, p.spindle)
+        return {}
+
     async def machine_jog_stop(self, p: MachineParams) -> dict[str, Any]:
         self._machine(p.machine).jog_stop()
         return {}
@@ -559,6 +577,7 @@ def build_methods(api: Api) -> Methods:
     m.register("machine.shutdown", MachineParams, api.machine_shutdown)
     m.register("machine.jog", JogParams, api.machine_jog)
     m.register("machine.jog_stop", MachineParams, api.machine_jog_stop, immediate=True)
+    m.register("machine.override", OverrideParams, api.machine_override, immediate=True)
     m.register("settings.get", SettingsGetParams, api.settings_get)
     m.register("settings.set", SettingsSetParams, api.settings_set)
     m.register("file.upload", UploadParams, api.file_upload)

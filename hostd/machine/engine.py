@@ -439,6 +439,13 @@ class Engine:
         if self._write_failed:
             raise NotConnected(f"{self.id}: not connected")
 
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """Feed, rapid and spindle overrides, in percent, written now (realtime)."""
+        self.session.override(feed, rapid, spindle)
+        self._deliver()
+
     def query_status(self) -> None:
         """Ask the board for a full status report now."""
         self.session.query_status()

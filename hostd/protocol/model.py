@@ -49,6 +49,7 @@ class MachineModel:
     # "Door:1", "Check") and laser mode (grbl's $32).
     board_state: str | None = None
     laser_mode: bool | None = None
+    overrides: dict[str, float] | None = None  # percent: feed, rapid, spindle (grbl's Ov)
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
         """Take one status report (automatic or requested); return the new state if it changed."""
@@ -109,6 +110,7 @@ class MachineModel:
         self.probe = None
         self.board_state = None
         self.laser_mode = None
+        self.overrides = None
 
     def snapshot(self) -> dict[str, Any]:
         state = self.state
@@ -133,6 +135,7 @@ class MachineModel:
             "last_exception": self.last_exception,
             "board_state": self.board_state,
             "laser_mode": self.laser_mode,
+            "overrides": None if self.overrides is None else dict(self.overrides),
         }
 
 

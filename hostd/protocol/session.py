@@ -29,7 +29,7 @@ from typing import Any, Protocol
 import structlog
 
 from hostd.protocol.classes import CommandClass
-from hostd.protocol.commands import Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
@@ -266,6 +266,14 @@ class SessionBase:
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
+
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """Set the feed, rapid and spindle overrides (percent) now, in any state."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no realtime overrides"
+        )
 
     def settings_read(self, keys: list[str]) -> list[str]:
         """The query lines that read these settings."""

@@ -86,3 +86,21 @@ async def test_a_line_grbl_would_misread_never_reaches_it(both: tuple[Running, R
     assert err.data["refusal"] == "realtime" and "realtime" in err.message
     sim = hostd.daemon.sims["sim2"]
     assert not any(r.kind == "realtime" and r.data == b"!" for r in sim.received)
+
+
+async def test_overrides_reach_a_grbl_board_and_are_refused_on_g2core(
+    both: tuple[Running, Rpc],
+) -> None:
+    _, rpc = both
+    await rpc.call("subscribe", topics=["status"], machine="sim2")
+    assert await rpc.call("machine.override", machine="sim2", feed=120, rapid=50, spindle=80) == {}
+    want = {"feed": 120, "rapid": 50, "spindle": 80}
+    await rpc.notification(
+        lambda n: n["method"] == "status" and n["params"]["snapshot"]["overrides"] == want
+    )
+    err = await fails(-32602, rpc.call("machine.override", machine="sim2", feed=250))
+    assert "10 to 200" in err.message
+    err = await fails(-32602, rpc.call("machine.override", machine="sim2", rapid=75))
+    assert "100, 50 or 25" in err.message
+    err = await fails(-32602, rpc.call("machine.override", machine="sim1", feed=110))
+    assert "no realtime overrides" in err.message

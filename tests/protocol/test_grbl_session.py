@@ -338,3 +338,15 @@ async def test_a_silent_board_is_given_up_but_not_while_homing() -> None:
     homing.at(0.25)
     homing.at(10.0)
     assert not any(isinstance(e, Closing) for e in homing.events)
+
+
+async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=123, rapid=25, spindle=85)
+    assert grbl.pump() == [
+        (Lane.REALTIME, b)
+        for b in (b"\x90", b"\x91", b"\x91", b"\x93", b"\x93", b"\x93", b"\x97", b"\x99", b"\x9b")
+    ] + [(Lane.REALTIME, b"\x9d")] * 5
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:123,25,85>")
+    assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}

@@ -44,8 +44,34 @@ OVERRIDES = {
     "spindle_plus_1": b"\x9c",
     "spindle_minus_1": b"\x9d",
 }
+OVERRIDE_RANGE = (10, 200)  # percent, feed and spindle (grbl config.h MIN/MAX_*_OVERRIDE)
+_RAPIDS = {100: OVERRIDES["rapid_reset"], 50: OVERRIDES["rapid_50"], 25: OVERRIDES["rapid_25"]}
 CLASSIC_RX_BUFFER = 128  # grbl 1.1's serial receive buffer (gnea/grbl config.h)
 CLASSIC_BLOCKS = 15  # grbl 1.1's planner (BLOCK_BUFFER_SIZE on the 328p)
+
+
+def override_steps(percent: int, what: str) -> list[bytes]:
+    """The bytes that take a feed or spindle override from anywhere to `percent`."""
+    low, high = OVERRIDE_RANGE
+    if not low <= percent <= high:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER, f"a {what} override is {low} to {high} percent, not {percent}"
+        )
+    tens, ones = divmod(abs(percent - 100), 10)
+    sign = "plus" if percent >= 100 else "minus"
+    return [
+        OVERRIDES[f"{what}_reset"],
+        *[OVERRIDES[f"{what}_{sign}_10"]] * tens,
+        *[OVERRIDES[f"{what}_{sign}_1"]] * ones,
+    ]
+
+
+def rapid_override(percent: int) -> bytes:
+    if percent not in _RAPIDS:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER, f"a rapid override is 100, 50 or 25 percent, not {percent}"
+        )
+    return _RAPIDS[percent]
 
 
 # -- what the board prints -------------------------------------------------------

@@ -163,6 +163,26 @@ class GrblSession(SessionBase):
         """`$J=G91 X1.5000 F600.000`: grbl allows no G1 in a jog (gcode.c), and 0x85 cancels it."""
         return [f"$J=G91 {jog_words(axes, feed)}"]
 
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The override bytes (grbl.h CMD_OVERRIDE_*): from 100%, in steps of 10 then 1.
+
+        grbl's overrides are relative steps; an absolute percentage is a reset
+        to 100 then the steps to it, all realtime bytes, taken in any state.
+        Rapid has three settings: 100, 50 and 25.
+        """
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        out: list[bytes] = []
+        if feed is not None:
+            out += codec.override_steps(feed, "feed")
+        if rapid is not None:
+            out.append(codec.rapid_override(rapid))
+        if spindle is not None:
+            out += codec.override_steps(spindle, "spindle")
+        self._out += [(Lane.REALTIME, b) for b in out]
+
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
         return ["$$"]  # one line lists them all
@@ -383,6 +403,9 @@ class GrblSession(SessionBase):
         for key in ("Ov", "A"):
             if key in raw:
                 fields[key.lower()] = raw[key]
+        ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
+        if ov is not None and len(ov) == 3:  # sent now and then (report.c's counters)
+            self.model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
         # Pins as keys a signal can name: pin_x .. pin_d (door), pin_p (probe), pin_e
         # (e-stop). grbl leaves Pn out when no pin is active, so every key is always set.
         active = raw.get("Pn", "")
