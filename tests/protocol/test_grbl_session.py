@@ -344,9 +344,23 @@ async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.override(feed=123, rapid=25, spindle=85)
-    assert grbl.pump() == [
-        (Lane.REALTIME, b)
-        for b in (b"\x90", b"\x91", b"\x91", b"\x93", b"\x93", b"\x93", b"\x97", b"\x99", b"\x9b")
-    ] + [(Lane.REALTIME, b"\x9d")] * 5
+    assert (
+        grbl.pump()
+        == [
+            (Lane.REALTIME, b)
+            for b in (
+                b"\x90",
+                b"\x91",
+                b"\x91",
+                b"\x93",
+                b"\x93",
+                b"\x93",
+                b"\x97",
+                b"\x99",
+                b"\x9b",
+            )
+        ]
+        + [(Lane.REALTIME, b"\x9d")] * 5
+    )
     grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:123,25,85>")
     assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}
