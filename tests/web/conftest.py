@@ -94,10 +94,13 @@ class WsRpc:
 
 @contextlib.asynccontextmanager
 async def running_web(
-    tmp_path: Path, clock: Callable[[], float] | None = None, **web: Any
+    tmp_path: Path,
+    clock: Callable[[], float] | None = None,
+    machine: dict[str, Any] | None = None,
+    **web: Any,
 ) -> AsyncIterator[Web]:
-    """`web` are `[web]` keys; listen defaults to a free loopback port."""
-    async with running_daemon(tmp_path) as hostd:
+    """`web` are `[web]` keys (listen: a free loopback port); `machine` more machine keys."""
+    async with running_daemon(tmp_path, **(machine or {})) as hostd:
         tokens = TokenStore(hostd.daemon.state_dir)
         token = await asyncio.to_thread(tokens.create, "test")
         config = WebConfig(**{"listen": "127.0.0.1:0", **web})
