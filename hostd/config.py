@@ -2,6 +2,7 @@
 
 Keys fixed by running.md: `[daemon] socket, state_dir`; per `[[machines]]`:
 `id, dialect, data_port, control_port, baudrate, window, auto_connect`.
+`[web]` (docs/web.md) turns on the browser dashboard; without it there is none.
 The rest (timings, the jobs quota) is the project's, documented in docs/operations.md.
 Invalid config is one `ConfigError` naming the file, the key and the problem.
 """
@@ -90,9 +91,45 @@ class MachineConfig(_Strict):
         return self.data_port == SIM_PORT
 
 
+class WebConfig(_Strict):
+    """The dashboard's HTTP server (hostd/api/web.py); docs/web.md."""
+
+    # "host:port", "[v6 address]:port"; port 0 picks a free one (tests).
+    listen: str
+    # False: watch only; the methods that move or change anything are refused.
+    control: bool = True
+    # Login attempts one address may make a minute (successful ones count too).
+    login_attempts: Annotated[int, Field(ge=1, le=1000)] = 5
+
+    @field_validator("listen")
+    @classmethod
+    def _host_and_port(cls, listen: str) -> str:
+        split_listen(listen)
+        return listen
+
+    @property
+    def host(self) -> str:
+        return split_listen(self.listen)[0]
+
+    @property
+    def port(self) -> int:
+        return split_listen(self.listen)[1]
+
+
+def split_listen(listen: str) -> tuple[str, int]:
+    """("127.0.0.1", 7080) from "127.0.0.1:7080", ("::1", 7080) from "[::1]:7080"."""
+    host, sep, port = listen.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"{listen!r}: expected host:port, e.g. 127.0.0.1:7080")
+    return host, int(port)
+
+
 class Config(_Strict):
     daemon: DaemonConfig = DaemonConfig()
     machines: list[MachineConfig] = []
+    web: WebConfig | None = None
 
     @field_validator("machines")
     @classmethod

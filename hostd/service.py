@@ -18,15 +18,21 @@ import asyncio
 import gc
 import signal
 import sys
+from typing import TYPE_CHECKING
 
 import structlog
 
 from hostd.api import socketfile
 from hostd.api.methods import Api, build_methods
 from hostd.api.peer import AccessPolicy, group_id
+from hostd.api.rpc import Methods
 from hostd.api.server import ApiServer
 from hostd.api.socketfile import SocketPathError
+from hostd.api.tokens import TokenStore
 from hostd.config import Config, ConfigError, load_config
+
+if TYPE_CHECKING:
+    from hostd.api.web import WebServer
 from hostd.daemon import Daemon
 from hostd.logs import configure_logging
 from hostd.machine.events import Event, SupervisorChanged
@@ -96,13 +102,15 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
     notifier = Notifier()
     daemon = Daemon(config)
     api = Api(daemon)
+    methods = build_methods(api)
     server = ApiServer(
-        build_methods(api),
+        methods,
         policy=policy,
         socket_gid=gid,
         max_clients=config.daemon.max_clients,
         line_timeout=config.daemon.line_timeout,
     )
+    web = _web_server(config, api, methods)
     loop = asyncio.get_running_loop()
 
     def stop() -> None:
@@ -124,6 +132,8 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
         for machine in daemon.machines.values():
             machine.hub.subscribe(status)
         await server.start(socket_path)
+        if web is not None:
+            await web.start()
         # Everything built at start-up lives as long as the daemon: keep it out of
         # the collector's full passes, which otherwise stall the loop (and a `!`)
         # for tens of milliseconds every second or so under load (bench P2f).
@@ -138,11 +148,23 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
     finally:
         watchdog.cancel()
         expiry.cancel()
+        if web is not None:
+            await web.close()
         await server.close()
         notifier.close()
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(signum)
         log.info("hostd stopped")
+
+
+def _web_server(config: Config, api: Api, methods: Methods) -> WebServer | None:
+    """The dashboard (docs/web.md), only when the config has a `[web]` table."""
+    if config.web is None:
+        return None
+    from hostd.api.web import WebServer  # aiohttp loads only for a daemon that serves the web
+
+    tokens = TokenStore(config.daemon.state_dir)
+    return WebServer(methods, api.jobs, tokens, config.web, max_clients=config.daemon.max_clients)
 
 
 def _sweep_interval(config: Config) -> float:

@@ -88,13 +88,16 @@ class Client:
     requests runs even if the client left while the request ran (hooks run
     again once its last request is done); one appended from elsewhere after
     `closed` became true does not.
+
+    Another transport (the web API's WebSocket, hostd/api/web.py) passes no
+    stream `writer` and overrides `_abort` and `_write_loop`.
     """
 
     def __init__(
         self,
         id: int,
         peer: PeerCred,
-        writer: asyncio.StreamWriter,
+        writer: asyncio.StreamWriter | None,
         *,
         queue_size: int,
         write_timeout: float,
@@ -166,10 +169,15 @@ class Client:
             return
         self._closed = True
         self.log.info("api client disconnected", reason=reason)
-        self._writer.transport.abort()
+        self._abort()
         if self._writer_task is not None and self._writer_task is not asyncio.current_task():
             self._writer_task.cancel()
         asyncio.get_running_loop().call_soon(self._run_hooks)
+
+    def _abort(self) -> None:
+        """Drop the transport at once, unsent data and all."""
+        if self._writer is not None:
+            self._writer.transport.abort()
 
     def _finish(self, end: _End, reason: str = "client ended the connection") -> None:
         """Let the writer send what is queued, then end the connection as `end` says.
@@ -196,6 +204,7 @@ class Client:
 
     async def _write_loop(self) -> None:
         """The only writer of this socket: sends queued messages in batches, one drain each."""
+        assert self._writer is not None
         try:
             while True:
                 batch: list[bytes] = []
@@ -463,7 +472,7 @@ class ApiServer:
         lines = LineReader(reader, max_line=self._max_line, line_timeout=self._line_timeout)
         slots = asyncio.Semaphore(self._max_inflight)
         pending: set[asyncio.Task[None]] = set()
-        connection = client._writer.transport.get_protocol()
+        connection = writer.transport.get_protocol() if (writer := client._writer) else None
         if isinstance(connection, _Connection):
             connection.fast = lambda data: (
                 not pending and self._answer_now(client, reader, lines, data)

@@ -116,7 +116,59 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = client("watch", "watch", "status, exceptions and supervisor changes live, until Ctrl-C")
     p.add_argument("machine", nargs="?", metavar="MACHINE")
+
+    token = sub.add_parser("token", help="the web dashboard's access tokens (docs/web.md)")
+    token.set_defaults(command="token", handler=_token_usage(token))
+    tokens = token.add_subparsers(title="token commands", metavar="ACTION")
+    for action, help in (
+        ("create", "make a token; it is printed once, only its hash is kept"),
+        ("list", "the tokens on file, by id"),
+        ("revoke", "remove a token by its id"),
+    ):
+        p = tokens.add_parser(action, help=help, description=help)
+        p.set_defaults(command="token", handler=_token_handler(action))
+        p.add_argument("--config", required=True, help="the daemon's TOML config (its state_dir)")
+        if action == "create":
+            p.add_argument("--name", default="", help="a note saying whose token it is")
+        if action == "revoke":
+            p.add_argument("id", metavar="ID")
     return parser
+
+
+def _token_usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    def usage(args: argparse.Namespace) -> int:
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
+
+    return usage
+
+
+def _token_handler(action: str) -> Callable[[argparse.Namespace], int]:
+    """`hostd token ...`: local, on the daemon's state_dir (the daemon need not run)."""
+
+    def handler(args: argparse.Namespace) -> int:
+        from hostd.api.tokens import TokenStore
+        from hostd.config import ConfigError, load_config
+
+        try:
+            store = TokenStore(load_config(args.config).daemon.state_dir)
+            if action == "create":
+                print(store.create(args.name))
+            elif action == "list":
+                for record in store.records():
+                    print(f"{record.id}  {record.name}")
+            elif not store.revoke(args.id):
+                print(f"hostd: no token {args.id!r}", file=sys.stderr)
+                return EXIT_API
+        except ConfigError as exc:
+            print(f"hostd: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        except OSError as exc:
+            print(f"hostd: {exc}", file=sys.stderr)
+            return EXIT_API
+        return EXIT_OK
+
+    return handler
 
 
 def _client_options(parser: argparse.ArgumentParser, default: Any) -> None:

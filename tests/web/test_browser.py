@@ -1,0 +1,160 @@
+"""The dashboard in a real headless Chromium (Debian's), driven by Playwright.
+
+Playwright never downloads a browser here: it launches /usr/bin/chromium
+with a fresh profile. Skipped when that binary is missing (`.ci/run`
+installs it). HOSTD_SCREENSHOTS=DIR saves the screenshots there too
+(docs/screenshots is where the README's come from).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from tests.web.conftest import Web, running_web
+
+playwright = pytest.importorskip("playwright.async_api")
+
+CHROMIUM = "/usr/bin/chromium"
+FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+SIGNALS = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
+LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
+TIMEOUT = 10_000  # ms: the longest any step waits for the page
+playwright.expect.set_options(timeout=TIMEOUT)
+PROGRESS_OVER = "(least) => document.getElementById('job-progress').value > least"
+
+pytestmark = [
+    pytest.mark.asyncio,
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed"),
+]
+
+
+@pytest_asyncio.fixture
+async def browser(tmp_path: Path) -> AsyncIterator[playwright.BrowserContext]:
+    async with playwright.async_playwright() as p:
+        context = await p.chromium.launch_persistent_context(
+            tmp_path / "chromium-profile",
+            executable_path=CHROMIUM,
+            headless=True,
+            args=FLAGS,
+            viewport={"width": 1280, "height": 900},
+        )
+        context.set_default_timeout(TIMEOUT)
+        try:
+            yield context
+        finally:
+            await context.close()
+
+
+async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:
+    path = tmp_path / f"{name}.png"
+    await page.screenshot(path=path, full_page=True)
+    if where := os.environ.get("HOSTD_SCREENSHOTS"):
+        await asyncio.to_thread(_keep, path, Path(where))
+
+
+def _keep(path: Path, where: Path) -> None:
+    where.mkdir(parents=True, exist_ok=True)
+    shutil.copy(path, where / path.name)
+
+
+async def log_in(page: playwright.Page, web: Web) -> None:
+    await page.goto(f"{web.url}/login#token={web.token}")
+    await page.wait_for_url(f"{web.url}/")
+    expect = playwright.expect
+    await expect(page.locator("#link")).to_have_text("live")
+    await expect(page.locator("#supervisor")).to_have_text("idle")
+
+
+async def test_log_in_upload_start_hold_resume_and_see_a_fault(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    expect = playwright.expect
+    async with running_web(tmp_path, machine={"signals": SIGNALS}) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        sim.set_analog(1, 3.0)  # coolant flowing
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#controller")).to_have_text("READY")
+        await expect(page.locator("#indicator")).to_have_attribute("data-level", "normal")
+
+        program = tmp_path / "star.nc"
+        program.write_text(LONG)
+        await page.set_input_files("#upload-file", program)
+        await page.click("#upload button")
+        await expect(page.locator("#files")).to_have_value("star.nc")
+        await expect(page.locator("#analysis")).to_contain_text("400 lines")
+        await page.click("#start")
+        await expect(page.locator("#supervisor")).to_have_text("operation")
+        await page.wait_for_function(PROGRESS_OVER, arg=0.02)
+        await screenshot(page, tmp_path, "dashboard")
+
+        await page.click("[data-action=hold]")
+        await expect(page.locator("#controller")).to_have_text("HOLD")
+        held = await page.eval_on_selector("#job-progress", "p => p.value")
+        await page.click("[data-action=resume]")
+        await expect(page.locator("#controller")).to_have_text("RUN")
+        await page.wait_for_function(PROGRESS_OVER, arg=held)
+
+        await page.click("[data-action=cancel]")  # destructive: asks first
+        await expect(page.locator("#confirm")).to_be_visible()
+        await page.click("#confirm-yes")
+        await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
+
+        sim.set_analog(1, 0.2)  # the coolant stops: an alert
+        await expect(page.locator("#indicator")).not_to_have_attribute("data-level", "normal")
+        await expect(page.locator("#faults")).to_contain_text("water_flow")
+        await screenshot(page, tmp_path, "fault")
+
+        await page.set_viewport_size({"width": 390, "height": 844})
+        await screenshot(page, tmp_path, "phone")
+        width = await page.evaluate("document.documentElement.scrollWidth")
+        assert width <= 390, "the page scrolls sideways on a phone"
+
+
+async def test_the_csp_blocks_inline_script(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        violated = await page.evaluate(
+            """() => new Promise((resolve) => {
+                document.addEventListener('securitypolicyviolation',
+                    (e) => resolve(e.violatedDirective), {once: true});
+                const s = document.createElement('script');
+                s.textContent = 'window.inlineRan = true';
+                document.body.append(s);
+            })"""
+        )
+        assert violated.startswith("script-src")
+        assert await page.evaluate("window.inlineRan === undefined")
+
+
+async def test_watch_only_shows_the_machine_without_controls(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    expect = playwright.expect
+    async with running_web(tmp_path, control=False) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#watch-only")).to_be_visible()
+        for control in ("[data-action=hold]", "[data-action=reset]", "#start", "#upload"):
+            await expect(page.locator(control)).to_be_hidden()
+        hold = "rpc.call('machine.feedhold', {machine: 'sim1'}).catch(e => e.code)"
+        assert await page.evaluate(hold) == -32601
+        await screenshot(page, tmp_path, "watch-only")

@@ -1,0 +1,151 @@
+"""The web API through a real aiohttp server on loopback: tokens, Origin, CSP, the one API."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import aiohttp
+import pytest
+
+from hostd.api.web import COOKIE
+from tests.web.conftest import Web, WsRpc, running_web
+
+pytestmark = pytest.mark.asyncio
+
+
+async def test_without_a_token_nothing_but_the_login_page_is_served(web: Web) -> None:
+    s = web.session
+    async with s.get(f"{web.url}/", allow_redirects=False) as r:
+        assert r.status == 302 and r.headers["Location"] == "/login"
+    for path in ("/static/app.js", "/session"):
+        async with s.get(f"{web.url}{path}") as r:
+            assert r.status == 401
+    async with s.post(f"{web.url}/files/a.nc", data=b"G0 X1\n") as r:
+        assert r.status == 401
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        await s.ws_connect(f"{web.url}/api")
+    assert refused.value.status == 401
+    with pytest.raises(aiohttp.WSServerHandshakeError):
+        await s.ws_connect(f"{web.url}/api", headers=web.auth("hostd_not-a-token"))
+    async with s.get(f"{web.url}/login") as r:
+        assert r.status == 200 and "<form" in await r.text()
+
+
+async def test_every_response_carries_a_restrictive_csp(web: Web) -> None:
+    for path, headers in (("/login", {}), ("/", web.auth()), ("/session", {})):
+        async with web.session.get(f"{web.url}{path}", headers=headers) as r:
+            csp = r.headers["Content-Security-Policy"]
+            assert "default-src 'none'" in csp and "script-src 'self'" in csp
+            assert "unsafe-inline" not in csp and "frame-ancestors 'none'" in csp
+            assert r.headers["X-Content-Type-Options"] == "nosniff"
+
+
+async def test_the_websocket_speaks_the_same_json_rpc_and_notifications(web: Web) -> None:
+    api = await web.ws()
+    try:
+        assert (await api.call("daemon.info"))["machines"] == ["sim1"]
+        assert (await api.call("machine.status", machine="sim1"))["supervisor"] == "idle"
+        error = (await api.request("machine.status", machine="nope"))["error"]
+        assert error["code"] == 1001
+        await api.call("subscribe", topics=["status"], machine="sim1")
+        note = await api.notification(lambda n: n["method"] == "status")
+        assert note["params"]["machine"] == "sim1" and "snapshot" in note["params"]
+    finally:
+        await api.close()
+
+
+async def test_a_login_sets_an_httponly_samesite_strict_cookie_that_opens_the_api(
+    web: Web,
+) -> None:
+    # unsafe: the jar keeps cookies of a bare IP address (127.0.0.1), as a browser does.
+    async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as browser:
+        async with browser.post(f"{web.url}/login", json={"token": "wrong"}) as r:
+            assert r.status == 401
+        async with browser.post(f"{web.url}/login", json={"token": web.token}) as r:
+            assert r.status == 200
+            cookie = r.cookies[COOKIE]
+            assert cookie["httponly"] and cookie["samesite"] == "Strict"
+            assert cookie["path"] == "/"
+        api = WsRpc(await browser.ws_connect(f"{web.url}/api"))  # the jar carries the cookie
+        try:
+            assert (await api.call("machine.list"))[0]["id"] == "sim1"
+        finally:
+            await api.close()
+
+
+async def test_a_websocket_from_another_origin_is_refused(web: Web) -> None:
+    with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+        await web.ws(headers={**web.auth(), "Origin": "http://evil.example"})
+    assert refused.value.status == 403
+    same = await web.ws(headers={**web.auth(), "Origin": web.url})
+    await same.close()
+
+
+async def test_login_attempts_are_rate_limited_per_address(tmp_path: Path) -> None:
+    now = [1000.0]
+    async with running_web(tmp_path, clock=lambda: now[0], login_attempts=3) as web:
+        for _ in range(3):
+            async with web.session.post(f"{web.url}/login", json={"token": "guess"}) as r:
+                assert r.status == 401
+        async with web.session.post(f"{web.url}/login", json={"token": web.token}) as r:
+            assert r.status == 429 and int(r.headers["Retry-After"]) > 0
+        now[0] += 61
+        async with web.session.post(f"{web.url}/login", json={"token": web.token}) as r:
+            assert r.status == 200
+
+
+async def test_an_upload_over_http_lands_in_the_jobs_directory_under_the_same_rules(
+    web: Web,
+) -> None:
+    body = b"".join(f"G1 X{i % 50} Y{i % 7} F600\n".encode() for i in range(200_000))
+    async with web.session.post(f"{web.url}/files/big.nc", data=body, headers=web.auth()) as r:
+        assert r.status == 200, await r.text()
+        assert await r.json() == {"name": "big.nc", "size": len(body)}
+    assert (web.hostd.jobs / "big.nc").read_bytes() == body
+    for bad in (".hidden", "a%5Cb"):
+        async with web.session.post(f"{web.url}/files/{bad}", data=b"x", headers=web.auth()) as r:
+            assert r.status == 400
+    async with web.session.post(
+        f"{web.url}/files/x.nc", data=b"x", headers={**web.auth(), "Origin": "http://evil.example"}
+    ) as r:
+        assert r.status == 403
+    api = await web.ws()
+    try:
+        assert "big.nc" in [f["name"] for f in await api.call("file.list")]
+    finally:
+        await api.close()
+
+
+async def test_watch_only_serves_reads_and_refuses_control_and_uploads(tmp_path: Path) -> None:
+    async with running_web(tmp_path, control=False) as web:
+        async with web.session.get(f"{web.url}/session", headers=web.auth()) as r:
+            assert await r.json() == {"control": False}
+        async with web.session.post(f"{web.url}/files/a.nc", data=b"G0\n", headers=web.auth()) as r:
+            assert r.status == 403
+        api = await web.ws()
+        try:
+            assert (await api.call("machine.status", machine="sim1"))["id"] == "sim1"
+            for method in ("machine.feedhold", "job.cancel", "machine.reset"):
+                error = (await api.request(method, machine="sim1"))["error"]
+                assert error["code"] == -32601 and "watch only" in error["message"]
+        finally:
+            await api.close()
+
+
+async def test_a_tab_that_falls_behind_its_queue_is_dropped_and_others_go_on(web: Web) -> None:
+    slow, other = await web.ws(), await web.ws()
+    try:
+        await slow.call("daemon.info")
+        await other.call("daemon.info")
+        behind = next(c for c in web.server.clients if c.id == 1)
+        # A burst of notifications within one loop pass: more than the bounded queue holds.
+        for _ in range(1001):
+            behind.notify("status", {"machine": "sim1"})
+        assert behind.closed
+        async with asyncio.timeout(5):
+            await slow.closed.wait()
+        assert (await other.call("machine.status", machine="sim1"))["id"] == "sim1"
+    finally:
+        await slow.close()
+        await other.close()
