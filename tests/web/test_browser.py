@@ -14,12 +14,11 @@ import shutil
 from collections.abc import AsyncIterator
 from pathlib import Path
 
+import playwright.async_api as playwright
 import pytest
 import pytest_asyncio
 
 from tests.web.conftest import Web, running_web
-
-playwright = pytest.importorskip("playwright.async_api")
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = [
@@ -37,10 +36,16 @@ TIMEOUT = 10_000  # ms: the longest any step waits for the page
 playwright.expect.set_options(timeout=TIMEOUT)
 PROGRESS_OVER = "(least) => document.getElementById('job-progress').value > least"
 
-pytestmark = [
-    pytest.mark.asyncio,
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed"),
-]
+pytestmark = pytest.mark.asyncio
+
+
+@pytest.fixture(autouse=True)
+def _chromium_installed() -> None:
+    """The page is tested in a real browser or not at all: a missing one is a failure."""
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(
+            f"{CHROMIUM} is missing: apt-get install chromium chromium-driver (.ci/run does)"
+        )
 
 
 @pytest_asyncio.fixture
