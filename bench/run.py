@@ -60,6 +60,7 @@ WINDOW = 4
 MACHINE = "bench"
 SECOND = "other"  # P2f's second machine
 LONG_JOB = 1_000_000  # lines: a job that outlasts the samples taken while it streams
+FLEET = 8  # P6's machines in one daemon
 
 
 @dataclass
@@ -485,6 +486,61 @@ class Bench:
             flood,
         )
 
+    # P6 ---------------------------------------------------------------------------
+
+    def fleet(self) -> None:
+        """Eight machines streaming in one daemon: their aggregate rate, CPU a line, and
+        P2's holds on the first while the other seven stream."""
+        ids = [MACHINE, *(f"m{i}" for i in range(2, FLEET + 1))]
+        with self._machines("p6", ids) as (daemon, controllers):
+            client = daemon.client()
+            try:
+                client.upload("p6.gcode", program(LONG_JOB))
+                for machine, controller in zip(ids, controllers, strict=True):
+                    daemon.wait_idle(machine=machine)
+                    controller.expect(LONG_JOB)
+                    controller.dump()
+                jobs = {m: client.call("job.start", machine=m, file="p6.gcode")["job"] for m in ids}
+                time.sleep(0.5)  # every machine streaming at full rate
+                acked0 = self._acked(client, jobs)
+                cpu0, t0 = daemon.cpu_seconds(), time.monotonic()
+                with self._profiled(daemon, "p6", "P6 eight machines, holds on the first"):
+                    sent_at = self._feedholds(client, MACHINE)
+                seconds, cpu = time.monotonic() - t0, daemon.cpu_seconds() - cpu0
+                acked1 = self._acked(client, jobs)
+                running = [
+                    m
+                    for m, j in jobs.items()
+                    if client.call("job.get", job=j)["state"] in ("running", "paused")
+                ]
+                latencies = self._latencies(controllers[0], sent_at, "p6")
+                for machine in running:
+                    client.call("job.cancel", machine=machine)
+            finally:
+                client.close()
+        lines = sum(acked1[m] - acked0[m] for m in ids)
+        others = sum(acked1[m] - acked0[m] for m in ids[1:])
+        p99 = pct(latencies, 0.99)
+        self.rows.append(
+            Row(
+                f"P6 {FLEET} machines: `!` on one, {len(latencies)} holds",
+                spread(latencies),
+                f"{lines / seconds:,.0f} lines/s in all",
+                f"{cpu / lines * 1e6:.1f} us CPU/line",
+                "p99 < 2 ms",
+                p99 < 2e-3 and len(running) == FLEET,
+                [
+                    f"{lines:,} lines acked in {seconds:.1f} s ({others:,} by the other "
+                    f"{FLEET - 1}); daemon CPU {cpu:.2f} s = {cpu / seconds:.0%} of a core; "
+                    f"streaming to the end: {len(running)} of {FLEET}",
+                ],
+            )
+        )
+
+    @staticmethod
+    def _acked(client: Any, jobs: dict[str, int]) -> dict[str, int]:
+        return {m: client.call("job.get", job=j)["lines_acked"] for m, j in jobs.items()}
+
     # P3 ---------------------------------------------------------------------------
 
     def fanout(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
@@ -590,6 +646,9 @@ class Bench:
         if wanted("p4"):
             _progress("p4...")
             self.memory()
+        if wanted("p6"):
+            _progress("p6...")
+            self.fleet()
 
 
 def _progress(text: str) -> None:
@@ -620,7 +679,9 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PY_SPY",
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
-    parser.add_argument("--only", help="comma-separated subset: p1,p2,p2f,p3,p4 (p5 comes with p1)")
+    parser.add_argument(
+        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6 (p5 comes with p1)"
+    )
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
         "--no-pin", action="store_true", help="let the scheduler place the processes"
