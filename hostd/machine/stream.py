@@ -51,13 +51,10 @@ class JobStream:
         self.program_pause_sent = False
         self.paused = False  # from the job's `!` to its `~`: none of its lines is written
         self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
+        self.done = False  # the outcome is set (read at every line: a plain attribute)
         # Set when `acked` reaches `wake_at`, and when the stream ends: its runner's cue.
         self.wake = asyncio.Event()
         self.wake_at: int | None = None
-
-    @property
-    def done(self) -> bool:
-        return self.result.done()
 
     def peek(self) -> tuple[int, bytes] | None:
         """The next line to write (file line number, encoded), or None when there is none.
@@ -94,6 +91,7 @@ class JobStream:
 
     def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
         if not self.done:
+            self.done = True
             self._next = None
             self.result.set_result(StreamResult(end, code, message))
             self.wake.set()

@@ -532,7 +532,8 @@ class G2Session(SessionBase):
         if self.phase is not Phase.READY or self.halted:
             return
         state = self.model.state
-        context = self._context()
+        # Judged only when a client's line waits: most passes carry job lines alone.
+        context = self._context() if self._lane or self._outbox else Context.FREE
         flushing = self._flush is not None
         unsure = flushing or self._await_report  # the board may be anywhere now
         lane = self._lane
@@ -567,6 +568,7 @@ class G2Session(SessionBase):
         ):
             return
         out = self._out
+        data = Lane.DATA
         while sender.has_room:
             nxt = stream.peek()
             if nxt is None:
@@ -574,12 +576,12 @@ class G2Session(SessionBase):
                 return
             number, encoded = nxt
             try:
-                sender.sent(InFlight(encoded, stream, number))
+                sender.sent(InFlight(encoded, stream, number), urgent=True)  # room: just seen
             except SenderError as exc:
                 self.halt(str(exc))
                 return
             stream.take()
-            out.append((Lane.DATA, encoded))
+            out.append((data, encoded))
 
     def _book(self, encoded: bytes, source: Any, lane: Lane, *, own: bool = False) -> None:
         """Write one line and put it on the books; an urgent one may pass its budget."""
