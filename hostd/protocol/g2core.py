@@ -569,17 +569,15 @@ class G2Session(SessionBase):
             return
         out = self._out
         data = Lane.DATA
-        while sender.has_room:
+        while True:
             nxt = stream.peek()
             if nxt is None:
                 self._check_stream_complete()
                 return
             number, encoded = nxt
-            try:
-                sender.sent(InFlight(encoded, stream, number), urgent=True)  # room: just seen
-            except SenderError as exc:
-                self.halt(str(exc))
+            if not sender.room(encoded):  # by its kind: a job may hold `{`-lines too
                 return
+            sender.sent(InFlight(encoded, stream, number), urgent=True)  # room: just seen
             stream.take()
             out.append((data, encoded))
 

@@ -434,3 +434,17 @@ async def test_a_long_job_streams_in_plain_calls() -> None:
         if not wire.answer_all():
             wire.report(stat=4)
     assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
+
+
+async def test_a_json_line_in_a_job_takes_the_control_lane_and_its_answer() -> None:
+    wire = ready(window=1)
+    stream = job("G1 X1 F100", '{"xvm":null}', "G1 X2")
+    wire.session.start_stream(stream)
+    wire.pump()
+    # The window holds one G-code line; the `{`-line goes in the control lane beside it.
+    assert wire.lines() == [b"G1 X1 F100\n", b'{"xvm":null}\n']
+    wire.answer(b'{"xvm":null}\n', {"xvm": 6000})  # the board runs it first
+    wire.answer(b"G1 X1 F100\n", {})
+    wire.answer(b"G1 X2\n", {})
+    wire.report(stat=4)
+    assert stream.result.result().end is StreamEnd.COMPLETED and stream.acked == 3
