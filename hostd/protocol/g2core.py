@@ -40,7 +40,7 @@ from typing import Any
 
 import structlog
 
-from hostd.protocol.classes import CommandClass, admit, classify, classify_realtime
+from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
     Realtime,
     encode_clear,
@@ -703,16 +703,7 @@ class G2Session(SessionBase):
         encoded = encode_in_hold(text) if _is_gcode(text) else encode_line(text)
         self._lane.append(Queued(encoded, cls, token, context))
 
-    def realtime(self, command: Realtime) -> None:
-        """Write a realtime byte now (it never waits), if the state admits it."""
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
-        cls = classify_realtime(command)
-        verdict = admit(cls, self.model.state)
-        if verdict is not None:
-            raise Rejected(verdict, self._locked_message())
-        if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
-            raise self._write_refused()
+    def _realtime(self, command: Realtime) -> None:
         self._write_realtime(command)
 
     def reset(self) -> None:

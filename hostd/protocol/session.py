@@ -28,7 +28,7 @@ from typing import Any, Protocol
 
 import structlog
 
-from hostd.protocol.classes import CommandClass
+from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
 from hostd.protocol.messages import JsonObject, Response
@@ -224,6 +224,18 @@ class SessionBase:
 
     def realtime(self, command: Realtime) -> None:
         """Write a realtime command now (it never waits), if the state admits it."""
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        cls = classify_realtime(command)
+        verdict = self._admit(cls, self.model.state)
+        if verdict is not None:
+            raise Rejected(verdict, self._locked_message())
+        if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
+            raise self._write_refused()
+        self._realtime(command)
+
+    def _realtime(self, command: Realtime) -> None:
+        """The dialect's bytes for an admitted realtime command."""
         raise NotImplementedError
 
     # -- what a dialect takes --------------------------------------------------

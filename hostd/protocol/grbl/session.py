@@ -35,7 +35,7 @@ from collections.abc import Callable, Mapping
 from enum import Enum, auto
 from typing import Any
 
-from hostd.protocol.classes import FORWARD, CommandClass, Table, admit, classify_realtime
+from hostd.protocol.classes import FORWARD, CommandClass, Table, admit
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
 from hostd.protocol.gcode import jog_words
@@ -681,15 +681,7 @@ class GrblSession(SessionBase):
                 "(machine.reset), then clear",
             )
 
-    def realtime(self, command: Realtime) -> None:
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
-        cls = classify_realtime(command)
-        verdict = self._admit(cls, self.model.state)
-        if verdict is not None:
-            raise Rejected(verdict, self._locked_message())
-        if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
-            raise self._write_refused()
+    def _realtime(self, command: Realtime) -> None:
         if command is Realtime.FEEDHOLD:
             self._out.append((Lane.REALTIME, codec.FEEDHOLD))
         elif command is Realtime.CYCLE_START:
