@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from hostd.api.mqtt.config import MqttConfig
 from hostd.link import BOOTLOADER_BAUD
 from hostd.machine.signals import SignalsConfig
 
@@ -130,6 +131,7 @@ class Config(_Strict):
     daemon: DaemonConfig = DaemonConfig()
     machines: list[MachineConfig] = []
     web: WebConfig | None = None
+    mqtt: MqttConfig | None = None  # absent: no MQTT (docs/mqtt.md)
 
     @field_validator("machines")
     @classmethod

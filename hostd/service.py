@@ -24,6 +24,8 @@ import structlog
 
 from hostd.api import socketfile
 from hostd.api.methods import Api, build_methods
+from hostd.api.mqtt.bridge import MqttBridge
+from hostd.api.mqtt.config import read_password
 from hostd.api.peer import AccessPolicy, group_id
 from hostd.api.rpc import Methods
 from hostd.api.server import ApiServer
@@ -52,6 +54,7 @@ def serve_main(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.config)
         policy, gid = _access(config)
+        password = _mqtt_password(config)
     except ConfigError as exc:
         print(f"hostd: {exc}", file=sys.stderr)
         return 2
@@ -64,7 +67,7 @@ def serve_main(args: argparse.Namespace) -> int:
         return 1
     configure_logging(args.log_level or config.daemon.log_level, args.log_format)
     try:
-        asyncio.run(serve(config, socket_path, policy, gid))
+        asyncio.run(serve(config, socket_path, policy, gid, password))
     except Exception as exc:
         failure = _start_up_failure(exc)
         if failure is None:
@@ -88,6 +91,16 @@ def _start_up_failure(exc: BaseException) -> Exception | None:
     return None
 
 
+def _mqtt_password(config: Config) -> str | None:
+    if config.mqtt is None:
+        return None
+    try:
+        return read_password(config.mqtt)
+    except OSError as exc:
+        where = config.mqtt.password_file
+        raise ConfigError(f"[mqtt] password_file: cannot read {where}: {exc.strerror}") from None
+
+
 def _access(config: Config) -> tuple[AccessPolicy, int | None]:
     group = config.daemon.group
     if group is None:
@@ -98,7 +111,13 @@ def _access(config: Config) -> tuple[AccessPolicy, int | None]:
         raise ConfigError(f"[daemon] group: no group named {group!r}") from None
 
 
-async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int | None) -> None:
+async def serve(
+    config: Config,
+    socket_path: str,
+    policy: AccessPolicy,
+    gid: int | None,
+    mqtt_password: str | None = None,
+) -> None:
     notifier = Notifier()
     daemon = Daemon(config)
     api = Api(daemon)
@@ -112,6 +131,12 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
     )
     web = _web_server(config, api, methods)
     loop = asyncio.get_running_loop()
+    bridge = (
+        None
+        if config.mqtt is None
+        else MqttBridge(config.mqtt, api, methods, password=mqtt_password)
+    )
+    bridge_task: asyncio.Task[None] | None = None
 
     def stop() -> None:
         log.info("stopping")
@@ -134,6 +159,11 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
         await server.start(socket_path)
         if web is not None:
             await web.start()
+        if bridge is not None:
+            nonlocal bridge_task
+            bridge.attach()
+            await bridge.load_last_jobs()
+            bridge_task = asyncio.create_task(bridge.run(), name="mqtt")
         # Everything built at start-up lives as long as the daemon: keep it out of
         # the collector's full passes, which otherwise stall the loop (and a `!`)
         # for tens of milliseconds every second or so under load (bench P2f).
@@ -150,6 +180,8 @@ async def serve(config: Config, socket_path: str, policy: AccessPolicy, gid: int
         expiry.cancel()
         if web is not None:
             await web.close()
+        if bridge is not None and bridge_task is not None:
+            await bridge.close(bridge_task)
         await server.close()
         notifier.close()
         for signum in (signal.SIGTERM, signal.SIGINT):

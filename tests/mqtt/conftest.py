@@ -1,0 +1,242 @@
+"""A real broker (Debian's mosquitto) on a free loopback port, and a subscriber to watch it.
+
+The broker runs without persistence, so whatever is retained after a restart
+was published again by the daemon. `.ci/run` installs mosquitto; without it
+these tests fail (saying so), never skip: MQTT is tested against a real broker or not at all.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import socket
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+import pytest
+import pytest_asyncio
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+from paho.mqtt.subscribeoptions import SubscribeOptions
+
+from hostd.api.methods import build_methods
+from hostd.api.mqtt.bridge import MqttBridge
+from hostd.api.mqtt.config import MqttConfig
+from tests.daemon.conftest import Running, running_daemon
+
+MOSQUITTO = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/sbin")
+WAIT = 15.0  # seconds any one expected message may take before the test fails
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@dataclass
+class Broker:
+    """mosquitto on 127.0.0.1:`port`; `stop()` and `start()` again on the same port."""
+
+    directory: Path
+    port: int = field(default_factory=free_port)
+    log: list[str] = field(default_factory=list)
+    _proc: asyncio.subprocess.Process | None = None
+    _drain: asyncio.Task[None] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    async def start(self) -> None:
+        assert MOSQUITTO is not None
+        conf = self.directory / "mosquitto.conf"
+        conf.write_text(
+            f"listener {self.port} 127.0.0.1\n"
+            "allow_anonymous true\n"
+            "persistence false\n"
+            "log_dest stderr\n"
+            "log_type error\nlog_type warning\nlog_type notice\nlog_type information\n"
+        )
+        self._proc = await asyncio.create_subprocess_exec(
+            MOSQUITTO,
+            "-c",
+            str(conf),
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.PIPE,
+        )
+        stream = self._proc.stderr
+        assert stream is not None
+        async with asyncio.timeout(WAIT):
+            while True:
+                line = (await stream.readline()).decode(errors="replace")
+                if not line:
+                    raise RuntimeError("mosquitto did not start:\n" + "".join(self.log))
+                self.log.append(line)
+                if " running" in line:  # "mosquitto version 2.0.11 running"
+                    break
+        self._drain = asyncio.create_task(self._keep_reading(stream))
+
+    async def _keep_reading(self, stream: asyncio.StreamReader) -> None:
+        while line := await stream.readline():
+            self.log.append(line.decode(errors="replace"))
+
+    async def stop(self) -> None:
+        if self._proc is None:
+            return
+        if self._proc.returncode is None:
+            self._proc.terminate()
+        await self._proc.wait()
+        if self._drain is not None:
+            await self._drain
+        self._proc = None
+
+
+@pytest_asyncio.fixture
+async def broker(tmp_path: Path) -> AsyncIterator[Broker]:
+    if MOSQUITTO is None:
+        pytest.fail("mosquitto is not installed: apt-get install mosquitto (.ci/run does)")
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    running = Broker(directory)
+    await running.start()
+    try:
+        yield running
+    finally:
+        await running.stop()
+
+
+class Watcher:
+    """A stock MQTT client subscribed to a filter: every message, in order, with its flags."""
+
+    def __init__(self, client: aiomqtt.Client) -> None:
+        self.client = client
+        self.messages: asyncio.Queue[aiomqtt.Message] = asyncio.Queue()
+        self._task = asyncio.create_task(self._read())
+
+    async def _read(self) -> None:
+        async for message in self.client.messages:
+            self.messages.put_nowait(message)
+
+    async def next(self, predicate: Callable[[aiomqtt.Message], bool]) -> aiomqtt.Message:
+        """The first message (from now on) that `predicate` accepts."""
+        async with asyncio.timeout(WAIT):
+            while True:
+                message = await self.messages.get()
+                if predicate(message):
+                    return message
+
+    async def retained(self, *names: str) -> dict[str, aiomqtt.Message]:
+        """The retained messages of these topics, which a new subscriber gets first."""
+        found: dict[str, aiomqtt.Message] = {}
+        async with asyncio.timeout(WAIT):
+            while set(names) - set(found):
+                message = await self.messages.get()
+                if message.retain and str(message.topic) in names:
+                    found[str(message.topic)] = message
+        return found
+
+    async def state(self, topic: str, check: Callable[[Any], bool] = lambda _: True) -> Any:
+        """The payload (JSON-decoded when it is JSON) of the next message on `topic` that
+        `check` accepts."""
+
+        def wanted(message: aiomqtt.Message) -> bool:
+            return str(message.topic) == topic and check(decoded(message))
+
+        return decoded(await self.next(wanted))
+
+    async def request(
+        self, topic: str, params: Any, correlation: bytes = b"c1", caller: str = "tester"
+    ) -> dict[str, Any]:
+        """An MQTT 5 request with a response topic and correlation data; its reply."""
+        reply_to = f"replies/{os.getpid()}/{correlation.decode()}"
+        await self.client.subscribe(reply_to, qos=1)
+        properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
+        properties.ResponseTopic = reply_to
+        properties.CorrelationData = correlation
+        properties.UserProperty = ("client_id", caller)
+        payload = params if isinstance(params, bytes) else json.dumps(params).encode()
+        await self.client.publish(topic, payload, qos=1, properties=properties)
+        reply = await self.next(lambda m: str(m.topic) == reply_to)
+        assert getattr(reply.properties, "CorrelationData", None) == correlation
+        answer: dict[str, Any] = decoded(reply)
+        return answer
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            await self._task
+
+
+def decoded(message: aiomqtt.Message) -> Any:
+    payload = message.payload
+    assert isinstance(payload, bytes)
+    try:
+        return json.loads(payload)
+    except ValueError:
+        return payload.decode()
+
+
+@contextlib.asynccontextmanager
+async def watching(broker: Broker, topic_filter: str) -> AsyncIterator[Watcher]:
+    """A fresh subscriber: retained messages first, then live ones, each with the retain
+    flag it was published with."""
+    client = aiomqtt.Client(
+        "127.0.0.1", broker.port, protocol=aiomqtt.ProtocolVersion.V5, timeout=WAIT
+    )
+    async with client:
+        # Retain as published: a retained message keeps its flag even when it arrives live.
+        options = SubscribeOptions(qos=1, retainAsPublished=True)
+        await client.subscribe(topic_filter, options=options)
+        watcher = Watcher(client)
+        try:
+            yield watcher
+        finally:
+            await watcher.close()
+
+
+@dataclass
+class Bridged:
+    running: Running
+    bridge: MqttBridge
+    prefix: str
+
+
+@contextlib.asynccontextmanager
+async def bridged(
+    tmp_path: Path, broker: Broker, prefix: str = "test/h1", **mqtt: Any
+) -> AsyncIterator[Bridged]:
+    """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it."""
+    settings: dict[str, Any] = {
+        "url": broker.url,
+        "topic_prefix": prefix,
+        "client_id": f"hostd-{prefix.replace('/', '-')}",
+        "status_interval": 0.1,
+        "reconnect_min": 0.05,
+        "reconnect_max": 0.2,
+        **mqtt,
+    }
+    config = MqttConfig.model_validate(settings)
+    async with running_daemon(tmp_path) as running:
+        bridge = MqttBridge(config, running.api, build_methods(running.api))
+        bridge.attach()
+        await bridge.load_last_jobs()
+        task = asyncio.create_task(bridge.run())
+        try:
+            yield Bridged(running, bridge, prefix)
+        finally:
+            await bridge.close(task)
+
+
+def program(lines: int, step: float = 0.1) -> str:
+    """Moves of `step` mm back and forth at 50 mm/s: the simulated board (ten times as
+    fast as a real one) takes about step/500 s for each."""
+    return "".join(f"G1 X{(i % 2) * step:.3f} F3000\n" for i in range(lines))
