@@ -10,6 +10,7 @@ Exit status 0 only if every step did what it should.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import socket
@@ -19,6 +20,7 @@ from pathlib import Path
 
 from rich.console import Console
 
+from hostd.api.tokens import TokenStore
 from hostd.cli.client import Client
 
 SAMPLE = Path(__file__).with_name("sample.gcode")
@@ -28,6 +30,9 @@ CONFIG = """\
 socket = "{socket}"
 state_dir = "{state}"
 log_level = "warning"
+
+[web]
+listen = "127.0.0.1:{port}"
 
 [[machines]]
 id = "sim1"
@@ -77,7 +82,11 @@ async def run(console: Console) -> int:
     with tempfile.TemporaryDirectory(prefix="hostd-demo-") as tmp:
         sock = os.path.join(tmp, "hostd.sock")
         config = Path(tmp) / "demo.toml"
-        config.write_text(CONFIG.format(socket=sock, state=os.path.join(tmp, "state")))
+        state = os.path.join(tmp, "state")
+        port = _free_port()
+        config.write_text(CONFIG.format(socket=sock, state=state, port=port))
+        # The dashboard's token, made as `hostd token create` makes it: printed once, kept hashed.
+        token = TokenStore(Path(state)).create("demo")
         env = {**os.environ, "HOSTD_SOCKET": sock}
         notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         notify.bind(os.path.join(tmp, "notify"))
@@ -94,6 +103,8 @@ async def run(console: Console) -> int:
         )
         try:
             await wait_ready(notify, daemon)
+            url = f"http://127.0.0.1:{port}/login#token={token}"
+            console.print(f"the dashboard, while the demo runs: [bold]{url}[/bold]", soft_wrap=True)
             console.print("hostd is ready; the simulated machine:")
             await hostd("status", env=env)
             console.print(f"\nrunning: hostd run {SAMPLE.name} --machine sim1")
@@ -102,6 +113,10 @@ async def run(console: Console) -> int:
             await pauser
             console.print("\nthe job's history row: hostd jobs --machine sim1 --limit 1")
             await hostd("jobs", "--machine", "sim1", "--limit", "1", env=env)
+            if sys.stdin.isatty():
+                console.print(f"\nthe dashboard stays up at {url}: Ctrl-C stops the demo")
+                with contextlib.suppress(KeyboardInterrupt, asyncio.CancelledError):
+                    await daemon.wait()
         finally:
             if daemon.returncode is None:
                 daemon.send_signal(signal.SIGTERM)
@@ -112,6 +127,14 @@ async def run(console: Console) -> int:
         console.print("\nhostd stopped cleanly (SIGTERM).")
         console.rule("demo complete")
     return 0
+
+
+def _free_port() -> int:
+    """A loopback port nothing listens on now (the daemon binds it a moment later)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
 
 
 def main() -> int:
