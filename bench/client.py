@@ -145,6 +145,7 @@ class DaemonProcess:
         window: int = 4,
         log_level: str = "info",
         extra: str = "",
+        tables: str = "",
         cpus: set[int] | None = None,
         module: str = "hostd.service",
     ) -> None:
@@ -158,6 +159,7 @@ class DaemonProcess:
             f'socket = "{self.socket}"\n'
             f'state_dir = "{workdir / "state"}"\n'
             f'log_level = "{log_level}"\n'
+            + tables  # further top-level tables ([mqtt], [web]), before the machines
             + "".join(
                 f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n' + extra
                 for id_, port in self.machines.items()

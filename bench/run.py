@@ -42,7 +42,9 @@ import contextlib
 import json
 import os
 import shutil
+import socket
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -177,7 +179,7 @@ class Bench:
 
     @contextlib.contextmanager
     def _machines(
-        self, name: str, ids: list[str]
+        self, name: str, ids: list[str], tables: str = ""
     ) -> Iterator[tuple[DaemonProcess, list[ControllerProcess]]]:
         """A daemon of one machine per id, each on its own instant controller."""
         where = self._dir(name)
@@ -194,6 +196,7 @@ class Bench:
                 machine=ids[0],
                 also=links,
                 window=WINDOW,
+                tables=tables,
                 cpus=self.host_cpus,
                 module=self.module,
             )
@@ -541,6 +544,67 @@ class Bench:
     def _acked(client: Any, jobs: dict[str, int]) -> dict[str, int]:
         return {m: client.call("job.get", job=j)["lines_acked"] for m, j in jobs.items()}
 
+    # P7 ---------------------------------------------------------------------------
+
+    def mqtt(self) -> None:
+        """P1's stream rate and P2's holds without MQTT, with it, and with its broker stopped."""
+        mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+        port = _free_port()
+        conf = self._dir("p7-broker") / "mosquitto.conf"
+        conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n")
+        broker = subprocess.Popen(
+            [mosquitto, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        table = f'\n[mqtt]\nurl = "mqtt://127.0.0.1:{port}"\ncommands = true\n'
+        try:
+            time.sleep(0.5)  # mosquitto listening
+            runs = [("without MQTT", self._mqtt_run("p7-off", ""))]
+            runs.append(("MQTT on", self._mqtt_run("p7-on", table)))
+            broker.terminate()
+            broker.wait()
+            runs.append(("MQTT on, broker stopped", self._mqtt_run("p7-down", table)))
+        finally:
+            if broker.poll() is None:
+                broker.kill()
+                broker.wait()
+        base_rate, base_lat = runs[0][1]
+        for title, (rate, latencies) in runs:
+            self.rows.append(
+                Row(
+                    f"P7 {title}: stream, `!` ({len(latencies)} holds)",
+                    f"{rate:,.0f} lines/s; {spread(latencies)}",
+                    f"{base_rate:,.0f} lines/s; {spread(base_lat)}",
+                    f"{rate / base_rate:.2f}x rate",
+                    "rate >= 0.9x, p99 < 1 ms",
+                    rate >= 0.9 * base_rate and pct(latencies, 0.99) < 1e-3,
+                    [],
+                )
+            )
+
+    def _mqtt_run(self, name: str, tables: str) -> tuple[float, list[float]]:
+        n = self.s.stream_lines
+        with self._machines(name, [MACHINE], tables) as (daemon, controllers):
+            controller = controllers[0]
+            client = daemon.client()
+            try:
+                client.upload("p7.gcode", program(n))
+                client.upload("p7-long.gcode", program(LONG_JOB))
+                client.call("subscribe", topics=["job"], machine=MACHINE)
+                rate, _ = self._job(daemon, controller, client, "p7.gcode", n)
+                with self._streaming(daemon, controller, client, MACHINE, "p7-long.gcode"):
+                    sent_at = self._feedholds(client, MACHINE)
+                latencies = self._latencies(controller, sent_at, name)
+            finally:
+                client.close()
+            log = daemon.log.read_text(errors="replace")
+        # The bridge's own word: connected with the broker up, retrying with it stopped.
+        connected = "mqtt connected" in log
+        if tables and connected != ("down" not in name):
+            raise RuntimeError(
+                f"{name}: the MQTT bridge {'connected' if connected else 'never connected'}"
+            )
+        return rate, latencies
+
     # P3 ---------------------------------------------------------------------------
 
     def fanout(self, daemon: DaemonProcess, controller: ControllerProcess) -> None:
@@ -649,6 +713,16 @@ class Bench:
         if wanted("p6"):
             _progress("p6...")
             self.fleet()
+        if wanted("p7"):
+            _progress("p7...")
+            self.mqtt()
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port: int = probe.getsockname()[1]
+        return port
 
 
 def _progress(text: str) -> None:
@@ -680,7 +754,7 @@ def main(argv: list[str] | None = None) -> int:
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
     parser.add_argument(
-        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6 (p5 comes with p1)"
+        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6,p7 (p5 comes with p1)"
     )
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
