@@ -412,6 +412,10 @@ class Api:
         self._machine(p.machine).engine.override(p.feed, p.rapid, p.spindle)
         return {}
 
+    async def machine_safety_door(self, p: MachineParams) -> dict[str, Any]:
+        self._machine(p.machine).engine.safety_door()
+        return {}
+
     async def machine_jog_stop(self, p: MachineParams) -> dict[str, Any]:
         self._machine(p.machine).jog_stop()
         return {}
@@ -578,6 +582,7 @@ def build_methods(api: Api) -> Methods:
     m.register("machine.jog", JogParams, api.machine_jog)
     m.register("machine.jog_stop", MachineParams, api.machine_jog_stop, immediate=True)
     m.register("machine.override", OverrideParams, api.machine_override, immediate=True)
+    m.register("machine.safety_door", MachineParams, api.machine_safety_door, immediate=True)
     m.register("settings.get", SettingsGetParams, api.settings_get)
     m.register("settings.set", SettingsSetParams, api.settings_set)
     m.register("file.upload", UploadParams, api.file_upload)

@@ -446,6 +446,11 @@ class Engine:
         self.session.override(feed, rapid, spindle)
         self._deliver()
 
+    def safety_door(self) -> None:
+        """The safety door opened, as the host says (grbl's 0x84)."""
+        self.session.safety_door()
+        self._deliver()
+
     def query_status(self) -> None:
         """Ask the board for a full status report now."""
         self.session.query_status()

@@ -287,6 +287,12 @@ class SessionBase:
             Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no realtime overrides"
         )
 
+    def safety_door(self) -> None:
+        """The host opens the safety door: the board holds, and parks if it is set to."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no safety-door command"
+        )
+
     def settings_read(self, keys: list[str]) -> list[str]:
         """The query lines that read these settings."""
         raise NotImplementedError

@@ -104,3 +104,15 @@ async def test_overrides_reach_a_grbl_board_and_are_refused_on_g2core(
     assert "100, 50 or 25" in err.message
     err = await fails(-32602, rpc.call("machine.override", machine="sim1", feed=110))
     assert "no realtime overrides" in err.message
+
+
+async def test_the_host_opens_a_grbl_boards_safety_door(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    assert await rpc.call("machine.safety_door", machine="sim2") == {}
+    await rpc.call("subscribe", topics=["status"], machine="sim2")
+    await rpc.notification(
+        lambda n: n["method"] == "status"
+        and str(n["params"]["snapshot"]["board_state"]).startswith("Door")
+    )
+    err = await fails(-32602, rpc.call("machine.safety_door", machine="sim1"))
+    assert "no safety-door command" in err.message

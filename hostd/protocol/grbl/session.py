@@ -183,6 +183,12 @@ class GrblSession(SessionBase):
             out += codec.override_steps(spindle, "spindle")
         self._out += [(Lane.REALTIME, b) for b in out]
 
+    def safety_door(self) -> None:
+        """0x84 (protocol.c CMD_SAFETY_DOOR): the board enters Door as if its switch opened."""
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+        self._out.append((Lane.REALTIME, codec.SAFETY_DOOR))
+
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
         return ["$$"]  # one line lists them all
