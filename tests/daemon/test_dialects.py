@@ -107,7 +107,7 @@ async def test_overrides_reach_a_grbl_board_and_are_refused_on_g2core(
 
 
 async def test_the_host_opens_a_grbl_boards_safety_door(both: tuple[Running, Rpc]) -> None:
-    hostd, rpc = both
+    _, rpc = both
     assert await rpc.call("machine.safety_door", machine="sim2") == {}
     await rpc.call("subscribe", topics=["status"], machine="sim2")
     await rpc.notification(
