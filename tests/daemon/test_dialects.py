@@ -111,8 +111,10 @@ async def test_the_host_opens_a_grbl_boards_safety_door(both: tuple[Running, Rpc
     assert await rpc.call("machine.safety_door", machine="sim2") == {}
     await rpc.call("subscribe", topics=["status"], machine="sim2")
     await rpc.notification(
-        lambda n: n["method"] == "status"
-        and str(n["params"]["snapshot"]["board_state"]).startswith("Door")
+        lambda n: (
+            n["method"] == "status"
+            and str(n["params"]["snapshot"]["board_state"]).startswith("Door")
+        )
     )
     err = await fails(-32602, rpc.call("machine.safety_door", machine="sim1"))
     assert "no safety-door command" in err.message
