@@ -97,6 +97,7 @@ async def running_web(
     tmp_path: Path,
     clock: Callable[[], float] | None = None,
     machine: dict[str, Any] | None = None,
+    write_timeout: float | None = None,
     **web: Any,
 ) -> AsyncIterator[Web]:
     """`web` are `[web]` keys (listen: a free loopback port); `machine` more machine keys."""
@@ -105,6 +106,8 @@ async def running_web(
         token = await asyncio.to_thread(tokens.create, "test")
         config = WebConfig(**{"listen": "127.0.0.1:0", **web})
         extra: dict[str, Any] = {"clock": clock} if clock is not None else {}
+        if write_timeout is not None:
+            extra["write_timeout"] = write_timeout
         server = WebServer(build_methods(hostd.api), hostd.api.jobs, tokens, config, **extra)
         await server.start()
         try:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import os
+import socket
 from pathlib import Path
 
 import aiohttp
@@ -149,3 +152,80 @@ async def test_a_tab_that_falls_behind_its_queue_is_dropped_and_others_go_on(web
     finally:
         await slow.close()
         await other.close()
+
+
+async def _stalled_tab(web: Web, topics: list[str]) -> socket.socket:
+    """A WebSocket opened by hand on a socket with a tiny receive buffer, then never read.
+
+    Like a browser tab frozen in the background: its subscription goes on
+    producing, and nothing is taken off the connection.
+    """
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.setblocking(False)
+    loop = asyncio.get_running_loop()
+    await loop.sock_connect(sock, ("127.0.0.1", web.server.port))
+    request = (
+        "GET /api HTTP/1.1\r\n"
+        f"Host: 127.0.0.1:{web.server.port}\r\n"
+        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+        f"Authorization: Bearer {web.token}\r\n\r\n"
+    )
+    await loop.sock_sendall(sock, request.encode())
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        answer += await loop.sock_recv(sock, 1)  # byte by byte: not one frame byte more
+    assert answer.startswith(b"HTTP/1.1 101"), answer
+    payload = json.dumps(
+        {
+            "jsonrpc": "2.0",
+            "id": 1,
+            "method": "subscribe",
+            "params": {"topics": topics, "machine": "sim1"},
+        }
+    ).encode()
+    mask = os.urandom(4)  # a client's frames are masked (RFC 6455 5.3)
+    head = bytes([0x81, 0x80 | 126]) + len(payload).to_bytes(2, "big") + mask
+    body = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    await loop.sock_sendall(sock, head + body)
+    return sock
+
+
+async def test_a_tab_that_never_reads_is_dropped_and_the_job_streams_on(tmp_path: Path) -> None:
+    # A frozen tab is dropped once one frame cannot be sent within the write timeout
+    # (10 s in the daemon; half a second here) or its queue fills, whichever first.
+    async with running_web(tmp_path, write_timeout=0.5) as web:
+        rpc = await web.hostd.client()
+        await web.hostd.idle(rpc)
+        await rpc.close()
+        stalled = await _stalled_tab(web, ["console", "status", "job"])
+        other = await web.ws()
+        try:
+            frozen = min(web.server.clients, key=lambda c: c.id)  # it connected first
+            # The kernel would otherwise buffer megabytes for it on loopback: a phone on
+            # poor Wi-Fi has no such room. A fixed send buffer stops the autotuning.
+            server_side = frozen._transport.get_extra_info("socket")  # type: ignore[attr-defined]
+            server_side.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+            dropped = asyncio.Event()
+            frozen.on_disconnect.append(dropped.set)
+            lines = "".join(
+                f"G1 X{i % 50} Y{i % 7} F20000 (tab test {i:05d})\n" for i in range(3000)
+            )
+            await other.call("file.upload", name="long.nc", data=lines)
+            await other.call("subscribe", topics=["job"], machine="sim1")
+            job = (await other.call("job.start", machine="sim1", file="long.nc"))["job"]
+            async with asyncio.timeout(30):
+                await dropped.wait()  # while the job streams
+                while True:
+                    note = await other.notifications.get()
+                    if note["method"] == "job" and note["params"]["job"]["state"] != "running":
+                        break
+            assert note["params"]["job"]["id"] == job
+            assert note["params"]["job"]["state"] == "completed"
+            assert note["params"]["job"]["lines_acked"] == 1500
+            assert web.server.clients == [c for c in web.server.clients if c is not frozen]
+            assert (await other.call("machine.status", machine="sim1"))["id"] == "sim1"
+        finally:
+            stalled.close()
+            await other.close()
