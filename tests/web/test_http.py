@@ -210,7 +210,7 @@ async def test_a_tab_that_never_reads_is_dropped_and_the_job_streams_on(tmp_path
             dropped = asyncio.Event()
             frozen.on_disconnect.append(dropped.set)
             lines = "".join(
-                f"G1 X{i % 50} Y{i % 7} F20000 (tab test {i:05d})\n" for i in range(3000)
+                f"G1 X{i % 50} Y{i % 7} F20000 (tab test {i:05d})\n" for i in range(1500)
             )
             await other.call("file.upload", name="long.nc", data=lines)
             await other.call("subscribe", topics=["job"], machine="sim1")
