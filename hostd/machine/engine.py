@@ -162,7 +162,8 @@ class Engine:
 
     @property
     def ready(self) -> bool:
-        return self.link_state is LinkState.READY
+        """Clients may use the board (not while a grbl board re-syncs after its reset)."""
+        return self.link_state is LinkState.READY and self.session.ready
 
     async def disconnect(self) -> None:
         self._want.clear()
