@@ -146,6 +146,7 @@ class DaemonProcess:
         log_level: str = "info",
         extra: str = "",
         tables: str = "",
+        event_loop: str = "asyncio",
         cpus: set[int] | None = None,
         module: str = "hostd.service",
     ) -> None:
@@ -159,6 +160,7 @@ class DaemonProcess:
             f'socket = "{self.socket}"\n'
             f'state_dir = "{workdir / "state"}"\n'
             f'log_level = "{log_level}"\n'
+            f'event_loop = "{event_loop}"\n'
             + tables  # further top-level tables ([mqtt], [web]), before the machines
             + "".join(
                 f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n' + extra

@@ -147,9 +147,11 @@ class Bench:
         py_spy: str | None,
         pin: bool = True,
         module: str = "hostd.service",
+        event_loop: str = "asyncio",
     ) -> None:
         self.workdir = workdir
         self.module = module
+        self.event_loop = event_loop
         self.s = settings
         self.py_spy = py_spy
         # The host under test (the daemon, or the raw loop) gets CPU 0 to itself; the
@@ -197,6 +199,7 @@ class Bench:
                 also=links,
                 window=WINDOW,
                 tables=tables,
+                event_loop=self.event_loop,
                 cpus=self.host_cpus,
                 module=self.module,
             )
@@ -758,6 +761,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
+        "--event-loop",
+        choices=("asyncio", "uvloop"),
+        default="asyncio",
+        help="the daemon's [daemon] event_loop (default asyncio)",
+    )
+    parser.add_argument(
         "--no-pin", action="store_true", help="let the scheduler place the processes"
     )
     parser.add_argument(
@@ -782,7 +791,14 @@ def main(argv: list[str] | None = None) -> int:
         if py_spy is None:
             parser.error("--profile: py-spy not found (pip install py-spy)")
     workdir = Path(tempfile.mkdtemp(prefix="hostd-bench-"))
-    bench = Bench(workdir, settings, py_spy, pin=not args.no_pin, module=args.daemon_module)
+    bench = Bench(
+        workdir,
+        settings,
+        py_spy,
+        pin=not args.no_pin,
+        module=args.daemon_module,
+        event_loop=args.event_loop,
+    )
     only = set(args.only.split(",")) if args.only else None
     try:
         bench.run(only)

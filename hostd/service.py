@@ -67,7 +67,13 @@ def serve_main(args: argparse.Namespace) -> int:
         return 1
     configure_logging(args.log_level or config.daemon.log_level, args.log_format)
     try:
-        asyncio.run(serve(config, socket_path, policy, gid, password))
+        run = serve(config, socket_path, policy, gid, password)
+        if config.daemon.event_loop == "uvloop":
+            import uvloop  # a dependency; imported only when chosen
+
+            uvloop.run(run)
+        else:
+            asyncio.run(run)
     except Exception as exc:
         failure = _start_up_failure(exc)
         if failure is None:

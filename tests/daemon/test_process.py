@@ -324,3 +324,25 @@ async def test_max_clients_and_line_timeout_from_the_config_hold_in_the_daemon(
         process.proc.send_signal(signal.SIGTERM)
         async with asyncio.timeout(20):
             assert await process.proc.wait() == 0
+
+
+async def test_the_daemon_on_uvloop_runs_a_job_pauses_and_stops_cleanly(tmp_path: Path) -> None:
+    config = write_config(tmp_path, 'event_loop = "uvloop"')
+    async with daemon_process(tmp_path, config) as process:
+        rpc = await ready_client(process)
+        await process.message(b"WATCHDOG=1")
+        program = "".join(f"G1 X{i % 2} F6000\n" for i in range(300))
+        await rpc.call("file.upload", name="short.gcode", data=program)
+        await rpc.call("subscribe", topics=["job"], machine="sim1")
+        job_id = (await rpc.call("job.start", machine="sim1", file="short.gcode"))["job"]
+        await follow_until_acked(rpc, job_id, 20)
+        assert (await rpc.call("job.pause", machine="sim1"))["state"] == "paused"
+        assert (await rpc.call("job.resume", machine="sim1"))["state"] == "running"
+        done = await rpc.notification(
+            lambda n: n["method"] == "job" and n["params"]["job"]["state"] == "completed"
+        )
+        assert done["params"]["job"]["lines_acked"] == 300
+        process.proc.send_signal(signal.SIGTERM)
+        await rpc.close()
+        async with asyncio.timeout(20):
+            assert await process.proc.wait() == 0
