@@ -50,6 +50,7 @@ from hostd.protocol.grbl.codes import (
 )
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
+from hostd.protocol.program import number_line
 from hostd.protocol.session import (
     Context,
     Excepted,
@@ -156,7 +157,8 @@ class GrblSession(SessionBase):
     def no_data_in_flight(self) -> bool:
         return not self._inflight
 
-    def encode_job_line(self, text: str) -> bytes:
+    def encode_job_line(self, text: str, number: int | None = None) -> bytes:
+        text = text if number is None else number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
@@ -358,6 +360,7 @@ class GrblSession(SessionBase):
         self._await_report = False
         if changed is not None:
             self._on_state(changed, before)
+        self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
         for token in waiters:
@@ -368,6 +371,28 @@ class GrblSession(SessionBase):
             self._check_stream_complete(reported=True)
         if self._first_report:
             self._ready()
+
+    def _track_executed(self, fields: dict[str, Any]) -> None:
+        """Which file line runs: `Ln:`, else what the planner can still hold.
+
+        `Ln:` is the N of the planner block being executed (report.c: the current
+        block, or on grblHAL the parser's last N when the planner is empty: all of it
+        ran). It is sent by grblHAL when `$10` asks for it and by classic grbl only when
+        built with USE_LINE_NUMBERS (off by default). Without it, `Bf:` bounds it: grbl
+        answers `ok` once a line is planned, so of the lines answered, only the last
+        `blocks - free` can still be in the planner; the one before them ran.
+        """
+        stream = self.stream
+        if stream is None or stream.done:
+            return
+        line = fields.get("line")
+        if isinstance(line, int) and line > 0:
+            stream.executing(line)
+        if self._planner_free is not None and stream.acked:
+            used = max(self.blocks - self._planner_free, 0)
+            ran = stream.acked_line(used)
+            if ran is not None and ran > 0:
+                stream.executing(ran)
 
     def _at_rest(self) -> bool:
         """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""
