@@ -59,6 +59,7 @@ from hostd.protocol.errors import (
     Rejected,
 )
 from hostd.protocol.gcode import jog_line
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import (
     Banner,
@@ -778,8 +779,27 @@ class G2Session(SessionBase):
             merged.update(body)
         return merged
 
+    def limit_settings(self) -> list[str]:
+        return [f"{a}{k}" for a in _LIMIT_AXES for k in ("tn", "tm", "vm")]
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """Travel from `xtn`..`xtm`, traverse velocity `xvm`; g2core plans by jerk (`xjm`),
+        not acceleration, so none is given."""
+        travel: dict[str, tuple[float, float]] = {}
+        velocity: dict[str, float] = {}
+        for a in _LIMIT_AXES:
+            low, high, vm = (_build(found.get(f"{a}{k}")) for k in ("tn", "tm", "vm"))
+            if low is not None and high is not None and high > low:
+                travel[a] = (low, high)
+            if vm:
+                velocity[a] = vm
+        return MachineLimits(travel, velocity)
+
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight
+
+
+_LIMIT_AXES = ("x", "y", "z")
 
 
 def _lane_of(encoded: bytes) -> Lane:

@@ -31,6 +31,7 @@ import structlog
 from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.states import MachineState
@@ -314,6 +315,14 @@ class SessionBase:
 
     def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
         """The settings the answers' bodies hold, by the names they were asked by."""
+        raise NotImplementedError
+
+    def limit_settings(self) -> list[str]:
+        """The settings that hold the machine's travel, speeds and accelerations."""
+        raise NotImplementedError
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """The limits those settings say (`settings_found`'s answer to `limit_settings`)."""
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------

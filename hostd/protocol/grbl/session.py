@@ -48,6 +48,7 @@ from hostd.protocol.grbl.codes import (
     alarm_text,
     error_text,
 )
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.program import number_line
@@ -101,6 +102,7 @@ ADMISSION: Table = {
 _AXES = "xyzabc"
 _PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
 _GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
+_RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 
 
 class _Own(OwnLine, Enum):
@@ -214,6 +216,25 @@ class GrblSession(SessionBase):
                     numbers = codec.numbers(value)
                     found[key] = numbers[0] if numbers and len(numbers) == 1 else value
         return found
+
+    def limit_settings(self) -> list[str]:
+        return [str(n) for n in (*_RATE, *_ACCEL, *_TRAVEL)]
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """`$110`.. max rate, `$120`.. acceleration, `$130`.. max travel; grbl's machine
+        coordinates run from -max travel to 0 (limits.c, without HOMING_FORCE_SET_ORIGIN)."""
+        travel: dict[str, tuple[float, float]] = {}
+        velocity: dict[str, float] = {}
+        accel: dict[str, float] = {}
+        for i, axis in enumerate(("x", "y", "z")):
+            rate, acc, span = (found.get(str(n[i])) for n in (_RATE, _ACCEL, _TRAVEL))
+            if isinstance(rate, float | int) and rate > 0:
+                velocity[axis] = float(rate)
+            if isinstance(acc, float | int) and acc > 0:
+                accel[axis] = float(acc)
+            if isinstance(span, float | int) and span > 0:
+                travel[axis] = (-float(span), 0.0)
+        return MachineLimits(travel, velocity, accel)
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
