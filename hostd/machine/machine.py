@@ -51,6 +51,7 @@ from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
 from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState
@@ -254,6 +255,19 @@ class Machine:
         lines = session.settings_read(keys)
         answers = await asyncio.gather(*(self.engine.send(line) for line in lines))
         return session.settings_found(keys, [response.body for response in answers])
+
+    async def limits(self) -> MachineLimits:
+        """Travel, traverse rates and accelerations, from the board's settings (its dialect's)."""
+        session = self.engine.session
+        return session.machine_limits(await self.read_settings(session.limit_settings()))
+
+    def safe_height(self, limits: MachineLimits | None) -> float | None:
+        """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates)."""
+        if self.config.safe_z is not None:
+            return self.config.safe_z
+        if limits is not None and "z" in limits.travel:
+            return limits.travel["z"][1]
+        return None
 
     async def write_settings(
         self, values: dict[str, bool | int | float | str]
