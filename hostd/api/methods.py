@@ -177,6 +177,25 @@ class JobParams(Params):
     job: Id
 
 
+class JobRecoveryParams(Params):
+    """`job`: where that job should resume. Or `machine`, `file` and `line`: the plan
+    job.start would send to resume that file at that line (what `hostd run --from` shows)."""
+
+    job: Id | None = None
+    machine: MachineId | None = None
+    file: str | None = None
+    line: Id | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> JobRecoveryParams:
+        plan = (self.machine, self.file, self.line)
+        if (self.job is None) == (None in plan) or (self.job is not None and plan != (None,) * 3):
+            raise ValueError("give job, or machine, file and line")
+        if self.file is not None:
+            check_name(self.file)
+        return self
+
+
 class FileAnalyzeParams(Params):
     file: str
     machine: MachineId | None = None  # its dialect, speeds and travel; none: g2core's rules
@@ -558,7 +577,23 @@ class Api:
         result = await analyze_file(path, machine.config.dialect, limits, offset)
         return result.to_json()
 
-    async def job_recovery(self, p: JobParams) -> dict[str, Any]:
+    async def job_recovery(self, p: JobRecoveryParams) -> dict[str, Any]:
+        if p.job is None:
+            assert p.machine is not None and p.file is not None and p.line is not None
+            machine = self._machine(p.machine)
+            try:
+                path = await asyncio.to_thread(self.jobs.resolve, p.file)
+            except NoSuchFileError as exc:
+                raise RpcError(1004, str(exc)) from None
+            limits = await self._limits(machine)
+            plan = await plan_at(
+                path,
+                p.line,
+                machine.config.dialect,
+                safe_z=machine.safe_height(limits),
+                dwell=machine.config.spindle_dwell,
+            )
+            return {**plan.to_json(), "machine": p.machine, "file": p.file}
         job = await (await self._store()).get(p.job)
         if job is None:
             raise RpcError(1004, f"no job {p.job}")
@@ -683,7 +718,7 @@ def build_methods(api: Api) -> Methods:
     m.register("job.cancel", MachineParams, api.job_cancel)
     m.register("job.get", JobParams, api.job_get)
     m.register("job.list", JobListParams, api.job_list)
-    m.register("job.recovery", JobParams, api.job_recovery)
+    m.register("job.recovery", JobRecoveryParams, api.job_recovery)
     m.register("file.analyze", FileAnalyzeParams, api.file_analyze)
     m.register("fault.list", MachineParams, api.fault_list)
     m.register("fault.override", FaultOverrideParams, api.fault_override)
