@@ -70,6 +70,12 @@ class MachineConfig(_Strict):
     # Where lid, laser selection, coolant flow and temperature come from
     # (hostd/machine/signals.py); none configured, none of those faults.
     signals: SignalsConfig = SignalsConfig()
+    # Resuming a job (job.start with start_line > 1): the height the tool goes up to
+    # before it crosses to the resume point, in machine coordinates (mm); unset, the top
+    # of the Z travel the board's settings give. And the seconds the spindle is given to
+    # reach its speed before the tool goes down.
+    safe_z: Annotated[float, Field(allow_inf_nan=False)] | None = None
+    spindle_dwell: Annotated[float, Field(ge=0, le=60)] = 2.0
 
     @field_validator("baudrate")
     @classmethod

@@ -41,8 +41,17 @@ from hostd.machine.events import (
     SupervisorChanged,
 )
 from hostd.machine.machine import Machine
+from hostd.machine.preflight import (
+    OutOfTravel,
+    analyze_file,
+    plan_at,
+    plan_recovery,
+    work_offset,
+)
 from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.errors import MachineError
 from hostd.protocol.gcode import JOG_AXES
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
 from hostd.protocol.settings import check_key, check_values
 
@@ -153,6 +162,10 @@ class UploadParams(FileName):
 class JobStartParams(MachineParams):
     file: str
     start_line: Id = 1
+    # From start_line > 1: restore the modal state and approach safely first (false: the
+    # raw skip, dangerous: docs/api.md). `force` runs a program that leaves the travel.
+    restore: Annotated[bool, Field(strict=True)] = True
+    force: Annotated[bool, Field(strict=True)] = False
 
     @field_validator("file")
     @classmethod
@@ -162,6 +175,35 @@ class JobStartParams(MachineParams):
 
 class JobParams(Params):
     job: Id
+
+
+class JobRecoveryParams(Params):
+    """`job`: where that job should resume. Or `machine`, `file` and `line`: the plan
+    job.start would send to resume that file at that line (what `hostd run --from` shows)."""
+
+    job: Id | None = None
+    machine: MachineId | None = None
+    file: str | None = None
+    line: Id | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> JobRecoveryParams:
+        plan = (self.machine, self.file, self.line)
+        if (self.job is None) == (None in plan) or (self.job is not None and plan != (None,) * 3):
+            raise ValueError("give job, or machine, file and line")
+        if self.file is not None:
+            check_name(self.file)
+        return self
+
+
+class FileAnalyzeParams(Params):
+    file: str
+    machine: MachineId | None = None  # its dialect, speeds and travel; none: g2core's rules
+
+    @field_validator("file")
+    @classmethod
+    def _plain(cls, name: str) -> str:
+        return check_name(name)
 
 
 class JobListParams(Params):
@@ -490,8 +532,90 @@ class Api:
             await asyncio.to_thread(self.jobs.resolve, p.file)
         except NoSuchFileError as exc:
             raise RpcError(1004, str(exc)) from None
-        job = await machine.start_make(p.file, p.start_line)
-        return {"job": job.id}
+        path = self.jobs.path / p.file
+        limits = await self._limits(machine) if not p.force or p.start_line > 1 else None
+        if not p.force:
+            check = await analyze_file(
+                path, machine.config.dialect, limits, work_offset(machine.snapshot())
+            )
+            if check.beyond:
+                raise OutOfTravel(
+                    f"{p.file} leaves {p.machine}'s travel: " + "; ".join(check.beyond),
+                    {"beyond_travel": check.beyond, "force": "true runs it anyway"},
+                )
+        preamble = None
+        if p.start_line > 1 and p.restore:
+            plan = await plan_at(
+                path,
+                p.start_line,
+                machine.config.dialect,
+                safe_z=machine.safe_height(limits),
+                dwell=machine.config.spindle_dwell,
+            )
+            preamble = plan.lines
+        job = await machine.start_make(p.file, p.start_line, preamble)
+        return {"job": job.id, "preamble": preamble}
+
+    async def _limits(self, machine: Machine) -> MachineLimits | None:
+        """The board's travel and speeds; None when it cannot say (not connected, refused)."""
+        try:
+            return await machine.limits()
+        except MachineError as exc:
+            log.info("machine limits not read", machine=machine.id, error=exc.message)
+            return None
+
+    async def file_analyze(self, p: FileAnalyzeParams) -> dict[str, Any]:
+        try:
+            path = await asyncio.to_thread(self.jobs.resolve, p.file)
+        except NoSuchFileError as exc:
+            raise RpcError(1004, str(exc)) from None
+        if p.machine is None:
+            return (await analyze_file(path, "g2core")).to_json()
+        machine = self._machine(p.machine)
+        limits = await self._limits(machine)
+        offset = work_offset(machine.snapshot())
+        result = await analyze_file(path, machine.config.dialect, limits, offset)
+        return result.to_json()
+
+    async def job_recovery(self, p: JobRecoveryParams) -> dict[str, Any]:
+        if p.job is None:
+            assert p.machine is not None and p.file is not None and p.line is not None
+            machine = self._machine(p.machine)
+            try:
+                path = await asyncio.to_thread(self.jobs.resolve, p.file)
+            except NoSuchFileError as exc:
+                raise RpcError(1004, str(exc)) from None
+            limits = await self._limits(machine)
+            plan = await plan_at(
+                path,
+                p.line,
+                machine.config.dialect,
+                safe_z=machine.safe_height(limits),
+                dwell=machine.config.spindle_dwell,
+            )
+            return {**plan.to_json(), "machine": p.machine, "file": p.file}
+        job = await (await self._store()).get(p.job)
+        if job is None:
+            raise RpcError(1004, f"no job {p.job}")
+        machine = self._machine(job.machine)
+        limits = await self._limits(machine)
+        plan, about = await plan_recovery(
+            self.jobs.path / (job.file or ""),
+            job,
+            machine.config.dialect,
+            safe_z=machine.safe_height(limits),
+            dwell=machine.config.spindle_dwell,
+        )
+        result = plan.to_json()
+        result.update(
+            job=job.id,
+            machine=job.machine,
+            file=job.file,
+            line_executed=job.line_executed,
+            lines_acked=job.lines_acked,
+            unsure=about + plan.unsure,
+        )
+        return result
 
     async def job_pause(self, p: MachineParams) -> dict[str, Any]:
         return self._machine(p.machine).pause().model_dump(mode="json")
@@ -594,6 +718,8 @@ def build_methods(api: Api) -> Methods:
     m.register("job.cancel", MachineParams, api.job_cancel)
     m.register("job.get", JobParams, api.job_get)
     m.register("job.list", JobListParams, api.job_list)
+    m.register("job.recovery", JobRecoveryParams, api.job_recovery)
+    m.register("file.analyze", FileAnalyzeParams, api.file_analyze)
     m.register("fault.list", MachineParams, api.fault_list)
     m.register("fault.override", FaultOverrideParams, api.fault_override)
     m.register("fault.clear", FaultParams, api.fault_clear)

@@ -256,6 +256,13 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
     params: dict[str, Any] = {"machine": args.machine, "file": name}
     if args.start_line is not None:
         params["start_line"] = args.start_line
+    if getattr(args, "from_line", None) is not None:
+        plan = await c.call("job.recovery", machine=args.machine, file=name, line=args.from_line)
+        resume_plan(out, plan)
+        if not args.yes and not await confirm(out, f"Resume at line {plan['line']}?"):
+            out.message("not started")
+            return FAILED
+        params["start_line"] = plan["line"]
     # From here on Ctrl-C is a question about the job, not the end of the client; a
     # press in the instant the job starts is asked about as soon as it is followed.
     with CtrlC() as ctrl_c:
@@ -283,6 +290,62 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
     why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
     out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
     return FAILED
+
+
+async def confirm(out: Output, question: str) -> bool:
+    """Ask on stderr, read a line from stdin: only "y" or "yes" is a yes."""
+    out.message(f"{question} [y/N]")
+    answer = await StdinLines().readline()
+    return (answer or "").strip().lower() in ("y", "yes")
+
+
+def resume_plan(out: Output, plan: dict[str, Any]) -> None:
+    """What a resume will send and what it is unsure of, before anything moves."""
+    if out.json:
+        out.print_json(plan)
+        return
+    pos = plan.get("position") or {}
+    where = " ".join(f"{a.upper()}{v}" for a, v in pos.items() if v is not None)
+    out.message(
+        f"resume at line {plan['line']}, from {where} ({plan.get('units')}, {plan.get('wcs')})"
+    )
+    out.message("restore: " + " | ".join(plan.get("preamble") or []))
+    out.message("approach: " + " | ".join(plan.get("approach") or []))
+    for text in plan.get("unsure") or []:
+        out.message(f"unsure: {text}")
+
+
+# -- analyze -------------------------------------------------------------------------
+
+
+async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """Upload the file, then `file.analyze` it (with a machine's speeds and travel)."""
+    path = Path(args.file)
+    name = args.name or path.name
+    await upload(c, path, name)
+    params: dict[str, Any] = {"file": name}
+    if args.machine is not None:
+        params["machine"] = args.machine
+    result = await c.call("file.analyze", **params)
+    if out.json:
+        out.print_json(result)
+        return OK
+    minutes, seconds = divmod(round(result["estimate"]), 60)
+    rows = [
+        ("lines", str(result["lines"])),
+        ("moves", f"{result['moves']} ({result['rapids']} rapid, {result['arcs']} arcs)"),
+        ("units", " ".join(result["units"]) or "-"),
+        ("tools", " ".join(str(t) for t in result["tools"]) or "-"),
+        ("max S", str(result["max_speed"]) if result["max_speed"] is not None else "-"),
+        ("estimate", f"{minutes} min {seconds:02d} s"),
+    ]
+    for axis, (low, high) in result["bounds"].items():
+        rows.append((f"{axis} (mm)", f"{low:.3f} .. {high:.3f}"))
+    render.pairs(out.out, rows)
+    for w in result["warnings"]:
+        line = f"line {w['line']}: " if w.get("line") else ""
+        out.out.print(f"warning: {line}{w['text']} (x{w['count']})", markup=False)
+    return OK
 
 
 # -- watch ---------------------------------------------------------------------------

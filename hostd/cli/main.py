@@ -96,6 +96,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--machine", "-m", required=True, metavar="M")
     p.add_argument("--start-line", type=_at_least_one, metavar="N", help="first file line to run")
     p.add_argument("--name", help="file name in the daemon's jobs directory (default: FILE's)")
+    p.add_argument(
+        "--from",
+        dest="from_line",
+        type=_at_least_one,
+        metavar="LINE",
+        help="resume at LINE: show the restore and approach plan, ask, then run (job.recovery)",
+    )
+    p.add_argument("--yes", "-y", action="store_true", help="do not ask before a --from resume")
+
+    p = client("analyze", "analyze", "a G-code file's figures: bounds, estimate, warnings")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--machine", "-m", metavar="M", help="with this machine's speeds and travel")
+    p.add_argument("--name", help="file name in the daemon's jobs directory (default: FILE's)")
 
     for name, help in (
         ("hold", "feedhold (!)"),

@@ -9,11 +9,19 @@ the life of the state directory, even after rows are deleted.
 A row's `lines_acked` is written by the job runner as progress is made (see
 `hostd.machine.jobs` for how often); it is never more than the controller
 answered, because it is only ever copied from the engine's count.
+`line_executed` (issue 14) is written with it: the file line the board last
+said it was executing, a lower bound (hostd.machine.stream). A resumed job
+keeps its `start_line` and the `preamble` it sent before that line.
+
+Columns added after the first release are added to an existing database by
+`_migrate` (ALTER TABLE ... ADD COLUMN): old rows keep every value, and read
+NULL, i.e. not known, for the new ones.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import sqlite3
 import threading
 from datetime import UTC, datetime
@@ -39,13 +47,18 @@ CREATE TABLE IF NOT EXISTS jobs (
     started_at TEXT,
     ended_at TEXT,
     error_code INTEGER,
-    error_message TEXT
+    error_message TEXT,
+    line_executed INTEGER,
+    start_line INTEGER,
+    preamble TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_machine ON jobs (machine, id);
 """
+# Added after the first schema, with their SQL types: `_migrate` adds the missing ones.
+_ADDED = (("line_executed", "INTEGER"), ("start_line", "INTEGER"), ("preamble", "TEXT"))
 _COLUMNS = (
     "id, machine, file, kind, state, lines_total, lines_sent, lines_acked, "
-    "started_at, ended_at, error_code, error_message"
+    "started_at, ended_at, error_code, error_message, line_executed, start_line, preamble"
 )
 
 
@@ -68,10 +81,14 @@ class Job(BaseModel):
     started_at: str | None
     ended_at: str | None
     error: JobError | None
+    line_executed: int | None = None  # the file line the board last said it was running
+    start_line: int | None = None  # a resumed job's first file line
+    preamble: list[str] | None = None  # what a resumed job sent before it
 
     @classmethod
     def from_row(cls, row: tuple[Any, ...]) -> Job:
-        (id_, machine, file, kind, state, total, sent, acked, start, end, code, msg) = row
+        (id_, machine, file, kind, state, total, sent, acked, start, end, code, msg) = row[:12]
+        executed, start_line, preamble = row[12:15]
         error = JobError(code=code, message=msg or "") if code is not None else None
         return cls(
             id=id_,
@@ -85,6 +102,9 @@ class Job(BaseModel):
             started_at=start,
             ended_at=end,
             error=error,
+            line_executed=executed,
+            start_line=start_line,
+            preamble=json.loads(preamble) if preamble else None,
         )
 
 
@@ -101,6 +121,14 @@ class JobStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
+            self._migrate()
+
+    def _migrate(self) -> None:
+        """Add the columns a database made by an older hostd lacks; its rows are kept."""
+        have = {row[1] for row in self._db.execute("PRAGMA table_info(jobs)")}
+        for name, kind in _ADDED:
+            if name not in have:
+                self._db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
 
     def close(self) -> None:
         with self._lock:
@@ -113,9 +141,18 @@ class JobStore:
         return await asyncio.to_thread(self._recover)
 
     async def create(
-        self, machine: str, kind: JobKind, file: str | None, lines_total: int | None
+        self,
+        machine: str,
+        kind: JobKind,
+        file: str | None,
+        lines_total: int | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
     ) -> Job:
-        return await asyncio.to_thread(self._create, machine, kind, file, lines_total)
+        return await asyncio.to_thread(
+            self._create, machine, kind, file, lines_total, start_line, preamble
+        )
 
     async def update(self, job_id: int, **fields: Any) -> Job:
         return await asyncio.to_thread(self._update, job_id, fields)
@@ -146,12 +183,28 @@ class JobStore:
             )
         return [Job.from_row(r).model_copy(update={"state": "interrupted"}) for r in rows]
 
-    def _create(self, machine: str, kind: str, file: str | None, total: int | None) -> Job:
+    def _create(
+        self,
+        machine: str,
+        kind: str,
+        file: str | None,
+        total: int | None,
+        start_line: int | None,
+        preamble: list[str] | None,
+    ) -> Job:
         with self._lock:
             cur = self._db.execute(
-                "INSERT INTO jobs (machine, file, kind, state, lines_total, started_at) "
-                "VALUES (?, ?, ?, 'running', ?, ?)",
-                (machine, file, kind, total, now()),
+                "INSERT INTO jobs (machine, file, kind, state, lines_total, started_at, "
+                "start_line, preamble) VALUES (?, ?, ?, 'running', ?, ?, ?, ?)",
+                (
+                    machine,
+                    file,
+                    kind,
+                    total,
+                    now(),
+                    start_line,
+                    None if preamble is None else json.dumps(preamble),
+                ),
             )
             job_id = cur.lastrowid
         job = self._get(int(job_id or 0))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import time
 from collections.abc import Iterator
@@ -50,6 +51,7 @@ from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
 from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState
@@ -211,15 +213,32 @@ class Machine:
 
     # -- operations ----------------------------------------------------------
 
-    async def start_make(self, file: str, start_line: int = 1) -> Job:
-        """Stream a file of the jobs directory (its name is checked by the API layer)."""
+    async def start_make(
+        self, file: str, start_line: int = 1, preamble: list[str] | None = None
+    ) -> Job:
+        """Stream a file of the jobs directory (its name is checked by the API layer).
+
+        `preamble`: lines sent first, before `start_line` (a resume's restore and
+        approach, hostd.protocol.gcodestate.resume); they are file line 0, and the row
+        keeps them. Every line goes with its file line number as an N word.
+        """
         path = self.jobs_dir / file
         if not await asyncio.to_thread(path.is_file):
             raise NoSuchFile(f"no file {file!r} in the jobs directory")
         total = await asyncio.to_thread(_count_lines, path, start_line)
+        before = [(0, line) for line in preamble or ()]
         handle = path.open(encoding="utf-8", errors="replace")
         try:
-            return await self._start("make", file, total, program_lines(handle, start_line), handle)
+            lines = itertools.chain(before, program_lines(handle, start_line))
+            return await self._start(
+                "make",
+                file,
+                total + len(before),
+                lines,
+                handle,
+                start_line=start_line if start_line > 1 or preamble else None,
+                preamble=preamble,
+            )
         except BaseException:
             handle.close()
             raise
@@ -236,6 +255,19 @@ class Machine:
         lines = session.settings_read(keys)
         answers = await asyncio.gather(*(self.engine.send(line) for line in lines))
         return session.settings_found(keys, [response.body for response in answers])
+
+    async def limits(self) -> MachineLimits:
+        """Travel, traverse rates and accelerations, from the board's settings (its dialect's)."""
+        session = self.engine.session
+        return session.machine_limits(await self.read_settings(session.limit_settings()))
+
+    def safe_height(self, limits: MachineLimits | None) -> float | None:
+        """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates)."""
+        if self.config.safe_z is not None:
+            return self.config.safe_z
+        if limits is not None and "z" in limits.travel:
+            return limits.travel["z"][1]
+        return None
 
     async def write_settings(
         self, values: dict[str, bool | int | float | str]
@@ -275,9 +307,13 @@ class Machine:
         total: int | None,
         lines: Iterator[tuple[int, str]],
         handle: TextIO | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
     ) -> Job:
-        job = await self._begin(kind, file, total)
-        stream = JobStream(lines, job.id, self.engine.session.encode_job_line)
+        job = await self._begin(kind, file, total, start_line=start_line, preamble=preamble)
+        encode = self.engine.session.encode_job_line
+        stream = JobStream(lines, job.id, encode, numbered=kind == "make")
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:
@@ -289,7 +325,15 @@ class Machine:
         runner.add_done_callback(self._runners.discard)
         return job
 
-    async def _begin(self, kind: JobKind, file: str | None, total: int | None) -> Job:
+    async def _begin(
+        self,
+        kind: JobKind,
+        file: str | None,
+        total: int | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
+    ) -> Job:
         """Take the supervisor to `operation` first, then write the row: never half-applied.
 
         A locked-out board is the first thing to say (204/205/206), before "busy".
@@ -298,7 +342,9 @@ class Machine:
         self._refuse_if_faulted()  # 1007
         self.supervisor.fire(SupEvent.START_OPERATION)  # Refused (1003) unless idle
         try:
-            job = await self.store.create(self.id, kind, file, total)
+            job = await self.store.create(
+                self.id, kind, file, total, start_line=start_line, preamble=preamble
+            )
         except BaseException:
             self._operation_stopped()
             raise
@@ -311,7 +357,7 @@ class Machine:
         """Follow a streaming operation to its end, persisting and publishing progress."""
         persisted_at = time.monotonic()
         persisted_acked = 0
-        last = (0, 0)
+        last: tuple[int, int, int | None] = (0, 0, None)
         try:
             while not stream.done:
                 gap_over = time.monotonic() - persisted_at >= PERSIST_GAP
@@ -321,7 +367,7 @@ class Machine:
                     async with asyncio.timeout(PUBLISH_EVERY):
                         await stream.wake.wait()
                 stream.wake.clear()
-                counts = (stream.sent, stream.acked)
+                counts = (stream.sent, stream.acked, stream.line_executed)
                 if counts == last:
                     continue
                 last = counts
@@ -330,7 +376,9 @@ class Machine:
                 if since >= PERSIST_EVERY or (
                     counts[1] - persisted_acked >= PERSIST_LINES and since >= PERSIST_GAP
                 ):
-                    self._record(lines_sent=counts[0], lines_acked=counts[1])
+                    self._record(
+                        lines_sent=counts[0], lines_acked=counts[1], line_executed=counts[2]
+                    )
                     persisted_at, persisted_acked = clock, counts[1]
                 else:
                     self._publish_job()
@@ -366,7 +414,11 @@ class Machine:
         if result.code is not None or result.end is StreamEnd.FAILED:
             error = JobError(code=result.code or 1005, message=result.message or result.end.value)
         assert self.job is not None
-        counts = {} if stream is None else {"lines_sent": stream.sent, "lines_acked": stream.acked}
+        counts: dict[str, Any] = {}
+        if stream is not None:
+            counts = self._counts(stream)
+            if result.end is StreamEnd.COMPLETED and stream.last_acked_line:
+                counts["line_executed"] = stream.last_acked_line  # the board ran it all
         self._stream = None
         state = _JOB_STATE[result.end]
         # The end is told only once it is on disk: no client hears "completed"
@@ -488,7 +540,14 @@ class Machine:
         return snap
 
     def _with_counts(self, job: Job, stream: JobStream) -> Job:
-        return job.model_copy(update={"lines_sent": stream.sent, "lines_acked": stream.acked})
+        return job.model_copy(update=self._counts(stream))
+
+    @staticmethod
+    def _counts(stream: JobStream) -> dict[str, Any]:
+        counts: dict[str, Any] = {"lines_sent": stream.sent, "lines_acked": stream.acked}
+        if stream.numbered:
+            counts["line_executed"] = stream.line_executed
+        return counts
 
     def _publish_job(self) -> None:
         job = self.current_job()

@@ -6,18 +6,25 @@ Counts only move forward: `sent` when a line is written, `acked` when the
 board answers it with status 0. Every sent line ends in exactly one of
 `acked`, `rejected`, `discarded`, or is still unanswered when the link is
 lost. The outcome is set once.
+
+`line_executed` is the file line the board said it was executing (its N word in
+a status report; the session decides which reports say so, per dialect). It
+only moves forward and never past the last line sent: every value it takes is
+a lower bound of the truth, so it never claims more than the board ran.
 """
 
 from __future__ import annotations
 
 import asyncio
 import re
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from hostd.protocol.commands import InvalidCommand, encode_line
 from hostd.protocol.session import StreamEnd
 
+_ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
 _PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
 
 
@@ -35,10 +42,15 @@ class JobStream:
         self,
         lines: Iterator[tuple[int, str]],
         job_id: int | None = None,
-        encode: Callable[[str], bytes] = encode_line,
+        encode: Callable[[str, int | None], bytes] | None = None,
+        *,
+        numbered: bool = False,
     ) -> None:
         self._lines = lines
-        self._encode = encode  # the dialect's: what a job line becomes on the wire
+        # The dialect's: what a job line becomes on the wire; `numbered` gives each line its
+        # file line number as an N word, so that status reports say which line runs.
+        self._encode = encode or (lambda text, _number: encode_line(text))
+        self.numbered = numbered
         self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: tuple[int, bytes] | None = None
         self.exhausted = False
@@ -47,6 +59,10 @@ class JobStream:
         self.rejected = 0  # answered with a non-zero status
         self.discarded = 0  # dropped unanswered by the board's flush or kill
         self.last_acked_line: int | None = None
+        self.line_executed: int | None = None
+        self._sent_line = 0  # the highest file line number written
+        self._first_line: int | None = None  # the first one (a resume's preamble is line 0)
+        self._acked_lines: deque[int | None] = deque(maxlen=_ACKED_KEPT)
         # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
         self.program_pause_sent = False
         self.paused = False  # from the job's `!` to its `~`: none of its lines is written
@@ -68,7 +84,7 @@ class JobStream:
                 self.exhausted = True
                 return None
             try:
-                self._next = (number, self._encode(text))
+                self._next = (number, self._encode(text, number if self.numbered else None))
             except InvalidCommand as exc:
                 self.finish(StreamEnd.FAILED, -32602, f"line {number}: {exc.message}")
                 return None
@@ -79,15 +95,34 @@ class JobStream:
         assert self._next is not None
         if _PROGRAM_PAUSE.search(self._next[1]):
             self.program_pause_sent = True
+        number = self._next[0]
+        if number > 0 and self._first_line is None:
+            self._first_line = number
+        self._sent_line = max(self._sent_line, number)
         self._next = None
         self.sent += 1
 
     def acknowledged(self, file_line: int | None) -> None:
         self.acked += 1
         self.last_acked_line = file_line
+        self._acked_lines.append(file_line)
         if self.wake_at is not None and self.acked >= self.wake_at:
             self.wake_at = None
             self.wake.set()
+
+    def executing(self, file_line: int) -> None:
+        """The board runs (or ran) this line. A number no line of this job carries is stale
+        (a line before the job, or read ahead of what was sent) and is ignored."""
+        first = self._first_line
+        if first is None or not first <= file_line <= self._sent_line:
+            return
+        if file_line > (self.line_executed or 0):
+            self.line_executed = file_line
+
+    def acked_line(self, back: int) -> int | None:
+        if back >= len(self._acked_lines):
+            return None
+        return self._acked_lines[-1 - back]
 
     def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
         if not self.done:

@@ -59,6 +59,7 @@ from hostd.protocol.errors import (
     Rejected,
 )
 from hostd.protocol.gcode import jog_line
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import (
     Banner,
@@ -70,6 +71,7 @@ from hostd.protocol.messages import (
     Unparseable,
 )
 from hostd.protocol.parser import parse_line
+from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import (
     Context,
@@ -347,7 +349,21 @@ class G2Session(SessionBase):
                 self._check_stream_complete(reported=True)
         if changed is not None:
             self._on_state(changed, before)
+        self._track_executed()
         self._events.append(Reported(fields, self.model.snapshot()))
+
+    def _track_executed(self) -> None:
+        """`line` is the runtime's N while the board moves (stat 5), and only then.
+
+        canonical_machine.cpp: `line` reads the ACTIVE_MODEL, which is the runtime
+        (the block being executed) while motion runs, and the parser's model (the last
+        line *read*, possibly far ahead in the planner) once motion stops, in a hold
+        too. So only a report showing RUN says which line executes.
+        """
+        stream = self.stream
+        line = self.model.line
+        if stream is not None and not stream.done and line and self.model.state is MachineState.RUN:
+            stream.executing(line)
 
     def _on_exception(self, report: ExceptionReport) -> None:
         self.model.apply_exception(report)
@@ -744,8 +760,8 @@ class G2Session(SessionBase):
     def flushing(self) -> bool:
         return self._flush is not None
 
-    def encode_job_line(self, text: str) -> bytes:
-        return encode_line(text)
+    def encode_job_line(self, text: str, number: int | None = None) -> bytes:
+        return encode_line(text if number is None else number_line(text, number))
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
@@ -763,8 +779,27 @@ class G2Session(SessionBase):
             merged.update(body)
         return merged
 
+    def limit_settings(self) -> list[str]:
+        return [f"{a}{k}" for a in _LIMIT_AXES for k in ("tn", "tm", "vm")]
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """Travel from `xtn`..`xtm`, traverse velocity `xvm`; g2core plans by jerk (`xjm`),
+        not acceleration, so none is given."""
+        travel: dict[str, tuple[float, float]] = {}
+        velocity: dict[str, float] = {}
+        for a in _LIMIT_AXES:
+            low, high, vm = (_build(found.get(f"{a}{k}")) for k in ("tn", "tm", "vm"))
+            if low is not None and high is not None and high > low:
+                travel[a] = (low, high)
+            if vm:
+                velocity[a] = vm
+        return MachineLimits(travel, velocity)
+
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight
+
+
+_LIMIT_AXES = ("x", "y", "z")
 
 
 def _lane_of(encoded: bytes) -> Lane:

@@ -15,6 +15,11 @@ from collections.abc import Iterable, Iterator
 
 # `( ... )` comments (not nested, as in RS274NGC) and `;` to the end of line.
 _COMMENT = re.compile(r"\([^)]*\)?|;.*")
+# A line's own N word (RS274/NGC: first on the line), replaced by the host's.
+_N_WORD = re.compile(r"[nN][ \t]*[0-9]+[ \t]*")
+# The highest N that every dialect takes: grbl's MAX_LINE_NUMBER (gcode.h), 10,000,000;
+# g2core's MAX_LINENUM is 2,000,000,000.
+MAX_LINE_NUMBER = 10_000_000
 
 
 def strip_line(text: str) -> str:
@@ -35,3 +40,17 @@ def program_lines(lines: Iterable[str], start_line: int = 1) -> Iterator[tuple[i
         sendable = strip_line(text)
         if sendable:
             yield number, sendable
+
+
+def number_line(text: str, number: int) -> str:
+    """A sendable line with `N<number>` in front, so the board reports which line it runs.
+
+    The file's own N word is replaced (two on a line are an error). A line that is not
+    G-code (`$`, `{`, `?`) and a number the board would refuse are left as they are: the
+    board then reports the last number it read, which is behind, never ahead.
+    """
+    if text[:1] in ("$", "{", "?") or not 0 <= number <= MAX_LINE_NUMBER:
+        return text
+    match = _N_WORD.match(text)
+    rest = text[match.end() :] if match else text
+    return f"N{number} {rest}" if rest else f"N{number}"

@@ -31,6 +31,7 @@ import structlog
 from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.states import MachineState
@@ -82,12 +83,19 @@ class LineSource(Protocol):
     rejected: int
     discarded: int
     last_acked_line: int | None
+    line_executed: int | None
 
     @property
     def done(self) -> bool: ...
     def peek(self) -> tuple[int, bytes] | None: ...
     def take(self) -> None: ...
     def acknowledged(self, file_line: int | None) -> None: ...
+    def executing(self, file_line: int) -> None:
+        """The board says it runs (or has run) this line: a lower bound, kept if higher."""
+
+    def acked_line(self, back: int) -> int | None:
+        """The file line of the answered line `back` answers before the last (0: the last)."""
+
     def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
         """Set the outcome once; later calls are ignored."""
 
@@ -271,8 +279,12 @@ class SessionBase:
         """0x18: the board restarts; so do the session's books."""
         raise NotImplementedError
 
-    def encode_job_line(self, text: str) -> bytes:
-        """A job's line as it is written to this board."""
+    def encode_job_line(self, text: str, number: int | None = None) -> bytes:
+        """A job's line as it is written to this board; `number` its N word (the file line).
+
+        The board reports the N word of the block it runs (g2core's `line`, grbl's
+        `Ln:`): that is how the host knows which file line was executing (`line_executed`).
+        """
         raise NotImplementedError
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
@@ -303,6 +315,14 @@ class SessionBase:
 
     def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
         """The settings the answers' bodies hold, by the names they were asked by."""
+        raise NotImplementedError
+
+    def limit_settings(self) -> list[str]:
+        """The settings that hold the machine's travel, speeds and accelerations."""
+        raise NotImplementedError
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """The limits those settings say (`settings_found`'s answer to `limit_settings`)."""
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------

@@ -41,6 +41,9 @@ JOB_KEYS = {
     "started_at",
     "ended_at",
     "error",
+    "line_executed",
+    "start_line",
+    "preamble",
 }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sqlite3
 from pathlib import Path
 
 import pytest
@@ -80,4 +81,29 @@ async def test_missing_job_is_none(tmp_path: Path) -> None:
     assert await store.get(42) is None
     with pytest.raises(KeyError):
         await store.update(42, state="failed")
+    store.close()
+
+
+async def test_a_database_of_an_older_hostd_gains_the_new_columns_and_keeps_its_rows(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "jobs.db"
+    old = sqlite3.connect(path)
+    old.executescript(
+        "CREATE TABLE jobs (id INTEGER PRIMARY KEY AUTOINCREMENT, machine TEXT NOT NULL, "
+        "file TEXT, kind TEXT NOT NULL, state TEXT NOT NULL, lines_total INTEGER, "
+        "lines_sent INTEGER NOT NULL DEFAULT 0, lines_acked INTEGER NOT NULL DEFAULT 0, "
+        "started_at TEXT, ended_at TEXT, error_code INTEGER, error_message TEXT);"
+        "INSERT INTO jobs (machine, file, kind, state, lines_total, lines_sent, lines_acked) "
+        "VALUES ('m1', 'a.nc', 'make', 'interrupted', 50, 40, 30);"
+    )
+    old.commit()
+    old.close()
+    store = JobStore(path)
+    kept = await store.get(1)
+    assert kept is not None and (kept.lines_acked, kept.state) == (30, "interrupted")
+    assert kept.line_executed is None and kept.preamble is None  # not known, not zero
+    job = await store.create("m1", "make", "a.nc", 10, start_line=25, preamble=["G21", "M3"])
+    job = await store.update(job.id, line_executed=27)
+    assert (job.line_executed, job.start_line, job.preamble) == (27, 25, ["G21", "M3"])
     store.close()

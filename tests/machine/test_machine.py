@@ -45,7 +45,9 @@ async def test_a_make_job_streams_a_file_and_is_recorded(bench: Bench) -> None:
         ("busy", "went-idle", "idle"),
     ]
     sent = [r.data for r in bench.sim.received if r.kind == "line" and not r.data.startswith(b"{")]
-    assert sent[0] == b"G21 G90" and sent[-1] == b"M30" and len(sent) == 62
+    # Each line carries its file line number, which the board reports back while it runs.
+    assert sent[0] == b"N3 G21 G90" and sent[-1].endswith(b" M30") and len(sent) == 62
+    assert row.line_executed == int(sent[-1].split()[0][1:])
 
 
 async def test_start_line_skips_the_lines_before_it(bench: Bench) -> None:

@@ -78,7 +78,7 @@ IDLE = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
 
 def moves(n: int) -> JobStream:
     lines = ((i, f"G1 X{i % 100} Y{i % 7} F1000 (step {i}!)") for i in range(1, n + 1))
-    return JobStream(lines, job_id=1, encode=codec.encode)
+    return JobStream(lines, job_id=1, encode=lambda text, _n: codec.encode(text))
 
 
 async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> None:

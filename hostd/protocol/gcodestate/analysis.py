@@ -42,6 +42,7 @@ class Analysis:
     max_speed: float | None
     warnings: tuple[GcodeWarning, ...]
     final: ModalState
+    seconds: float = 0.0  # the estimated duration: moves at their feeds, dwells
 
     @property
     def file_units(self) -> str | None:
@@ -65,14 +66,22 @@ def analyze(
     start: Mapping[str, float] | None = None,
     offsets: Mapping[str, Mapping[str, float]] | None = None,
     homes: Mapping[str, Mapping[str, float]] | None = None,
+    velocity: Mapping[str, float] | None = None,
+    acceleration: Mapping[str, float] | None = None,
 ) -> Analysis:
-    """Read a whole program (streamed) and return its figures."""
+    """Read a whole program (streamed) and return its figures.
+
+    `velocity` (mm/min) and `acceleration` (mm/s^2) per axis, from the machine's
+    settings when known, shape the estimate.
+    """
     model = GcodeModel(
         dialect,
         start=start if start is not None else dict.fromkeys(AXES, 0.0),
         offsets=offsets if offsets is not None else {"G54": dict.fromkeys(AXES, 0.0)},
         homes=homes,
         track_bounds=True,
+        velocity=velocity,
+        acceleration=acceleration,
     )
     model.feed_lines(lines)
     return result(model)
@@ -97,4 +106,24 @@ def result(model: GcodeModel) -> Analysis:
         max_speed=model.max_speed,
         warnings=tuple(GcodeWarning(t, line, n) for t, (line, n) in model.warnings.items()),
         final=model.state(),
+        seconds=model.seconds,
     )
+
+
+def beyond_travel(
+    bounds: Bounds, offset: Mapping[str, float], travel: Mapping[str, tuple[float, float]]
+) -> list[str]:
+    """The axes whose moves leave the machine's travel: program bounds (mm) moved by the
+    work offset in force (machine minus work position, mm), against travel (mm)."""
+    out = []
+    for axis, (low, high) in bounds.items():
+        if axis not in travel or axis not in offset:
+            continue
+        t_low, t_high = travel[axis]
+        m_low, m_high = low + offset[axis], high + offset[axis]
+        if m_low < t_low - 1e-6 or m_high > t_high + 1e-6:
+            out.append(
+                f"{axis.upper()} runs from {m_low:.3f} to {m_high:.3f} mm (machine), "
+                f"outside the travel {t_low:.3f} to {t_high:.3f} mm"
+            )
+    return out

@@ -29,6 +29,7 @@ from hostd.protocol.gcodestate.dialects import G2CORE, Dialect
 from hostd.protocol.gcodestate.state import AXES, MM_PER_INCH, WCS, ModalState
 
 NAN = math.nan
+DEFAULT_RAPID = 5000.0  # mm/min: a rapid's speed when the machine's is not known
 _AXIS = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
 _LINEAR = 3  # axes below this index are lengths; A B C are degrees, never scaled
 _PARAMS = frozenset("DEFHIJKLPQRS")
@@ -104,6 +105,8 @@ class GcodeModel:
         motion: str = "G80",
         block_delete: bool = False,
         track_bounds: bool = False,
+        velocity: Mapping[str, float] | None = None,
+        acceleration: Mapping[str, float] | None = None,
     ) -> None:
         self.dialect = dialect
         self.block_delete = block_delete
@@ -150,6 +153,14 @@ class GcodeModel:
         self.low = [math.inf] * 6
         self.high = [-math.inf] * 6
         self.moved: set[int] = set()  # axes named in a move
+        # The estimate (with `track_bounds`): seconds of motion and dwell. Axis speed limits
+        # in mm/min (a rapid runs at them; DEFAULT_RAPID where not known), accelerations in
+        # mm/s^2 (none known: moves take length / speed).
+        self.seconds = 0.0
+        self.vmax = [float((velocity or {}).get(a, 0.0)) for a in AXES]
+        self.amax = [float((acceleration or {}).get(a, 0.0)) for a in AXES]
+        self._direction: tuple[float, float, float] | None = None
+        self._arc_length = 0.0
 
     # --- reading -----------------------------------------------------------------
 
@@ -249,6 +260,9 @@ class GcodeModel:
                 self.warn(f"{g} is not supported by {self.dialect.name}")
         if params:
             self._words(params)
+            if "G4" in gcodes and self.track_bounds:
+                self.seconds += max(params.get("P", 0.0), 0.0)
+                self._direction = None  # a stop
         if mcodes:
             self._mcodes_before(mcodes, params)
         if nonmodal is not None:
@@ -416,6 +430,8 @@ class GcodeModel:
             self.feeds += 1
             self.arcs += 1
             self._arc(start, params, motion == "G2")
+            if self.track_bounds:
+                self._time(start, False, self._arc_length)
             return
         elif motion == "G80":
             self.warn("axis words with no motion mode (G80)")
@@ -426,6 +442,51 @@ class GcodeModel:
             self._unknown_end(motion, axes)
         if self.track_bounds:
             self._extend_line()
+            self._time(start, motion == "G0", None)
+
+    def _time(self, start: list[float], rapid: bool, length: float | None) -> None:
+        """Add the move's duration: its length at its speed, capped by each axis's limit,
+        plus, where accelerations are known, the time lost slowing down for the corner
+        before it (none on a straight continuation, a full stop on a reversal)."""
+        d = [self.pos[i] - start[i] for i in range(3)]
+        chord = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        if length is None:
+            length = chord
+        if not length or math.isnan(length):
+            return
+        cap = math.inf
+        accel = math.inf
+        if chord:
+            unit = (d[0] / chord, d[1] / chord, d[2] / chord)
+            for i in range(3):
+                share = abs(unit[i])
+                if share > 1e-9:
+                    if self.vmax[i]:
+                        cap = min(cap, self.vmax[i] / share)
+                    if self.amax[i]:
+                        accel = min(accel, self.amax[i] / share)
+        else:
+            unit = self._direction or (0.0, 0.0, 0.0)
+        if self.feed_mode == "G93" and not rapid:
+            if self.feed:
+                self.seconds += 60.0 / self.feed
+            self._direction = unit
+            return
+        if rapid:
+            speed = cap if math.isfinite(cap) else DEFAULT_RAPID
+        else:
+            feed = (self.feed or 0.0) * self.feed_scale
+            if feed <= 0:
+                return  # refused by the controller: no F
+            speed = min(feed, cap)
+        self.seconds += 60.0 * length / speed
+        if math.isfinite(accel):
+            before = self._direction
+            turn = 1.0
+            if before is not None:
+                turn = (1 - before[0] * unit[0] - before[1] * unit[1] - before[2] * unit[2]) / 2
+            self.seconds += turn * (speed / 60.0) / accel
+        self._direction = unit
 
     def _unknown_end(self, motion: str, axes: dict[int, float]) -> None:
         if motion.startswith("G38"):
@@ -491,6 +552,14 @@ class GcodeModel:
             self._extend_line()
             turns = int(params.get("P", 1))
             self._extend_arc(a, b, (x0, y0), (x1, y1), (cx, cy), clockwise, turns)
+            self._arc_length = _arc_length(
+                (x0, y0),
+                (x1, y1),
+                (cx, cy),
+                clockwise,
+                turns,
+                self.pos[_PLANES[self.plane][2]] - start[_PLANES[self.plane][2]],
+            )
 
     def _extend_arc(
         self,
@@ -575,6 +644,25 @@ class GcodeModel:
             g92_stored={a: _known(v) for a, v in zip(AXES, self.g92, strict=True)},
             ended=self.ended,
         )
+
+
+def _arc_length(
+    p0: tuple[float, float],
+    p1: tuple[float, float],
+    c: tuple[float, float],
+    clockwise: bool,
+    turns: int,
+    rise: float,
+) -> float:
+    """The length of a (helical) arc from p0 to p1 about c."""
+    radius = math.hypot(p0[0] - c[0], p0[1] - c[1])
+    a0 = math.atan2(p0[1] - c[1], p0[0] - c[0])
+    a1 = math.atan2(p1[1] - c[1], p1[0] - c[0])
+    sweep = ((a0 - a1) if clockwise else (a1 - a0)) % (2 * math.pi)
+    if sweep < 1e-12:
+        sweep = 2 * math.pi
+    sweep += 2 * math.pi * max(turns - 1, 0)
+    return math.hypot(radius * sweep, rise)
 
 
 def _get(values: Mapping[str, float] | None, axis: str) -> float:

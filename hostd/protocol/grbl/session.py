@@ -48,8 +48,10 @@ from hostd.protocol.grbl.codes import (
     alarm_text,
     error_text,
 )
+from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
+from hostd.protocol.program import number_line
 from hostd.protocol.session import (
     Context,
     Excepted,
@@ -100,6 +102,7 @@ ADMISSION: Table = {
 _AXES = "xyzabc"
 _PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
 _GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
+_RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 
 
 class _Own(OwnLine, Enum):
@@ -156,7 +159,8 @@ class GrblSession(SessionBase):
     def no_data_in_flight(self) -> bool:
         return not self._inflight
 
-    def encode_job_line(self, text: str) -> bytes:
+    def encode_job_line(self, text: str, number: int | None = None) -> bytes:
+        text = text if number is None else number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
@@ -212,6 +216,25 @@ class GrblSession(SessionBase):
                     numbers = codec.numbers(value)
                     found[key] = numbers[0] if numbers and len(numbers) == 1 else value
         return found
+
+    def limit_settings(self) -> list[str]:
+        return [str(n) for n in (*_RATE, *_ACCEL, *_TRAVEL)]
+
+    def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
+        """`$110`.. max rate, `$120`.. acceleration, `$130`.. max travel; grbl's machine
+        coordinates run from -max travel to 0 (limits.c, without HOMING_FORCE_SET_ORIGIN)."""
+        travel: dict[str, tuple[float, float]] = {}
+        velocity: dict[str, float] = {}
+        accel: dict[str, float] = {}
+        for i, axis in enumerate(("x", "y", "z")):
+            rate, acc, span = (found.get(str(n[i])) for n in (_RATE, _ACCEL, _TRAVEL))
+            if isinstance(rate, float | int) and rate > 0:
+                velocity[axis] = float(rate)
+            if isinstance(acc, float | int) and acc > 0:
+                accel[axis] = float(acc)
+            if isinstance(span, float | int) and span > 0:
+                travel[axis] = (-float(span), 0.0)
+        return MachineLimits(travel, velocity, accel)
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
@@ -358,6 +381,7 @@ class GrblSession(SessionBase):
         self._await_report = False
         if changed is not None:
             self._on_state(changed, before)
+        self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
         for token in waiters:
@@ -368,6 +392,28 @@ class GrblSession(SessionBase):
             self._check_stream_complete(reported=True)
         if self._first_report:
             self._ready()
+
+    def _track_executed(self, fields: dict[str, Any]) -> None:
+        """Which file line runs: `Ln:`, else what the planner can still hold.
+
+        `Ln:` is the N of the planner block being executed (report.c: the current
+        block, or on grblHAL the parser's last N when the planner is empty: all of it
+        ran). It is sent by grblHAL when `$10` asks for it and by classic grbl only when
+        built with USE_LINE_NUMBERS (off by default). Without it, `Bf:` bounds it: grbl
+        answers `ok` once a line is planned, so of the lines answered, only the last
+        `blocks - free` can still be in the planner; the one before them ran.
+        """
+        stream = self.stream
+        if stream is None or stream.done:
+            return
+        line = fields.get("line")
+        if isinstance(line, int) and line > 0:
+            stream.executing(line)
+        if self._planner_free is not None and stream.acked:
+            used = max(self.blocks - self._planner_free, 0)
+            ran = stream.acked_line(used)
+            if ran is not None and ran > 0:
+                stream.executing(ran)
 
     def _at_rest(self) -> bool:
         """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""

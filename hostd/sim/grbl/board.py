@@ -880,8 +880,11 @@ class GrblBoard:
         if mask & 2:
             free = self.config.blocks - len(self.planner)
             fields.append(f"Bf:{max(free, 0)},{self.rx_free}")
-        line = self.active.block.n if self.active is not None else 0
-        if self.hal and not line:
+        # report.c: the N of plan_get_current_block(), the block executing or next to
+        # (it may not have started: grbl says Idle for an instant before a cycle); with
+        # the planner empty grblHAL reports the parser's last N, classic grbl nothing.
+        line = self.planner[0].n if self.planner else 0
+        if self.hal and not self.planner:
             line = self.modal.line
         if line:
             fields.append(f"Ln:{line}")

@@ -1,0 +1,167 @@
+"""Before a job moves anything: its analysis against the machine, and a resume's plan.
+
+The G-code rules are in `hostd.protocol.gcodestate` (the model, the analysis, the
+resume plan) and the dialect's settings in its session (`limit_settings`,
+`machine_limits`); this module reads the file off the event loop and puts them
+together for one machine.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hostd.machine.jobstore import Job
+from hostd.protocol.errors import MachineError
+from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
+from hostd.protocol.gcodestate.analysis import beyond_travel
+from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
+from hostd.protocol.gcodestate.state import MM_PER_INCH
+from hostd.protocol.limits import MachineLimits
+from hostd.protocol.program import program_lines
+
+RESUMABLE = ("interrupted", "failed", "cancelled")
+
+
+class OutOfTravel(MachineError):
+    """The program's moves leave the machine's travel (`force` to run it anyway)."""
+
+    code = 1010
+
+
+class NotResumable(MachineError):
+    """No safe resume: the job, the file or the position does not allow one."""
+
+    code = 1011
+
+
+@dataclass(frozen=True, slots=True)
+class Preflight:
+    analysis: Analysis
+    limits: MachineLimits | None
+    beyond: list[str]  # why the program leaves the travel, axis by axis
+    checked: bool = False  # the travel and the work offset were known: the check ran
+
+    def to_json(self) -> dict[str, Any]:
+        a = self.analysis
+        return {
+            "lines": a.lines,
+            "blocks": a.blocks,
+            "moves": a.rapids + a.feeds,
+            "rapids": a.rapids,
+            "feeds": a.feeds,
+            "arcs": a.arcs,
+            "bounds": {axis: list(b) for axis, b in a.bounds.items()},
+            "units": list(a.units),
+            "tools": list(a.tools),
+            "max_speed": a.max_speed,
+            "estimate": round(a.seconds, 3),
+            "warnings": [{"text": w.text, "line": w.line, "count": w.count} for w in a.warnings]
+            + [{"text": text, "line": None, "count": 1} for text in self.beyond],
+            "beyond_travel": self.beyond,
+            "travel_checked": self.checked,
+            "limits": None if self.limits is None else self.limits.to_json(),
+        }
+
+
+def work_offset(snapshot: dict[str, Any]) -> dict[str, float] | None:
+    """Machine minus work position (mm) as the board reports them: the offset in force.
+
+    None until the machine is homed: machine coordinates mean nothing before (a board
+    counts from wherever it was switched on), so neither does a travel check.
+    """
+    if snapshot.get("homed") is not True:
+        return None
+    machine = snapshot.get("machine_position") or {}
+    work = snapshot.get("work_position") or {}
+    scale = MM_PER_INCH if snapshot.get("units") == "in" else 1.0
+    return {a: (machine[a] - work[a]) * scale for a in machine if a in work}
+
+
+async def analyze_file(
+    path: Path,
+    dialect: str,
+    limits: MachineLimits | None = None,
+    offset: dict[str, float] | None = None,
+) -> Preflight:
+    """The file's figures, its estimate with the machine's speeds, and its travel check."""
+
+    def run() -> Analysis:
+        with path.open(encoding="utf-8", errors="replace") as f:
+            return analyze(
+                f,
+                DIALECTS[dialect],
+                velocity=limits.velocity if limits else None,
+                acceleration=limits.acceleration if limits else None,
+            )
+
+    analysis = await asyncio.to_thread(run)
+    beyond: list[str] = []
+    checked = limits is not None and bool(limits.travel) and bool(offset)
+    if limits is not None and offset:
+        beyond = beyond_travel(analysis.bounds, offset, limits.travel)
+    return Preflight(analysis, limits, beyond, checked)
+
+
+async def plan_recovery(
+    path: Path,
+    job: Job,
+    dialect: str,
+    *,
+    safe_z: float | None,
+    dwell: float,
+    line: int | None = None,
+) -> tuple[ResumePlan, list[str]]:
+    """Where `job` should resume (or at `line`), and the plan that gets there safely.
+
+    The resume line is `line_executed`: the line the board was running, which
+    is run again from its start. Returns the plan and what is unsure about the line.
+    """
+    if job.kind != "make" or job.file is None:
+        raise NotResumable(f"job {job.id} is a {job.kind} operation, not a make job")
+    if line is None and job.state not in RESUMABLE:
+        raise NotResumable(f"job {job.id} is {job.state}: only {', '.join(RESUMABLE)} resume")
+    about: list[str] = []
+    if line is None:
+        if job.line_executed is not None:
+            line = job.line_executed
+            about.append(
+                f"line {line} is the last the board reported running, at most a status "
+                f"interval before the stop; it answered lines up to {job.lines_acked} "
+                "of the job's, so it may have gone further"
+            )
+        else:
+            line = job.start_line or 1
+            about.append("the board never said which line it ran: resuming at the job's start")
+
+    plan = await plan_at(path, line, dialect, safe_z=safe_z, dwell=dwell)
+    return plan, about
+
+
+async def plan_at(
+    path: Path, line: int, dialect: str, *, safe_z: float | None, dwell: float
+) -> ResumePlan:
+    """The plan to resume the file at `line` (or the first line to send after it)."""
+
+    def run() -> ResumePlan:
+        with path.open(encoding="utf-8", errors="replace") as f:
+            plan = plan_resume(f, line, DIALECTS[dialect], safe_z=safe_z, dwell=dwell)
+        with path.open(encoding="utf-8", errors="replace") as f:
+            first = next(program_lines(f, line), None)
+        if first is None:
+            raise ResumeError(f"nothing to run at or after line {line}")
+        return plan if first[0] == line else _at(plan, first[0])
+
+    try:
+        return await asyncio.to_thread(run)
+    except ResumeError as exc:
+        raise NotResumable(str(exc)) from None
+    except FileNotFoundError:
+        raise NotResumable(f"the file {path.name!r} is gone") from None
+
+
+def _at(plan: ResumePlan, line: int) -> ResumePlan:
+    """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
+    return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.unsure)
