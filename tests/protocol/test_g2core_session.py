@@ -448,3 +448,28 @@ async def test_a_json_line_in_a_job_takes_the_control_lane_and_its_answer() -> N
     wire.answer(b"G1 X2\n", {})
     wire.report(stat=4)
     assert stream.result.result().end is StreamEnd.COMPLETED and stream.acked == 3
+
+
+async def test_the_executing_line_is_read_only_from_reports_that_show_motion() -> None:
+    """canonical_machine.cpp: `line` is the runtime's N while moving, the last line *read*
+    once stopped or holding: only a RUN report says which line executes."""
+    wire = ready(window=4)
+    stream = JobStream(
+        iter(enumerate((f"G1 X{i} F100" for i in range(10)), start=1)),
+        job_id=1,
+        encode=wire.session.encode_job_line,
+        numbered=True,
+    )
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert wire.lines(Lane.DATA)[0].startswith(b"N1 ")  # numbered with the file line
+    wire.report(stat=5, line=2)
+    assert stream.line_executed == 2
+    wire.report(stat=6, line=4)  # a hold: the line read ahead, not the one running
+    assert stream.line_executed == 2
+    wire.report(stat=5, line=9)  # never sent: a stale or foreign number
+    assert stream.line_executed == 2
+    wire.report(stat=5, line=3)
+    assert stream.line_executed == 3
+    wire.report(stat=5, line=1)  # never backwards
+    assert stream.line_executed == 3

@@ -364,3 +364,21 @@ async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
     )
     grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:123,25,85>")
     assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}
+
+
+async def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    lines = ((i, f"G1 X{i} F100") for i in range(1, 11))
+    stream = JobStream(lines, job_id=1, encode=grbl.session.encode_job_line, numbered=True)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    assert grbl.lines()[0].startswith(b"N1 ")
+    grbl.feed(*["ok"] * 6)
+    # Classic grbl reports no Ln: 3 of 15 blocks still planned, so lines 4-6 have not run.
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:12,100|FS:100,0>")
+    assert stream.line_executed == 3
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:13,100|FS:100,0|Ln:5>")  # grblHAL says it
+    assert stream.line_executed == 5
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:15,100|FS:100,0|Ln:2>")  # never backwards
+    assert stream.line_executed == 6  # the planner is empty: all six answered lines ran
