@@ -111,9 +111,10 @@ async def ready_client(process: Process) -> Rpc:
     seen = await process.message(b"READY=1")
     assert any(b"STATUS=" in d for d in seen)
     rpc = await Rpc.open(process.socket_path)
+    # Subscribed before looking: a change between the look and the subscription is not missed.
+    await rpc.call("subscribe", topics=["supervisor"], machine="sim1")
     async with asyncio.timeout(10):
-        while (await rpc.call("machine.status", machine="sim1"))["supervisor"] != "idle":
-            await rpc.call("subscribe", topics=["supervisor"], machine="sim1")
+        if (await rpc.call("machine.status", machine="sim1"))["supervisor"] != "idle":
             await rpc.notification(lambda n: n["params"].get("to") == "idle")
     return rpc
 
