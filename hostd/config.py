@@ -110,6 +110,10 @@ class WebConfig(_Strict):
     control: bool = True
     # Login attempts one address may make a minute (successful ones count too).
     login_attempts: Annotated[int, Field(ge=1, le=1000)] = 5
+    # Further names the dashboard answers to (a LAN name, a reverse proxy's): requests
+    # naming any other host are refused, against DNS rebinding. IP addresses,
+    # `localhost` and the `listen` host always do.
+    hosts: list[Annotated[str, Field(min_length=1, max_length=253)]] = []
 
     @field_validator("listen")
     @classmethod

@@ -29,6 +29,7 @@ Security (a browser is not a Unix socket):
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import itertools
 import json
 import time
@@ -191,6 +192,7 @@ class WebServer:
         self._write_timeout = write_timeout
         self._max_inflight = max_inflight
         self._limiter = LoginLimiter(config.login_attempts, clock)
+        self._hosts = {"localhost", config.host.strip("[]").lower(), *map(str.lower, config.hosts)}
         self._ids = itertools.count(1)
         self._clients: set[WebClient] = set()
         self._runner: web.AppRunner | None = None
@@ -237,6 +239,22 @@ class WebServer:
 
     # --- security -----------------------------------------------------------
 
+    def _known_host(self, host: str) -> bool:
+        """The Host a request names is ours: an address, localhost, `listen`'s, or a [web] host.
+
+        A page on a name the attacker controls, made to resolve to this machine
+        (DNS rebinding), names that name: it is refused before anything else.
+        """
+        name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+        name = name.strip("[]").lower()
+        if name in self._hosts:
+            return True
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        return True
+
     def _token(self, request: web.Request) -> str | None:
         header = request.headers.get("Authorization", "")
         scheme, _, value = header.partition(" ")
@@ -248,6 +266,9 @@ class WebServer:
     async def _authenticate(
         self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
     ) -> web.StreamResponse:
+        if not self._known_host(request.host):
+            log.warning("web request for an unknown host refused", host=request.host)
+            return _error(421, f"this dashboard does not answer to {request.host!r} ([web] hosts)")
         if request.path in PUBLIC or self._tokens.verify(self._token(request)):
             return await handler(request)
         if request.method == "GET" and request.path == "/":

@@ -229,3 +229,22 @@ async def test_a_tab_that_never_reads_is_dropped_and_the_job_streams_on(tmp_path
         finally:
             stalled.close()
             await other.close()
+
+
+async def test_a_request_naming_an_unknown_host_is_refused_against_dns_rebinding(
+    tmp_path: Path,
+) -> None:
+    async with running_web(tmp_path, hosts=["cnc.shop.lan"]) as web:
+        port = web.server.port
+
+        async def status(host: str) -> int:
+            headers = {**web.auth(), "Host": host}
+            async with web.session.get(f"{web.url}/session", headers=headers) as response:
+                return response.status
+
+        # A page on a name the attacker controls, resolved to this machine, names it.
+        assert await status(f"evil.example:{port}") == 421
+        assert await status(f"localhost:{port}") == 200
+        assert await status(f"127.0.0.1:{port}") == 200
+        assert await status(f"cnc.shop.lan:{port}") == 200  # [web] hosts
+        assert await status(f"CNC.Shop.LAN:{port}") == 200
