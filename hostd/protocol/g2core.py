@@ -224,11 +224,7 @@ class G2Session(SessionBase):
         for waiting in (self._outbox, self._lane):
             while waiting:
                 self._settle(waiting.popleft().token, lost)
-        if self.stream is not None and not self.stream.done:
-            if restarted:
-                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
-            else:
-                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+        self._end_stream_on_close(reason, restarted)
         self._await_report = self._awaiting_rest = False
         self._settings_pending = False
         self._to_set.clear()
@@ -431,12 +427,7 @@ class G2Session(SessionBase):
             where = f"after file line {stream.last_acked_line}"
             self._detected("underflow", stream.acked, f"the controller stopped {where}")
         if state.is_lockout:
-            refusal = admit(CommandClass.ACTION, state)
-            assert refusal is not None
-            text = self.model.last_exception_message() or message(refusal)
-            if self.stream is not None and not self.stream.done:
-                # Drain: the job's remaining lines are dropped on the host at once.
-                self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+            self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:
             self._settings_pending = False
             for setting in self._settings():
@@ -724,8 +715,7 @@ class G2Session(SessionBase):
 
     def reset(self) -> None:
         """0x18: the board reboots; so do the session's books when it comes back."""
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
+        self._require_open()
         self._write_realtime(Realtime.RESET)
         self.halted = False
 

@@ -232,8 +232,7 @@ class SessionBase:
 
     def realtime(self, command: Realtime) -> None:
         """Write a realtime command now (it never waits), if the state admits it."""
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
+        self._require_open()
         cls = classify_realtime(command)
         verdict = self._admit(cls, self.model.state)
         if verdict is not None:
@@ -409,6 +408,28 @@ class SessionBase:
     def _require_ready(self) -> None:
         if self.phase is not Phase.READY:
             raise NotConnected(f"{self.id} is not connected")
+
+    def _require_open(self) -> None:
+        """The link is open (a realtime byte may go even while the handshake runs)."""
+        if self.phase is Phase.CLOSED:
+            raise NotConnected(f"{self.id} is not connected")
+
+    def _end_stream_on_close(self, reason: str, restarted: bool) -> None:
+        """The link is gone: a live job ends failed if the board was reset, else interrupted."""
+        if self.stream is not None and not self.stream.done:
+            if restarted:
+                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            else:
+                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+
+    def _drain_for_lockout(self, state: MachineState, describe: Callable[[int], str]) -> None:
+        """A lockout: the running job ends failed with the lockout's code, and its remaining
+        lines are dropped on the host at once. `describe` names the code when the board
+        said nothing of its own."""
+        refusal = self._admit(CommandClass.ACTION, state)
+        if refusal is not None and self.stream is not None and not self.stream.done:
+            text = self.model.last_exception_message() or describe(refusal)
+            self.stream.finish(StreamEnd.FAILED, int(refusal), text)
 
     def cancel(self, token: Any) -> None:
         """The asker gave up: a line not yet written is not written."""

@@ -51,6 +51,7 @@ from hostd.protocol.grbl.codes import (
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
+from hostd.protocol.numbers import format_setting
 from hostd.protocol.program import number_line
 from hostd.protocol.session import (
     Context,
@@ -176,8 +177,7 @@ class GrblSession(SessionBase):
         to 100 then the steps to it, all realtime bytes, taken in any state.
         Rapid has three settings: 100, 50 and 25.
         """
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
+        self._require_open()
         out: list[bytes] = []
         if feed is not None:
             out += codec.override_steps(feed, "feed")
@@ -189,8 +189,7 @@ class GrblSession(SessionBase):
 
     def safety_door(self) -> None:
         """0x84 (protocol.c CMD_SAFETY_DOOR): the board enters Door as if its switch opened."""
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
+        self._require_open()
         self._out.append((Lane.REALTIME, codec.SAFETY_DOOR))
 
     def settings_read(self, keys: list[str]) -> list[str]:
@@ -203,7 +202,7 @@ class GrblSession(SessionBase):
         for key, value in values.items():
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise InvalidCommand(Refusal.BAD_VALUE, f"grbl setting ${key} takes a number")
-            lines.append(f"${key}={format_number(value)}")
+            lines.append(f"${key}={format_setting(value, f'grbl setting ${key}')}")
         return lines
 
     def settings_found(self, keys: list[str], bodies: list[JsonObject]) -> dict[str, Any]:
@@ -270,11 +269,7 @@ class GrblSession(SessionBase):
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
         self._forget(NotConnected(f"link lost: {reason}"))
-        if self.stream is not None and not self.stream.done:
-            if restarted:
-                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
-            else:
-                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+        self._end_stream_on_close(reason, restarted)
         self._out.clear()
         self._lines_in = 0
         self.model.reset()
@@ -467,10 +462,7 @@ class GrblSession(SessionBase):
     def _on_state(self, state: MachineState, before: MachineState | None) -> None:
         self._job_log().info("controller state", state=state.name)
         if state.is_lockout:
-            refusal = self._admit(CommandClass.ACTION, state)
-            text = self.model.last_exception_message() or "the controller is locked out"
-            if self.stream is not None and not self.stream.done and refusal is not None:
-                self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+            self._drain_for_lockout(state, lambda _code: "the controller is locked out")
         self._recheck_waiting()
 
     def _on_alarm(self, code: int) -> None:
@@ -749,8 +741,7 @@ class GrblSession(SessionBase):
             self._begin_stop()
 
     def reset(self) -> None:
-        if self.phase is Phase.CLOSED:
-            raise NotConnected(f"{self.id} is not connected")
+        self._require_open()
         self.halted = False
         self._reset_now()
 
@@ -777,14 +768,6 @@ def _setting_numbers(keys: list[str]) -> None:
                 Refusal.RESERVED_KEY,
                 f"{key!r} is not a grbl setting: name it by its number, as 110",
             )
-
-
-def format_number(value: int | float) -> str:
-    if isinstance(value, int):
-        return str(value)
-    if value != value or value in (float("inf"), float("-inf")):
-        raise InvalidCommand(Refusal.BAD_NUMBER, "a setting must be a finite number")
-    return f"{value:.6f}".rstrip("0").rstrip(".")
 
 
 _NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})
