@@ -534,10 +534,11 @@ class Api:
             raise RpcError(1004, str(exc)) from None
         path = self.jobs.path / p.file
         limits = await self._limits(machine) if not p.force or p.start_line > 1 else None
-        if not p.force:
-            check = await analyze_file(
-                path, machine.config.dialect, limits, work_offset(machine.snapshot())
-            )
+        offset = work_offset(machine.snapshot())
+        if not p.force and limits is not None and limits.travel and offset:
+            # Only a check that can run is worth reading the file for: the travel
+            # is known and so is the work offset (the machine is homed).
+            check = await analyze_file(path, machine.config.dialect, limits, offset)
             if check.beyond:
                 raise OutOfTravel(
                     f"{p.file} leaves {p.machine}'s travel: " + "; ".join(check.beyond),

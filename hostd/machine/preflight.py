@@ -9,6 +9,8 @@ together for one machine.
 from __future__ import annotations
 
 import asyncio
+import functools
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -89,13 +91,11 @@ async def analyze_file(
     """The file's figures, its estimate with the machine's speeds, and its travel check."""
 
     def run() -> Analysis:
-        with path.open(encoding="utf-8", errors="replace") as f:
-            return analyze(
-                f,
-                DIALECTS[dialect],
-                velocity=limits.velocity if limits else None,
-                acceleration=limits.acceleration if limits else None,
-            )
+        with path.open("rb") as f:
+            fingerprint = hashlib.file_digest(f, "blake2b").digest()
+        velocity = tuple(sorted(limits.velocity.items())) if limits else ()
+        acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()
+        return _analysis(path, fingerprint, dialect, velocity, acceleration)
 
     analysis = await asyncio.to_thread(run)
     beyond: list[str] = []
@@ -103,6 +103,30 @@ async def analyze_file(
     if limits is not None and offset:
         beyond = beyond_travel(analysis.bounds, offset, limits.travel)
     return Preflight(analysis, limits, beyond, checked)
+
+
+@functools.lru_cache(maxsize=16)
+def _analysis(
+    path: Path,
+    fingerprint: bytes,
+    dialect: str,
+    velocity: tuple[tuple[str, float], ...],
+    acceleration: tuple[tuple[str, float], ...],
+) -> Analysis:
+    """A file's analysis, kept while the file holds the same bytes (`fingerprint`).
+
+    Running one program on workpiece after workpiece analyses it once (hashing
+    a file costs about a hundredth of analysing it); a file uploaded again with
+    other bytes is analysed afresh.
+    """
+    del fingerprint  # part of the key only
+    with path.open(encoding="utf-8", errors="replace") as f:
+        return analyze(
+            f,
+            DIALECTS[dialect],
+            velocity=dict(velocity) or None,
+            acceleration=dict(acceleration) or None,
+        )
 
 
 async def plan_recovery(

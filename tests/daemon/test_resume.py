@@ -68,8 +68,15 @@ async def grbl(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
 
 
 async def _power_cycle(hostd: Running, rpc: Rpc) -> None:
+    """Unplug, until the daemon has seen the link go, then plug back in, until idle."""
     sim = hostd.daemon.sims["sim1"]
-    await sim.unplug()
+    watcher = await hostd.client()
+    try:
+        await watcher.call("subscribe", topics=["supervisor"], machine="sim1")
+        await sim.unplug()
+        await watcher.notification(lambda n: n["params"]["to"] == "disconnected")
+    finally:
+        await watcher.close()
     await sim.replug()
     await hostd.idle(rpc)
 
@@ -237,6 +244,18 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     assert refused.value.code == 1010 and "travel" in refused.value.message
     assert refused.value.data["beyond_travel"] == report["beyond_travel"]
     await rpc.call("subscribe", topics=["job"], machine="sim1")
+
+    # The same name with other bytes is checked afresh, not by the kept analysis,
+    # and so is the first program uploaded again.
+    await rpc.call("file.upload", name="wide.nc", data="G21 G90\nG1 X150 F6000\nG1 X0\n")
+    fits = await rpc.call("job.start", machine="sim1", file="wide.nc")
+    assert (await job_end(rpc, fits["job"]))["state"] == "completed"
+    await hostd.idle(rpc)
+    await rpc.call("file.upload", name="wide.nc", data="G21 G90\nG1 X350 F6000\nG1 X0\n")
+    with pytest.raises(RpcFailure) as again:
+        await rpc.call("job.start", machine="sim1", file="wide.nc")
+    assert again.value.code == 1010
+
     forced = await rpc.call("job.start", machine="sim1", file="wide.nc", force=True)
     assert (await job_end(rpc, forced["job"]))["state"] in ("completed", "failed")
 
