@@ -48,6 +48,11 @@ _DROPPED = re.compile(r"[^A-Za-z0-9.\-]")
 _INTEGER_PART = re.compile(r"(?<![0-9.])[0-9]+")
 
 
+def is_plain(text: str) -> bool:
+    """Plain words only (the common case above): nothing in it the board could misread."""
+    return _PLAIN.fullmatch(text) is not None
+
+
 def check_gcode(text: str) -> None:
     """Refuse a G-code line the board would misread (the rules above)."""
     if _PLAIN.fullmatch(text):

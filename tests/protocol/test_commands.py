@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
 
 from hostd.protocol.commands import (
     MAX_LINE_BYTES,
@@ -22,6 +24,27 @@ from hostd.protocol.relaxed import parse_relaxed
 
 def test_gcode_line_is_sent_as_is_with_one_lf() -> None:
     assert encode_line("G1 X10 Y20 F3000") == b"G1 X10 Y20 F3000\n"
+
+
+_WORDISH = st.text(alphabet="GMXYZFNHhE$?{}()!%;. \t-+0123456789\x00\x18é", max_size=40)
+
+
+@given(st.one_of(_WORDISH, st.text(max_size=40), st.text(min_size=500, max_size=520)))
+@example("h")
+@example("G1 X1.5 ")
+@example("G1 X" + "1" * 10)
+@example("G1 X1" + " " * 520)
+def test_the_plain_line_shortcut_encodes_as_the_full_rules_do(text: str) -> None:
+    """encode_line takes plain G-code in one match: it must agree with every rule."""
+    try:
+        expected: bytes | InvalidCommand = validate_line(text).encode("utf-8") + b"\n"
+    except InvalidCommand as exc:
+        expected = exc
+    if isinstance(expected, InvalidCommand):
+        with pytest.raises(InvalidCommand):
+            encode_line(text)
+    else:
+        assert encode_line(text) == expected
 
 
 def test_get_uses_null_the_boards_get_form() -> None:
