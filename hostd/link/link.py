@@ -151,11 +151,13 @@ class Link:
         """A whole encoded line (ending in LF) on the data channel."""
         return self._write(Channel.DATA, data)
 
-    def write_lines(self, lines: list[bytes]) -> bool:
-        """Whole encoded lines on the data channel, in one write."""
+    def write_lines(self, lines: list[bytes], *, control: bool = False) -> bool:
+        """Whole encoded lines in one write: on the data channel, or with `control` on
+        the control channel (the only one, on a one-port link)."""
         for line in lines:
             _check_line(line)
-        return self._channel(Channel.DATA).write(b"".join(lines))
+        channel = Channel.CONTROL if control and self.dual else Channel.DATA
+        return self._channel(channel).write(b"".join(lines))
 
     def write_control(self, data: bytes) -> bool:
         """A whole encoded line on the control channel (or the only one)."""

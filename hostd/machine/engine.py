@@ -305,37 +305,42 @@ class Engine:
             self._deliver()
 
     def _write(self, writes: list[tuple[Lane, bytes]]) -> None:
-        """Consecutive data lines go out in one write (one syscall, not one a line)."""
+        """Consecutive lines of one lane go out in one write (one syscall, not one a line)."""
         link = self.link
         if link is None:
             return
-        batch: list[bytes] = []
         ok = True
+        batch: list[bytes] = []
+        batch_lane: Lane | None = None
         for lane, data in writes:
-            if lane is Lane.DATA:
+            if lane is batch_lane:
                 batch.append(data)
                 continue
-            if batch:
-                ok = link.write_lines(batch) and ok
-                self._tx(link, Lane.DATA, batch)
-                batch = []
+            if batch_lane is not None:
+                ok = self._write_batch(link, batch_lane, batch) and ok
             if lane is Lane.REALTIME:
                 ok = link.write_realtime(data) and ok
+                self._tx(link, lane, [data])
+                batch, batch_lane = [], None
             else:
-                ok = link.write_control(data) and ok
-            self._tx(link, lane, [data])
-        if batch:
-            ok = link.write_lines(batch) and ok
-            self._tx(link, Lane.DATA, batch)
+                batch, batch_lane = [data], lane
+        if batch_lane is not None:
+            ok = self._write_batch(link, batch_lane, batch) and ok
         # A failed write means the link is already gone: the lines stay booked,
         # and teardown accounts for them with every other unanswered line.
         self._write_failed = not ok
 
+    def _write_batch(self, link: Link, lane: Lane, lines: list[bytes]) -> bool:
+        ok = link.write_lines(lines, control=lane is Lane.CONTROL)
+        self._tx(link, lane, lines)
+        return ok
+
     def _tx(self, link: Link, lane: Lane, lines: list[bytes]) -> None:
-        if len(lines) == 1:
-            self._log.debug("tx", lane=lane.value, line=lines[0])
+        if lane is Lane.DATA and len(lines) > 1:
+            self._log.debug("tx", lane=lane.value, lines=len(lines))  # a job's window
         else:
-            self._log.debug("tx", lane=lane.value, lines=len(lines))
+            for line in lines:
+                self._log.debug("tx", lane=lane.value, line=line)
         if self.console:
             channel = Channel.CONTROL if lane is not Lane.DATA and link.dual else Channel.DATA
             for line in lines:

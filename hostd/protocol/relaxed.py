@@ -30,7 +30,9 @@ refuse (`InvalidCommand`, refusal UNREADABLE unless said otherwise):
 
 from __future__ import annotations
 
+import functools
 import re
+from collections.abc import Mapping
 from typing import Any
 
 from hostd.protocol.numbers import check_finite
@@ -54,12 +56,19 @@ _LITERALS: dict[str, Value] = {
 _SPACE = " \t"
 
 
-def read_relaxed(text: str) -> dict[str, Value]:
+def read_relaxed(text: str) -> Mapping[str, Value]:
     """The object a relaxed JSON line means, names lower-cased, in the board's order.
 
     Raises InvalidCommand (UNREADABLE, DUPLICATE_KEY or BAD_NUMBER) for a line
-    the host cannot read exactly as the board will.
+    the host cannot read exactly as the board will. The object is shared
+    (lines are read again and again: a dashboard's polls, a request's
+    validation, classification and encoding): read it, never change it.
     """
+    return _read(text)
+
+
+@functools.lru_cache(maxsize=1024)
+def _read(text: str) -> dict[str, Value]:
     obj = _Reader(text).line()
     seen: dict[str, tuple[str, ...]] = {}
     for names, _ in board_pairs(obj):
@@ -74,7 +83,7 @@ def read_relaxed(text: str) -> dict[str, Value]:
     return obj
 
 
-def parse_relaxed(text: str) -> dict[str, Value] | None:
+def parse_relaxed(text: str) -> Mapping[str, Value] | None:
     """As `read_relaxed`, but None for a line it refuses."""
     try:
         return read_relaxed(text)
@@ -82,7 +91,7 @@ def parse_relaxed(text: str) -> dict[str, Value] | None:
         return None
 
 
-def board_pairs(obj: dict[str, Value]) -> list[tuple[tuple[str, ...], Value]]:
+def board_pairs(obj: Mapping[str, Value]) -> list[tuple[tuple[str, ...], Value]]:
     """Every pair as the board runs it: (the names it may be looked up by, its value).
 
     A top-level pair has its own name; a member of a nested object has its
