@@ -41,8 +41,10 @@ bench: $(STAMP)
 
 # Long fault runs, not part of `make test`: against the daemon process (bench/soak.py),
 # unplug/re-plug and alarm cycles over real ptys (bench/soak_link.py), and the
-# model-based test (tests/stateful) with many more, longer, random examples.
+# model-based test (tests/stateful) with many more, longer, random examples, and the
+# whole suite once more on asyncio's own loop (`make test` runs on the default, uvloop).
 soak: $(STAMP)
 	$(BIN)/python -m bench.soak $(SOAK_ARGS)
 	$(BIN)/python -m bench.soak_link
 	HOSTD_STATEFUL_PROFILE=soak $(BIN)/pytest tests/stateful --timeout=0
+	HOSTD_TEST_LOOP=asyncio $(BIN)/pytest

@@ -47,9 +47,9 @@ class DaemonConfig(_Strict):
     jobs_quota: Annotated[int, Field(gt=0)] | None = None
     # Seconds an unfinished upload may go without a chunk before it is removed.
     upload_expiry: Annotated[float, Field(gt=0)] = 3600.0
-    # The event loop the daemon runs on: asyncio's own, or uvloop (docs/performance.md
-    # has the figures behind the default).
-    event_loop: Literal["asyncio", "uvloop"] = "asyncio"
+    # The event loop the daemon runs on: uvloop, or asyncio's own (docs/performance.md
+    # has the figures behind the default; the test suite runs on the default).
+    event_loop: Literal["asyncio", "uvloop"] = "uvloop"
 
 
 class MachineConfig(_Strict):

@@ -175,7 +175,8 @@ async def serve(
         # for tens of milliseconds every second or so under load (bench P2f).
         gc.freeze()
         notifier.send(READY=1, STATUS=_status_line(daemon))
-        log.info("hostd ready", socket=socket_path, machines=list(daemon.machines))
+        loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]
+        log.info("hostd ready", socket=socket_path, machines=list(daemon.machines), loop=loop)
 
     watchdog = asyncio.create_task(notifier.watchdog())
     expiry = asyncio.create_task(api.expire_uploads(_sweep_interval(config)))

@@ -327,8 +327,11 @@ async def test_max_clients_and_line_timeout_from_the_config_hold_in_the_daemon(
             assert await process.proc.wait() == 0
 
 
-async def test_the_daemon_on_uvloop_runs_a_job_pauses_and_stops_cleanly(tmp_path: Path) -> None:
-    config = write_config(tmp_path, 'event_loop = "uvloop"')
+async def test_the_daemon_on_asyncios_own_loop_runs_a_job_pauses_and_stops_cleanly(
+    tmp_path: Path,
+) -> None:
+    """uvloop is the default (and the suite's loop); asyncio's own is the other choice."""
+    config = write_config(tmp_path, 'event_loop = "asyncio"')
     async with daemon_process(tmp_path, config) as process:
         rpc = await ready_client(process)
         await process.message(b"WATCHDOG=1")
@@ -347,3 +350,6 @@ async def test_the_daemon_on_uvloop_runs_a_job_pauses_and_stops_cleanly(tmp_path
         await rpc.close()
         async with asyncio.timeout(20):
             assert await process.proc.wait() == 0
+            assert process.proc.stderr is not None
+            logs = [json.loads(line) for line in (await process.proc.stderr.read()).splitlines()]
+        assert [r["loop"] for r in logs if r["event"] == "hostd ready"] == ["asyncio"]
