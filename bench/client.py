@@ -146,7 +146,7 @@ class DaemonProcess:
         log_level: str = "info",
         extra: str = "",
         tables: str = "",
-        event_loop: str = "asyncio",
+        event_loop: str = "uvloop",
         cpus: set[int] | None = None,
         module: str = "hostd.service",
     ) -> None:

@@ -147,7 +147,7 @@ class Bench:
         py_spy: str | None,
         pin: bool = True,
         module: str = "hostd.service",
-        event_loop: str = "asyncio",
+        event_loop: str = "uvloop",
     ) -> None:
         self.workdir = workdir
         self.module = module
@@ -398,7 +398,11 @@ class Bench:
         self, controller: ControllerProcess, sent_at: list[float], name: str
     ) -> list[float]:
         """Each feedhold's write to its `!` read by the controller (samples kept in the workdir)."""
-        bangs = controller.dump()["bangs"]
+        dump = controller.dump()
+        bangs = dump["bangs"]
+        note = f"instant controllers scheduled {dump['sched']} (bench/instant_controller.py)"
+        if note not in self.notes:
+            self.notes.append(note)
         if len(bangs) != len(sent_at):
             raise RuntimeError(f"{len(sent_at)} feedholds sent, {len(bangs)} `!` received")
         (self.workdir / f"{name}-samples.json").write_text(
@@ -763,8 +767,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--event-loop",
         choices=("asyncio", "uvloop"),
-        default="asyncio",
-        help="the daemon's [daemon] event_loop (default asyncio)",
+        default="uvloop",
+        help="the daemon's [daemon] event_loop (default uvloop, the daemon's default)",
     )
     parser.add_argument(
         "--no-pin", action="store_true", help="let the scheduler place the processes"
