@@ -93,7 +93,8 @@ class JobStream:
     def take(self) -> None:
         """The peeked line was written."""
         assert self._next is not None
-        if _PROGRAM_PAUSE.search(self._next[1]):
+        line = self._next[1]
+        if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
             self.program_pause_sent = True
         number = self._next[0]
         if number > 0 and self._first_line is None:

@@ -70,7 +70,7 @@ from hostd.protocol.messages import (
     StatusReport,
     Unparseable,
 )
-from hostd.protocol.parser import parse_line
+from hostd.protocol.parser import parse_line, plain_ok_count
 from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import (
@@ -237,6 +237,10 @@ class G2Session(SessionBase):
     def receive(self, line: bytes) -> None:
         """One line the board printed (without its line end)."""
         self._last_rx = self.clock()
+        count = plain_ok_count(line)
+        if count is not None and self._job_line_taken(count):
+            self._lines_in += 1
+            return
         msg = parse_line(line)
         if isinstance(msg, Response):
             self._on_response(msg)
@@ -256,6 +260,17 @@ class G2Session(SessionBase):
         else:
             self._log.debug("controller said", message=type(msg).__name__)
         self._lines_in += 1
+
+    def _job_line_taken(self, count: int) -> bool:
+        """`{"r":{},"f":[1,0,count]}` for the oldest job line: what `_on_response` would
+        do with it (the line is acknowledged), without reading the answer in full."""
+        entry = self.sender.data_answered_by(count)
+        if entry is None or entry.file_line is None:
+            return False
+        self.sender.pop_data()
+        entry.source.acknowledged(entry.file_line)
+        self._check_stream_complete()
+        return True
 
     def _on_response(self, response: Response) -> None:
         if response.count < 2:
@@ -582,9 +597,8 @@ class G2Session(SessionBase):
                 self._check_stream_complete()
                 return
             number, encoded = nxt
-            if not sender.room(encoded):  # by its kind: a job may hold `{`-lines too
+            if not sender.book(InFlight(encoded, stream, number)):  # a job may hold `{`-lines
                 return
-            sender.sent(InFlight(encoded, stream, number), urgent=True)  # room: just seen
             stream.take()
             out.append((data, encoded))
 

@@ -27,7 +27,6 @@ but `n`).
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 from typing import Any
 
 from hostd.protocol.messages import Response
@@ -37,23 +36,29 @@ class SenderError(Exception):
     """The sender's bookkeeping was asked to do something impossible: a daemon bug."""
 
 
-@dataclass(slots=True)
 class InFlight:
     """One line written and not yet answered."""
 
-    line: bytes  # as written, with its LF
-    source: Any = None  # whoever sent it: a job, a client request
-    file_line: int | None = None  # for a job's line, its line number in the file
-    own: bool = False  # the daemon's own line (handshake, query, clear), not a client's or a job's
+    __slots__ = ("control", "count", "file_line", "line", "own", "source")
 
-    @property
-    def control(self) -> bool:
-        """The board runs it out of order, as soon as it is read."""
-        return self.line.startswith(b"{")
+    def __init__(
+        self, line: bytes, source: Any = None, file_line: int | None = None, own: bool = False
+    ) -> None:
+        self.line = line  # as written, with its LF
+        self.source = source  # whoever sent it: a job, a client request
+        self.file_line = file_line  # for a job's line, its line number in the file
+        self.own = own  # the daemon's own line (handshake, query, clear), not a client's or a job's
+        # The board runs a control line out of order, as soon as it is read.
+        self.control = line.startswith(b"{")
+        # The footer count of its answer: its length without the LF, + 1 (+ 2 for a
+        # control line, whose LF the board counts too).
+        self.count = len(line) + 1 if self.control else len(line)
 
     def expected_count(self) -> int:
-        length = len(self.line) - 1
-        return length + 2 if self.control else length + 1
+        return self.count
+
+    def __repr__(self) -> str:
+        return f"InFlight({self.line!r}, file_line={self.file_line}, own={self.own})"
 
 
 CONTROL_WINDOW = 4
@@ -101,6 +106,18 @@ class LineModeSender:
             raise SenderError(f"{kind} of {budget} exceeded")
         (self._control if entry.control else self._data).append(entry)
 
+    def book(self, entry: InFlight) -> bool:
+        """Record a written line if its kind has room; False, and nothing recorded, if not."""
+        if entry.control:
+            if len(self._control) >= self.control_window:
+                return False
+            self._control.append(entry)
+        else:
+            if len(self._data) >= self.window:
+                return False
+            self._data.append(entry)
+        return True
+
     def answered(self, response: Response) -> tuple[InFlight, list[InFlight]]:
         """The line this `{r}` answers, removed from the books, and the lines it skips.
 
@@ -120,6 +137,21 @@ class LineModeSender:
                     skipped = [queue.popleft() for _ in range(index)]
                     break
         return queue.popleft(), skipped
+
+    def data_answered_by(self, count: int) -> InFlight | None:
+        """The oldest data line, if an answer of `count` can only be its answer; else None.
+
+        `answered` in one look, for the common case: no control line waits (so
+        the answer is a data line's) and the count fits the oldest. It stays
+        on the books until `pop_data`.
+        """
+        data = self._data
+        if self._control or not data or data[0].count != count:
+            return None
+        return data[0]
+
+    def pop_data(self) -> None:
+        self._data.popleft()
 
     def oldest_control(self) -> InFlight | None:
         """The control line the board is answering now, if any: the first unanswered one."""

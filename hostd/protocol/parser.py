@@ -33,6 +33,14 @@ _NOISE = frozenset(range(0x20)) - {0x09} | {0x7F}
 
 # The answer to almost every job line: read without the JSON parser.
 _PLAIN_ANSWER = re.compile(rb'\{"r":\{\},"f":\[1,(\d{1,3}),(\d{1,4})\]\}')
+# The same with status 0 (STAT_OK): a line the board took, its count captured.
+_PLAIN_OK = re.compile(rb'\{"r":\{\},"f":\[1,0,(\d{1,4})\]\}')
+
+
+def plain_ok_count(raw: bytes) -> int | None:
+    """N of `{"r":{},"f":[1,0,N]}`, the answer to almost every job line; else None."""
+    plain = _PLAIN_OK.fullmatch(raw)
+    return None if plain is None else int(plain[1])
 
 
 def parse_line(raw: bytes) -> Message:

@@ -49,8 +49,9 @@ def number_line(text: str, number: int) -> str:
     G-code (`$`, `{`, `?`) and a number the board would refuse are left as they are: the
     board then reports the last number it read, which is behind, never ahead.
     """
-    if text[:1] in ("$", "{", "?") or not 0 <= number <= MAX_LINE_NUMBER:
+    lead = text[:1]
+    if lead in ("$", "{", "?") or not 0 <= number <= MAX_LINE_NUMBER:
         return text
-    match = _N_WORD.match(text)
+    match = _N_WORD.match(text) if lead in ("n", "N") else None
     rest = text[match.end() :] if match else text
     return f"N{number} {rest}" if rest else f"N{number}"

@@ -132,3 +132,27 @@ def test_an_answer_too_long_gives_up_the_control_line_being_run() -> None:
     assert given_up is not None and given_up.line == b'{"xvm":null}\n'
     assert sender.answered(answer(14, {"yvm": 1}))[0].line == b'{"yvm":null}\n'
     assert sender.answered(answer(6))[0].file_line == 1
+
+
+def test_book_records_a_line_only_while_its_kind_has_room() -> None:
+    sender = LineModeSender(window=1, control_window=1)
+    assert sender.book(data("G1 X1", 1))
+    assert not sender.book(data("G1 X2", 2))  # the window is full: nothing recorded
+    assert sender.book(control('{"sr":n}'))  # its own lane still has room
+    assert not sender.book(control('{"xvm":n}'))
+    assert len(sender) == 2
+
+
+def test_a_plain_answer_is_the_oldest_data_lines_only_when_nothing_else_can_take_it() -> None:
+    sender = LineModeSender(window=4)
+    sender.sent(data("G1 X1", 1))  # answered with 6
+    sender.sent(data("G1 X22", 2))
+    assert sender.data_answered_by(7) is None  # fits the second, not the oldest
+    sender.sent(control('{"sr":n}'))
+    assert sender.data_answered_by(6) is None  # a control line waits: read it in full
+    assert sender.answered(answer(10, {"sr": {}}))[0].control
+    oldest = sender.data_answered_by(6)
+    assert oldest is not None and oldest.file_line == 1
+    assert len(sender) == 2  # still on the books until popped
+    sender.pop_data()
+    assert [sender.answered(answer(7))[0].file_line] == [2]
