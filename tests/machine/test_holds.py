@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 
 import pytest
 
-from hostd.machine.events import Event, SupervisorChanged
+from hostd.machine.events import Console, Event, StatusChanged, SupervisorChanged
 from hostd.machine.supervisor import State as Sup
 from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, MachineError
@@ -62,6 +63,74 @@ async def test_a_paused_job_writes_none_of_its_lines_until_resumed(bench: Bench)
     await bench.sim.wait_for(lambda: len(lines_between(bench.sim, b"~", None)) > 4)
     bench.machine.jog_stop()
     assert (await bench.job_ended(job.id)).state == "cancelled"
+
+
+async def test_a_resume_the_board_never_held_for_writes_no_job_line_while_still_paused(
+    bench: Bench,
+) -> None:
+    """A pause the board ignored (nothing moving): the resume's lines follow `operation`.
+
+    The job's first window and the pause's `!` are written in one step, so the
+    board reads them in one read, before it runs anything: the `!` finds nothing
+    moving and is ignored. The board runs the window and stops, and the host reads
+    every answer. The resume then has room and no hold to wait for: its `~` and
+    the job's next lines go out at once, and not one of those lines may be
+    written while the supervisor still says `paused` (Machine.resume moves the
+    supervisor in the engine's one step, whose writes go out at its end).
+    Every write is judged as it is published, against the supervisor's state
+    at that very moment (publishing is synchronous).
+    """
+    machine, engine = bench.machine, bench.machine.engine
+    engine.console = True  # every line written is published in the step that writes it
+    job_line = re.compile(r"N(\d+) G1 X\d+ Y\d+ F3000")
+    written: list[tuple[int, str]] = []  # (file line written, the supervisor's state then)
+
+    def observe(event: Event) -> None:
+        if isinstance(event, Console) and event.direction == "tx":
+            line = job_line.fullmatch(event.text)
+            if line is not None:
+                written.append((int(line.group(1)), machine.supervisor.state.value))
+
+    machine.hub.subscribe(observe)
+    bench.write("steps.gcode", "".join(f"G1 X{i % 2 + 1} Y{i} F3000\n" for i in range(12)))
+    job = await machine.start_make("steps.gcode")
+    machine.pause()  # no await since the window was written: the board reads both together
+    window = len(written)
+    assert written == [(n, "operation") for n in range(1, window + 1)] and window > 0
+
+    # The board ran the window and stopped without a hold; the host read all of it.
+    ran = False
+
+    def stopped_after_running(event: Event) -> bool:
+        nonlocal ran
+        if not isinstance(event, StatusChanged):
+            return False
+        ran = ran or event.report.get("stat") == S.RUN
+        return ran and event.report.get("stat") == S.PROGRAM_STOP
+
+    await bench.recorder.wait_for(stopped_after_running)
+    await engine.wait_for(engine.session.no_data_in_flight)
+    assert [r.data for r in bench.sim.received if r.kind == "realtime"] == [b"!"]
+    assert not any(
+        isinstance(e, StatusChanged) and e.report.get("stat") == S.HOLD
+        for e in bench.recorder.events
+    ), "the board held: this test needs a pause it ignored"
+    assert engine.model.state is S.PROGRAM_STOP and machine.supervisor.state is Sup.PAUSED
+    assert len(written) == window  # nothing written while paused, so far
+
+    machine.resume()
+    resumed = written[window:]
+    assert resumed, "the resume wrote no job line at once: the window had no room?"
+    while_paused = [n for n, state in resumed if state != "operation"]
+    assert not while_paused, f"file lines {while_paused} written while the job is paused"
+    assert [n for n, _ in resumed] == list(range(window + 1, window + 1 + len(resumed)))
+    assert bench.transitions()[-2:] == [
+        ("operation", "pause-operation", "paused"),
+        ("paused", "unpause-operation", "operation"),
+    ]
+    assert (await bench.job_ended(job.id)).state == "completed"
+    assert [n for n, _ in written] == list(range(1, 13))
+    assert {state for _, state in written} == {"operation"}
 
 
 async def test_a_line_sent_in_a_pause_runs_inside_the_hold_at_once(bench: Bench) -> None:
