@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Callable, Iterator
 from enum import StrEnum
@@ -102,6 +103,8 @@ class Engine:
         self._changed = asyncio.Event()  # pulsed after every step that may change a state
         self._attempt_failed: asyncio.Future[str] | None = None
         self._log = log.bind(machine=config.id)
+        # Whether a line read or written is logged: asked once, not at every line.
+        self._traffic_logged = _debug_enabled(self._log)
 
     @property
     def model(self) -> MachineModel:
@@ -242,10 +245,12 @@ class Engine:
         if self.link is None:
             return  # a read that raced the teardown
         session = self.session
+        if self._traffic_logged or self.console:
+            for line in lines:
+                self._log.debug("rx", channel=channel.value, line=line)
+                if self.console:
+                    self._publish_console("rx", channel, line)
         for line in lines:
-            self._log.debug("rx", channel=channel.value, line=line)
-            if self.console:
-                self._publish_console("rx", channel, line)
             try:
                 session.receive(line)
             except Exception as exc:  # a bug of ours: stop writing, keep reading
@@ -336,6 +341,8 @@ class Engine:
         return ok
 
     def _tx(self, link: Link, lane: Lane, lines: list[bytes]) -> None:
+        if not (self._traffic_logged or self.console):
+            return
         if lane is Lane.DATA and len(lines) > 1:
             self._log.debug("tx", lane=lane.value, lines=len(lines))  # a job's window
         else:
@@ -556,6 +563,12 @@ class Engine:
     def _publish_link(self, up: bool, reason: str) -> None:
         if self.hub.active:
             self.hub.publish(LinkChanged(self.id, up, reason))
+
+
+def _debug_enabled(logger: Any) -> bool:
+    """Whether a structlog logger passes debug records (True if it cannot say)."""
+    is_enabled_for = getattr(logger, "is_enabled_for", None)
+    return True if is_enabled_for is None else bool(is_enabled_for(logging.DEBUG))
 
 
 def session_for(config: MachineConfig) -> SessionBase:

@@ -28,8 +28,16 @@ class LineBuffer:
         An over-long line is returned once, cut at `max_line` bytes, and the
         rest of it up to the next LF is dropped.
         """
-        lines: list[bytes] = []
         buf = self._buf
+        if (
+            not buf
+            and not self._discarding
+            and data[-1:] == b"\n"
+            and len(data) <= self.max_line
+            and b"\r" not in data
+        ):
+            return data[:-1].split(b"\n")  # whole lines in one read, none too long: the most
+        lines: list[bytes] = []
         buf += data
         start = 0
         while True:
