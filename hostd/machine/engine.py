@@ -285,8 +285,13 @@ class Engine:
                     break
                 if writes:
                     self._write(writes)
+                if not events:
+                    break  # writing changes nothing in the session: it has no more to say
                 for event in events:
                     self._on_event(event)
+            stream = session.stream
+            if stream is not None:
+                stream.prefetch()  # the board is at work on what was written: get ahead
         finally:
             self._delivering = False
         self._changed.set()

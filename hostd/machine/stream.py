@@ -1,7 +1,11 @@
 """A job's lines on their way to the board, and how the job ended.
 
 The engine pulls lines with `peek`/`take` only when the window has room, so
-the source (a file, streamed) is read no faster than the board takes it.
+the source (a file, streamed) is read no faster than the board takes it, but
+for LOOK_AHEAD lines: after each write the engine has the next lines read and
+encoded (`prefetch`), so that the path from an answer to the next line written
+carries no file reading and no encoding. A line that may not be sent is
+refused when its turn comes, not when it is read ahead.
 Counts only move forward: `sent` when a line is written, `acked` when the
 board answers it with status 0. Every sent line ends in exactly one of
 `acked`, `rejected`, `discarded`, or is still unanswered when the link is
@@ -25,6 +29,7 @@ from hostd.protocol.commands import InvalidCommand, encode_line
 from hostd.protocol.session import StreamEnd
 
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
+LOOK_AHEAD = 8  # lines read and encoded ahead of the flow control's room
 _PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
 
 
@@ -53,7 +58,10 @@ class JobStream:
         self.numbered = numbered
         self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: tuple[int, bytes] | None = None
-        self.exhausted = False
+        # Read ahead: a line's encoding, or why it may not be sent.
+        self._ahead: deque[tuple[int, bytes | InvalidCommand]] = deque()
+        self._source_done = False
+        self.exhausted = False  # every line was handed out (none left ahead either)
         self.sent = 0
         self.acked = 0  # answered with status 0
         self.rejected = 0  # answered with a non-zero status
@@ -78,17 +86,36 @@ class JobStream:
         A line the board must never receive ends the stream as failed, unsent.
         """
         if self._next is None and not self.exhausted and not self.done:
-            try:
-                number, text = next(self._lines)
-            except StopIteration:
+            if not self._ahead and not self._read_ahead():
                 self.exhausted = True
                 return None
-            try:
-                self._next = (number, self._encode(text, number if self.numbered else None))
-            except InvalidCommand as exc:
-                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {exc.message}")
+            number, encoded = self._ahead.popleft()
+            if isinstance(encoded, InvalidCommand):
+                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {encoded.message}")
                 return None
+            self._next = (number, encoded)
         return self._next
+
+    def prefetch(self) -> None:
+        """Read and encode up to LOOK_AHEAD lines ahead (the engine calls it after a write)."""
+        while len(self._ahead) < LOOK_AHEAD and not self.done and self._read_ahead():
+            pass
+
+    def _read_ahead(self) -> bool:
+        """One more line of the source onto the look-ahead; False once there is none."""
+        if self._source_done:
+            return False
+        try:
+            number, text = next(self._lines)
+        except StopIteration:
+            self._source_done = True
+            return False
+        try:
+            encoded: bytes | InvalidCommand = self._encode(text, number if self.numbered else None)
+        except InvalidCommand as exc:
+            encoded = exc  # refused when its turn comes: the lines before it still go
+        self._ahead.append((number, encoded))
+        return True
 
     def take(self) -> None:
         """The peeked line was written."""
@@ -129,5 +156,6 @@ class JobStream:
         if not self.done:
             self.done = True
             self._next = None
+            self._ahead.clear()
             self.result.set_result(StreamResult(end, code, message))
             self.wake.set()

@@ -298,13 +298,16 @@ async def test_a_gcode_error_in_a_job_fails_it_and_kills_the_rest(rig: Rig) -> N
     await rig.sim.wait_received(lambda: any(r.data == b"\x04" for r in rig.sim.received))
 
 
-async def test_a_job_line_the_board_must_never_get_fails_the_job_unsent(rig: Rig) -> None:
-    stream = rig.job(["G0 X1", "G1 X" + "1" * 600])
+@pytest.mark.parametrize("good", [1, 11])  # in the first window; read ahead, after writes
+async def test_a_job_line_the_board_must_never_get_fails_the_job_unsent(
+    rig: Rig, good: int
+) -> None:
+    stream = rig.job([*moves(good), "G1 X" + "1" * 600, *moves(5)])
     await finished(stream)
     result = stream.result.result()
     assert result.end is StreamEnd.FAILED and result.code == -32602
-    assert result.message is not None and result.message.startswith("line 2:")
-    assert stream.sent == 1
+    assert result.message is not None and result.message.startswith(f"line {good + 1}:")
+    assert stream.sent == good  # every line before it went; it and those after it did not
 
 
 async def test_garbage_from_the_board_does_not_stop_a_job(rig: Rig) -> None:
