@@ -20,6 +20,14 @@
   against a 10,000-line one, each in a fresh daemon.
 - P5 CPU: the daemon's CPU seconds (utime + stime) per 10,000 lines streamed
   (the P1 jobs); baseline: the raw loop's CPU per 10,000 lines.
+- P6 many machines: eight instant controllers streaming at once in one
+  daemon: the aggregate lines/s, the daemon's CPU per line, and P2's `!`
+  latency on the first while the other seven stream.
+- P7 MQTT: P1's rate and P2's `!` without `[mqtt]`, with the bridge on a
+  mosquitto started for the run, and with that broker stopped.
+
+Targets: P1 >= 0.8x raw, P5 <= 0.10 s and P6's `!` p99 < 2 ms are issue
+15's; the `!` p99 < 1 ms of P2 and P2f is issue 11's.
 
 Every process runs on this machine, so CLOCK_MONOTONIC (time.monotonic())
 is shared and one-way latencies are differences of two readings.
@@ -68,7 +76,7 @@ FLEET = 8  # P6's machines in one daemon
 @dataclass
 class Settings:
     stream_lines: int = 50_000
-    repeats: int = 3
+    repeats: int = 5
     hold_samples: int = 300
     hold_spacing: float = 0.02  # s between a `~` and the next `!`
     resume_after: float = 0.005  # s between a `!` and its `~`
@@ -263,8 +271,8 @@ class Bench:
                 f"{d_rate:,.0f} lines/s",
                 f"{r_rate:,.0f} lines/s raw",
                 f"{ratio:.2f}x raw",
-                ">= 0.50x raw",
-                ratio >= 0.5,
+                ">= 0.80x raw",
+                ratio >= 0.8,
                 [f"daemon runs: {runs}; raw runs: {', '.join(f'{r:,.0f}' for r in raw_rates)}"],
             )
         )
@@ -275,8 +283,8 @@ class Bench:
                 f"{cpu:.3f} s",
                 f"{raw_c:.3f} s raw host",
                 f"{cpu / raw_c:.1f}x raw",
-                "< 0.25 s",
-                cpu < 0.25,
+                "<= 0.10 s",
+                cpu <= 0.10,
                 [f"daemon runs: {', '.join(f'{c:.3f}' for c in d_cpu)} s"],
             )
         )
