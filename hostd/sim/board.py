@@ -26,7 +26,16 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status, message
 from hostd.sim import gcode, relaxed, reports
 from hostd.sim.config import AXES, SimConfig
-from hostd.sim.gcode import Block, Home, Interpreter, Move, Probe, ProgramEnd, SetPosition
+from hostd.sim.gcode import (
+    Block,
+    Dwell,
+    Home,
+    Interpreter,
+    Move,
+    Probe,
+    ProgramEnd,
+    SetPosition,
+)
 from hostd.sim.motion import Active, start_block
 from hostd.sim.scanner import DataLine
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
@@ -41,6 +50,10 @@ OUTPUT_BUFFER_LEN = 512  # controller.h: the buffer an answer is serialised into
 INIT_MESSAGE = "Initializing configs to default settings"  # settings_default.h
 LOADING_MESSAGE = "Loading configs from EEPROM"  # report.cpp
 MINIMUM_PROBE_TRAVEL = 0.254  # mm, cycle_probing.cpp
+# planner.h BLOCK_TIMEOUT_MS: from rest, the planner takes blocks in before it moves
+# (PLANNER_STARTUP, planner.cpp mp_planner_callback) until it is full or none has come
+# for this long (real seconds; divided by speed_factor as moves are).
+BLOCK_TIMEOUT = 0.030
 PROBE_AXES = ("x", "y", "z", "a", "b", "c")  # the axes `_send_probe_report` prints
 _EPS = 1e-6
 
@@ -115,6 +128,8 @@ class Board:
         self.state = MachineState.READY
         self.interp = Interpreter()
         self.planner: deque[Block] = deque()
+        self._last_block_at = 0.0  # when the last block went into the planner
+        self._planner_running = False  # PLANNER_IDLE/STARTUP (False) or moving blocks (True)
         self.active: Active | None = None
         self.position = dict.fromkeys(AXES, 0.0)
         self.homed = dict.fromkeys(AXES, False)
@@ -319,6 +334,8 @@ class Board:
         times: list[float] = []
         if self.active is not None:
             times.append(self.active.end)
+        elif self._priming():
+            times.append(self._last_block_at + self._block_timeout)
         if not self.output_blocked:
             if self._ack is not None:
                 times.append(self._ack[0])
@@ -351,6 +368,8 @@ class Board:
                     return False
                 self._set_state(MachineState.INTERLOCK)
                 return True
+            if self._priming() and now < self._last_block_at + self._block_timeout:
+                return False
             self._start(now)
             return True
         if self.state in _CYCLES and not self._dispatchable():
@@ -358,7 +377,27 @@ class Board:
             return True
         return False
 
+    @property
+    def _block_timeout(self) -> float:
+        return BLOCK_TIMEOUT / self.config.speed_factor
+
+    def _priming(self) -> bool:
+        """PLANNER_STARTUP: from rest, a move waits for a full planner or BLOCK_TIMEOUT.
+
+        g2core plans before it moves: the first move of a job starts once the
+        planner is full or no block has come for 30 ms, so a host sending a
+        job's lines does not starve it at the start. The state is already RUN:
+        the move's parsing started the cycle (cm_cycle_start in cm_straight_feed).
+        """
+        return (
+            not self._planner_running
+            and bool(self.planner)
+            and isinstance(self.planner[0], Move | Dwell)
+            and len(self.planner) < self.config.planner_depth
+        )
+
     def _start(self, now: float) -> None:
+        self._planner_running = True
         block = self.planner[0]
         if isinstance(block, ProgramEnd):
             self._pop()
@@ -706,6 +745,9 @@ class Board:
         for block in outcome.blocks:
             self.planner.append(block)
             self._qi += 1
+            self._last_block_at = self._clock()
+            if isinstance(block, Move | Dwell) and self._at_rest_for_a_cycle():
+                self._set_state(MachineState.RUN)  # cm_cycle_start, as the move is parsed
         return outcome.status, outcome.n
 
     def _gcode_in_hold(self, text: str) -> tuple[Status, int]:
@@ -750,11 +792,16 @@ class Board:
 
     def _feedhold(self, now: float) -> None:
         active = self.active
-        if self.hold != Hold.OFF or self.state != MachineState.RUN or active is None:
-            return  # ignored unless moving
+        if self.hold != Hold.OFF or self.state != MachineState.RUN:
+            return  # ignored unless in a cycle
+        self._set_state(MachineState.HOLD)
+        if active is None:
+            # The cycle's first move has not started (the planner primes): the runtime is
+            # idle, so the hold is in place at once (_feedhold_with_actions).
+            self._enter_hold(now, at=now)
+            return
         active.begin_hold(now, self.config.feedhold_decel)
         self.hold = Hold.DECEL
-        self._set_state(MachineState.HOLD)
 
     def _hold_reached(self, now: float) -> None:
         assert self.active is not None
@@ -924,6 +971,16 @@ class Board:
             log.debug("sim board state", state=state.name)
             self.state = state
             self._sr_now = True
+        if state not in _CYCLES and state not in (MachineState.HOLD, MachineState.INTERLOCK):
+            self._planner_running = False  # at rest, or locked out: the next move primes again
+
+    def _at_rest_for_a_cycle(self) -> bool:
+        return (
+            self.state not in _CYCLES
+            and self.hold == Hold.OFF
+            and not self.state.is_lockout
+            and self.state is not MachineState.INTERLOCK
+        )
 
     def _flush_sr(self) -> None:
         """State changes are reported at once, after the command that made them."""

@@ -140,8 +140,9 @@ async def test_status_reports_show_motion_while_a_move_runs(timed_host: Host) ->
 
 
 async def test_units_and_offsets_show_in_work_position(host: Host) -> None:
-    host.send(b"G0 X10\nG92 X0\nG20\nG0 X1\n?\n")
-    report = (await host.until(lambda m: m.get("f", [0, 0, 0])[2] == 2))[-1]["r"]["sr"]
+    host.send(b"G0 X10\nG92 X0\nG20\nG0 X1\n")
+    await host.until(has_stat(3))
+    report = (await host.ask(b"?\n"))["r"]["sr"]
     assert report["unit"] == 0
     assert report["posx"] == 1
     await host.ask(b"G21\n")
