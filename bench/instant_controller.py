@@ -12,7 +12,8 @@ What it does, just enough like g2core for the daemon's handshake and jobs:
   flush status packet, and only then is the SYSTEM READY banner written.
   While no host has the slave open the master polls POLLHUP; that is
   watched with a short poll, never with a blocking read.
-- Every line gets one `{"r":...,"f":[1,0,N]}` (N: the line's length + 1,
+- Every line gets one `{"r":...,"f":[1,0,N]}` (body `{"n":L}` for a line
+  numbered `N<L>`, as g2core at jv 4; N: the line's length + 1,
   + 2 for a `{`-line, as the daemon's line-mode sender expects). A GET of
   `sr` (`{"sr":null}`, which is also what the daemon makes of `?` and
   `{"sr":n}`) is answered with the current `stat`, a GET of any other key
@@ -55,6 +56,7 @@ import errno
 import fcntl
 import json
 import os
+import re
 import select
 import struct
 import sys
@@ -78,6 +80,7 @@ STOP_DELAY = 0.01
 
 STOP, END, RUN, HOLD = 3, 4, 5, 6
 REALTIME = frozenset(b"!~%\x04\x18\x05")
+_LINE_NUMBER = re.compile(rb"[Nn]([0-9]+)")
 
 
 class Controller:
@@ -239,7 +242,9 @@ class Controller:
         if self.stat not in (RUN, HOLD):
             self.stat = RUN
             out.append(b'{"sr":{"stat":5}}\n')
-        out.append(b'{"r":{},"f":[1,0,%d]}\n' % (len(line) + 1))
+        numbered = _LINE_NUMBER.match(line)  # jv 4 echoes the line's N word, as g2core does
+        body = b'"n":%s' % numbered[1] if numbered and int(numbered[1]) else b""
+        out.append(b'{"r":{%s},"f":[1,0,%d]}\n' % (body, len(line) + 1))
         self.received += 1
         if self.expected and self.received >= self.expected:
             self.expected = 0

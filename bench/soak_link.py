@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import os
 import random
+import re
 import resource
 import sys
 import tempfile
@@ -32,6 +33,8 @@ from hostd.sim import SimConfig, SimController
 
 BOARD = SimConfig(speed_factor=50.0, status_interval=0.02, feedhold_decel=0.01,
                   boot_time=0.01, planner_depth=48, history=2000)  # fmt: skip
+# A job line's answer: an empty body, or the line's N word echoed (jv 4).
+_OK_ANSWER = re.compile(r'\{"r":\{(?:"n":\d+)?\},"f":\[1,0,')
 PROGRAM = "".join(f"G1 X{(i % 2) * 10} Y{i % 5} F3000\n" for i in range(400))
 
 
@@ -118,7 +121,7 @@ async def unplug_cycles(soak: Soak, cycles: int) -> None:
                 1
                 for e in soak.events
                 if isinstance(e, Console) and e.direction == "rx"
-                and e.text.startswith('{"r":{},"f":[1,0,')
+                and _OK_ANSWER.match(e.text)
             )  # fmt: skip
             soak.check(
                 row.lines_acked == read,

@@ -31,14 +31,15 @@ _BANNER_MSG = "SYSTEM READY"
 _NOISE = frozenset(range(0x20)) - {0x09} | {0x7F}
 
 
-# The answer to almost every job line: read without the JSON parser.
-_PLAIN_ANSWER = re.compile(rb'\{"r":\{\},"f":\[1,(\d{1,3}),(\d{1,4})\]\}')
+# The answer to almost every job line, read without the JSON parser: an empty body, or
+# at jv 4 the line's N word echoed (`{"r":{"n":120},"f":[1,0,18]}`; json_print_response).
+_PLAIN_ANSWER = re.compile(rb'\{"r":\{(?:"n":(\d{1,10}))?\},"f":\[1,(\d{1,3}),(\d{1,4})\]\}')
 # The same with status 0 (STAT_OK): a line the board took, its count captured.
-_PLAIN_OK = re.compile(rb'\{"r":\{\},"f":\[1,0,(\d{1,4})\]\}')
+_PLAIN_OK = re.compile(rb'\{"r":\{(?:"n":\d{1,10})?\},"f":\[1,0,(\d{1,4})\]\}')
 
 
 def plain_ok_count(raw: bytes) -> int | None:
-    """N of `{"r":{},"f":[1,0,N]}`, the answer to almost every job line; else None."""
+    """C of `{"r":{},"f":[1,0,C]}` or `{"r":{"n":N},"f":[1,0,C]}`, a job line's answer."""
     plain = _PLAIN_OK.fullmatch(raw)
     return None if plain is None else int(plain[1])
 
@@ -47,7 +48,8 @@ def parse_line(raw: bytes) -> Message:
     """Classify one line (terminator already removed)."""
     plain = _PLAIN_ANSWER.fullmatch(raw)
     if plain is not None:
-        return Response({}, int(plain[1]), int(plain[2]), raw)
+        body = {} if plain[1] is None else {"n": int(plain[1])}
+        return Response(body, int(plain[2]), int(plain[3]), raw)
     if raw[:1] == b"{":
         return _parse_json(raw)
     return _parse_text(raw)

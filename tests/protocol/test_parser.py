@@ -16,7 +16,7 @@ from hostd.protocol.messages import (
     TextLine,
     Unparseable,
 )
-from hostd.protocol.parser import parse_line
+from hostd.protocol.parser import parse_line, plain_ok_count
 
 BANNER_100_26 = (
     b'{"r":{"fv":0.99,"fb":100.26,"fbs":"100.26","fbc":"settings_test.h","hp":3,"hv":0,'
@@ -202,11 +202,24 @@ def test_line_buffer_cuts_a_line_that_never_ends() -> None:
 
 
 def test_the_plain_answer_fast_path_agrees_with_the_json_parser() -> None:
-    for raw in (b'{"r":{},"f":[1,0,4]}', b'{"r":{},"f":[1,204,26]}', b'{"r":{},"f":[1,0,1234]}'):
+    for raw in (
+        b'{"r":{},"f":[1,0,4]}',
+        b'{"r":{},"f":[1,204,26]}',
+        b'{"r":{},"f":[1,0,1234]}',
+        b'{"r":{"n":120},"f":[1,0,18]}',  # jv 4 echoes a numbered line's N word
+        b'{"r":{"n":7},"f":[1,253,9]}',
+    ):
         fast = parse_line(raw)
-        slow = parse_line(raw.replace(b'{"r":{}', b'{"r": {}'))  # not the fast shape
+        slow = parse_line(raw.replace(b'{"r":{', b'{"r": {'))  # not the fast shape
         assert isinstance(fast, Response) and isinstance(slow, Response)
         assert (fast.body, fast.status, fast.count) == (slow.body, slow.status, slow.count)
+
+
+def test_a_job_lines_ok_is_read_for_its_count_alone() -> None:
+    assert plain_ok_count(b'{"r":{"n":120},"f":[1,0,18]}') == 18
+    assert plain_ok_count(b'{"r":{},"f":[1,0,5]}') == 5
+    assert plain_ok_count(b'{"r":{"n":120},"f":[1,20,18]}') is None  # not OK: read in full
+    assert plain_ok_count(b'{"r":{"xvm":1},"f":[1,0,13]}') is None
 
 
 # Forms real boards print that strict JSON refuses (issue 12, item 5). A float that
