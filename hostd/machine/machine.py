@@ -491,12 +491,17 @@ class Machine:
         stream = self._live_stream()
         if stream is None or self.job is None:
             raise Busy(f"{self.id} has no running job to cancel")
+        cancelled = self.job.id
         self.engine.realtime(Realtime.JOB_KILL)
         async with asyncio.timeout(5):
             await asyncio.shield(stream.result)
         for runner in list(self._runners):  # let the row reach its end state
             await asyncio.wait({runner}, timeout=5)
-        return self.job
+        if self.job.id == cancelled:
+            return self.job
+        # Another client started a job once this one ended: answer for the one cancelled
+        # (its row is on disk: the end is told only once written).
+        return await self.store.get(cancelled) or self.job
 
     def _live_stream(self) -> JobStream | None:
         """The stream of the running operation, while it streams; None once it ended."""
