@@ -268,8 +268,7 @@ class G2Session(SessionBase):
         if entry is None or entry.file_line is None:
             return False
         self.sender.pop_data()
-        entry.source.acknowledged(entry.file_line)
-        self._check_stream_complete()
+        self._job_line_ok(entry.source, entry)
         return True
 
     def _on_response(self, response: Response) -> None:
@@ -329,10 +328,13 @@ class G2Session(SessionBase):
         stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
         self._write_realtime(Realtime.JOB_KILL)
 
+    def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
+        stream.acknowledged(entry.file_line)
+        self._check_stream_complete()
+
     def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
         if response.ok:
-            stream.acknowledged(entry.file_line)
-            self._check_stream_complete()
+            self._job_line_ok(stream, entry)
             return
         stream.rejected += 1
         if stream.done:

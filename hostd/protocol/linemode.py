@@ -100,22 +100,21 @@ class LineModeSender:
         The board still answers it with an `{r}`, so it still takes a slot;
         the count goes above the budget only until that answer arrives.
         """
-        if not urgent and not self.room(entry.line):
+        if urgent:
+            (self._control if entry.control else self._data).append(entry)
+        elif not self.book(entry):
             kind = "control lane" if entry.control else "window"
             budget = self.control_window if entry.control else self.window
             raise SenderError(f"{kind} of {budget} exceeded")
-        (self._control if entry.control else self._data).append(entry)
 
     def book(self, entry: InFlight) -> bool:
         """Record a written line if its kind has room; False, and nothing recorded, if not."""
-        if entry.control:
-            if len(self._control) >= self.control_window:
-                return False
-            self._control.append(entry)
-        else:
-            if len(self._data) >= self.window:
-                return False
-            self._data.append(entry)
+        queue, budget = (
+            (self._control, self.control_window) if entry.control else (self._data, self.window)
+        )
+        if len(queue) >= budget:
+            return False
+        queue.append(entry)
         return True
 
     def answered(self, response: Response) -> tuple[InFlight, list[InFlight]]:

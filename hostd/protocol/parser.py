@@ -34,14 +34,12 @@ _NOISE = frozenset(range(0x20)) - {0x09} | {0x7F}
 # The answer to almost every job line, read without the JSON parser: an empty body, or
 # at jv 4 the line's N word echoed (`{"r":{"n":120},"f":[1,0,18]}`; json_print_response).
 _PLAIN_ANSWER = re.compile(rb'\{"r":\{(?:"n":(\d{1,10}))?\},"f":\[1,(\d{1,3}),(\d{1,4})\]\}')
-# The same with status 0 (STAT_OK): a line the board took, its count captured.
-_PLAIN_OK = re.compile(rb'\{"r":\{(?:"n":\d{1,10})?\},"f":\[1,0,(\d{1,4})\]\}')
 
 
 def plain_ok_count(raw: bytes) -> int | None:
     """C of `{"r":{},"f":[1,0,C]}` or `{"r":{"n":N},"f":[1,0,C]}`, a job line's answer."""
-    plain = _PLAIN_OK.fullmatch(raw)
-    return None if plain is None else int(plain[1])
+    plain = _PLAIN_ANSWER.fullmatch(raw)
+    return None if plain is None or plain[2] != b"0" else int(plain[3])
 
 
 def parse_line(raw: bytes) -> Message:
