@@ -19,6 +19,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
 import structlog
@@ -51,6 +52,7 @@ from hostd.machine.preflight import (
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcode import JOG_AXES
+from hostd.protocol.gcodestate.resume import ResumePlan
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
 from hostd.protocol.settings import check_key, check_values
@@ -528,11 +530,7 @@ class Api:
 
     async def job_start(self, p: JobStartParams) -> dict[str, Any]:
         machine = self._machine(p.machine)
-        try:
-            await asyncio.to_thread(self.jobs.resolve, p.file)
-        except NoSuchFileError as exc:
-            raise RpcError(1004, str(exc)) from None
-        path = self.jobs.path / p.file
+        path = await self._resolve(p.file)
         limits = await self._limits(machine) if not p.force or p.start_line > 1 else None
         offset = work_offset(machine.snapshot())
         if not p.force and limits is not None and limits.travel and offset:
@@ -546,16 +544,28 @@ class Api:
                 )
         preamble = None
         if p.start_line > 1 and p.restore:
-            plan = await plan_at(
-                path,
-                p.start_line,
-                machine.config.dialect,
-                safe_z=machine.safe_height(limits),
-                dwell=machine.config.spindle_dwell,
-            )
-            preamble = plan.lines
+            preamble = (await self._plan(machine, path, p.start_line, limits)).lines
         job = await machine.start_make(p.file, p.start_line, preamble)
         return {"job": job.id, "preamble": preamble}
+
+    async def _resolve(self, name: str) -> Path:
+        """A file of the jobs directory, or 1004."""
+        try:
+            return await asyncio.to_thread(self.jobs.resolve, name)
+        except NoSuchFileError as exc:
+            raise RpcError(1004, str(exc)) from None
+
+    async def _plan(
+        self, machine: Machine, path: Path, line: int, limits: MachineLimits | None
+    ) -> ResumePlan:
+        """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
+        return await plan_at(
+            path,
+            line,
+            machine.config.dialect,
+            safe_z=machine.safe_height(limits),
+            dwell=machine.config.spindle_dwell,
+        )
 
     async def _limits(self, machine: Machine) -> MachineLimits | None:
         """The board's travel and speeds; None when it cannot say (not connected, refused)."""
@@ -566,10 +576,7 @@ class Api:
             return None
 
     async def file_analyze(self, p: FileAnalyzeParams) -> dict[str, Any]:
-        try:
-            path = await asyncio.to_thread(self.jobs.resolve, p.file)
-        except NoSuchFileError as exc:
-            raise RpcError(1004, str(exc)) from None
+        path = await self._resolve(p.file)
         if p.machine is None:
             return (await analyze_file(path, "g2core")).to_json()
         machine = self._machine(p.machine)
@@ -582,18 +589,8 @@ class Api:
         if p.job is None:
             assert p.machine is not None and p.file is not None and p.line is not None
             machine = self._machine(p.machine)
-            try:
-                path = await asyncio.to_thread(self.jobs.resolve, p.file)
-            except NoSuchFileError as exc:
-                raise RpcError(1004, str(exc)) from None
-            limits = await self._limits(machine)
-            plan = await plan_at(
-                path,
-                p.line,
-                machine.config.dialect,
-                safe_z=machine.safe_height(limits),
-                dwell=machine.config.spindle_dwell,
-            )
+            path = await self._resolve(p.file)
+            plan = await self._plan(machine, path, p.line, await self._limits(machine))
             return {**plan.to_json(), "machine": p.machine, "file": p.file}
         job = await (await self._store()).get(p.job)
         if job is None:
