@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from hostd.protocol.commands import InvalidCommand, encode_line
+from hostd.protocol.linemode import InFlight
 from hostd.protocol.session import StreamEnd
 
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
@@ -57,9 +58,9 @@ class JobStream:
         self._encode = encode or (lambda text, _number: encode_line(text))
         self.numbered = numbered
         self.job_id = job_id  # the job row it belongs to, for the logs
-        self._next: tuple[int, bytes] | None = None
-        # Read ahead: a line's encoding, or why it may not be sent.
-        self._ahead: deque[tuple[int, bytes | InvalidCommand]] = deque()
+        self._next: InFlight | None = None
+        # Read ahead: a line as the flow control books it, or why it may not be sent.
+        self._ahead: deque[InFlight | tuple[int, InvalidCommand]] = deque()
         self._source_done = False
         self.exhausted = False  # every line was handed out (none left ahead either)
         self.sent = 0
@@ -80,8 +81,9 @@ class JobStream:
         self.wake = asyncio.Event()
         self.wake_at: int | None = None
 
-    def peek(self) -> tuple[int, bytes] | None:
-        """The next line to write (file line number, encoded), or None when there is none.
+    def peek(self) -> InFlight | None:
+        """The next line to write, booked as it will be (its bytes, this stream, its file
+        line number), or None when there is none.
 
         A line the board must never receive ends the stream as failed, unsent.
         """
@@ -89,11 +91,12 @@ class JobStream:
             if not self._ahead and not self._read_ahead():
                 self.exhausted = True
                 return None
-            number, encoded = self._ahead.popleft()
-            if isinstance(encoded, InvalidCommand):
-                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {encoded.message}")
+            entry = self._ahead.popleft()
+            if isinstance(entry, tuple):
+                number, invalid = entry
+                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {invalid.message}")
                 return None
-            self._next = (number, encoded)
+            self._next = entry
         return self._next
 
     def prefetch(self) -> None:
@@ -111,22 +114,26 @@ class JobStream:
             self._source_done = True
             return False
         try:
-            encoded: bytes | InvalidCommand = self._encode(text, number if self.numbered else None)
+            encoded = self._encode(text, number if self.numbered else None)
         except InvalidCommand as exc:
-            encoded = exc  # refused when its turn comes: the lines before it still go
-        self._ahead.append((number, encoded))
+            self._ahead.append((number, exc))  # refused when its turn comes: the lines before go
+        else:
+            self._ahead.append(InFlight(encoded, self, number))
         return True
 
     def take(self) -> None:
         """The peeked line was written."""
-        assert self._next is not None
-        line = self._next[1]
+        entry = self._next
+        assert entry is not None
+        line = entry.line
         if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
             self.program_pause_sent = True
-        number = self._next[0]
-        if number > 0 and self._first_line is None:
-            self._first_line = number
-        self._sent_line = max(self._sent_line, number)
+        number = entry.file_line
+        assert number is not None
+        if number > self._sent_line:  # file lines only grow; a resume's preamble is line 0
+            if self._first_line is None:
+                self._first_line = number
+            self._sent_line = number
         self._next = None
         self.sent += 1
 

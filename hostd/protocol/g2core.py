@@ -238,9 +238,16 @@ class G2Session(SessionBase):
         """One line the board printed (without its line end)."""
         self._last_rx = self.clock()
         count = plain_ok_count(line)
-        if count is not None and self._job_line_taken(count):
-            self._lines_in += 1
-            return
+        if count is not None:
+            # `{"r":{},"f":[1,0,count]}` for the oldest job line, taken in one look: what
+            # `_on_response` would do with it (the line is acknowledged), unparsed.
+            sender = self.sender
+            entry = sender.data_answered_by(count)
+            if entry is not None and entry.file_line is not None:
+                sender.pop_data()
+                self._job_line_ok(entry.source, entry)
+                self._lines_in += 1
+                return
         msg = parse_line(line)
         if isinstance(msg, Response):
             self._on_response(msg)
@@ -260,16 +267,6 @@ class G2Session(SessionBase):
         else:
             self._log.debug("controller said", message=type(msg).__name__)
         self._lines_in += 1
-
-    def _job_line_taken(self, count: int) -> bool:
-        """`{"r":{},"f":[1,0,count]}` for the oldest job line: what `_on_response` would
-        do with it (the line is acknowledged), without reading the answer in full."""
-        entry = self.sender.data_answered_by(count)
-        if entry is None or entry.file_line is None:
-            return False
-        self.sender.pop_data()
-        self._job_line_ok(entry.source, entry)
-        return True
 
     def _on_response(self, response: Response) -> None:
         if response.count < 2:
@@ -330,7 +327,9 @@ class G2Session(SessionBase):
 
     def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
         stream.acknowledged(entry.file_line)
-        self._check_stream_complete()
+        current = self.stream
+        if current is not None and current.exhausted:  # the one case it can complete in
+            self._check_stream_complete()
 
     def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
         if response.ok:
@@ -593,16 +592,16 @@ class G2Session(SessionBase):
             return
         out = self._out
         data = Lane.DATA
+        book = sender.book
         while True:
-            nxt = stream.peek()
-            if nxt is None:
+            entry = stream.peek()
+            if entry is None:
                 self._check_stream_complete()
                 return
-            number, encoded = nxt
-            if not sender.book(InFlight(encoded, stream, number)):  # a job may hold `{`-lines
+            if not book(entry):  # a job may hold `{`-lines: they take the control lane
                 return
             stream.take()
-            out.append((data, encoded))
+            out.append((data, entry.line))
 
     def _book(self, encoded: bytes, source: Any, lane: Lane, *, own: bool = False) -> None:
         """Write one line and put it on the books; an urgent one may pass its budget."""

@@ -32,6 +32,7 @@ from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
 from hostd.protocol.limits import MachineLimits
+from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.states import MachineState
@@ -87,7 +88,9 @@ class LineSource(Protocol):
 
     @property
     def done(self) -> bool: ...
-    def peek(self) -> tuple[int, bytes] | None: ...
+    def peek(self) -> InFlight | None:
+        """The next line, booked as it will be written (`source` is this stream)."""
+
     def take(self) -> None: ...
     def prefetch(self) -> None:
         """Get the next lines ready (read, encoded) while the board works: after a write."""

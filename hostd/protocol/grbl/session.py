@@ -623,17 +623,16 @@ class GrblSession(SessionBase):
         ):
             return
         while True:
-            nxt = stream.peek()
-            if nxt is None:
+            entry = stream.peek()
+            if entry is None:
                 self._check_stream_complete()
                 return
-            number, encoded = nxt
-            if not self._room(encoded):
+            if not self._room(entry.line):
                 return
             stream.take()
-            self._inflight.append(InFlight(encoded, stream, number))
-            self._rx_used += len(encoded)
-            self._out.append((Lane.DATA, encoded))
+            self._inflight.append(entry)
+            self._rx_used += len(entry.line)
+            self._out.append((Lane.DATA, entry.line))
 
     def _book(self, encoded: bytes, source: Any) -> None:
         self._inflight.append(InFlight(encoded, source, None, isinstance(source, _Own)))
