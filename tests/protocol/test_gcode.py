@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -147,6 +149,18 @@ def test_the_fast_path_never_passes_what_the_full_reading_refuses(text: str) -> 
     # Job lines take a one-regex fast path: it must be a subset of the full rules.
     if gcode._PLAIN.fullmatch(text):
         gcode._check_words(text)
+
+
+# The fast path as first written, backtracking: the possessive one must match the same.
+_PLAIN_BACKTRACKING = re.compile(
+    r"(?:[A-DF-Za-df-z][ \t]*(?:[-+]?[0-9]{0,9}(?:\.[0-9]*)?)?[ \t]*)+"
+)
+
+
+@fuzz(800)
+@given(gcodeish | st.lists(st.sampled_from([*"GXx0123456789.-+ \t"]), max_size=40).map("".join))
+def test_the_possessive_fast_path_matches_what_backtracking_would(text: str) -> None:
+    assert bool(gcode._PLAIN.fullmatch(text)) == bool(_PLAIN_BACKTRACKING.fullmatch(text))
 
 
 @fuzz(800)
