@@ -88,7 +88,8 @@ class Link:
                 link._channels[name] = await SerialChannel.open(
                     path,
                     baudrate,
-                    on_lines=partial(link._on_lines, name),
+                    # With a receiver, a read's lines go straight to it.
+                    on_lines=partial(receiver.link_lines if receiver else link._on_lines, name),
                     on_lost=partial(link._on_lost, name),
                 )
         except BaseException:
@@ -122,9 +123,6 @@ class Link:
         return events
 
     def _on_lines(self, channel: Channel, lines: list[bytes]) -> None:
-        if self._receiver is not None:
-            self._receiver.link_lines(channel, lines)
-            return
         at = time.monotonic()
         self._inbox.extend(LineReceived(channel, line, at) for line in lines)
         self._wakeup.set()
@@ -154,10 +152,16 @@ class Link:
     def write_lines(self, lines: list[bytes], *, control: bool = False) -> bool:
         """Whole encoded lines in one write: on the data channel, or with `control` on
         the control channel (the only one, on a one-port link)."""
+        # Each ends in its LF, and no LF is inside one: as many LFs as lines.
         for line in lines:
-            _check_line(line)
+            if line[-1:] != b"\n":
+                _check_line(line)
+        data = b"".join(lines)
+        if data.count(b"\n") != len(lines):
+            for line in lines:
+                _check_line(line)  # raises, saying which
         channel = Channel.CONTROL if control and self.dual else Channel.DATA
-        return self._channel(channel).write(b"".join(lines))
+        return self._channel(channel).write(data)
 
     def write_control(self, data: bytes) -> bool:
         """A whole encoded line on the control channel (or the only one)."""

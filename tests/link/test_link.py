@@ -227,8 +227,16 @@ async def test_a_batch_of_lines_goes_out_in_order_as_one_write(peers: Iterator[P
     try:
         assert link.write_lines([b"G1 X1\n", b"G1 X2\n", b"G1 X3\n"])
         await peer.wait_received(b"G1 X1\nG1 X2\nG1 X3\n")
-        with pytest.raises(ValueError):
-            link.write_lines([b"G1 X4\n", b"G1 X5"])  # one line unterminated: nothing written
+        for bad in (
+            [b"G1 X4\n", b"G1 X5"],  # one line unterminated
+            [b"G1 X4\nG1 X5\n", b"G1 X6\n"],  # two lines in one
+            [b"G1 X4", b"\nG1 X5\n"],  # as many LFs as lines, in the wrong places
+        ):
+            with pytest.raises(ValueError):
+                link.write_lines(bad)
+        assert link.write_lines([b"G1 X7\n"])  # nothing of the refused batches went before it
+        await peer.wait_length(len(b"G1 X1\nG1 X2\nG1 X3\nG1 X7\n"))
+        assert bytes(peer.received) == b"G1 X1\nG1 X2\nG1 X3\nG1 X7\n"
     finally:
         await link.close()
 
