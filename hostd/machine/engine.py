@@ -8,7 +8,7 @@ session's events: answers to the futures that wait for them, reports and
 faults to the hub.
 
 Events are delivered only after the step that raised them is over (a batch
-of lines read, a request taken, a timer): a subscriber that acts on one (the
+of lines read, or its first line alone, a request taken, a timer): a subscriber that acts on one (the
 machine stopping a job for a fault) calls the engine again, and its
 consequences are written in the same delivery loop. Nothing re-enters the
 session from inside its own receive step.
@@ -241,7 +241,13 @@ class Engine:
     # -- reading: the link's callbacks -------------------------------------
 
     def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
-        """Lines as the link read them, in its read callback: no inbox, no task switch."""
+        """Lines as the link read them, in its read callback: no inbox, no task switch.
+
+        A read is one step, but for a read that may answer every line the board
+        held: the board has nothing left to do, so the line its first answer
+        frees is written at once, and the board works on it while the daemon
+        reads the rest (one write more for such a read).
+        """
         if self.link is None:
             return  # a read that raced the teardown
         session = self.session
@@ -250,17 +256,20 @@ class Engine:
                 self._log.debug("rx", channel=channel.value, line=line)
                 if self.console:
                     self._publish_console("rx", channel, line)
-        for line in lines:
+        last = len(lines) - 1
+        first = 0 if last and last >= session.unanswered() - 1 else last
+        for index, line in enumerate(lines):
             try:
                 session.receive(line)
             except Exception as exc:  # a bug of ours: stop writing, keep reading
                 self._log.exception("engine invariant broken")
                 session.halt(f"{type(exc).__name__}: {exc}")
-        try:
-            self._deliver()
-        except Exception as exc:  # never into the transport's callback: end the connection
-            self._log.exception("engine failure")
-            self._end(f"internal error: {exc!r}")
+            if index in (first, last):
+                try:
+                    self._deliver()
+                except Exception as exc:  # never into the transport's callback: end it
+                    self._log.exception("engine failure")
+                    self._end(f"internal error: {exc!r}")
 
     def link_lost(self, reason: str) -> None:
         self._end(reason)

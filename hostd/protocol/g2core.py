@@ -182,19 +182,20 @@ class G2Session(SessionBase):
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
             return None
-        deadlines = [
-            d
-            for d in (
-                self._banner_deadline,
-                self._handshake_deadline,
-                self._flush_deadline,
-                self._heartbeat_deadline,
-            )
-            if d is not None
-        ]
+        deadline = None  # asked after every step: no list built
+        for d in (
+            self._banner_deadline,
+            self._handshake_deadline,
+            self._flush_deadline,
+            self._heartbeat_deadline,
+        ):
+            if d is not None and (deadline is None or d < deadline):
+                deadline = d
         if self.phase is Phase.READY and self.heartbeat and self._heartbeat_deadline is None:
-            deadlines.append(self._last_rx + self.heartbeat)
-        return min(deadlines, default=None)
+            beat = self._last_rx + self.heartbeat
+            if deadline is None or beat < deadline:
+                deadline = beat
+        return deadline
 
     # -- the connection --------------------------------------------------------
 
@@ -802,6 +803,9 @@ class G2Session(SessionBase):
 
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight
+
+    def unanswered(self) -> int:
+        return len(self.sender)
 
 
 _LIMIT_AXES = ("x", "y", "z")

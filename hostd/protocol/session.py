@@ -236,6 +236,10 @@ class SessionBase:
     def no_data_in_flight(self) -> bool:
         raise NotImplementedError
 
+    def unanswered(self) -> int:
+        """Lines written and not answered yet, of every kind."""
+        raise NotImplementedError
+
     def realtime(self, command: Realtime) -> None:
         """Write a realtime command now (it never waits), if the state admits it."""
         self._require_open()

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from hostd.link import Channel, Link
 from hostd.machine.engine import Engine, LinkState
 from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
 from hostd.machine.stream import JobStream
@@ -317,6 +318,43 @@ async def test_garbage_from_the_board_does_not_stop_a_job(rig: Rig) -> None:
         await asyncio.sleep(0)
     await finished(stream)
     assert stream.result.result().end is StreamEnd.COMPLETED
+
+
+async def test_a_read_answering_every_line_in_flight_writes_the_first_freed_line_at_once(
+    rig: Rig,
+) -> None:
+    """The board has nothing left to do: its next line goes before the rest of the read.
+
+    The board is silent, so the test plays its answers, as one read would
+    bring them, into the engine's read callback; the writes go to the real pty.
+    """
+    rig.sim.go_silent(True)
+    link = rig.engine.link
+    assert link is not None
+    writes: list[tuple[int, list[bytes]]] = []  # (lines acknowledged then, lines written)
+    stream = rig.job(moves(20))
+    assert stream.sent == 4  # the window, written when the job started
+
+    def spy(lines: list[bytes], *, control: bool = False) -> bool:
+        writes.append((stream.acked, list(lines)))
+        return Link.write_lines(link, lines, control=control)
+
+    link.write_lines = spy  # type: ignore[method-assign]
+
+    def answers(lines: list[bytes]) -> list[bytes]:
+        return [b'{"r":{},"f":[1,0,%d]}' % len(line) for line in lines]
+
+    first = [f"{line}\n".encode() for line in moves(4)]
+    rig.engine.link_lines(Channel.DATA, answers(first))
+    # One write after the first answer (its freed line), one after the last (three).
+    assert [(acked, len(lines)) for acked, lines in writes] == [(1, 1), (4, 3)]
+    written = [line for _, lines in writes for line in lines]
+    assert written == [f"{line}\n".encode() for line in moves(8)[4:]]
+
+    writes.clear()  # the board still holds four lines: two answers leave it two
+    rig.engine.link_lines(Channel.DATA, answers(written[:2]))
+    assert [(acked, len(lines)) for acked, lines in writes] == [(6, 2)]
+    assert stream.sent - stream.acked == 4  # the window, never more
 
 
 # -- the link -----------------------------------------------------------------

@@ -160,6 +160,9 @@ class GrblSession(SessionBase):
     def no_data_in_flight(self) -> bool:
         return not self._inflight
 
+    def unanswered(self) -> int:
+        return len(self._inflight)
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         text = text if number is None else number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
