@@ -8,10 +8,10 @@ session's events: answers to the futures that wait for them, reports and
 faults to the hub.
 
 Events are delivered only after the step that raised them is over (a batch
-of lines read, or its first line alone, a request taken, a timer): a subscriber that acts on one (the
-machine stopping a job for a fault) calls the engine again, and its
-consequences are written in the same delivery loop. Nothing re-enters the
-session from inside its own receive step.
+of lines read, or its first line alone; a request taken; a timer): a
+subscriber that acts on one (the machine stopping a job for a fault) calls
+the engine again, and its consequences are written in the same delivery
+loop. Nothing re-enters the session from inside its own receive step.
 
 `serve()` owns the connection for the life of the daemon: it opens the link
 when asked (or at once with `auto_connect`), runs one connection until the
@@ -256,8 +256,11 @@ class Engine:
                 self._log.debug("rx", channel=channel.value, line=line)
                 if self.console:
                     self._publish_console("rx", channel, line)
+        # The steps end after the last line, and after the first too when the read
+        # has as many lines as the board has unanswered.
         last = len(lines) - 1
-        first = 0 if last and last >= session.unanswered() - 1 else last
+        may_answer_all = last > 0 and len(lines) >= session.unanswered()
+        first = 0 if may_answer_all else last
         for index, line in enumerate(lines):
             try:
                 session.receive(line)
