@@ -2,8 +2,9 @@
 
 This file only moves lines between sockets and `rpc`; what a line means is
 `rpc.py`'s business, what a method does is the API layer's, where the socket
-file may live and how it is born is `socketfile.py`'s, and how bytes become
-lines is `lines.py`'s.
+file may live and how it is born is `socketfile.py`'s, how bytes become
+lines is `lines.py`'s, and which requests skip the queue (a lone realtime
+request, such as machine.feedhold) is `fastpath.py`'s.
 
 Per client (a `Client`, which is also the `context` handlers can ask for with
 `current_client()`):
@@ -53,7 +54,7 @@ from typing import Any, Final, Self, cast
 
 import structlog
 
-from hostd.api import rpc, socketfile
+from hostd.api import fastpath, rpc, socketfile
 from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
 
@@ -275,8 +276,7 @@ class ApiServer:
         given, becomes the socket file's group (the file is then 0660 so that
         the group can connect, the policy must still allow them; else 0600)."""
         self._methods = methods
-        # Names of the methods answered as their bytes arrive (`_answer_now`), as bytes.
-        self._immediate = [f'"{name}"'.encode() for name, m in methods.items() if m.immediate]
+        self._fast = fastpath.FastPath(methods, max_line=max_line, max_batch=max_inflight)
         self._policy = policy if policy is not None else AccessPolicy.default()
         self._socket_gid = socket_gid
         self._max_line = max_line
@@ -332,7 +332,9 @@ class ApiServer:
         try:
             loop = asyncio.get_running_loop()
             self._server = await loop.create_unix_server(
-                lambda: _Connection(asyncio.StreamReader(self._max_line, loop), self._accept),
+                lambda: fastpath.Connection(
+                    asyncio.StreamReader(self._max_line, loop), self._accept
+                ),
                 sock=bound.sock,
             )
         except BaseException:
@@ -472,11 +474,8 @@ class ApiServer:
         lines = LineReader(reader, max_line=self._max_line, line_timeout=self._line_timeout)
         slots = asyncio.Semaphore(self._max_inflight)
         pending: set[asyncio.Task[None]] = set()
-        connection = writer.transport.get_protocol() if (writer := client._writer) else None
-        if isinstance(connection, _Connection):
-            connection.fast = lambda data: (
-                not pending and self._answer_now(client, reader, lines, data)
-            )
+        if client._writer is not None:
+            self._fast.attach(client._writer.transport, client, reader, lines, pending)
         while not client.closed:
             try:
                 line = await lines.readline()
@@ -503,43 +502,13 @@ class ApiServer:
                 continue
             for _ in range(incoming.requests):  # the reader is the only taker: no deadlock
                 await slots.acquire()
-            if not pending and rpc.is_immediate(incoming, self._methods):
-                # A realtime byte: run it now, not a loop pass later in a task of its own.
-                # Not while an earlier request of this client waits to start: a feedhold
-                # must not run before the job.resume sent ahead of it.
+            if self._fast.runs_inline(incoming, pending):
+                # A realtime byte: run it now, not in a task of its own (fastpath.py).
                 await self._handle(client, incoming, slots)
                 continue
             task = tg.create_task(self._handle(client, incoming, slots))
             pending.add(task)
             task.add_done_callback(pending.discard)
-
-    def _answer_now(
-        self, client: Client, reader: asyncio.StreamReader, lines: LineReader, data: bytes
-    ) -> bool:
-        """A realtime request answered as its bytes arrive, not a loop pass later; or False.
-
-        Only a chunk that is one whole line naming a realtime method, from a
-        client with nothing else unread nor under way (so nothing it sent
-        before is overtaken): the `!` of a client beside a query flood is
-        written in the very callback that read it.
-        """
-        if (
-            client.closed
-            or not data.endswith(b"\n")
-            or data.count(b"\n") != 1
-            or len(data) > self._max_line
-            or not any(name in data for name in self._immediate)
-            or lines.pending
-            or _unread(reader)
-        ):
-            return False
-        incoming = rpc.decode(data[:-1], max_batch=self._max_inflight)
-        if not rpc.is_immediate(incoming, self._methods):
-            return False
-        response = _run_now(rpc.answer(incoming, self._methods, client))
-        if response is not None:
-            client.send_line(response)
-        return True
 
     async def _handle(
         self, client: Client, incoming: rpc.Incoming, slots: asyncio.Semaphore
@@ -581,35 +550,3 @@ class ApiServer:
                 while not client.closed and await reader.read(1 << 16):
                     pass
         client.close("request line too long")
-
-
-class _Connection(asyncio.StreamReaderProtocol):
-    """A client's connection: a stream, and a fast path for realtime requests (`fast`)."""
-
-    def __init__(
-        self,
-        reader: asyncio.StreamReader,
-        connected: Callable[[asyncio.StreamReader, asyncio.StreamWriter], Any],
-    ) -> None:
-        super().__init__(reader, connected)
-        self.fast: Callable[[bytes], bool] | None = None
-
-    def data_received(self, data: bytes) -> None:
-        fast = self.fast
-        if fast is None or not fast(data):
-            super().data_received(data)
-
-
-def _unread(reader: asyncio.StreamReader) -> bool:
-    """Bytes the reader holds that its task has not taken yet (asyncio keeps them in _buffer)."""
-    return bool(getattr(reader, "_buffer", b"x"))
-
-
-def _run_now(coroutine: Any) -> bytes | None:
-    """Run a coroutine that never suspends (an immediate method's answer) to its end, here."""
-    try:
-        coroutine.send(None)
-    except StopIteration as done:
-        return cast(bytes | None, done.value)
-    coroutine.close()
-    raise RuntimeError("an immediate method suspended")
