@@ -42,18 +42,9 @@ from hostd.machine.events import (
     SupervisorChanged,
 )
 from hostd.machine.machine import Machine
-from hostd.machine.preflight import (
-    OutOfTravel,
-    analyze_file,
-    plan_at,
-    plan_recovery,
-    work_offset,
-)
+from hostd.machine.preflight import analyze_for, plan_for, prepare_start, recovery_for
 from hostd.protocol.commands import InvalidCommand, Realtime
-from hostd.protocol.errors import MachineError
 from hostd.protocol.gcode import JOG_AXES
-from hostd.protocol.gcodestate.resume import ResumePlan
-from hostd.protocol.limits import MachineLimits
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
 from hostd.protocol.settings import check_key, check_values
 
@@ -531,20 +522,9 @@ class Api:
     async def job_start(self, p: JobStartParams) -> dict[str, Any]:
         machine = self._machine(p.machine)
         path = await self._resolve(p.file)
-        limits = await self._limits(machine) if not p.force or p.start_line > 1 else None
-        offset = work_offset(machine.snapshot())
-        if not p.force and limits is not None and limits.travel and offset:
-            # Only a check that can run is worth reading the file for: the travel
-            # is known and so is the work offset (the machine is homed).
-            check = await analyze_file(path, machine.config.dialect, limits, offset)
-            if check.beyond:
-                raise OutOfTravel(
-                    f"{p.file} leaves {p.machine}'s travel: " + "; ".join(check.beyond),
-                    {"beyond_travel": check.beyond, "force": "true runs it anyway"},
-                )
-        preamble = None
-        if p.start_line > 1 and p.restore:
-            preamble = (await self._plan(machine, path, p.start_line, limits)).lines
+        preamble = await prepare_start(
+            machine, path, p.start_line, restore=p.restore, force=p.force
+        )
         job = await machine.start_make(p.file, p.start_line, preamble)
         return {"job": job.id, "preamble": preamble}
 
@@ -555,55 +535,23 @@ class Api:
         except NoSuchFileError as exc:
             raise RpcError(1004, str(exc)) from None
 
-    async def _plan(
-        self, machine: Machine, path: Path, line: int, limits: MachineLimits | None
-    ) -> ResumePlan:
-        """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
-        return await plan_at(
-            path,
-            line,
-            machine.config.dialect,
-            safe_z=machine.safe_height(limits),
-            dwell=machine.config.spindle_dwell,
-        )
-
-    async def _limits(self, machine: Machine) -> MachineLimits | None:
-        """The board's travel and speeds; None when it cannot say (not connected, refused)."""
-        try:
-            return await machine.limits()
-        except MachineError as exc:
-            log.info("machine limits not read", machine=machine.id, error=exc.message)
-            return None
-
     async def file_analyze(self, p: FileAnalyzeParams) -> dict[str, Any]:
         path = await self._resolve(p.file)
-        if p.machine is None:
-            return (await analyze_file(path, "g2core")).to_json()
-        machine = self._machine(p.machine)
-        limits = await self._limits(machine)
-        offset = work_offset(machine.snapshot())
-        result = await analyze_file(path, machine.config.dialect, limits, offset)
-        return result.to_json()
+        machine = None if p.machine is None else self._machine(p.machine)
+        return (await analyze_for(machine, path)).to_json()
 
     async def job_recovery(self, p: JobRecoveryParams) -> dict[str, Any]:
         if p.job is None:
             assert p.machine is not None and p.file is not None and p.line is not None
             machine = self._machine(p.machine)
             path = await self._resolve(p.file)
-            plan = await self._plan(machine, path, p.line, await self._limits(machine))
+            plan = await plan_for(machine, path, p.line)
             return {**plan.to_json(), "machine": p.machine, "file": p.file}
         job = await (await self._store()).get(p.job)
         if job is None:
             raise RpcError(1004, f"no job {p.job}")
         machine = self._machine(job.machine)
-        limits = await self._limits(machine)
-        plan, about = await plan_recovery(
-            self.jobs.path / (job.file or ""),
-            job,
-            machine.config.dialect,
-            safe_z=machine.safe_height(limits),
-            dwell=machine.config.spindle_dwell,
-        )
+        plan, about = await recovery_for(machine, self.jobs.path / (job.file or ""), job)
         result = plan.to_json()
         result.update(
             job=job.id,

@@ -3,7 +3,10 @@
 The G-code rules are in `hostd.protocol.gcodestate` (the model, the analysis, the
 resume plan) and the dialect's settings in its session (`limit_settings`,
 `machine_limits`); this module reads the file off the event loop and puts them
-together for one machine.
+together for one machine. The functions that take a `Machine` (`analyze_for`,
+`prepare_start`, `plan_for`, `recovery_for`) read what they need of it
+themselves: its board's limits (none when the board cannot say), its work
+offset, safe height and dwell.
 """
 
 from __future__ import annotations
@@ -15,7 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import structlog
+
 from hostd.machine.jobstore import Job
+from hostd.machine.machine import Machine
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
@@ -23,6 +29,8 @@ from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resum
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
+
+log = structlog.get_logger(__name__)
 
 RESUMABLE = ("interrupted", "failed", "cancelled")
 
@@ -129,39 +137,26 @@ def _analysis(
         )
 
 
-async def plan_recovery(
-    path: Path,
-    job: Job,
-    dialect: str,
-    *,
-    safe_z: float | None,
-    dwell: float,
-    line: int | None = None,
-) -> tuple[ResumePlan, list[str]]:
-    """Where `job` should resume (or at `line`), and the plan that gets there safely.
+def _recovery_line(job: Job) -> tuple[int, list[str]]:
+    """Where `job` should resume, and what is unsure about that line.
 
     The resume line is `line_executed`: the line the board was running, which
-    is run again from its start. Returns the plan and what is unsure about the line.
+    is run again from its start.
     """
     if job.kind != "make" or job.file is None:
         raise NotResumable(f"job {job.id} is a {job.kind} operation, not a make job")
-    if line is None and job.state not in RESUMABLE:
+    if job.state not in RESUMABLE:
         raise NotResumable(f"job {job.id} is {job.state}: only {', '.join(RESUMABLE)} resume")
-    about: list[str] = []
+    line = job.line_executed
     if line is None:
-        if job.line_executed is not None:
-            line = job.line_executed
-            about.append(
-                f"line {line} is the last the board reported running, at most a status "
-                f"interval before the stop; it answered lines up to {job.lines_acked} "
-                "of the job's, so it may have gone further"
-            )
-        else:
-            line = job.start_line or 1
-            about.append("the board never said which line it ran: resuming at the job's start")
-
-    plan = await plan_at(path, line, dialect, safe_z=safe_z, dwell=dwell)
-    return plan, about
+        about = "the board never said which line it ran: resuming at the job's start"
+        return job.start_line or 1, [about]
+    about = (
+        f"line {line} is the last the board reported running, at most a status "
+        f"interval before the stop; it answered lines up to {job.lines_acked} "
+        "of the job's, so it may have gone further"
+    )
+    return line, [about]
 
 
 async def plan_at(
@@ -189,3 +184,80 @@ async def plan_at(
 def _at(plan: ResumePlan, line: int) -> ResumePlan:
     """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
     return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.unsure)
+
+
+# -- for one machine ----------------------------------------------------------
+
+
+async def analyze_for(machine: Machine | None, path: Path) -> Preflight:
+    """`path` against `machine`: its dialect, speeds and travel; without one, g2core's rules."""
+    if machine is None:
+        return await analyze_file(path, "g2core")
+    limits = await _limits(machine)
+    offset = work_offset(machine.snapshot())
+    return await analyze_file(path, machine.config.dialect, limits, offset)
+
+
+async def prepare_start(
+    machine: Machine, path: Path, start_line: int, *, restore: bool, force: bool
+) -> list[str] | None:
+    """What a make job of `path` from `start_line` needs before it starts: the preamble.
+
+    Refuses a program whose moves leave the machine's travel (OutOfTravel)
+    unless `force`, when the check can run (the travel known, the machine
+    homed). From `start_line` > 1 with `restore`, returns the resume
+    plan's lines (the modal state restored, a safe approach) to send before
+    the file's; else None.
+    """
+    limits = await _limits(machine) if not force or start_line > 1 else None
+    offset = work_offset(machine.snapshot())
+    if not force and limits is not None and limits.travel and offset:
+        # Only a check that can run is worth reading the file for: the travel
+        # is known and so is the work offset (the machine is homed).
+        check = await analyze_file(path, machine.config.dialect, limits, offset)
+        if check.beyond:
+            raise OutOfTravel(
+                f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
+                {"beyond_travel": check.beyond, "force": "true runs it anyway"},
+            )
+    if start_line > 1 and restore:
+        return (await _plan(machine, path, start_line, limits)).lines
+    return None
+
+
+async def plan_for(machine: Machine, path: Path, line: int) -> ResumePlan:
+    """The plan `prepare_start` would send to resume `path` at `line` on `machine`."""
+    return await _plan(machine, path, line, await _limits(machine))
+
+
+async def recovery_for(machine: Machine, path: Path, job: Job) -> tuple[ResumePlan, list[str]]:
+    """Where `job` should resume on `machine`, and the plan that gets there safely.
+
+    Returns the plan and what is unsure about its line (`_recovery_line`);
+    NotResumable when the job or the file allows no safe resume.
+    """
+    limits = await _limits(machine)
+    line, about = _recovery_line(job)
+    return await _plan(machine, path, line, limits), about
+
+
+async def _plan(
+    machine: Machine, path: Path, line: int, limits: MachineLimits | None
+) -> ResumePlan:
+    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
+    return await plan_at(
+        path,
+        line,
+        machine.config.dialect,
+        safe_z=machine.safe_height(limits),
+        dwell=machine.config.spindle_dwell,
+    )
+
+
+async def _limits(machine: Machine) -> MachineLimits | None:
+    """The board's travel and speeds; None when it cannot say (not connected, refused)."""
+    try:
+        return await machine.limits()
+    except MachineError as exc:
+        log.info("machine limits not read", machine=machine.id, error=exc.message)
+        return None
