@@ -16,7 +16,6 @@ import json
 import math
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
@@ -25,7 +24,7 @@ import structlog
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status, message
 from hostd.sim import gcode, relaxed, reports
-from hostd.sim.config import AXES, SimConfig
+from hostd.sim.config import AXES, EPS, SimConfig
 from hostd.sim.gcode import (
     Block,
     Dwell,
@@ -37,6 +36,13 @@ from hostd.sim.gcode import (
     SetPosition,
 )
 from hostd.sim.motion import Active, start_block
+from hostd.sim.probing import (
+    MINIMUM_PROBE_TRAVEL,
+    PROBE_AXES,
+    ProbeCycle,
+    probe_touching,
+    probe_trip,
+)
 from hostd.sim.scanner import DataLine
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
@@ -49,13 +55,10 @@ ESTOP_INPUT, PANIC_INPUT = 7, 9
 OUTPUT_BUFFER_LEN = 512  # controller.h: the buffer an answer is serialised into
 INIT_MESSAGE = "Initializing configs to default settings"  # settings_default.h
 LOADING_MESSAGE = "Loading configs from EEPROM"  # report.cpp
-MINIMUM_PROBE_TRAVEL = 0.254  # mm, cycle_probing.cpp
 # planner.h BLOCK_TIMEOUT_MS: from rest, the planner takes blocks in before it moves
 # (PLANNER_STARTUP, planner.cpp mp_planner_callback) until it is full or none has come
 # for this long (real seconds; divided by speed_factor as moves are).
 BLOCK_TIMEOUT = 0.030
-PROBE_AXES = ("x", "y", "z", "a", "b", "c")  # the axes `_send_probe_report` prints
-_EPS = 1e-6
 
 _REJECTED_BY = {
     MachineState.ALARM: Status.COMMAND_REJECTED_BY_ALARM,
@@ -146,7 +149,7 @@ class Board:
         self._sr_next = 0.0
         self._qr_last: int | None = None
         self._qi = self._qo = 0
-        self._probing: _ProbeCycle | None = None
+        self._probing: ProbeCycle | None = None
         self._init_message_due = False
         for port in self.rx:
             self.discard_rx(port)
@@ -461,44 +464,21 @@ class Board:
 
     def _probe_start(self, block: Probe) -> Probe | None:
         """`_probing_start`: check the travel and the input, then move until it trips."""
-        cycle = self._probing = _ProbeCycle(alarm=block.alarm)
+        cycle = self._probing = ProbeCycle(alarm=block.alarm)
         target = block.move.target
         travel = math.dist([self.position[a] for a in AXES], [target[a] for a in AXES])
         if travel < MINIMUM_PROBE_TRAVEL:
             self._probe_exception(Status.PROBE_TRAVEL_TOO_SMALL)
             return None
-        if self._probe_touching(self.position) == block.on_contact:
+        if probe_touching(self.probe_surface, self.position) == block.on_contact:
             self._probe_exception(Status.PROBE_IS_ALREADY_TRIPPED)
             return None
-        trip = self._probe_trip(block)
+        trip = probe_trip(self.probe_surface, self.position, block)
         if trip is not None:  # the move ends where the input trips
             cycle.tripped = True
             block = Probe(Move(trip, block.move.feed, block.n), block.on_contact, block.alarm)
             self.planner[0] = block
         return block
-
-    def _probe_touching(self, at: Mapping[str, float]) -> bool:
-        """The probe input: closed while the tool touches the surface (`probe_surface`)."""
-        surface = self.probe_surface
-        return surface is not None and abs(at[surface[0]] - surface[1]) < _EPS
-
-    def _probe_trip(self, block: Probe) -> dict[str, float] | None:
-        """Where on its way the probe input changes to the tripped state, if it does."""
-        surface = self.probe_surface
-        if surface is None:
-            return None
-        axis, at = surface
-        start, end = self.position, block.move.target
-        if not block.on_contact:
-            return dict(start)  # touching at the start: it trips as the tool leaves
-        if start[axis] == end[axis]:
-            return None
-        fraction = (at - start[axis]) / (end[axis] - start[axis])
-        if not 0.0 <= fraction <= 1.0:
-            return None
-        point = {a: start[a] + (end[a] - start[a]) * fraction for a in AXES}
-        point[axis] = at
-        return point
 
     def _probe_exception(self, status: Status) -> None:
         """`_probing_exception_exit`: settings restored, then cm_alarm(status, "probe error")."""
@@ -778,9 +758,9 @@ class Board:
         for i, axis in enumerate(AXES):
             if not self.homed[axis]:
                 continue
-            if target[axis] < self.settings[f"{axis}tn"] - _EPS:
+            if target[axis] < self.settings[f"{axis}tn"] - EPS:
                 return Status(Status.SOFT_LIMIT_EXCEEDED_XMIN + 2 * i)
-            if target[axis] > self.settings[f"{axis}tm"] + _EPS:
+            if target[axis] > self.settings[f"{axis}tm"] + EPS:
                 return Status(Status.SOFT_LIMIT_EXCEEDED_XMAX + 2 * i)
         return Status.OK
 
@@ -1079,14 +1059,6 @@ class Board:
 
     def _emit(self, obj: dict[str, Any]) -> None:
         self._emit_line(_dumps(obj))
-
-
-@dataclass
-class _ProbeCycle:
-    """A G38.x cycle under way: whether its input tripped, whether failing is an alarm."""
-
-    alarm: bool
-    tripped: bool = False
 
 
 def _dumps(obj: dict[str, Any]) -> str:

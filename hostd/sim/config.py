@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 AXES: tuple[str, ...] = ("x", "y", "z")
+EPS = 1e-6  # mm: positions this close are the same (probe contact, soft limits)
 
 
 def _default_travel() -> dict[str, float]:
