@@ -12,11 +12,9 @@ Which g2core behaviour each part follows is cited from ../shared/spec/g2core.md
 
 from __future__ import annotations
 
-import json
 import math
 from collections import deque
 from collections.abc import Callable, Mapping
-from enum import IntEnum
 from typing import Any
 
 import structlog
@@ -36,6 +34,7 @@ from hostd.sim.gcode import (
     SetPosition,
 )
 from hostd.sim.motion import Active, start_block
+from hostd.sim.output import CYCLES, OUTPUT_BUFFER_LEN, Hold, Output
 from hostd.sim.probing import (
     MINIMUM_PROBE_TRAVEL,
     PROBE_AXES,
@@ -44,7 +43,7 @@ from hostd.sim.probing import (
     probe_trip,
 )
 from hostd.sim.scanner import DataLine
-from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
+from hostd.sim.settings import Settings
 
 log = structlog.get_logger(__name__)
 
@@ -52,9 +51,6 @@ ENQ, JOB_KILL, RESET = 0x05, 0x04, 0x18
 RX_REPORT = 254  # `{rx:n}` is a constant on ARM [7.1]
 INPUTS = {"x": 1, "y": 3, "z": 5}  # limit switch input numbers, for `er` details
 ESTOP_INPUT, PANIC_INPUT = 7, 9
-OUTPUT_BUFFER_LEN = 512  # controller.h: the buffer an answer is serialised into
-INIT_MESSAGE = "Initializing configs to default settings"  # settings_default.h
-LOADING_MESSAGE = "Loading configs from EEPROM"  # report.cpp
 # planner.h BLOCK_TIMEOUT_MS: from rest, the planner takes blocks in before it moves
 # (PLANNER_STARTUP, planner.cpp mp_planner_callback) until it is full or none has come
 # for this long (real seconds; divided by speed_factor as moves are).
@@ -65,36 +61,15 @@ _REJECTED_BY = {
     MachineState.SHUTDOWN: Status.COMMAND_REJECTED_BY_SHUTDOWN,
     MachineState.PANIC: Status.COMMAND_REJECTED_BY_PANIC,
 }
-# States of a cycle under way, which ends in PROGRAM_STOP once nothing is left to run.
-_CYCLES = (MachineState.RUN, MachineState.HOMING, MachineState.PROBE)
 # What cm_alarm / cm_shutdown / cm_panic each leave the machine in (alarm.cpp).
 _LOCKOUT_PATHS = {
     "alarm": MachineState.ALARM,
     "shutdown": MachineState.SHUTDOWN,
     "panic": MachineState.PANIC,
 }
-# cmMachineState (`macs`) for each combined state [4].
-_MACS = {
-    MachineState.INITIALIZING: 0,
-    MachineState.READY: 1,
-    MachineState.ALARM: 2,
-    MachineState.PROGRAM_STOP: 3,
-    MachineState.PROGRAM_END: 4,
-    MachineState.INTERLOCK: 6,
-    MachineState.SHUTDOWN: 7,
-    MachineState.PANIC: 8,
-}
 
 
-class Hold(IntEnum):
-    """g2core's `hold` values the simulator passes through [4]."""
-
-    OFF = 0
-    DECEL = 4  # decelerating to zero
-    HOLD = 10  # standing in the hold
-
-
-class Board:
+class Board(Output):
     """One g2core board; see the module docstring for how it is driven."""
 
     def __init__(
@@ -109,18 +84,18 @@ class Board:
         self._emit_line = emit
         self._clock = clock
         self._request_reset = reset
-        self.rx: dict[str, deque[DataLine]] = {}
-        self._rx_bytes: dict[str, int] = {}
+        self.rx = {}
+        self._rx_bytes = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
-        self.inputs: dict[str, float | int] = dict.fromkeys(reports.INPUT_KEYS, 0)
+        self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.
-        self.probe_surface: tuple[str, float] | None = None  # axis, machine mm the probe touches
-        self.homing_failure: tuple[str, Status] | None = None  # axis, why homing it fails
+        self.probe_surface = None  # axis, machine mm the probe touches
+        self.homing_failure = None  # axis, why homing it fails
         self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
         self.overflow_reported = True  # as an `er` 113, or (False) not at all
-        self.glitches: dict[str, float] = {}  # status values computed wrong (nan, inf), by key
+        self.glitches = {}  # status values computed wrong (nan, inf), by key
         self.power_on()
 
     # --- power and connection
@@ -130,26 +105,26 @@ class Board:
         self.settings = Settings(self.config)
         self.state = MachineState.READY
         self.interp = Interpreter()
-        self.planner: deque[Block] = deque()
+        self.planner = deque()
         self._last_block_at = 0.0  # when the last block went into the planner
         self._planner_running = False  # PLANNER_IDLE/STARTUP (False) or moving blocks (True)
         self.active: Active | None = None
         self.position = dict.fromkeys(AXES, 0.0)
         self.homed = dict.fromkeys(AXES, False)
         self.hold = Hold.OFF
-        self._pending_exit: str | None = None  # what to do once a hold has stopped
-        self._hold_point: dict[str, float] | None = None
-        self._p2: Interpreter | None = None  # the in-hold (secondary) planner's model
+        self._pending_exit = None  # what to do once a hold has stopped
+        self._hold_point = None
+        self._p2 = None  # the in-hold (secondary) planner's model
         self.interlock_input = False
         self.interlocked = False
-        self._ack: tuple[float, dict[str, Any]] | None = None
-        self._sr_last: dict[str, float | int] = {}
+        self._ack = None
+        self._sr_last = {}
         self._sr_requested = False
         self._sr_now = False
         self._sr_next = 0.0
-        self._qr_last: int | None = None
+        self._qr_last = None
         self._qi = self._qo = 0
-        self._probing: ProbeCycle | None = None
+        self._probing = None
         self._init_message_due = False
         for port in self.rx:
             self.discard_rx(port)
@@ -163,35 +138,6 @@ class Board:
     def disconnected(self) -> None:
         """The last host closed the board."""
         self.settings.reset_per_open()
-
-    def banner(self) -> None:
-        """SYSTEM READY, the first line after every open [10]."""
-        fb = self.config.fb
-        if fb >= 400:  # TinyG's shape, four-element footer with a checksum [2]
-            body = {"fv": 0.97, "fb": fb, "hp": 1, "hv": 8, "id": BOARD_ID}
-            body["msg"] = "SYSTEM READY"
-            head = _dumps({"r": body})[:-1] + ',"f":[1,0,1,'
-            self._emit_line(f"{head}{_tinyg_checksum(head)}]}}")
-            return
-        self._startup_message(Status.OK, "SYSTEM READY")
-
-    def boot_messages(self) -> None:
-        """What a board prints as it boots, where a host can read it (a UART link).
-
-        config_init() prints "Loading configs from EEPROM" (status 15), then
-        SYSTEM READY (report.cpp); a native USB board prints them to nobody.
-        """
-        if self.config.fb < 400:
-            self._startup_message(Status.INITIALIZING, LOADING_MESSAGE)
-        self.banner()
-
-    def _startup_message(self, status: Status, msg: str, count: int = 1) -> None:
-        """report.cpp `_startup_helper`: an `{r}` of identity and `msg`, answering no line.
-
-        Its count is cs.linelen + 1: 1 at boot, a line's own count when a line prints it.
-        """
-        body = self.settings.identity | {"msg": msg}
-        self._emit({"r": body, "f": [1, int(status), count]})
 
     # --- input: the controller feeds scanned events here
 
@@ -375,7 +321,7 @@ class Board:
                 return False
             self._start(now)
             return True
-        if self.state in _CYCLES and not self._dispatchable():
+        if self.state in CYCLES and not self._dispatchable():
             self._set_state(MachineState.PROGRAM_STOP)
             return True
         return False
@@ -537,10 +483,6 @@ class Board:
         if rest is not None:
             self.planner.appendleft(rest)
         self._sr_requested = True
-
-    @property
-    def _moving(self) -> bool:
-        return self.active is not None and self.active.move is not None
 
     # --- data lines: read in order, only when the planner has room [7.1]
 
@@ -899,189 +841,6 @@ class Board:
         if self.state in (MachineState.ALARM, MachineState.SHUTDOWN):
             self._clear()
 
-    def _exception(self, status: Status, detail: str) -> None:
-        msg = f"{message(status)} - {detail}"
-        self._emit({"er": {"fb": self.config.fb, "st": int(status), "msg": msg}})
-
-    # --- reports [2, 4, 6]
-
-    @property
-    def _jv(self) -> int:
-        return int(self.settings["jv"])
-
-    def _respond(
-        self,
-        body: dict[str, Any],
-        status: Status,
-        linelen: int,
-        *,
-        data: bool,
-        n: int = 0,
-    ) -> None:
-        jv = self._jv
-        if jv == 0 or (jv == JV_MAX and status == Status.OK):
-            return
-        if n and jv >= 4:
-            body["n"] = n
-        if self._init_message_due:
-            # `{defa:1}` printed its startup message while the line ran: that took the
-            # line's count, and json_print_response reset cs.linelen to 0.
-            self._init_message_due = False
-            self._startup_message(Status.INITIALIZING, INIT_MESSAGE, linelen + 1)
-            linelen = 0
-        if self.config.fb >= 400:  # TinyG 440: strlen(line)+1 and a checksum [2]
-            count = linelen + 1 if data else linelen
-            head = _dumps({"r": body})[:-1] + f',"f":[1,{int(status)},{count},'
-            self._emit_line(f"{head}{_tinyg_checksum(head)}]}}")
-            return
-        obj = {"r": body, "f": [1, int(status), linelen + 1]}
-        if len(_dumps(obj)) >= self.output_buffer:
-            # json_print_response: an answer the board cannot hold is not printed; when
-            # its nv list runs out it says so with an `er` 113 instead.
-            if self.overflow_reported:
-                self._exception(Status.JSON_OUTPUT_TOO_LONG, "json_print_response() json too long")
-            return
-        if data and self.ack_delay > 0:
-            self._ack = (self._clock() + self.ack_delay, obj)
-            return
-        self._emit(obj)
-
-    def _set_state(self, state: MachineState) -> None:
-        if state != self.state:
-            log.debug("sim board state", state=state.name)
-            self.state = state
-            self._sr_now = True
-        if state not in _CYCLES and state not in (MachineState.HOLD, MachineState.INTERLOCK):
-            self._planner_running = False  # at rest, or locked out: the next move primes again
-
-    def _at_rest_for_a_cycle(self) -> bool:
-        return (
-            self.state not in _CYCLES
-            and self.hold == Hold.OFF
-            and not self.state.is_lockout
-            and self.state is not MachineState.INTERLOCK
-        )
-
-    def _flush_sr(self) -> None:
-        """State changes are reported at once, after the command that made them."""
-        if self._sr_now:
-            self._sr_now = False
-            self._send_sr(self._clock())
-
-    def _timed_reports(self, now: float) -> bool:
-        if self.output_blocked:
-            return False
-        sent = False
-        qv = int(self.settings["qv"])
-        free = self._free
-        if qv and self._jv and free != self._qr_last:
-            self._qr_last = free
-            report: dict[str, int] = {"qr": free}
-            if qv == 2:
-                report |= {"qi": self._qi, "qo": self._qo}
-                self._qi = self._qo = 0
-            self._emit(report)
-            sent = True
-        if (self._sr_requested or self._moving) and now >= self._sr_next:
-            self._sr_requested = False
-            self._sr_next = now + self.settings["si"] / 1000.0
-            self._send_sr(now)
-            sent = True
-        return sent
-
-    def _send_sr(self, now: float) -> None:
-        sv = int(self.settings["sv"])
-        if not sv:
-            return
-        values = self._values(now)
-        body = reports.filtered(self.settings.sr_keys, values, self._sr_last, verbose=sv == 2)
-        if body:
-            self._emit({"sr": body})
-
-    def _sr_full(self) -> dict[str, float | int]:
-        values = self._values(self._clock())
-        return {key: values[key] for key in self.settings.sr_keys}
-
-    @property
-    def _free(self) -> int:
-        return max(self.config.planner_depth - len(self.planner), 0)
-
-    def tool_position(self, now: float) -> dict[str, float]:
-        return self.active.position(now) if self.active is not None else dict(self.position)
-
-    def _values(self, now: float) -> dict[str, float | int]:
-        """Every status report key's current value, rounded as reported."""
-        interp = self.interp
-        scale = interp.scale
-        machine = self.tool_position(now)
-        active = self.active
-        velocity = active.velocity(now) if active is not None else 0.0
-        running = active.block.n if active is not None else interp.line
-        state = self.state
-        cycle = 0
-        if state in (MachineState.RUN, MachineState.HOLD, MachineState.INTERLOCK):
-            cycle = 1
-        elif state == MachineState.HOMING:
-            cycle = 2
-        elif state == MachineState.PROBE:
-            cycle = 3
-        values: dict[str, float | int] = {
-            "line": running,
-            "n": interp.line,
-            "feed": (interp.feed or 0.0) / scale,
-            "vel": velocity / scale,
-            "unit": 1 if interp.metric else 0,
-            "stat": int(state),
-            "macs": _MACS.get(state, 5),
-            "cycs": cycle,
-            "mots": 1 if velocity > 0 else 0,
-            "hold": int(self.hold),
-            "coor": interp.coord,
-            "dist": 0 if interp.absolute else 1,
-            "admo": 1,
-            "frmo": 0 if interp.inverse_time else 1,
-            "momo": interp.motion if interp.motion is not None else 4,
-            "plan": interp.plane - 17,
-            "path": interp.path,
-            "tool": 0,
-            "g92e": 1 if any(interp.offsets.values()) else 0,
-            "home": 1 if all(self.homed.values()) else 0,
-            "qr": self._free,
-        }
-        values |= self.inputs
-        for axis in AXES:
-            values[f"pos{axis}"] = (machine[axis] - interp.offsets[axis]) / scale
-            values[f"mpo{axis}"] = machine[axis]
-            values[f"ofs{axis}"] = interp.offsets[axis] / scale
-            values[f"hom{axis}"] = 1 if self.homed[axis] else 0
-        out = {key: reports.number(v, reports.places(key)) for key, v in values.items()}
-        return out | self.glitches
-
-    def _emit(self, obj: dict[str, Any]) -> None:
-        self._emit_line(_dumps(obj))
-
-
-def _dumps(obj: dict[str, Any]) -> str:
-    """As the firmware serialises: floattoa() prints a NaN as `nan` and an
-    infinity as `inf` or `-inf`, bare, where strict JSON has no word (util.cpp)."""
-    text = json.dumps(obj, separators=(",", ":"))
-    if "NaN" not in text and "Infinity" not in text:
-        return text
-    marked = json.dumps(_floattoa_marked(obj), separators=(",", ":"))
-    return marked.replace('"\\u0001', "").replace('\\u0001"', "")
-
-
-def _floattoa_marked(value: Any) -> Any:
-    """Each non-finite float as its floattoa() word between two U+0001 (never in our text)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        word = "nan" if math.isnan(value) else "-inf" if value < 0 else "inf"
-        return f"\x01{word}\x01"
-    if isinstance(value, dict):
-        return {k: _floattoa_marked(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_floattoa_marked(v) for v in value]
-    return value
-
 
 def _echo(value: relaxed.Value) -> Any:
     if isinstance(value, float):
@@ -1102,11 +861,3 @@ def _text_value(raw: str) -> relaxed.Value:
     if raw in ("t", "true", "f", "false"):
         return raw.startswith("t")
     return raw
-
-
-def _tinyg_checksum(text: str) -> int:
-    """TinyG 440's footer checksum: a Java-style string hash, mod 9999."""
-    h = 0
-    for ch in text:
-        h = (31 * h + ord(ch)) & 0xFFFFFFFF
-    return h % 9999
