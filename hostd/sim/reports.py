@@ -1,6 +1,6 @@
 """Status report keys and g2core's filtered reporting (g2core.md section 4).
 
-The board knows each key's current value (board.py fills a snapshot); this
+The board knows each key's current value (output.py fills a snapshot); this
 module decides what a report contains: with `sv` 1 only the values that
 changed since they were last reported, except `stat`, which is always
 included when it is 3 (stop) or 4 (end); with `sv` 2 everything listed.

@@ -1,0 +1,267 @@
+"""The simulated g2core's commands: data lines, JSON and text commands, G-code.
+
+The layer of `Board` (board.py) above its planner (planner.py): a data line
+read from RX is told apart by its first character and run. JSON (`{...}`)
+and text (`$...`) commands are GETs and SETs of settings and of the board's
+functions (`clear`, `alarm`, `defa`, `sr`, ...), answered in JSON [7.1, 11];
+G-code goes through the interpreter into the planner, or into the secondary
+planner in a hold [8], with soft limits checked on the way [10].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
+from hostd.sim import gcode, relaxed, reports
+from hostd.sim.config import AXES, EPS
+from hostd.sim.gcode import Dwell, Home, Move, SetPosition
+from hostd.sim.output import Hold
+from hostd.sim.planner import Planner
+from hostd.sim.settings import Settings
+
+RX_REPORT = 254  # `{rx:n}` is a constant on ARM [7.1]
+
+
+class Commands(Planner):
+    """Data lines and control lines, read and run: what every line does."""
+
+    # --- data lines: read in order, only when the planner has room [7.1]
+
+    def _dispatch(self) -> bool:
+        if not self._dispatchable():
+            return False
+        for port, queue in self.rx.items():
+            if queue:
+                line = queue.popleft()
+                self._rx_bytes[port] -= line.size
+                self._data_line(line.text.decode("latin-1"))
+                return True
+        return False
+
+    def _data_line(self, text: str) -> None:
+        linelen = len(text)
+        stripped = text.lstrip(" \t")
+        first = stripped[:1]
+        if first == "%":
+            return  # swallowed by the single-character branch, no response [2.2]
+        if first and first in "!~\x04\x05\x18":
+            self.realtime("", ord(first))
+            return
+        if first == "{":
+            self._json(stripped, linelen, data=True)
+        elif first == "?":
+            self._respond({"sr": self._sr_full()}, Status.OK, linelen, data=True)
+        elif first == "$":
+            self._text(stripped, linelen)
+        else:
+            status, n = self._gcode(text)
+            body: dict[str, Any] = {"gc": text} if self._jv >= 5 else {}
+            self._respond(body, status, linelen, data=True, n=n)
+            self._sr_requested = True
+
+    # --- JSON and text commands
+
+    def _json(self, text: str, linelen: int, *, data: bool) -> None:
+        try:
+            pairs = relaxed.parse(text)
+        except relaxed.RelaxedJsonError:
+            body: dict[str, Any] = {"err": text} if self._jv >= 2 else {}
+            self._respond(body, Status.JSON_SYNTAX_ERROR, linelen, data=data)
+            return
+        body = {}
+        status, n = Status.OK, 0
+        for key, value in pairs.items():
+            status, line = self._pair(key, value, body)
+            n = n or line
+            if status != Status.OK:
+                break
+        self._respond(body, status, linelen, data=data, n=n)
+        self._sr_requested = True
+
+    def _text(self, text: str, linelen: int) -> None:
+        """`$key`, `$key=value`, `$clear`: text-mode commands, answered in JSON [11]."""
+        command = relaxed.normalize(text[1:])
+        body: dict[str, Any] = {}
+        if command in ("", "$"):
+            body["sys"] = self.settings.system_group()
+            self._respond(body, Status.OK, linelen, data=True)
+            return
+        key, eq, raw = command.partition("=")
+        value = _text_value(raw) if eq else None
+        status, n = self._pair(key, value, body)
+        self._respond(body, status, linelen, data=True, n=n)
+        self._sr_requested = True
+
+    def _pair(self, key: str, value: relaxed.Value, body: dict[str, Any]) -> tuple[Status, int]:
+        """One name/value pair: a GET (value None) or a SET; returns status and N word."""
+        if value is None:
+            return self._get(key, body), 0
+        if isinstance(value, str) and gcode.is_program_end(value):
+            self._parse_clear()
+        rejected = self._rejection()
+        if rejected is not None:  # SETs are actions: drained and rejected [10]
+            body[key] = _echo(value)
+            return rejected, 0
+        if key in ("gc", "gc2"):
+            if not isinstance(value, str):
+                body[key] = _echo(value)
+                return Status.VALUE_TYPE_ERROR, 0
+            if self._jv >= 5:
+                body[key] = value
+            return self._gcode(value, in_hold=key == "gc2")
+        if key == "sr":
+            return self._set_sr(value, body), 0
+        return self._set(key, value, body), 0
+
+    def _get(self, key: str, body: dict[str, Any]) -> Status:
+        body[key] = None
+        if key == "sr":
+            body[key] = self._sr_full()
+        elif key in ("clear", "clr"):
+            self._clear()
+        elif key == "alarm":
+            self._lockout(MachineState.ALARM, Status.ALARM, "sent by host")
+        elif key == "shutd":
+            self._lockout(MachineState.SHUTDOWN, Status.SHUTDOWN, "sent by host", unhome=True)
+        elif key == "panic":
+            self._lockout(MachineState.PANIC, Status.PANIC, "sent by host")
+        elif key == "er":
+            self._exception(Status.GENERIC_EXCEPTION_REPORT, "bogus exception report")
+        elif key == "sys":
+            body[key] = self.settings.system_group()
+        elif key == "qr":
+            body[key] = self._free
+        elif key in ("qi", "qo"):
+            body[key] = self._qi if key == "qi" else self._qo
+            setattr(self, f"_{key}", 0)
+        elif key == "rx":
+            body[key] = RX_REPORT
+        elif key in self.settings:
+            body[key] = self.settings.get(key)
+        elif key in reports.SR_KEYS:
+            body[key] = self._values(self._clock())[key]
+        else:
+            return Status.UNRECOGNIZED_NAME
+        return Status.OK
+
+    def _set(self, key: str, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        body[key] = _echo(value)
+        if key in ("clear", "clr", "alarm", "shutd", "panic"):
+            return self._get(key, body)  # functions run the same either way
+        if key in reports.SR_KEYS:
+            return Status.PARAMETER_IS_READ_ONLY
+        if key == "defa":
+            return self._defaults(value, body)
+        if key not in self.settings:
+            return Status.UNRECOGNIZED_NAME
+        status = self.settings.set(key, value)
+        if status == Status.OK:
+            body[key] = self.settings.get(key)
+        return status
+
+    def _defaults(self, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        """config.cpp `set_defaults`: every setting back to the profile's default.
+
+        `_set_defa` prints its startup message ("Initializing configs...", status
+        15) before the line's answer, and the answer is `{"defa":true}` [11].
+        """
+        if not value:
+            return Status.OK  # help_defa: a help screen (text), which hostd never asks for
+        self.settings = Settings(self.config)
+        self._sr_last = {}
+        self._init_message_due = True
+        body["defa"] = True
+        return Status.OK
+
+    def _set_sr(self, value: relaxed.Value, body: dict[str, Any]) -> Status:
+        """`{sr:{...}}` replaces the report list; the answer is a full report [4]."""
+        body["sr"] = _echo(value)
+        status = self.settings.set_status_report(value)
+        if status == Status.OK:
+            self._sr_last = {}
+            body["sr"] = self._sr_full()
+        return status
+
+    # --- G-code
+
+    def _gcode(self, text: str, *, in_hold: bool = False) -> tuple[Status, int]:
+        if gcode.is_program_end(text):
+            self._parse_clear()
+        rejected = self._rejection()
+        if rejected is not None:
+            return rejected, 0
+        if in_hold and self.hold == Hold.HOLD:
+            return self._gcode_in_hold(text)
+        outcome = self.interp.execute(text, self._soft_limits)
+        self._soft_limit_alarm(outcome.status)
+        if outcome.alarm:  # cm_straight_probe refused it with cm_alarm()
+            self._lockout(MachineState.ALARM, outcome.status, outcome.alarm)
+        for block in outcome.blocks:
+            self.planner.append(block)
+            self._qi += 1
+            self._last_block_at = self._clock()
+            if isinstance(block, Move | Dwell) and self._at_rest_for_a_cycle():
+                self._set_state(MachineState.RUN)  # cm_cycle_start, as the move is parsed
+        return outcome.status, outcome.n
+
+    def _gcode_in_hold(self, text: str) -> tuple[Status, int]:
+        """`{gc2:...}` in a hold: the secondary planner runs it at once [8, seed 002]."""
+        if self._p2 is None:
+            self._p2 = self.interp.copy()
+            self._p2.sync(self.position)
+        outcome = self._p2.execute(text, self._soft_limits)
+        self._soft_limit_alarm(outcome.status)
+        for block in outcome.blocks:
+            if isinstance(block, Move):
+                self.position = dict(block.target)
+            elif isinstance(block, Home):
+                for axis in block.axes:
+                    self.position[axis] = 0.0
+                    self.homed[axis] = True
+            elif isinstance(block, SetPosition):
+                self.position.update(block.values)
+                for axis in block.values:
+                    self.homed[axis] = True
+            self._sr_requested = True
+        return outcome.status, outcome.n
+
+    def _soft_limits(self, target: Mapping[str, float]) -> Status:
+        """Soft limits apply to homed axes while `sl` is on [10, seed 000]."""
+        if not self.settings["sl"]:
+            return Status.OK
+        for i, axis in enumerate(AXES):
+            if not self.homed[axis]:
+                continue
+            if target[axis] < self.settings[f"{axis}tn"] - EPS:
+                return Status(Status.SOFT_LIMIT_EXCEEDED_XMIN + 2 * i)
+            if target[axis] > self.settings[f"{axis}tm"] + EPS:
+                return Status(Status.SOFT_LIMIT_EXCEEDED_XMAX + 2 * i)
+        return Status.OK
+
+    def _soft_limit_alarm(self, status: Status) -> None:
+        if Status.SOFT_LIMIT_EXCEEDED <= status <= Status.SOFT_LIMIT_EXCEEDED_ARC:
+            self._lockout(MachineState.ALARM, status, "soft_limits")
+
+
+def _echo(value: relaxed.Value) -> Any:
+    if isinstance(value, float):
+        return reports.number(value, 5)
+    if isinstance(value, dict):
+        return {k: _echo(v) for k, v in value.items()}
+    return value
+
+
+def _text_value(raw: str) -> relaxed.Value:
+    """The value of `$key=value`: a number, t/f, or the text itself."""
+    if not raw or raw.startswith("n"):
+        return None
+    try:
+        return float(raw)
+    except ValueError:
+        pass
+    if raw in ("t", "true", "f", "false"):
+        return raw.startswith("t")
+    return raw
