@@ -32,7 +32,6 @@ from hostd.sim import reports
 from hostd.sim.commands import Commands
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Interpreter
-from hostd.sim.motion import Active
 from hostd.sim.output import OUTPUT_BUFFER_LEN, Hold
 from hostd.sim.planner import BLOCK_TIMEOUT
 from hostd.sim.scanner import DataLine
@@ -89,7 +88,7 @@ class Board(Commands):
         self.planner = deque()
         self._last_block_at = 0.0  # when the last block went into the planner
         self._planner_running = False  # PLANNER_IDLE/STARTUP (False) or moving blocks (True)
-        self.active: Active | None = None
+        self.active = None
         self.position = dict.fromkeys(AXES, 0.0)
         self.homed = dict.fromkeys(AXES, False)
         self.hold = Hold.OFF
