@@ -21,9 +21,9 @@ Two ways, the first one faster:
   it is exactly one whole line naming such a method, not over the line
   limit. The handler runs to its end right there (`_run_now`), and the `!` is
   written in the very callback that read the request.
-- In the reader task (`FastPath.runs_inline`): any other lone request for such
-  a method that the reader task has read runs in that task, not in a task of
-  its own.
+- In the reader task (`intake.Intake`, every transport's): any other lone
+  request for such a method that the reader task has read runs in that
+  task, not in a task of its own.
 
 Order: a request on the fast path never overtakes an earlier request of the
 same client. Either way is taken only while none of the client's earlier
@@ -35,7 +35,7 @@ those would be requests sent before this one, and the connection not to be
 closed. Anything else reaches the reader task as usual.
 
 The WebSocket transport (web.py) has no read callback of its own to hook:
-it has only the reader-task way, under the same rule.
+it has only the reader-task way, under the same rule (the same `Intake`).
 """
 
 from __future__ import annotations
@@ -85,14 +85,6 @@ class FastPath:
             connection.fast = lambda data: (
                 not pending and self._answer_now(client, reader, lines, data)
             )
-
-    def runs_inline(self, incoming: rpc.Incoming, pending: Collection[object]) -> bool:
-        """The reader task runs `incoming` itself, now, rather than in a task of its own.
-
-        A lone realtime request, and none of the client's earlier requests
-        under way or waiting to start (`pending`).
-        """
-        return not pending and rpc.is_immediate(incoming, self._methods)
 
     def _answer_now(
         self, client: Client, reader: asyncio.StreamReader, lines: LineReader, data: bytes

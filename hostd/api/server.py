@@ -55,6 +55,7 @@ from typing import Any, Final, Self, cast
 import structlog
 
 from hostd.api import fastpath, rpc, socketfile
+from hostd.api.intake import Intake
 from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
 
@@ -472,10 +473,9 @@ class ApiServer:
         self, client: Client, reader: asyncio.StreamReader, tg: asyncio.TaskGroup
     ) -> None:
         lines = LineReader(reader, max_line=self._max_line, line_timeout=self._line_timeout)
-        slots = asyncio.Semaphore(self._max_inflight)
-        pending: set[asyncio.Task[None]] = set()
+        intake = Intake(self._methods, client, tg, max_inflight=self._max_inflight)
         if client._writer is not None:
-            self._fast.attach(client._writer.transport, client, reader, lines, pending)
+            self._fast.attach(client._writer.transport, client, reader, lines, intake.pending)
         while not client.closed:
             try:
                 line = await lines.readline()
@@ -490,41 +490,11 @@ class ApiServer:
                 return
             if line is None:
                 # EOF: the client is done sending; answer what it asked, then close.
-                if pending:
-                    await asyncio.wait(pending)
+                await intake.drain()
                 client._finish(_End.CLOSE)
                 return
-            if not line.strip():
-                continue
-            incoming = rpc.decode(line, max_batch=self._max_inflight)
-            if incoming.reply is not None:  # not JSON, or a batch that cannot run: nothing runs
-                client.send_line(incoming.reply)
-                continue
-            for _ in range(incoming.requests):  # the reader is the only taker: no deadlock
-                await slots.acquire()
-            if self._fast.runs_inline(incoming, pending):
-                # A realtime byte: run it now, not in a task of its own (fastpath.py).
-                await self._handle(client, incoming, slots)
-                continue
-            task = tg.create_task(self._handle(client, incoming, slots))
-            pending.add(task)
-            task.add_done_callback(pending.discard)
-
-    async def _handle(
-        self, client: Client, incoming: rpc.Incoming, slots: asyncio.Semaphore
-    ) -> None:
-        """Answer one line; its requests' slots are given back once all of them are done."""
-        try:
-            response = await rpc.answer(incoming, self._methods, client)
-        except Exception:
-            # answer() answers everything itself; reaching here is a bug in rpc.py.
-            client.log.exception("dispatch failed")
-            response = rpc.encode_error(rpc.INTERNAL_ERROR, "internal error")
-        finally:
-            for _ in range(incoming.requests):
-                slots.release()
-        if response is not None:
-            client.send_line(response)
+            if line.strip():
+                await intake.take(line)
 
     def _drop_stalled(self, client: Client) -> None:
         """A line left half-sent for line_timeout: say so, then close (a slowloris, or a bug)."""

@@ -42,6 +42,7 @@ from aiohttp import WSMsgType, web
 
 from hostd.api import rpc
 from hostd.api.files import FileNameError, JobsDir, NoSuchFileError, check_name
+from hostd.api.intake import Intake
 from hostd.api.peer import PeerCred
 from hostd.api.server import MAX_INFLIGHT, MAX_LINE, QUEUE_SIZE, WRITE_TIMEOUT, Client
 from hostd.api.tokens import TokenStore
@@ -411,38 +412,15 @@ class WebServer:
     async def _read_loop(
         self, client: WebClient, ws: web.WebSocketResponse, tg: asyncio.TaskGroup
     ) -> None:
-        """As the Unix socket's: requests run concurrently, at most max_inflight at once."""
-        slots = asyncio.Semaphore(self._max_inflight)
-        pending: set[asyncio.Task[None]] = set()
+        """As the Unix socket's (intake.py): one frame a message."""
+        intake = Intake(self._methods, client, tg, max_inflight=self._max_inflight)
         async for message in ws:
             if client.closed:
                 return
             if message.type != WSMsgType.TEXT:
                 client.send_line(rpc.encode_error(rpc.INVALID_REQUEST, "text frames only"))
                 continue
-            incoming = rpc.decode(message.data.encode(), max_batch=self._max_inflight)
-            if incoming.reply is not None:
-                client.send_line(incoming.reply)
-                continue
-            for _ in range(incoming.requests):
-                await slots.acquire()
-            if not pending and rpc.is_immediate(incoming, self._methods):
-                await self._handle(client, incoming, slots)  # a realtime byte: no task, no wait
-                continue
-            task = tg.create_task(self._handle(client, incoming, slots))
-            pending.add(task)
-            task.add_done_callback(pending.discard)
-
-    async def _handle(
-        self, client: WebClient, incoming: rpc.Incoming, slots: asyncio.Semaphore
-    ) -> None:
-        try:
-            response = await rpc.answer(incoming, self._methods, client)
-        finally:
-            for _ in range(incoming.requests):
-                slots.release()
-        if response is not None:
-            client.send_line(response)
+            await intake.take(message.data.encode())
 
 
 async def _security_headers(request: web.Request, response: web.StreamResponse) -> None:

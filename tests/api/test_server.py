@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
+from hostd.api import rpc
 from hostd.api.peer import AccessPolicy
 from hostd.api.server import ApiServer
 from hostd.api.socketfile import SocketPathError
@@ -203,6 +204,33 @@ async def test_a_crashing_handler_is_an_internal_error_logged_and_serving_goes_o
     assert entry["exc_info"] is True
     assert entry["method"] == "boom"
     assert (await conn.call("echo", {"text": "still here"}, id=10))["result"] == {
+        "text": "still here"
+    }
+
+
+async def test_a_bug_past_the_dispatcher_is_an_internal_error_and_the_client_goes_on(
+    conn: Conn, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """rpc.answer answers everything itself; should it ever raise, the intake answers
+    -32603 (id null: which request it was is rpc.answer's to know) and reads on."""
+    real = rpc.answer
+    broken = [False, True]  # the first request meets the bug, the next does not
+
+    async def answer(incoming: rpc.Incoming, methods: Any, context: object) -> bytes | None:
+        if broken.pop():
+            raise RuntimeError("a bug in rpc.answer")
+        return await real(incoming, methods, context)
+
+    monkeypatch.setattr(rpc, "answer", answer)
+    with capture_logs() as logs:
+        await conn.send({"jsonrpc": "2.0", "method": "echo", "params": {"text": "x"}, "id": 1})
+        assert await conn.recv() == {
+            "jsonrpc": "2.0",
+            "error": {"code": -32603, "message": "internal error"},
+            "id": None,
+        }
+    assert [e["log_level"] for e in logs if e["event"] == "dispatch failed"] == ["error"]
+    assert (await conn.call("echo", {"text": "still here"}, id=2))["result"] == {
         "text": "still here"
     }
 

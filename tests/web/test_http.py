@@ -7,10 +7,12 @@ import json
 import os
 import socket
 from pathlib import Path
+from typing import Any
 
 import aiohttp
 import pytest
 
+from hostd.api import rpc
 from hostd.api.web import COOKIE
 from tests.web.conftest import Web, WsRpc, running_web
 
@@ -75,6 +77,31 @@ async def test_a_login_sets_an_httponly_samesite_strict_cookie_that_opens_the_ap
             assert (await api.call("machine.list"))[0]["id"] == "sim1"
         finally:
             await api.close()
+
+
+async def test_a_bug_past_the_dispatcher_is_an_internal_error_and_the_tab_goes_on(
+    web: Web, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The WebSocket takes requests through the same intake as the socket (intake.py)."""
+    real = rpc.answer
+    broken = [False, True]  # the first request meets the bug, the next does not
+
+    async def answer(incoming: rpc.Incoming, methods: Any, context: object) -> bytes | None:
+        if broken.pop():
+            raise RuntimeError("a bug in rpc.answer")
+        return await real(incoming, methods, context)
+
+    monkeypatch.setattr(rpc, "answer", answer)
+    async with web.session.ws_connect(f"{web.url}/api", headers=web.auth()) as ws:
+        await ws.send_str(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "machine.list"}))
+        assert json.loads((await ws.receive(timeout=10)).data) == {
+            "jsonrpc": "2.0",
+            "error": {"code": -32603, "message": "internal error"},
+            "id": None,
+        }
+        await ws.send_str(json.dumps({"jsonrpc": "2.0", "id": 2, "method": "machine.list"}))
+        reply = json.loads((await ws.receive(timeout=10)).data)
+        assert reply["id"] == 2 and reply["result"][0]["id"] == "sim1"
 
 
 async def test_a_websocket_from_another_origin_is_refused(web: Web) -> None:
