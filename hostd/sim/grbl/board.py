@@ -57,10 +57,18 @@ import structlog
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import parser
+from hostd.sim.grbl import parser, reports
 from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
 from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.grbl.parser import Executed, Modal, Probe
+from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
+from hostd.sim.grbl.settings import (
+    DEFAULTS,
+    FLOAT_SETTINGS,
+    HAL_REPORT_MASK,
+    HOMING_PULLOFF,
+    setting_text,
+)
 from hostd.sim.motion import Active, start_block
 
 log = structlog.get_logger(__name__)
@@ -79,25 +87,7 @@ REALTIME = frozenset(
     | set(SPINDLE_OVR)
 )
 
-CLASSIC_VERSION, CLASSIC_BUILD = "1.1h", "20190830"  # gnea/grbl grbl.h
-HAL_VERSION, HAL_BUILD = "1.1f", "20260817"  # grblHAL/core grbl.h
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
-HOMING_PULLOFF = 1.0  # mm, $27; homing toward +: the home position is -pulloff
-WCO_BUSY, WCO_IDLE, OVR_BUSY, OVR_IDLE = 30, 10, 20, 10  # REPORT_*_REFRESH_*_COUNT
-BUSY_STATES = frozenset({"Home", "Run", "Hold", "Jog", "Door"})
-
-# $$ as the firmware defaults have it (gnea/grbl defaults.h DEFAULTS_GENERIC; grblHAL
-# config.h agrees for these). $10, $20, $21, $22, $32 change behaviour; the rest are kept.
-_SETTINGS: dict[int, float] = {
-    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0,
-    32: 0, 100: 250.0, 101: 250.0, 102: 250.0, 110: 500.0, 111: 500.0, 112: 500.0,
-    120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
-}  # fmt: skip
-_FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 27} | set(range(100, 133)))
-# HAL $10 (status report options): machine position, buffer state, line numbers,
-# feed & speed, pin state, WCO, overrides (config.h DEFAULT_REPORT_*).
-HAL_REPORT_MASK = 0b1111111
 
 
 @dataclass
@@ -137,7 +127,7 @@ class GrblBoard:
 
     def power_on(self) -> None:
         """A cold start: default settings, nothing homed, then what a reset does."""
-        self.settings = dict(_SETTINGS)
+        self.settings = dict(DEFAULTS)
         cfg = self.config
         self.settings[10] = HAL_REPORT_MASK if self.hal else 1
         self.settings[20] = int(cfg.soft_limits)
@@ -550,7 +540,7 @@ class GrblBoard:
             # HAL: only commands flagged allow_blocking run during a critical event.
             return Error.NOT_ALLOWED_CRITICAL_EVENT
         if cmd == "":
-            self._emit(self._help())
+            self._emit(reports.help_text(self))
             return Error.OK
         if cmd == "J" and has_arg:
             if state not in ("Idle", "Jog"):
@@ -559,7 +549,7 @@ class GrblBoard:
         if has_arg and cmd in ("G", "#", "$", "C", "X", "H", "I", "N"):
             return Error.INVALID_STATEMENT
         if cmd == "G":
-            self._emit(self._gc_modes())
+            self._emit(reports.gc_modes(self))
             return Error.OK
         if cmd == "C":
             return self._check_mode()
@@ -571,17 +561,17 @@ class GrblBoard:
             if state in ("Run", "Hold"):
                 return Error.IDLE_ERROR
             for key, value in sorted(self.settings.items()):
-                self._emit(f"${key}={_setting(key, value)}")
+                self._emit(f"${key}={setting_text(key, value)}")
             return Error.OK
         idle = state in ("Idle", "Alarm") or (self.hal and state in ("EStop", "Check"))
         if cmd == "#":
             if not idle:
                 return Error.IDLE_ERROR
-            for text in self._parameters():
+            for text in reports.parameters(self):
                 self._emit(text)
             return Error.OK
         if cmd == "I":
-            for text in self._build_info():
+            for text in reports.build_info(self):
                 self._emit(text)
             return Error.OK
         if cmd == "N":
@@ -595,7 +585,7 @@ class GrblBoard:
             if key not in self.settings:
                 return Error.INVALID_STATEMENT
             if not has_arg:
-                self._emit(f"${key}={_setting(key, self.settings[key])}")
+                self._emit(f"${key}={setting_text(key, self.settings[key])}")
                 return Error.OK
             return self._store(key, arg)
         return Error.INVALID_STATEMENT
@@ -609,7 +599,7 @@ class GrblBoard:
             return Error.NEGATIVE_VALUE
         if key == 20 and value and not self.settings[22]:
             return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
-        self.settings[key] = value if key in _FLOAT_SETTINGS else int(value)
+        self.settings[key] = value if key in FLOAT_SETTINGS else int(value)
         return Error.OK
 
     def _check_mode(self) -> Error | None:
@@ -844,7 +834,7 @@ class GrblBoard:
             self.modal.probe = dict(self.position)
         elif wait.result.probe.fail_alarm:
             self._raise(Alarm.PROBE_FAIL_CONTACT)
-        self._emit(f"[PRB:{_axes(self.modal.probe)}:{int(self.modal.probe_ok)}]")
+        self._emit(f"[PRB:{reports.axes(self.modal.probe)}:{int(self.modal.probe_ok)}]")
         self._done()
 
     # --- reports
@@ -866,178 +856,11 @@ class GrblBoard:
         return dict(self.position)
 
     def status_report(self) -> str:
-        """report.c report_realtime_status, field by field."""
-        now = self._clock()
-        mask = int(self.settings[10])
-        mpos = self.tool_position()
-        wco = self.modal.wco()
-        state = self._state_text()
-        fields = [state]
-        if mask & 1:
-            fields.append(f"MPos:{_axes(mpos)}")
-        else:
-            fields.append(f"WPos:{_axes({a: mpos[a] - wco[a] for a in AXES})}")
-        if mask & 2:
-            free = self.config.blocks - len(self.planner)
-            fields.append(f"Bf:{max(free, 0)},{self.rx_free}")
-        # report.c: the N of plan_get_current_block(), the block executing or next to
-        # (it may not have started: grbl says Idle for an instant before a cycle); with
-        # the planner empty grblHAL reports the parser's last N, classic grbl nothing.
-        line = self.planner[0].n if self.planner else 0
-        if self.hal and not self.planner:
-            line = self.modal.line
-        if line:
-            fields.append(f"Ln:{line}")
-        rate = self.active.velocity(now) if self.active is not None else 0.0
-        speed = self.modal.speed * self.spindle_ovr / 100 if self.modal.spindle != "M5" else 0.0
-        fields.append(f"FS:{rate:.0f},{speed:.0f}")
-        pins = self._pins()
-        if pins:
-            fields.append(f"Pn:{pins}")
-        if self.hal:
-            fields.extend(self._hal_tail(state))
-        else:
-            fields.extend(self._classic_tail(wco))
-        return "<" + "|".join(fields) + ">"
+        """The status report `?` asks for (reports.py)."""
+        return reports.status_report(self)
 
     def _state_text(self) -> str:
-        state = self.state
-        if state == "Hold":
-            # classic: 0 ready to resume, 1 holding; HAL holding_state - 1, the same numbers.
-            return "Hold:0" if self.hold == 2 else "Hold:1"
-        if state == "Door":
-            return f"Door:{self.door}"
-        if state == "EStop":
-            return "Alarm"
-        return state
-
-    def _pins(self) -> str:
-        limits = "".join(a.upper() for a in AXES if a in self.limits)
-        if not self.hal:  # classic order: P, XYZ, then D R H S
-            return ("P" if self.probe else "") + limits + ("D" if self.door_open else "")
-        # HAL: limits, then control signals in bit order "RHSDLTEOFM Q  P ".
-        ctrl = ("D" if self.door_open else "") + ("E" if self.estop else "")
-        return limits + ctrl + ("P" if self.probe else "")
-
-    def _classic_tail(self, wco: dict[str, float]) -> list[str]:
-        """gnea/grbl: WCO every 10 (idle) or 30 (busy) reports, Ov the report after."""
-        out: list[str] = []
-        busy = self.state in BUSY_STATES
-        if self._wco_counter > 0:
-            self._wco_counter -= 1
-        else:
-            self._wco_counter = (WCO_BUSY if busy else WCO_IDLE) - 1
-            if self._ovr_counter == 0:
-                self._ovr_counter = 1
-            out.append(f"WCO:{_axes(wco)}")
-        if self._ovr_counter > 0:
-            self._ovr_counter -= 1
-        else:
-            self._ovr_counter = (OVR_BUSY if busy else OVR_IDLE) - 1
-            out.append(f"Ov:{self.feed_ovr},{self.rapid_ovr},{self.spindle_ovr}")
-            accessories = self._accessories()
-            if accessories:
-                out.append(f"A:{accessories}")
-        return out
-
-    def _hal_tail(self, state: str) -> list[str]:
-        """grblHAL: Ov when its counter runs out or flagged; WCO likewise but never in the
-        same report as Ov unless forced (it is then flagged for the next report)."""
-        flags = self._report_flags
-        busy = self.state in BUSY_STATES
-        overrides = self._ovr_counter == 0 or "overrides" in flags
-        if overrides:
-            self._ovr_counter = (OVR_BUSY if busy else OVR_IDLE) - 1
-        else:
-            self._ovr_counter -= 1
-        if self._ovr_counter > OVR_IDLE - 1 and self.state == "Idle":
-            self._ovr_counter = OVR_IDLE - 1
-        wco = delayed_wco = False
-        if self._wco_counter == 0 or "wco" in flags:
-            self._wco_counter = (WCO_BUSY if busy else WCO_IDLE) - 1
-            wco = not overrides
-            delayed_wco = not wco
-        else:
-            self._wco_counter -= 1
-        if self._wco_counter > WCO_IDLE - 1 and self.state == "Idle":
-            self._wco_counter = WCO_IDLE - 1
-        out: list[str] = []
-        if wco:
-            out.append(f"WCO:{_axes(self.modal.wco())}")
-        if overrides:
-            out.append(f"Ov:{self.feed_ovr},{self.rapid_ovr},{self.spindle_ovr}")
-        accessories = self._accessories()
-        if overrides and accessories:
-            out.append(f"A:{accessories}")
-        if "homed" in flags and self._bits(22) & 1:
-            out.append(f"H:{int(self.homed)}")
-        self._report_flags = {"wco"} if delayed_wco else set()
-        return out
-
-    def _accessories(self) -> str:
-        spindle = {"M3": "S", "M4": "C"}.get(self.modal.spindle, "")
-        flood = "F" if self.flood or "M8" in self.modal.coolant else ""
-        mist = "M" if self.mist or "M7" in self.modal.coolant else ""
-        return spindle + flood + mist
-
-    def _gc_modes(self) -> str:
-        """report_gcode_modes: `[GC:...]`."""
-        m = self.modal
-        motion = {0.0: "G0", 1.0: "G1", 2.0: "G2", 3.0: "G3", 80.0: "G80"}.get(
-            m.motion, f"G{m.motion:g}"
-        )
-        parts = [motion, f"G{54 + m.coord}"]
-        if self.hal and any(m.g92.values()):
-            parts.append("G92")
-        parts += [f"G{m.plane}", "G21" if m.metric else "G20", "G90" if m.absolute else "G91"]
-        parts.append("G93" if m.inverse_time else "G94")
-        if self.hal:
-            parts += ["G40", "G49", "G98", "G50"]
-        if m.program_flow:
-            parts.append(m.program_flow)
-        parts.append(m.spindle)
-        if m.coolant:
-            parts += sorted(m.coolant)
-        else:
-            parts.append("M9")
-        feed = m.feed if m.metric else m.feed / parser.MM_PER_INCH
-        parts += [f"T{m.tool}", f"F{feed:.0f}", f"S{m.speed:.0f}"]
-        return "[GC:" + " ".join(parts) + "]"
-
-    def _parameters(self) -> list[str]:
-        """report_ngc_parameters: `$#`."""
-        m = self.modal
-        out = [f"[G{54 + i}:{_axes(m.wcs[i])}]" for i in range(6)]
-        zero = dict.fromkeys(AXES, 0.0)
-        out += [f"[G28:{_axes(zero)}]", f"[G30:{_axes(zero)}]", f"[G92:{_axes(m.g92)}]"]
-        if self.hal and self._bits(22) & 1:
-            home = dict.fromkeys(AXES, -HOMING_PULLOFF if self.homed else 0.0)
-            out.append(f"[HOME:{_axes(home)}:{7 if self.homed else 0}]")
-        out.append("[TLO:0.000]")
-        out.append(f"[PRB:{_axes(m.probe)}:{int(m.probe_ok)}]")
-        return out
-
-    def _build_info(self) -> list[str]:
-        """report_build_info: `$I`."""
-        if not self.hal:
-            return [
-                f"[VER:{CLASSIC_VERSION}.{CLASSIC_BUILD}:]",
-                f"[OPT:V,{self.config.blocks},{self.config.rx_size}]",
-            ]
-        opt = "VNM" + ("" if self._bits(22) & 4 else "L") + "+"
-        newopt = "ENUMS,RT+," + ("HOME," if self._bits(22) & 1 else "") + "ES,SED"
-        return [
-            f"[VER:{HAL_VERSION}.{HAL_BUILD}:]",
-            f"[OPT:{opt},{self.config.blocks},{self.config.rx_size},3,0]",
-            "[AXS:3:XYZ]",
-            f"[NEWOPT:{newopt}]",
-            "[FIRMWARE:grblHAL]",
-        ]
-
-    def _help(self) -> str:
-        if self.hal:
-            return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H $B ~ ! ? ctrl-x]"
-        return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
+        return reports.state_text(self)
 
 
 _NO_ANSWER: None = None
@@ -1045,11 +868,3 @@ _NO_ANSWER: None = None
 
 def _probe_result(probe: Probe) -> Executed:
     return Executed(probe=probe)
-
-
-def _axes(values: dict[str, float]) -> str:
-    return ",".join(f"{values[a]:.3f}" for a in AXES)
-
-
-def _setting(key: int, value: float) -> str:
-    return f"{value:.3f}" if key in _FLOAT_SETTINGS else str(int(value))
