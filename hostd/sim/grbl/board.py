@@ -25,9 +25,6 @@ Sources, read from grblHAL/core (f80fc34) and gnea/grbl (bfb67f0, 1.1h);
   cleared by an empty line, by any `$` command (which sets it to its own
   result), and by 0x18 (the CAN read from the stream); 0x85 also cancels
   the read buffer, which inserts a CAN.
-- planner: a line whose block finds the planner full waits (mc_line loops on
-  plan_check_full_buffer), and its `ok` comes once it is queued;
-  `[OPT:]` / `Bf:` give BLOCK_BUFFER_SIZE-1 (classic) or $398 (HAL) blocks.
 - alarms: system_raise_alarm prints `ALARM:N`; critical ones (hard limit,
   soft limit, HAL e-stop; alarms.h alarm_is_critical) also print
   `[MSG:Reset to continue]` (HAL e-stop: its own message) and block until a
@@ -38,38 +35,29 @@ Sources, read from grblHAL/core (f80fc34) and gnea/grbl (bfb67f0, 1.1h);
   position is lost: ALARM:3 (ALARM:6 when homing) is printed, then the
   banner (grbllib.c / main.c print it on every reset), then the unlock
   message. HAL ignores 0x18 while the e-stop input is active.
-- states and substates: report.c report_realtime_status; state_machine.c
-  (HAL Door:0 closed, 1 ajar, 2 retracting, 4 resuming; classic 3 restoring).
-- homing: motion_control.c mc_homing_cycle: HAL forces one status report as
-  homing starts; `?` is not serviced during the cycle (limits_go_home only
-  looks at reset/door; $10 bit "report when homing" is off by default), so a
-  `?` sent then is answered once, when the cycle ends. HAL prints `[MSG:]`
-  after a successful `$H` (feedback_message(Message_None)).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 
 import structlog
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import parser, reports
+from hostd.sim.grbl import motion_control, parser, reports
 from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
 from hostd.sim.grbl.config import GrblConfig
-from hostd.sim.grbl.parser import Executed, Modal, Probe
+from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import (
     DEFAULTS,
     FLOAT_SETTINGS,
     HAL_REPORT_MASK,
-    HOMING_PULLOFF,
     setting_text,
 )
-from hostd.sim.motion import Active, start_block
+from hostd.sim.motion import Active
 
 log = structlog.get_logger(__name__)
 
@@ -88,16 +76,6 @@ REALTIME = frozenset(
 )
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
-
-
-@dataclass
-class _Wait:
-    """What the line being executed waits for before its response (None: nothing)."""
-
-    kind: str  # "room", "sync", "dwell", "home", "probe"
-    line: str
-    result: Executed | None = None
-    until: float = 0.0
 
 
 class GrblBoard:
@@ -158,7 +136,7 @@ class GrblBoard:
         self.planner: deque[Move] = deque()
         self.active: Active | None = None
         self._jogging = False  # the planner holds a jog
-        self._wait: _Wait | None = None
+        self._wait: motion_control.Wait | None = None
         self.hold = 0  # 0 none, 1 decelerating, 2 complete (HAL holding_state: Hold:n-1)
         self.door = 0  # parking_state while in Door
         self._resume_to: str | None = None
@@ -272,7 +250,7 @@ class GrblBoard:
         self.limits.add(axis)
         if self.settings[21] and self.state not in ("Alarm", "EStop"):
             # machine_limits.c limit_interrupt_handler: mc_reset() then Alarm_HardLimit.
-            self._stop_motion()
+            motion_control.stop_motion(self)
             self.homed = False
             self._critical(Alarm.HARD_LIMIT)
 
@@ -280,7 +258,7 @@ class GrblBoard:
         """HAL e-stop input: ALARM:10 at once; reset is refused while it is held."""
         self.estop = active
         if active and self.hal and self.state != "EStop":
-            self._stop_motion()
+            motion_control.stop_motion(self)
             self.homed = False
             self._critical(Alarm.ESTOP)
 
@@ -297,19 +275,19 @@ class GrblBoard:
         if wait is not None and wait.kind == "probe" and wait.result is not None:
             probe = wait.result.probe
             if probe is not None and active == probe.toward and self.active is not None:
-                self._probe_contact()
+                motion_control.probe_contact(self)
 
     # --- the main loop
 
     def tick(self) -> bool:
         """Do one thing that is due; False when nothing is."""
         now = self._clock()
-        if self._advance(now):
+        if motion_control.advance(self, now):
             return True
         if self.blocking:
             return self.hal and self._read_line(critical=True)
         if self._wait is not None:
-            return self._resume_wait(now)
+            return motion_control.resume_wait(self, now)
         return self._read_line(critical=False)
 
     def next_deadline(self) -> float | None:
@@ -319,76 +297,6 @@ class GrblBoard:
         if self._wait is not None and self._wait.kind in ("dwell", "home"):
             times.append(self._wait.until)
         return min(times) if times else None
-
-    def _advance(self, now: float) -> bool:
-        """Motion: finish the running block, start the next, settle states."""
-        active = self.active
-        if active is not None:
-            if now < active.end:
-                return False
-            if active.decelerating:
-                self._stopped(now)
-            else:
-                self._finish(active)
-            return True
-        if self.blocking or self.state in ("Alarm", "EStop", "Home", "Sleep"):
-            return False
-        if self.hold or self.state == "Door":
-            return False
-        if self.planner:
-            self._start(now)
-            return True
-        if self.state in ("Run", "Jog"):
-            self.state = "Idle"
-            self._jogging = False
-            return True
-        return False
-
-    def _start(self, now: float) -> None:
-        move = self.planner[0]
-        if not move.rapid and self.feed_ovr != 100:
-            move = Move(move.target, move.feed * self.feed_ovr / 100, move.n, arc=move.arc)
-        self.active = start_block(
-            move,
-            self.position,
-            now,
-            speed_factor=self.config.speed_factor,
-            rapid_rate=self.settings[110] * self.rapid_ovr / 100,
-            instant=self.config.instant,
-        )
-        self.active.block = self.planner[0]
-        self.state = "Jog" if self._jogging else "Run"
-
-    def _finish(self, active: Active) -> None:
-        self.active = None
-        if active.move is not None:
-            self.position = dict(active.move.target)
-        if self.planner:
-            self.planner.popleft()
-        if self._wait is not None and self._wait.kind == "probe":
-            self._probe_end(contact=False)
-
-    def _stopped(self, now: float) -> None:
-        """A hold's deceleration reached standstill (EXEC_CYCLE_STOP)."""
-        active = self.active
-        assert active is not None
-        self.position = active.position(active.end)
-        rest = active.rest(active.end)
-        self.active = None
-        if self.planner:
-            self.planner.popleft()
-            if isinstance(rest, Move):
-                self.planner.appendleft(rest)
-        if self._cancel_after_stop:
-            self._cancel_after_stop = False
-            self._flush_planner()
-            self.hold = 0
-            self.state = "Idle"
-            return
-        if self.state == "Door":
-            self.door = 1 if self.door_open else 0
-        else:
-            self.hold = 2
 
     # --- lines
 
@@ -476,52 +384,9 @@ class GrblBoard:
                 return None
         if result.moves or result.dwell is not None or result.probe or result.stop:
             kind = "room" if result.moves and not (result.dwell or result.stop) else "sync"
-            self._wait = _Wait(kind, line, result)
+            self._wait = motion_control.Wait(kind, line, result)
             return None
         return Error.OK
-
-    def _resume_wait(self, now: float) -> bool:
-        wait = self._wait
-        assert wait is not None
-        result = wait.result
-        if wait.kind == "room":
-            if len(self.planner) >= self.config.blocks:
-                return False
-            assert result is not None
-            self.planner.extend(result.moves)
-            self._done()
-            return True
-        if wait.kind == "sync":
-            if self.planner or self.active is not None or self.hold or self.state == "Door":
-                return False
-            assert result is not None
-            return self._after_sync(result, now)
-        if wait.kind in ("dwell", "home"):
-            if now < wait.until:
-                return False
-            if wait.kind == "home":
-                self._homed()
-            else:
-                self._done()
-            return True
-        return False  # a probe ends from motion or the probe pin
-
-    def _after_sync(self, result: Executed, now: float) -> bool:
-        wait = self._wait
-        assert wait is not None
-        if result.dwell is not None:
-            wait.kind = "dwell"
-            wait.until = now + (0.0 if self.config.instant else result.dwell)
-            return True
-        if result.probe is not None:
-            return self._probe_start(result.probe, now)
-        if result.stop in ("M2", "M30"):
-            self._message(Msg.PROGRAM_END)
-        elif result.stop == "M0":
-            self.hold = 2
-            self.state = "Hold"
-        self._done()
-        return True
 
     def _done(self, status: Error = Error.OK) -> None:
         self._wait = None
@@ -648,21 +513,8 @@ class GrblBoard:
         if self.hal:
             self._send_status()  # mc_homing_cycle: "Force a status report"
         duration = 0.0 if self.config.instant else self.config.homing_time
-        self._wait = _Wait("home", "$H", until=self._clock() + duration)
+        self._wait = motion_control.Wait("home", "$H", until=self._clock() + duration)
         return None
-
-    def _homed(self) -> None:
-        self.position = dict.fromkeys(AXES, -HOMING_PULLOFF)
-        self.modal.position = dict(self.position)
-        self.homed = True
-        if self._status_pending:
-            self._flush_status()  # the `?` that waited out the cycle, still in Home
-        self.state = "Idle"
-        self.alarm = None
-        self._report_flags.add("homed")
-        if self.hal:
-            self._message(Msg.NONE)
-        self._done()
 
     def _jog(self, text: str) -> Error | None:
         result = parser.execute(self.modal, text, travel_ok=self._jog_travel_ok, jog=True)
@@ -671,7 +523,7 @@ class GrblBoard:
         if not result.moves:
             return Error.OK
         self._jogging = True
-        self._wait = _Wait("room", "$J=" + text, result)
+        self._wait = motion_control.Wait("room", "$J=" + text, result)
         return None
 
     def _jog_travel_ok(self, target: Mapping[str, float]) -> bool:
@@ -742,7 +594,7 @@ class GrblBoard:
                 self.active.begin_hold(now, self.config.feedhold_decel)
             self._cancel_after_stop = True
         else:
-            self._flush_planner()
+            motion_control.flush_planner(self)
             self.state = "Idle"
 
     def _override(self, char: int) -> None:
@@ -787,55 +639,8 @@ class GrblBoard:
         """limits_soft_check: hold, wait for standstill, reset, ALARM:2 (position kept)."""
         if self.active is not None:
             self.position = self.active.position(self._clock())
-        self._stop_motion()
+        motion_control.stop_motion(self)
         self._critical(Alarm.SOFT_LIMIT)
-
-    def _stop_motion(self) -> None:
-        now = self._clock()
-        if self.active is not None:
-            self.position = self.active.position(now)
-            self.active = None
-        self._flush_planner()
-        self._wait = None
-        self.hold = 0
-
-    def _flush_planner(self) -> None:
-        self.planner.clear()
-        self._jogging = False
-        self.modal.position = dict(self.position)
-
-    # --- probing (motion_control.c mc_probe_cycle)
-
-    def _probe_start(self, probe: Probe, now: float) -> bool:
-        if self.probe == probe.toward:
-            self._raise(Alarm.PROBE_FAIL_INITIAL)
-            self._done()
-            return True
-        self.planner.append(probe.move)
-        self._wait = _Wait("probe", "", _probe_result(probe))
-        self._start(now)
-        return True
-
-    def _probe_contact(self) -> None:
-        active = self.active
-        assert active is not None
-        self.position = active.position(self._clock())
-        self.active = None
-        self.planner.clear()
-        self._probe_end(contact=True)
-
-    def _probe_end(self, *, contact: bool) -> None:
-        wait = self._wait
-        assert wait is not None and wait.result is not None and wait.result.probe is not None
-        self.state = "Idle"
-        self.modal.position = dict(self.position)
-        self.modal.probe_ok = contact
-        if contact:
-            self.modal.probe = dict(self.position)
-        elif wait.result.probe.fail_alarm:
-            self._raise(Alarm.PROBE_FAIL_CONTACT)
-        self._emit(f"[PRB:{reports.axes(self.modal.probe)}:{int(self.modal.probe_ok)}]")
-        self._done()
 
     # --- reports
 
@@ -864,7 +669,3 @@ class GrblBoard:
 
 
 _NO_ANSWER: None = None
-
-
-def _probe_result(probe: Probe) -> Executed:
-    return Executed(probe=probe)
