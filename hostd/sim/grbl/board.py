@@ -40,23 +40,19 @@ Sources, read from grblHAL/core (f80fc34) and gnea/grbl (bfb67f0, 1.1h);
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
+from functools import partial
 
 import structlog
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import motion_control, parser, reports
+from hostd.sim.grbl import motion_control, parser, reports, system
 from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
 from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
-from hostd.sim.grbl.settings import (
-    DEFAULTS,
-    FLOAT_SETTINGS,
-    HAL_REPORT_MASK,
-    setting_text,
-)
+from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active
 
 log = structlog.get_logger(__name__)
@@ -335,7 +331,7 @@ class GrblBoard:
             if not line:
                 status = Error.OK
             elif line.startswith("$"):
-                answer = self._system(line)
+                answer = system.execute_line(self, line)
                 status = Error.OK if answer is None else answer
             else:
                 status = Error.SYSTEM_GC_LOCK
@@ -347,7 +343,7 @@ class GrblBoard:
         elif not line:
             status = Error.OK
         elif line.startswith("$"):
-            answer = self._system(line)
+            answer = system.execute_line(self, line)
             if answer is None:
                 return  # the answer comes later (homing, a jog waiting for room)
             status = answer
@@ -371,7 +367,7 @@ class GrblBoard:
 
     def _gcode(self, line: str) -> Error | None:
         """gc_execute_block; None when the answer waits for the machine."""
-        result = parser.execute(self.modal, line, travel_ok=self._in_travel)
+        result = parser.execute(self.modal, line, travel_ok=partial(system.in_travel, self))
         if isinstance(result, Error):
             return result
         if result.offsets_changed:
@@ -379,7 +375,7 @@ class GrblBoard:
         if self.state == "Check":
             return Error.OK  # parsed, nothing moves (the parser's position moved on)
         for move in result.moves:
-            if self.settings[20] and not self._in_travel(move.target):
+            if self.settings[20] and not system.in_travel(self, move.target):
                 self._soft_limit()
                 return None
         if result.moves or result.dwell is not None or result.probe or result.stop:
@@ -393,148 +389,6 @@ class GrblBoard:
         if self.hal:
             self.last_error = status
         self._respond(status)
-
-    # --- system commands (system.c system_execute_line)
-
-    def _system(self, line: str) -> Error | None:
-        cmd, _, arg = line[1:].partition("=")
-        cmd = cmd.replace(" ", "").upper()
-        has_arg = "=" in line
-        state = self.state
-        if self.blocking and cmd not in ("G", "#", "$", "I", "N", "HELP", ""):
-            # HAL: only commands flagged allow_blocking run during a critical event.
-            return Error.NOT_ALLOWED_CRITICAL_EVENT
-        if cmd == "":
-            self._emit(reports.help_text(self))
-            return Error.OK
-        if cmd == "J" and has_arg:
-            if state not in ("Idle", "Jog"):
-                return Error.IDLE_ERROR
-            return self._jog(arg)
-        if has_arg and cmd in ("G", "#", "$", "C", "X", "H", "I", "N"):
-            return Error.INVALID_STATEMENT
-        if cmd == "G":
-            self._emit(reports.gc_modes(self))
-            return Error.OK
-        if cmd == "C":
-            return self._check_mode()
-        if cmd == "X":
-            return self._unlock()
-        if cmd == "H":
-            return self._home()
-        if cmd == "$":
-            if state in ("Run", "Hold"):
-                return Error.IDLE_ERROR
-            for key, value in sorted(self.settings.items()):
-                self._emit(f"${key}={setting_text(key, value)}")
-            return Error.OK
-        idle = state in ("Idle", "Alarm") or (self.hal and state in ("EStop", "Check"))
-        if cmd == "#":
-            if not idle:
-                return Error.IDLE_ERROR
-            for text in reports.parameters(self):
-                self._emit(text)
-            return Error.OK
-        if cmd == "I":
-            for text in reports.build_info(self):
-                self._emit(text)
-            return Error.OK
-        if cmd == "N":
-            self._emit("$N0=")
-            self._emit("$N1=")
-            return Error.OK
-        if cmd.isdigit():
-            if not idle:
-                return Error.IDLE_ERROR
-            key = int(cmd)
-            if key not in self.settings:
-                return Error.INVALID_STATEMENT
-            if not has_arg:
-                self._emit(f"${key}={setting_text(key, self.settings[key])}")
-                return Error.OK
-            return self._store(key, arg)
-        return Error.INVALID_STATEMENT
-
-    def _store(self, key: int, raw: str) -> Error:
-        try:
-            value = float(raw)
-        except ValueError:
-            return Error.BAD_NUMBER_FORMAT
-        if value < 0:
-            return Error.NEGATIVE_VALUE
-        if key == 20 and value and not self.settings[22]:
-            return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
-        self.settings[key] = value if key in FLOAT_SETTINGS else int(value)
-        return Error.OK
-
-    def _check_mode(self) -> Error | None:
-        if self.state == "Check":
-            # system.c: leaving check mode is a reset; the `ok` goes out before the banner.
-            self._message(Msg.DISABLED)
-            self._respond(Error.OK)
-            self.last_error = Error.OK
-            self.state = "Idle"
-            self._init()
-            self._startup()
-            return _NO_ANSWER
-        if self.state != "Idle":
-            return Error.IDLE_ERROR
-        self.state = "Check"
-        self._message(Msg.ENABLED)
-        return Error.OK
-
-    def _unlock(self) -> Error:
-        if self.state not in ("Alarm", "EStop"):
-            return Error.OK  # "Otherwise, no effect."
-        if self.hal:
-            if self.estop:
-                return Error.ESTOP
-            if self.door_open:
-                return Error.CHECK_DOOR
-            if self._homing_required():
-                return Error.HOMING_REQUIRED
-        elif self.door_open:
-            return Error.CHECK_DOOR
-        self.state = "Idle"
-        self.alarm = None
-        self._message(Msg.ALARM_UNLOCK)
-        return Error.OK
-
-    def _home(self) -> Error | None:
-        if not self._bits(22) & 1:
-            return Error.HOMING_DISABLED
-        if self.state not in ("Idle", "Alarm"):
-            return Error.IDLE_ERROR
-        if self.door_open:
-            return Error.CHECK_DOOR
-        if self.hal and self.estop:
-            return Error.ESTOP
-        self.state = "Home"
-        if self.hal:
-            self._send_status()  # mc_homing_cycle: "Force a status report"
-        duration = 0.0 if self.config.instant else self.config.homing_time
-        self._wait = motion_control.Wait("home", "$H", until=self._clock() + duration)
-        return None
-
-    def _jog(self, text: str) -> Error | None:
-        result = parser.execute(self.modal, text, travel_ok=self._jog_travel_ok, jog=True)
-        if isinstance(result, Error):
-            return result
-        if not result.moves:
-            return Error.OK
-        self._jogging = True
-        self._wait = motion_control.Wait("room", "$J=" + text, result)
-        return None
-
-    def _jog_travel_ok(self, target: Mapping[str, float]) -> bool:
-        return not self.settings[20] or self._in_travel(target)
-
-    def _in_travel(self, target: Mapping[str, float]) -> bool:
-        """system_check_travel_limits: homing toward +, the envelope is [-max travel, 0]."""
-        for i, axis in enumerate(AXES):
-            if not -self.settings[130 + i] - 1e-6 <= target[axis] <= 1e-6:
-                return False
-        return True
 
     # --- realtime actions
 
@@ -666,6 +520,3 @@ class GrblBoard:
 
     def _state_text(self) -> str:
         return reports.state_text(self)
-
-
-_NO_ANSWER: None = None

@@ -1,0 +1,171 @@
+"""The `$` commands (system.c system_execute_line): settings, `$X`, `$H`, `$C`, `$J=`.
+
+`execute_line` runs one `$` line on a `GrblBoard` and gives its status, or
+None when the answer comes later: the end of homing, a jog waiting for
+planner room (motion_control.py), or `$C` leaving check mode, which answers
+before the reset it causes. The reports it prints are made in reports.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from functools import partial
+from typing import TYPE_CHECKING
+
+from hostd.sim.config import AXES
+from hostd.sim.grbl import motion_control, parser, reports
+from hostd.sim.grbl.codes import Error, Msg
+from hostd.sim.grbl.settings import FLOAT_SETTINGS, setting_text
+
+if TYPE_CHECKING:
+    from hostd.sim.grbl.board import GrblBoard
+
+_NO_ANSWER: None = None
+
+
+def execute_line(board: GrblBoard, line: str) -> Error | None:
+    cmd, _, arg = line[1:].partition("=")
+    cmd = cmd.replace(" ", "").upper()
+    has_arg = "=" in line
+    state = board.state
+    if board.blocking and cmd not in ("G", "#", "$", "I", "N", "HELP", ""):
+        # HAL: only commands flagged allow_blocking run during a critical event.
+        return Error.NOT_ALLOWED_CRITICAL_EVENT
+    if cmd == "":
+        board._emit(reports.help_text(board))
+        return Error.OK
+    if cmd == "J" and has_arg:
+        if state not in ("Idle", "Jog"):
+            return Error.IDLE_ERROR
+        return _jog(board, arg)
+    if has_arg and cmd in ("G", "#", "$", "C", "X", "H", "I", "N"):
+        return Error.INVALID_STATEMENT
+    if cmd == "G":
+        board._emit(reports.gc_modes(board))
+        return Error.OK
+    if cmd == "C":
+        return _check_mode(board)
+    if cmd == "X":
+        return _unlock(board)
+    if cmd == "H":
+        return _home(board)
+    if cmd == "$":
+        if state in ("Run", "Hold"):
+            return Error.IDLE_ERROR
+        for key, value in sorted(board.settings.items()):
+            board._emit(f"${key}={setting_text(key, value)}")
+        return Error.OK
+    idle = state in ("Idle", "Alarm") or (board.hal and state in ("EStop", "Check"))
+    if cmd == "#":
+        if not idle:
+            return Error.IDLE_ERROR
+        for text in reports.parameters(board):
+            board._emit(text)
+        return Error.OK
+    if cmd == "I":
+        for text in reports.build_info(board):
+            board._emit(text)
+        return Error.OK
+    if cmd == "N":
+        board._emit("$N0=")
+        board._emit("$N1=")
+        return Error.OK
+    if cmd.isdigit():
+        if not idle:
+            return Error.IDLE_ERROR
+        key = int(cmd)
+        if key not in board.settings:
+            return Error.INVALID_STATEMENT
+        if not has_arg:
+            board._emit(f"${key}={setting_text(key, board.settings[key])}")
+            return Error.OK
+        return _store(board, key, arg)
+    return Error.INVALID_STATEMENT
+
+
+def _store(board: GrblBoard, key: int, raw: str) -> Error:
+    try:
+        value = float(raw)
+    except ValueError:
+        return Error.BAD_NUMBER_FORMAT
+    if value < 0:
+        return Error.NEGATIVE_VALUE
+    if key == 20 and value and not board.settings[22]:
+        return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
+    board.settings[key] = value if key in FLOAT_SETTINGS else int(value)
+    return Error.OK
+
+
+def _check_mode(board: GrblBoard) -> Error | None:
+    if board.state == "Check":
+        # system.c: leaving check mode is a reset; the `ok` goes out before the banner.
+        board._message(Msg.DISABLED)
+        board._respond(Error.OK)
+        board.last_error = Error.OK
+        board.state = "Idle"
+        board._init()
+        board._startup()
+        return _NO_ANSWER
+    if board.state != "Idle":
+        return Error.IDLE_ERROR
+    board.state = "Check"
+    board._message(Msg.ENABLED)
+    return Error.OK
+
+
+def _unlock(board: GrblBoard) -> Error:
+    if board.state not in ("Alarm", "EStop"):
+        return Error.OK  # "Otherwise, no effect."
+    if board.hal:
+        if board.estop:
+            return Error.ESTOP
+        if board.door_open:
+            return Error.CHECK_DOOR
+        if board._homing_required():
+            return Error.HOMING_REQUIRED
+    elif board.door_open:
+        return Error.CHECK_DOOR
+    board.state = "Idle"
+    board.alarm = None
+    board._message(Msg.ALARM_UNLOCK)
+    return Error.OK
+
+
+def _home(board: GrblBoard) -> Error | None:
+    if not board._bits(22) & 1:
+        return Error.HOMING_DISABLED
+    if board.state not in ("Idle", "Alarm"):
+        return Error.IDLE_ERROR
+    if board.door_open:
+        return Error.CHECK_DOOR
+    if board.hal and board.estop:
+        return Error.ESTOP
+    board.state = "Home"
+    if board.hal:
+        board._send_status()  # mc_homing_cycle: "Force a status report"
+    duration = 0.0 if board.config.instant else board.config.homing_time
+    board._wait = motion_control.Wait("home", "$H", until=board._clock() + duration)
+    return None
+
+
+def _jog(board: GrblBoard, text: str) -> Error | None:
+    result = parser.execute(board.modal, text, travel_ok=partial(_jog_travel_ok, board), jog=True)
+    if isinstance(result, Error):
+        return result
+    if not result.moves:
+        return Error.OK
+    board._jogging = True
+    board._wait = motion_control.Wait("room", "$J=" + text, result)
+    return None
+
+
+def _jog_travel_ok(board: GrblBoard, target: Mapping[str, float]) -> bool:
+    return not board.settings[20] or in_travel(board, target)
+
+
+def in_travel(board: GrblBoard, target: Mapping[str, float]) -> bool:
+    """system_check_travel_limits: homing toward +, the envelope is [-max travel, 0]."""
+    for i, axis in enumerate(AXES):
+        if not -board.settings[130 + i] - 1e-6 <= target[axis] <= 1e-6:
+            return False
+    return True
