@@ -47,7 +47,7 @@ import structlog
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import motion_control, parser, reports, system
+from hostd.sim.grbl import motion_control, parser, realtime, reports, system
 from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
 from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.grbl.parser import Modal
@@ -56,20 +56,6 @@ from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active
 
 log = structlog.get_logger(__name__)
-
-# Realtime characters (grbl.h CMD_*).
-RESET, STATUS, HOLD, CYCLE_START = 0x18, ord("?"), ord("!"), ord("~")
-DOOR, JOG_CANCEL = 0x84, 0x85
-FEED_OVR = range(0x90, 0x95)
-RAPID_OVR = range(0x95, 0x98)
-SPINDLE_OVR = range(0x99, 0x9F)
-COOLANT_OVR = (0xA0, 0xA1)
-REALTIME = frozenset(
-    {RESET, STATUS, HOLD, CYCLE_START, DOOR, JOG_CANCEL, 0xA0, 0xA1}
-    | set(FEED_OVR)
-    | set(RAPID_OVR)
-    | set(SPINDLE_OVR)
-)
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -169,7 +155,7 @@ class GrblBoard:
         else:
             self.state = "Idle"
             if self.door_open:
-                self._door_event()
+                realtime.door_event(self)
         self._cold = False
 
     def _bits(self, key: int) -> int:
@@ -202,7 +188,7 @@ class GrblBoard:
         """Bytes from the host: realtime ones act now, the rest queue or are lost."""
         capacity = self.config.rx_capacity
         for byte in data:
-            if byte in REALTIME:
+            if byte in realtime.REALTIME:
                 self.realtime(byte)
             elif byte >= 0x80 and self.hal:
                 continue  # protocol_enqueue_realtime_command drops other top-bit bytes
@@ -217,24 +203,8 @@ class GrblBoard:
         return self.config.rx_capacity - len(self.rx)
 
     def realtime(self, char: int) -> None:
-        now = self._clock()
-        if char == RESET:
-            self.soft_reset()
-        elif char == STATUS:
-            self._status_pending = True
-            if self.state != "Home":
-                self._flush_status()
-        elif char == HOLD:
-            self._feed_hold(now)
-        elif char == CYCLE_START:
-            self._cycle_start()
-        elif char == DOOR:
-            if self.state != "Door":
-                self._door_event()
-        elif char == JOG_CANCEL:
-            self._jog_cancel(now)
-        elif char in FEED_OVR or char in RAPID_OVR or char in SPINDLE_OVR or char in COOLANT_OVR:
-            self._override(char)
+        """A realtime character: acted on at once, never queued (realtime.py)."""
+        realtime.command(self, char)
 
     # --- pins
 
@@ -261,7 +231,7 @@ class GrblBoard:
     def set_door(self, active: bool) -> None:
         self.door_open = active
         if active and self.state != "Door":
-            self._door_event()
+            realtime.door_event(self)
         elif not active and self.state == "Door" and self.door == 1:
             self.door = 0  # EXEC_DOOR_CLOSED: ready to resume
 
@@ -389,87 +359,6 @@ class GrblBoard:
         if self.hal:
             self.last_error = status
         self._respond(status)
-
-    # --- realtime actions
-
-    def _feed_hold(self, now: float) -> None:
-        state = self.state
-        if state == "Jog":
-            if not self.hal:
-                self._jog_cancel(now)  # classic: a hold during a jog cancels it
-            return  # HAL state_set(STATE_HOLD): ignored while jogging
-        if state in ("Alarm", "EStop", "Hold", "Door", "Sleep", "Home", "Check"):
-            return
-        self.state = "Hold"
-        if self.active is not None and self.active.move is not None:
-            self.active.begin_hold(now, self.config.feedhold_decel)
-            self.hold = 1
-        else:
-            self.hold = 2  # nothing moving: the hold is complete at once
-
-    def _cycle_start(self) -> None:
-        if self.state == "Hold" and self.hold == 2:
-            self.hold = 0
-            self.modal.program_flow = ""  # M0 resumed
-            self.state = "Run" if self.planner else "Idle"
-        elif self.state == "Door" and self.door == 0 and self.active is None:
-            self.door = 0
-            self.state = "Run" if self.planner else "Idle"
-
-    def _door_event(self) -> None:
-        """EXEC_SAFETY_DOOR: stop like a hold, into Door (state_machine.c / protocol.c)."""
-        if self.state in ("Alarm", "EStop", "Sleep", "Check", "Home"):
-            return
-        self._message(Msg.SAFETY_DOOR_AJAR)
-        if self.state == "Jog":
-            self._jog_cancel(self._clock())
-        moving = self.active is not None and self.active.move is not None
-        if moving and self.hold != 1:
-            assert self.active is not None
-            self.active.begin_hold(self._clock(), self.config.feedhold_decel)
-        self.hold = 0
-        self.state = "Door"
-        self.door = 2 if moving else (1 if self.door_open else 0)
-
-    def _jog_cancel(self, now: float) -> None:
-        if self.hal:
-            # CMD_JOG_CANCEL: hal.stream.cancel_read_buffer(), which queues a CAN: the
-            # unread input and the line being assembled are gone, the latch is cleared.
-            self.rx.clear()
-            self._line = bytearray()
-            self._overflow = False
-            self.last_error = Error.OK
-        if self.state != "Jog":
-            return
-        if self._wait is not None and self._wait.line.startswith("$J="):
-            self._done()  # the jog line waiting for room is answered, not queued
-        if self.active is not None and self.active.move is not None:
-            if not self.active.decelerating:
-                self.active.begin_hold(now, self.config.feedhold_decel)
-            self._cancel_after_stop = True
-        else:
-            motion_control.flush_planner(self)
-            self.state = "Idle"
-
-    def _override(self, char: int) -> None:
-        if char in FEED_OVR:
-            steps = {0x90: None, 0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}
-            step = steps[char]
-            self.feed_ovr = 100 if step is None else min(max(self.feed_ovr + step, 10), 200)
-        elif char in RAPID_OVR:
-            self.rapid_ovr = {0x95: 100, 0x96: 50, 0x97: 25}[char]
-        elif char == 0x9E:
-            pass  # spindle stop: only in Hold with the spindle on; not modelled
-        elif char in SPINDLE_OVR:
-            steps = {0x99: None, 0x9A: 10, 0x9B: -10, 0x9C: 1, 0x9D: -1}
-            step = steps[char]
-            self.spindle_ovr = 100 if step is None else min(max(self.spindle_ovr + step, 10), 200)
-        elif char == 0xA0:
-            self.flood = not self.flood
-        elif char == 0xA1:
-            self.mist = not self.mist
-        self._report_flags.add("overrides")
-        self._ovr_counter = 0
 
     # --- alarms
 
