@@ -1,4 +1,4 @@
-"""The simulated grbl 1.1h / grblHAL: its receive buffer, main loop, planner and reports.
+"""The simulated grbl 1.1h / grblHAL: its state, receive buffer, main loop and alarms.
 
 The firmware's main loop without the hardware, like the g2core board
 (hostd/sim/board.py): the controller feeds received bytes to `receive()`
@@ -9,8 +9,20 @@ input. Output leaves as text lines through `emit`; the controller adds the
 firmware's CRLF (stream.h ASCII_EOL "\\r\\n", gnea/grbl report.c "\\r\\n").
 No I/O and no asyncio here; the clock is injected.
 
+`GrblBoard` holds all of the board's state and is the one object the
+controller and the tests use. The rest of the firmware is in modules of
+functions that take the board, cut where the firmware's own files are:
+system.py (`$` commands, system.c), reports.py (`?`, `$G`, `$#`, `$I`,
+report.c), realtime.py (the realtime characters), motion_control.py (the
+planner's blocks, what a line waits for, homing's end, probing;
+motion_control.c) and settings.py (the `$n` defaults). They read and
+write the board's underscored attributes too: those are private to this
+package, not to this module. Each names the sources of its own rules; this
+module's are below.
+
 Sources, read from grblHAL/core (f80fc34) and gnea/grbl (bfb67f0, 1.1h);
-"HAL" marks a grblHAL-only rule, "classic" a grbl 1.1-only one:
+"HAL" marks a grblHAL-only rule, "classic" a grbl 1.1-only one (here and in
+the modules above):
 
 - receive ring: gnea/grbl serial.c (RX_BUFFER_SIZE 128, a byte arriving at a
   full ring is dropped); grblHAL drivers' serial.c (`next_head == tail`:
@@ -385,7 +397,7 @@ class GrblBoard:
         motion_control.stop_motion(self)
         self._critical(Alarm.SOFT_LIMIT)
 
-    # --- reports
+    # --- output
 
     def _message(self, msg: Msg) -> None:
         self._emit(f"[MSG:{msg.value}]")
