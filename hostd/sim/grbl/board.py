@@ -55,8 +55,6 @@ from collections import deque
 from collections.abc import Callable
 from functools import partial
 
-import structlog
-
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
 from hostd.sim.grbl import motion_control, parser, realtime, reports, system
@@ -66,8 +64,6 @@ from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active
-
-log = structlog.get_logger(__name__)
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -125,7 +121,6 @@ class GrblBoard:
         self._line = bytearray()
         self._overflow = False
         self._eol = 0
-        self._comment = False
         self.last_error = Error.OK
         self.planner: deque[Move] = deque()
         self.active: Active | None = None
@@ -133,7 +128,6 @@ class GrblBoard:
         self._wait: motion_control.Wait | None = None
         self.hold = 0  # 0 none, 1 decelerating, 2 complete (HAL holding_state: Hold:n-1)
         self.door = 0  # parking_state while in Door
-        self._resume_to: str | None = None
         self._cancel_after_stop = False  # jog cancel / classic hold in jog: flush when stopped
         self.blocking = False  # a critical alarm: only reset gets out
         self.feed_ovr = self.rapid_ovr = self.spindle_ovr = 100
@@ -293,7 +287,6 @@ class GrblBoard:
                 overflow = self._overflow
                 self._line = bytearray()
                 self._overflow = False
-                self._comment = False
                 self._run_line(line, overflow, critical=critical)
                 return True
             if self.hal:

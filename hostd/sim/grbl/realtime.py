@@ -75,7 +75,6 @@ def _cycle_start(board: GrblBoard) -> None:
         board.modal.program_flow = ""  # M0 resumed
         board.state = "Run" if board.planner else "Idle"
     elif board.state == "Door" and board.door == 0 and board.active is None:
-        board.door = 0
         board.state = "Run" if board.planner else "Idle"
 
 

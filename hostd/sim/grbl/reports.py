@@ -55,7 +55,7 @@ def status_report(board: GrblBoard) -> str:
     if pins:
         fields.append(f"Pn:{pins}")
     if board.hal:
-        fields.extend(_hal_tail(board, state))
+        fields.extend(_hal_tail(board))
     else:
         fields.extend(_classic_tail(board, wco))
     return "<" + "|".join(fields) + ">"
@@ -104,7 +104,7 @@ def _classic_tail(board: GrblBoard, wco: dict[str, float]) -> list[str]:
     return out
 
 
-def _hal_tail(board: GrblBoard, state: str) -> list[str]:
+def _hal_tail(board: GrblBoard) -> list[str]:
     """grblHAL: Ov when its counter runs out or flagged; WCO likewise but never in the
     same report as Ov unless forced (it is then flagged for the next report)."""
     flags = board._report_flags
