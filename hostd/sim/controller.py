@@ -5,8 +5,9 @@ machine configured with `data_port = "sim"` use: ports (ptyport.py) bring
 bytes in, the scanner (scanner.py) splits them as the board's RX buffer
 does, the board model (board.py) answers; this file routes the answers to
 the port that has the control role, runs the board's main loop as one owned
-task, and offers injections (limit switch, e-stop, unplug, ...) and ways to
-wait for what the board saw or did.
+task (in the shell shared with the grbl board, shell.py), and offers
+injections (limit switch, e-stop, unplug, ...) and ways to wait for what the
+board saw or did.
 
 Roles follow g2core's dual-endpoint USB (g2core.md section 9): the first
 port a host opens is control and data and receives all output; a second one
@@ -19,11 +20,9 @@ g2core's `connectedStateChanged` does.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import time
 from collections.abc import Callable
-from types import TracebackType
 
 import structlog
 
@@ -35,16 +34,18 @@ from hostd.sim.config import AXES, Kind, Received, SimConfig
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
+from hostd.sim.shell import SimShell
 
 log = structlog.get_logger(__name__)
 
 BANNER_FALLBACK = 0.05  # s to wait for the opener's tcflush before sending the banner anyway
-MAX_STEPS = 512  # board steps per loop iteration before yielding to I/O
 DATA, CONTROL = "data", "control"
 
 
-class SimController:
+class SimController(SimShell[Board, MachineState]):
     """A simulated g2core; `async with SimController(path) as sim:` plugs it in."""
+
+    _what = _name = "simulated board"
 
     def __init__(
         self,
@@ -53,11 +54,10 @@ class SimController:
         config: SimConfig | None = None,
     ) -> None:
         self.config = config if config is not None else SimConfig()
+        super().__init__(self.config.history)
         self._paths = {DATA: data_path}
         if control_path is not None:
             self._paths[CONTROL] = control_path
-        self.received: list[Received] = []
-        self.sent: list[Received] = []
         self._board = Board(self.config, emit=self._emit, clock=time.monotonic, reset=self._reboot)
         self._ports: dict[str, PtyPort] = {}
         self._scanners = {name: LineScanner(self._board.percent_is_control) for name in self._paths}
@@ -72,32 +72,12 @@ class SimController:
         self._silent = False
         self._resetting = False
         self._booted = False  # a UART board prints its banner once after a boot
-        self._closed = False
-        self._wake: asyncio.Event | None = None
-        self._changed: asyncio.Event | None = None
-        self._main_task: asyncio.Task[None] | None = None
         self._reset_task: asyncio.Task[None] | None = None
 
-    # --- lifecycle
+    # --- lifecycle (start and close are the shell's)
 
-    async def __aenter__(self) -> SimController:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
-
-    async def start(self) -> None:
-        """Create the pty pairs and symlinks and start the board."""
-        if self._main_task is not None:
-            return
-        self._wake = asyncio.Event()
-        self._changed = asyncio.Event()
+    def _plug_ports(self) -> None:
+        """Create the pty pairs and symlinks; if one fails, none stays."""
         self._ports = {name: PtyPort(name, path, self) for name, path in self._paths.items()}
         try:
             for port in self._ports.values():
@@ -106,16 +86,18 @@ class SimController:
             for port in self._ports.values():
                 port.unplug()
             raise
-        self._main_task = asyncio.get_running_loop().create_task(
-            self._run(), name=f"sim-board {self.data_path}"
-        )
+
+    def _task_name(self) -> str:
+        return f"sim-board {self.data_path}"
+
+    def _log_started(self) -> None:
         log.info("sim board started", data=self.data_path, control=self.control_path)
 
-    async def close(self) -> None:
-        """Stop the board, close every pty and remove the symlinks."""
-        if self._closed:
-            return
-        self._closed = True
+    def _log_crash(self) -> None:
+        log.exception("sim board crashed", data=self.data_path)
+
+    async def _shut_down(self) -> Exception | None:
+        """Cancel the main loop and a reset under way; the ptys go even if we are cancelled."""
         tasks = [t for t in (self._main_task, self._reset_task) if t is not None]
         for task in tasks:
             task.cancel()
@@ -126,9 +108,7 @@ class SimController:
             for port in self._ports.values():
                 port.unplug()
             log.info("sim board closed", data=self.data_path)
-        crash = next((r for r in results if isinstance(r, Exception)), None)
-        if crash is not None:
-            raise RuntimeError("the simulated board crashed") from crash
+        return next((r for r in results if isinstance(r, Exception)), None)
 
     # --- what tests look at
 
@@ -163,23 +143,13 @@ class SimController:
         ports = [self._ports[port]] if port is not None else list(self._ports.values())
         return any(p.attached for p in ports)
 
-    # --- waiting, without sleeping
+    # --- waiting, without sleeping (wait_for and wait_state are the shell's)
 
-    async def wait_for(self, predicate: Callable[[], bool], timeout: float = 5.0) -> None:
-        """Return once `predicate()` is true; it is re-checked after every board event."""
-        try:
-            async with asyncio.timeout(timeout):
-                while not predicate():
-                    self._check_running()
-                    assert self._changed is not None
-                    await self._changed.wait()
-        except TimeoutError:
-            name = getattr(predicate, "__qualname__", repr(predicate))
-            raise TimeoutError(
-                f"simulated board: {name} still false after {timeout} s "
-                f"(state {self.state.name}, planner {self.planner_len}, "
-                f"{len(self.received)} received, {len(self.sent)} sent)"
-            ) from None
+    def _situation(self) -> str:
+        return (
+            f"state {self.state.name}, planner {self.planner_len}, "
+            f"{len(self.received)} received, {len(self.sent)} sent"
+        )
 
     async def wait_attached(self, timeout: float = 5.0, port: str | None = None) -> None:
         await self.wait_for(lambda: self.attached(port), timeout)
@@ -191,16 +161,6 @@ class SimController:
             await self.wait_for(lambda: any(r.data == wanted for r in self.received), timeout)
         else:
             await self.wait_for(what, timeout)
-
-    async def wait_state(self, state: MachineState, timeout: float = 5.0) -> None:
-        await self.wait_for(lambda: self.state == state, timeout)
-
-    def _check_running(self) -> None:
-        task = self._main_task
-        if task is None:
-            raise RuntimeError("the simulated board is not started")
-        if task.done() and not task.cancelled() and task.exception() is not None:
-            raise RuntimeError("the simulated board crashed") from task.exception()
 
     # --- injections
 
@@ -440,13 +400,6 @@ class SimController:
     def _record(self, t: float, port: str, data: bytes, kind: Kind) -> None:
         self._keep(self.received, Received(t, port, data, kind))
 
-    def _keep(self, log: list[Received], entry: Received) -> None:
-        """Append; past twice `history` entries, drop all but the last `history`."""
-        log.append(entry)
-        limit = self.config.history
-        if limit is not None and len(log) > 2 * limit:
-            del log[:-limit]
-
     def _output_port(self) -> PtyPort | None:
         if self._silent or self._resetting or self._primary is None:
             return None
@@ -526,53 +479,9 @@ class SimController:
                 limit = budget - used
             port.set_read_limit(limit)
 
-    def _kick(self) -> None:
-        """Something happened: let the main loop look, re-plan reading, wake waiters."""
-        if self._wake is not None:
-            self._wake.set()
-        self._update_reading()
-        self._pulse()
-
-    def _pulse(self) -> None:
-        if self._changed is not None:
-            self._changed.set()
-            self._changed = asyncio.Event()
-
-    async def _run(self) -> None:
-        """The board's main loop; a crash is logged and wakes every waiter."""
-        try:
-            await self._loop()
-        except Exception:
-            log.exception("sim board crashed", data=self.data_path)
-            self._pulse()
-            raise
-
-    async def _loop(self) -> None:
-        """Tick while there is work, then sleep until the next deadline or new input."""
-        assert self._wake is not None
-        board = self._board
-        while True:
-            self._wake.clear()
-            steps = 0
-            halted = self._silent or self._resetting
-            if not halted:
-                while steps < MAX_STEPS and board.tick():
-                    steps += 1
-            if steps:
-                self._update_reading()
-                self._pulse()
-            if steps >= MAX_STEPS:
-                await asyncio.sleep(0)  # let the ports in
-                continue
-            deadline = None if halted else board.next_deadline()
-            if deadline is None:
-                await self._wake.wait()
-                continue
-            # A due deadline means work for the next round; never spin on one.
-            delay = max(deadline - time.monotonic(), 0.0005)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(delay):
-                    await self._wake.wait()
+    def _halted(self) -> bool:
+        """A hung board (`go_silent`) or one resetting runs nothing and waits for no deadline."""
+        return self._silent or self._resetting
 
 
 def _input_number(n: object, count: int) -> bool:
