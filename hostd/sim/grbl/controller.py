@@ -1,12 +1,13 @@
 """`GrblSimController`: a simulated grbl / grblHAL board on a pseudo-terminal.
 
-The same shape as the g2core `SimController` (hostd/sim/controller.py) and
-the same pty machinery (hostd/sim/ptyport.py): one port behind a stable
-symlink, the pure board (board.py) run by one owned task, pins a test can
-toggle, unplug/replug, and ways to wait for what the board did without
-sleeping. Every byte the host writes is handed to the board at once, as a
-UART interrupt would: the board's receive ring, not the pty, decides what
-is kept and what is lost.
+The same shell as the g2core `SimController` (hostd/sim/shell.py: the main
+loop as one owned task, its lifecycle, waiting without sleeping, the kept
+history) and the same pty machinery (hostd/sim/ptyport.py); what is grbl's
+is here: one port behind a stable symlink, pins a test can toggle,
+unplug/replug (a power-on), and the reset that opening the port may cause.
+Every byte the host writes is handed to the board at once, as a UART
+interrupt would: the board's receive ring, not the pty, decides what is kept
+and what is lost.
 """
 
 from __future__ import annotations
@@ -14,8 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable
-from types import TracebackType
 
 import structlog
 
@@ -23,78 +22,67 @@ from hostd.sim.config import Received
 from hostd.sim.grbl.board import GrblBoard
 from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.ptyport import PtyPort
+from hostd.sim.shell import SimShell
 
 log = structlog.get_logger(__name__)
 
 EOL = b"\r\n"  # stream.h ASCII_EOL; gnea/grbl report.c
-MAX_STEPS = 512
 OPEN_FALLBACK = 0.05  # s to wait for the opener's tcflush before an open-reset anyway
 PORT = "data"
 
 
-class GrblSimController:
-    """A simulated grbl 1.1h or grblHAL; `async with GrblSimController(path) as sim:`."""
+class GrblSimController(SimShell[GrblBoard, str]):
+    """A simulated grbl 1.1h or grblHAL; `async with GrblSimController(path) as sim:`.
+
+    `received` holds chunks as read (kind "raw"); `sent`, lines written without the CRLF.
+    """
+
+    _what = "simulated grbl board"
+    _name = "simulated grbl"
 
     def __init__(self, path: str, config: GrblConfig | None = None) -> None:
         self.config = config if config is not None else GrblConfig()
+        super().__init__(self.config.history)
         self.path = path
-        self.received: list[Received] = []  # chunks as read (kind "raw")
-        self.sent: list[Received] = []  # lines written, without the CRLF
         self._port: PtyPort | None = None
         self._attached = False
         self._open_pending = False  # reset-on-open waits for the opener's flush
         self._open_timer: asyncio.TimerHandle | None = None
-        self._wake: asyncio.Event | None = None
-        self._changed: asyncio.Event | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._closed = False
         self._board = GrblBoard(self.config, emit=self._emit, clock=time.monotonic)
 
-    # --- lifecycle
-
-    async def __aenter__(self) -> GrblSimController:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.stop()
-
-    async def start(self) -> None:
-        """Create the pty and symlink and start the board's main loop."""
-        if self._task is not None:
-            return
-        self._wake = asyncio.Event()
-        self._changed = asyncio.Event()
-        self._port = PtyPort(PORT, self.path, self)
-        self._port.plug()
-        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"grbl {self.path}")
-        log.info("grbl sim started", path=self.path, flavour=self.config.flavour)
+    # --- lifecycle (start and close are the shell's)
 
     async def stop(self) -> None:
-        """Stop the board, close the pty and remove the symlink."""
-        if self._closed:
-            return
-        self._closed = True
+        """Stop the board, close the pty and remove the symlink: `close()`."""
+        await self.close()
+
+    def _plug_ports(self) -> None:
+        self._port = PtyPort(PORT, self.path, self)
+        self._port.plug()
+
+    def _task_name(self) -> str:
+        return f"grbl {self.path}"
+
+    def _log_started(self) -> None:
+        log.info("grbl sim started", path=self.path, flavour=self.config.flavour)
+
+    def _log_crash(self) -> None:
+        log.exception("grbl sim crashed", path=self.path)
+
+    async def _shut_down(self) -> Exception | None:
+        """Cancel the main loop and unplug; a cancellation of our own caller is swallowed."""
         self._cancel_open_timer()
-        result: BaseException | None = None
-        if self._task is not None:
-            self._task.cancel()
+        result: Exception | None = None
+        if self._main_task is not None:
+            self._main_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 try:
-                    await self._task
+                    await self._main_task
                 except Exception as exc:
                     result = exc
         if self._port is not None:
             self._port.unplug()
-        if result is not None:
-            raise RuntimeError("the simulated grbl board crashed") from result
-
-    close = stop
+        return result
 
     # --- what tests look at
 
@@ -116,32 +104,13 @@ class GrblSimController:
     def attached(self) -> bool:
         return self._attached
 
-    async def wait_for(self, predicate: Callable[[], bool], timeout: float = 5.0) -> None:
-        """Return once `predicate()` is true; re-checked after every board event."""
-        try:
-            async with asyncio.timeout(timeout):
-                while not predicate():
-                    self._check_running()
-                    assert self._changed is not None
-                    await self._changed.wait()
-        except TimeoutError:
-            name = getattr(predicate, "__qualname__", repr(predicate))
-            raise TimeoutError(
-                f"simulated grbl: {name} still false after {timeout} s (state {self.state})"
-            ) from None
+    # --- waiting (wait_for and wait_state are the shell's)
 
-    async def wait_state(self, state: str, timeout: float = 5.0) -> None:
-        await self.wait_for(lambda: self.state == state, timeout)
+    def _situation(self) -> str:
+        return f"state {self.state}"
 
     async def wait_attached(self, timeout: float = 5.0) -> None:
         await self.wait_for(lambda: self._attached and not self._open_pending, timeout)
-
-    def _check_running(self) -> None:
-        task = self._task
-        if task is None:
-            raise RuntimeError("the simulated grbl board is not started")
-        if task.done() and not task.cancelled() and task.exception() is not None:
-            raise RuntimeError("the simulated grbl board crashed") from task.exception()
 
     # --- pins and cables
 
@@ -243,48 +212,10 @@ class GrblSimController:
         if port.write(data + EOL):
             self._keep(self.sent, Received(time.monotonic(), PORT, data, "line"))
 
-    def _keep(self, history: list[Received], entry: Received) -> None:
-        history.append(entry)
-        limit = self.config.history
-        if limit is not None and len(history) > 2 * limit:
-            del history[:-limit]
+    def _halted(self) -> bool:
+        """Never: this board does not hang, and its resets run inside the board."""
+        return False
 
-    def _kick(self) -> None:
-        if self._wake is not None:
-            self._wake.set()
-        self._pulse()
-
-    def _pulse(self) -> None:
-        if self._changed is not None:
-            self._changed.set()
-            self._changed = asyncio.Event()
-
-    async def _run(self) -> None:
-        try:
-            await self._loop()
-        except Exception:
-            log.exception("grbl sim crashed", path=self.path)
-            self._pulse()
-            raise
-
-    async def _loop(self) -> None:
-        assert self._wake is not None
-        board = self._board
-        while True:
-            self._wake.clear()
-            steps = 0
-            while steps < MAX_STEPS and board.tick():
-                steps += 1
-            if steps:
-                self._pulse()
-            if steps >= MAX_STEPS:
-                await asyncio.sleep(0)
-                continue
-            deadline = board.next_deadline()
-            if deadline is None:
-                await self._wake.wait()
-                continue
-            delay = max(deadline - time.monotonic(), 0.0005)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(delay):
-                    await self._wake.wait()
+    def _update_reading(self) -> None:
+        """Nothing to re-plan: the port reads all it can (port_attached, port_data) and
+        the board's receive ring, not the pty, decides what is kept."""
