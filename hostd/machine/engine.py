@@ -557,7 +557,7 @@ class Engine:
         return self.session.out_of_hold()
 
     def quiet(self) -> bool:
-        """Nothing of the host's queued or unanswered, but for queries."""
+        """Nothing of the host's queued or unanswered, but for queries; no stop under way."""
         return self.session.quiet()
 
     async def wait_for(self, predicate: Callable[[], bool]) -> None:

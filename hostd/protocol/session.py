@@ -508,8 +508,15 @@ class SessionBase:
         return self.stream is not None and not self.stream.done
 
     def quiet(self) -> bool:
-        """Nothing of the host's queued or unanswered, but for queries."""
-        return not self._outbox and self.no_data_in_flight() and not self._job_running()
+        """Nothing of the host's queued or unanswered, but for queries, and no stop of
+        the host's under way (a job's failure stops and empties the board: until the
+        board shows it did, a line sent would be thrown away with what it held)."""
+        return (
+            not self._outbox
+            and self.no_data_in_flight()
+            and not self._job_running()
+            and not self.flushing()
+        )
 
     # -- helpers -----------------------------------------------------------------
 

@@ -309,6 +309,26 @@ async def test_a_job_line_error_fails_the_job_and_stops_the_board() -> None:
     assert grbl.realtime()[-2:] == [b"!", b"?"]  # the lines behind it would run: stop
 
 
+async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_is_over() -> None:
+    """The failed job's stop (a hold, then 0x18) would throw away a client's line sent
+    meanwhile: until the board is back, the machine is not at rest (Machine._settle)."""
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(2)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "error:20")
+    assert stream.result.done() and grbl.session.no_data_in_flight()
+    assert not grbl.session.quiet()  # stopping: `!` went, the board is not at rest yet
+    grbl.feed("<Hold:0|MPos:1.000,0.000,0.000|FS:0,0>")
+    assert grbl.realtime()[-1] == codec.RESET
+    assert not grbl.session.quiet()  # resetting
+    grbl.feed("Grbl 1.1h ['$' for help]")  # the reset's welcome: it re-syncs
+    grbl.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
+    grbl.feed(IDLE)
+    assert grbl.session.ready and grbl.session.quiet()
+
+
 @pytest.mark.parametrize(
     ("line", "why"),
     [
