@@ -1,6 +1,7 @@
 """The event loop every asyncio test runs on: the daemon's default (`[daemon] event_loop`).
 
-`HOSTD_TEST_LOOP=asyncio` (or `uvloop`) runs the suite on the other one.
+`HOSTD_TEST_LOOP=asyncio` (or `uvloop`) runs the suite on the other one. Also a
+fixture every transport's tests share: `rpc_answer_fails_once`.
 """
 
 from __future__ import annotations
@@ -8,10 +9,12 @@ from __future__ import annotations
 import asyncio
 import os
 from collections.abc import Callable, Mapping
+from typing import Any
 
 import pytest
 import uvloop
 
+from hostd.api import rpc
 from hostd.config import DaemonConfig
 
 LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
@@ -29,3 +32,24 @@ def pytest_asyncio_loop_factories(
 ) -> Mapping[str, Callable[[], asyncio.AbstractEventLoop]]:
     name = chosen_loop()
     return {name: LOOPS[name]}
+
+
+@pytest.fixture
+def rpc_answer_fails_once(monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
+    """Call it, and `rpc.answer` raises for the next message it is given (a bug past the
+    dispatcher, which answers everything itself), then answers as always."""
+
+    def arm() -> None:
+        real = rpc.answer
+        calls = 0
+
+        async def answer(incoming: rpc.Incoming, methods: Any, context: object) -> bytes | None:
+            nonlocal calls
+            calls += 1
+            if calls == 1:
+                raise RuntimeError("a bug in rpc.answer")
+            return await real(incoming, methods, context)
+
+        monkeypatch.setattr(rpc, "answer", answer)
+
+    return arm

@@ -8,13 +8,13 @@ import os
 import socket
 import stat
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 from structlog.testing import capture_logs
 
-from hostd.api import rpc
 from hostd.api.peer import AccessPolicy
 from hostd.api.server import ApiServer
 from hostd.api.socketfile import SocketPathError
@@ -209,19 +209,11 @@ async def test_a_crashing_handler_is_an_internal_error_logged_and_serving_goes_o
 
 
 async def test_a_bug_past_the_dispatcher_is_an_internal_error_and_the_client_goes_on(
-    conn: Conn, monkeypatch: pytest.MonkeyPatch
+    conn: Conn, rpc_answer_fails_once: Callable[[], None]
 ) -> None:
     """rpc.answer answers everything itself; should it ever raise, the intake answers
     -32603 (id null: which request it was is rpc.answer's to know) and reads on."""
-    real = rpc.answer
-    broken = [False, True]  # the first request meets the bug, the next does not
-
-    async def answer(incoming: rpc.Incoming, methods: Any, context: object) -> bytes | None:
-        if broken.pop():
-            raise RuntimeError("a bug in rpc.answer")
-        return await real(incoming, methods, context)
-
-    monkeypatch.setattr(rpc, "answer", answer)
+    rpc_answer_fails_once()
     with capture_logs() as logs:
         await conn.send({"jsonrpc": "2.0", "method": "echo", "params": {"text": "x"}, "id": 1})
         assert await conn.recv() == {

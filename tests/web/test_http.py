@@ -6,13 +6,12 @@ import asyncio
 import json
 import os
 import socket
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import aiohttp
 import pytest
 
-from hostd.api import rpc
 from hostd.api.web import COOKIE
 from tests.web.conftest import Web, WsRpc, running_web
 
@@ -80,18 +79,10 @@ async def test_a_login_sets_an_httponly_samesite_strict_cookie_that_opens_the_ap
 
 
 async def test_a_bug_past_the_dispatcher_is_an_internal_error_and_the_tab_goes_on(
-    web: Web, monkeypatch: pytest.MonkeyPatch
+    web: Web, rpc_answer_fails_once: Callable[[], None]
 ) -> None:
     """The WebSocket takes requests through the same intake as the socket (intake.py)."""
-    real = rpc.answer
-    broken = [False, True]  # the first request meets the bug, the next does not
-
-    async def answer(incoming: rpc.Incoming, methods: Any, context: object) -> bytes | None:
-        if broken.pop():
-            raise RuntimeError("a bug in rpc.answer")
-        return await real(incoming, methods, context)
-
-    monkeypatch.setattr(rpc, "answer", answer)
+    rpc_answer_fails_once()
     async with web.session.ws_connect(f"{web.url}/api", headers=web.auth()) as ws:
         await ws.send_str(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "machine.list"}))
         assert json.loads((await ws.receive(timeout=10)).data) == {
