@@ -54,7 +54,9 @@ from hostd.protocol.grbl.session import GrblSession
 from hostd.protocol.linemode import LineModeSender
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
-from hostd.protocol.session import (
+from hostd.protocol.session import SessionBase
+from hostd.protocol.status import message
+from hostd.protocol.vocabulary import (
     Closing,
     Detected,
     Event,
@@ -63,10 +65,8 @@ from hostd.protocol.session import (
     Probed,
     Ready,
     Reported,
-    SessionBase,
     Settled,
 )
-from hostd.protocol.status import message
 
 log = structlog.get_logger(__name__)
 

@@ -53,8 +53,8 @@ from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
-from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState
+from hostd.protocol.vocabulary import StreamEnd
 
 log = structlog.get_logger(__name__)
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from hostd.protocol.commands import InvalidCommand, encode_line
 from hostd.protocol.linemode import InFlight
-from hostd.protocol.session import StreamEnd
+from hostd.protocol.vocabulary import StreamEnd
 
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
 LOOK_AHEAD = 8  # lines read and encoded ahead of the flow control's room
@@ -42,7 +42,7 @@ class StreamResult:
 
 
 class JobStream:
-    """A job's lines for the session (a `hostd.protocol.session.LineSource`), and its outcome."""
+    """A job's lines for the session (a `hostd.protocol.vocabulary.LineSource`), and its outcome."""
 
     def __init__(
         self,

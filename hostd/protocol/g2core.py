@@ -73,7 +73,11 @@ from hostd.protocol.messages import (
 from hostd.protocol.parser import parse_line, plain_ok_count
 from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
-from hostd.protocol.session import (
+from hostd.protocol.session import SessionBase
+from hostd.protocol.settings import set_lines
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
+from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
@@ -84,12 +88,8 @@ from hostd.protocol.session import (
     Queued,
     Ready,
     Reported,
-    SessionBase,
     StreamEnd,
 )
-from hostd.protocol.settings import set_lines
-from hostd.protocol.states import MachineState
-from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
 
 log = structlog.get_logger(__name__)
 

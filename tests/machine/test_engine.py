@@ -18,8 +18,8 @@ from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, L
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
-from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim import SimConfig, SimController
 from tests.machine.conftest import FAST, Recorder, Rig, machine_config, running
 

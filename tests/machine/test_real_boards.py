@@ -16,9 +16,9 @@ import pytest
 from hostd.machine.events import ExceptionRaised, FaultDetected, ProbeReported, StatusChanged
 from hostd.machine.stream import JobStream
 from hostd.protocol.errors import ControllerError, Rejected
-from hostd.protocol.session import StreamEnd
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.status import Status, message
+from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim.callsites import CALL_SITES, CallSite
 from tests.machine.conftest import Bench, Rig
 

@@ -13,7 +13,7 @@ import json
 from typing import Any
 
 from hostd.protocol.g2core import G2Session
-from hostd.protocol.session import Event, Lane, Settled
+from hostd.protocol.vocabulary import Event, Lane, Settled
 
 BANNER = (
     '{"r":{"fv":1.0,"fb":101.06,"hp":3,"hv":0,"id":"3X3566-YMB","msg":"SYSTEM READY"},"f":[1,0,1]}'

@@ -15,7 +15,8 @@ from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
 from hostd.protocol.g2core import BANNER_WAIT, FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.messages import Response
-from hostd.protocol.session import (
+from hostd.protocol.states import MachineState as S
+from hostd.protocol.vocabulary import (
     Closing,
     Detected,
     Excepted,
@@ -26,7 +27,6 @@ from hostd.protocol.session import (
     Reported,
     StreamEnd,
 )
-from hostd.protocol.states import MachineState as S
 from tests.protocol.g2wire import BANNER, Wire
 
 pytestmark = pytest.mark.asyncio

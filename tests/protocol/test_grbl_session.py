@@ -15,8 +15,17 @@ from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.session import BANNER_WAIT, STOP_TIMEOUT, GrblSession
 from hostd.protocol.messages import Response
-from hostd.protocol.session import Closing, Event, Excepted, Lane, Probed, Ready, Settled, StreamEnd
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.vocabulary import (
+    Closing,
+    Event,
+    Excepted,
+    Lane,
+    Probed,
+    Ready,
+    Settled,
+    StreamEnd,
+)
 
 pytestmark = pytest.mark.asyncio
 

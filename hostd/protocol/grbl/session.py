@@ -53,7 +53,10 @@ from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.program import number_line
-from hostd.protocol.session import (
+from hostd.protocol.session import SessionBase
+from hostd.protocol.states import MachineState
+from hostd.protocol.status import Status
+from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
@@ -64,11 +67,8 @@ from hostd.protocol.session import (
     Queued,
     Ready,
     Reported,
-    SessionBase,
     StreamEnd,
 )
-from hostd.protocol.states import MachineState
-from hostd.protocol.status import Status
 
 BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints its banner
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
