@@ -24,7 +24,8 @@ the write:
 
 The handshake (g2core.md section 10): the banner, or after `BANNER_WAIT` on
 a link that prints none a version request; the firmware build checked; the
-protocol settings; `{home:n}`; a full status report. Then the heartbeat: a
+protocol settings; `{home:n}`; a full status report. What it accepts and
+sends is in g2handshake.py; its steps are here. Then the heartbeat: a
 board silent for `heartbeat` seconds is asked for a report, and one that
 does not answer within as long again is gone.
 """
@@ -57,6 +58,14 @@ from hostd.protocol.errors import (
     MachineError,
     NotConnected,
     Rejected,
+)
+from hostd.protocol.g2handshake import (
+    BANNER_WAIT,
+    OLDEST_BUILD,
+    STATUS_KEYS,
+    TINYG_BUILDS,
+    check_firmware,
+    protocol_settings,
 )
 from hostd.protocol.gcode import jog_line
 from hostd.protocol.limits import MachineLimits
@@ -91,17 +100,19 @@ from hostd.protocol.vocabulary import (
     StreamEnd,
 )
 
+# The handshake's constants live in g2handshake.py and stay importable from here.
+__all__ = [
+    "BANNER_WAIT",
+    "FLUSH_CONFIRM_TIMEOUT",
+    "OLDEST_BUILD",
+    "STATUS_KEYS",
+    "TINYG_BUILDS",
+    "G2Session",
+]
+
 log = structlog.get_logger(__name__)
 
-# The status report list the handshake sets: the board reports these on change.
-STATUS_KEYS = (
-    *("stat", "line", "posx", "posy", "posz", "mpox", "mpoy", "mpoz", "vel", "feed", "unit"),
-    *("coor", "dist", "frmo", "momo", "hold", "tool", "home"),
-)
 FLUSH_CONFIRM_TIMEOUT = 2.0
-BANNER_WAIT = 1.0  # s for a banner before asking the version (a UART link prints none)
-OLDEST_BUILD = 100.0  # g2core builds before 100 had other status codes
-TINYG_BUILDS = 400.0  # TinyG's builds are 400 and up
 
 _NOT_TEXT = frozenset({"not valid UTF-8", "control characters in a text line"})
 # Statuses that call a line malformed: for the daemon's own lines, a daemon bug (`syntax`).
@@ -447,7 +458,7 @@ class G2Session(SessionBase):
             self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:
             self._settings_pending = False
-            for setting in self._settings():
+            for setting in protocol_settings(self.status_interval, self.signal_keys):
                 self._ask_own(encode_set(setting), _Own.REAPPLY)
         self._recheck_waiting()
 
@@ -483,12 +494,12 @@ class G2Session(SessionBase):
 
     def _identified(self, fb: float | None) -> None:
         try:
-            _check_firmware(fb)
+            check_firmware(fb)
         except NotConnected as exc:
             self._closing(exc.message)
             return
         self._identity = fb
-        self._to_set = deque(self._settings())
+        self._to_set = deque(protocol_settings(self.status_interval, self.signal_keys))
         self._next_setting()
 
     def _next_setting(self) -> None:
@@ -532,18 +543,6 @@ class G2Session(SessionBase):
         )
         timeout = self.handshake_timeout
         self._closing(f"no {step} from the controller within {timeout:g} s")
-
-    def _settings(self) -> list[dict[str, Any]]:
-        return [
-            {"ej": 1},
-            {"jv": 4},
-            {"sv": 1},
-            {"qv": 0},
-            {"si": round(self.status_interval * 1000)},
-            {"sr": dict.fromkeys((*STATUS_KEYS, *self.signal_keys), True)},
-        ]
-
-    # -- admission -------------------------------------------------------------
 
     # -- writing ---------------------------------------------------------------
 
@@ -676,8 +675,6 @@ class G2Session(SessionBase):
                 self._heartbeat_deadline = None  # it was read: the board lives
         else:
             self._settle(source, error)
-
-    # -- stream completion -----------------------------------------------------
 
     # -- requests --------------------------------------------------------------
 
@@ -823,21 +820,6 @@ def _discarded(kind: Realtime) -> MachineError:
 
 def _build(value: object) -> float | None:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
-
-
-def _check_firmware(fb: float | None) -> None:
-    """g2core from build 100 only: TinyG's codes differ, and before 100 so did g2core's."""
-    if fb is None:
-        raise NotConnected("the controller did not say its firmware build (fb)")
-    if fb >= TINYG_BUILDS:
-        raise NotConnected(
-            f"TinyG firmware (build {fb:g}) is not supported: its status codes differ from g2core's"
-        )
-    if fb < OLDEST_BUILD:
-        raise NotConnected(
-            f"g2core build {fb:g} is older than {OLDEST_BUILD:.2f}, whose status codes hostd "
-            "relies on (204 meant something else before): update the firmware"
-        )
 
 
 def _is_gcode(text: str) -> bool:

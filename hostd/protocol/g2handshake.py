@@ -1,0 +1,52 @@
+"""g2core's handshake: what a board must be, what it is told, and how long it is given.
+
+G2Session (g2core.py) runs the steps (g2core.md section 10) on every open
+and after every reset: the SYSTEM READY banner, or after `BANNER_WAIT` on a
+link that prints none a version request; the firmware build checked
+(`check_firmware`); the protocol settings (`protocol_settings`), one at a
+time; `{home:n}`; a full status report. Only then is the board ready.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from hostd.protocol.errors import NotConnected
+
+# The status report list the handshake sets: the board reports these on change.
+STATUS_KEYS = (
+    *("stat", "line", "posx", "posy", "posz", "mpox", "mpoy", "mpoz", "vel", "feed", "unit"),
+    *("coor", "dist", "frmo", "momo", "hold", "tool", "home"),
+)
+BANNER_WAIT = 1.0  # s for a banner before asking the version (a UART link prints none)
+OLDEST_BUILD = 100.0  # g2core builds before 100 had other status codes
+TINYG_BUILDS = 400.0  # TinyG's builds are 400 and up
+
+
+def protocol_settings(status_interval: float, signal_keys: Iterable[str]) -> list[dict[str, Any]]:
+    """The settings the handshake sends, one at a time, and sends again once a lockout that
+    refused them ends: `status_interval` in seconds, `signal_keys` added to the report list."""
+    return [
+        {"ej": 1},
+        {"jv": 4},
+        {"sv": 1},
+        {"qv": 0},
+        {"si": round(status_interval * 1000)},
+        {"sr": dict.fromkeys((*STATUS_KEYS, *signal_keys), True)},
+    ]
+
+
+def check_firmware(fb: float | None) -> None:
+    """g2core from build 100 only: TinyG's codes differ, and before 100 so did g2core's."""
+    if fb is None:
+        raise NotConnected("the controller did not say its firmware build (fb)")
+    if fb >= TINYG_BUILDS:
+        raise NotConnected(
+            f"TinyG firmware (build {fb:g}) is not supported: its status codes differ from g2core's"
+        )
+    if fb < OLDEST_BUILD:
+        raise NotConnected(
+            f"g2core build {fb:g} is older than {OLDEST_BUILD:.2f}, whose status codes hostd "
+            "relies on (204 meant something else before): update the firmware"
+        )
