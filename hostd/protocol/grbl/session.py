@@ -25,6 +25,9 @@ the rules beside g2core's.
   (grbl then raises ALARM:3), so the snapshot says `homed` false.
 - **Resets**: the board prints its banner again and forgets every line it
   held; the session settles them and re-syncs (`$G`, `?`) on the same link.
+
+How a status report, `[GC:]` and `[PRB:]` map onto the common names is in
+report.py.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ from hostd.protocol.grbl.codes import (
     alarm_text,
     error_text,
 )
+from hostd.protocol.grbl.report import STATES, ReportReader, apply_modes, probe_report
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
@@ -70,23 +74,13 @@ from hostd.protocol.vocabulary import (
     StreamEnd,
 )
 
+# STATES lives in report.py with the rest of the report mapping and stays importable from here.
+__all__ = ["ADMISSION", "BANNER_WAIT", "HOMING_SILENCE", "STATES", "STOP_TIMEOUT", "GrblSession"]
+
 BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints its banner
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
 HOMING_SILENCE = 120.0  # s a board may stay silent while it homes (it answers no `?`)
 
-# The board's state name -> the common state (report.c `report_realtime_status`).
-STATES: dict[str, MachineState] = {
-    "Idle": MachineState.READY,
-    "Run": MachineState.RUN,
-    "Hold": MachineState.HOLD,
-    "Jog": MachineState.JOG,
-    "Home": MachineState.HOMING,
-    "Alarm": MachineState.ALARM,
-    "Check": MachineState.READY,  # check mode: lines are parsed, nothing moves
-    "Door": MachineState.INTERLOCK,
-    "Sleep": MachineState.SHUTDOWN,  # left only by a reset
-    "Tool": MachineState.HOLD,  # a tool change waits for cycle start
-}
 _REFUSED_BY_ALARM = Status.COMMAND_REJECTED_BY_ALARM
 _REFUSED_BY_SHUTDOWN = Status.COMMAND_REJECTED_BY_SHUTDOWN
 _REFUSED_BY_PANIC = Status.COMMAND_REJECTED_BY_PANIC
@@ -100,8 +94,6 @@ ADMISSION: Table = {
     CommandClass.HALT: (FORWARD, FORWARD, FORWARD),
     CommandClass.ACTION: (_REFUSED_BY_ALARM, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
 }
-_AXES = "xyzabc"
-_PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
 _GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
 _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 
@@ -135,8 +127,7 @@ class GrblSession(SessionBase):
         self._rx_used = 0  # bytes of them: never more than the board's buffer holds
         self._said: list[str] = []  # what the board printed for the line it is answering
         self._report_waiters: list[Any] = []  # clients' `?`: answered by the next report
-        self._wco: list[float] | None = None  # work coordinate offset, sent now and then
-        self._planner_free: int | None = None  # Bf: free planner blocks, when reported
+        self._reports = ReportReader()  # what reports said now and then (WCO, Bf)
         self._asked_at: float | None = None  # a `?` unanswered since then
         self._next_poll = 0.0
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
@@ -371,7 +362,7 @@ class GrblSession(SessionBase):
             self._begin_stop()
 
     def _on_report(self, report: codec.StatusReport) -> None:
-        fields = self._fields(report)
+        fields = self._reports.fields(report, self.model)
         before = self.model.state
         self.model.board_state = report.state + ("" if report.sub is None else f":{report.sub}")
         changed = self.model.apply_status(fields)
@@ -407,60 +398,18 @@ class GrblSession(SessionBase):
         line = fields.get("line")
         if isinstance(line, int) and line > 0:
             stream.executing(line)
-        if self._planner_free is not None and stream.acked:
-            used = max(self.blocks - self._planner_free, 0)
+        if self._reports.planner_free is not None and stream.acked:
+            used = max(self.blocks - self._reports.planner_free, 0)
             ran = stream.acked_line(used)
             if ran is not None and ran > 0:
                 stream.executing(ran)
 
     def _at_rest(self) -> bool:
         """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""
-        planner_empty = self._planner_free is None or self._planner_free >= self.blocks
+        planner_empty = (
+            self._reports.planner_free is None or self._reports.planner_free >= self.blocks
+        )
         return super()._at_rest() and planner_empty
-
-    def _fields(self, report: codec.StatusReport) -> dict[str, Any]:
-        """A report's fields under the common names (model.py reads them)."""
-        state = STATES.get(report.state)
-        if report.state == "Alarm" and report.sub is not None:
-            state = ALARM_STATE.get(report.sub, MachineState.ALARM)
-        elif report.state == "Alarm" and self.model.state is MachineState.SHUTDOWN:
-            state = MachineState.SHUTDOWN  # an e-stop's alarm reads "Alarm" on classic grbl
-        fields: dict[str, Any] = {} if state is None else {"stat": int(state)}
-        raw = report.fields
-        if "WCO" in raw:
-            self._wco = codec.numbers(raw["WCO"])
-        mpos = codec.numbers(raw["MPos"]) if "MPos" in raw else None
-        wpos = codec.numbers(raw["WPos"]) if "WPos" in raw else None
-        wco = self._wco
-        if mpos is not None and wco is not None and len(wco) == len(mpos):
-            wpos = [m - o for m, o in zip(mpos, wco, strict=True)]
-        elif wpos is not None and wco is not None and len(wco) == len(wpos):
-            mpos = [w + o for w, o in zip(wpos, wco, strict=True)]
-        for prefix, values in (("mpo", mpos), ("pos", wpos)):
-            for axis, value in zip(_AXES, values or (), strict=False):
-                fields[f"{prefix}{axis}"] = value
-        speeds = codec.numbers(raw.get("FS") or raw.get("F") or "")
-        if speeds:
-            fields["vel"] = speeds[0]
-        if "Ln" in raw and raw["Ln"].isdigit():
-            fields["line"] = int(raw["Ln"])
-        if "Bf" in raw and (bf := codec.numbers(raw["Bf"])):
-            self._planner_free = int(bf[0])
-        if "H" in raw:
-            fields["home"] = 1 if raw["H"].startswith("1") else 0
-        if report.state == "Hold" and report.sub is not None:
-            fields["hold"] = report.sub
-        for key in ("Ov", "A"):
-            if key in raw:
-                fields[key.lower()] = raw[key]
-        ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
-        if ov is not None and len(ov) == 3:  # sent now and then (report.c's counters)
-            self.model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
-        # Pins as keys a signal can name: pin_x .. pin_d (door), pin_p (probe), pin_e
-        # (e-stop). grbl leaves Pn out when no pin is active, so every key is always set.
-        active = raw.get("Pn", "")
-        fields |= {key: int(letter in active) for letter, key in _PINS.items()}
-        return fields
 
     def _on_state(self, state: MachineState, before: MachineState | None) -> None:
         self._job_log().info("controller state", state=state.name)
@@ -509,9 +458,10 @@ class GrblSession(SessionBase):
     def _on_feedback(self, msg: codec.Feedback) -> None:
         text = f"[{msg.kind}:{msg.text}]"
         if msg.kind == "PRB":
-            self._on_probe(msg.text)
+            report = probe_report(msg.text)
+            self._events.append(Probed(report, self.model.apply_probe(report)))
         elif msg.kind == "GC":
-            self._modes(msg.text)
+            apply_modes(self.model, msg.text)
         elif msg.kind == "OPT":
             parts = msg.text.split(",")
             if len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit():
@@ -519,34 +469,6 @@ class GrblSession(SessionBase):
         elif msg.kind == "MSG":
             self._job_log().info("controller message", msg=msg.text)
         self._said.append(text)
-
-    def _on_probe(self, text: str) -> None:
-        """`[PRB:1.000,2.000,-3.250:1]`: where the probe stopped, and whether it touched."""
-        where, _, touched = text.rpartition(":")
-        values = codec.numbers(where) or []
-        report: dict[str, Any] = {"e": 1 if touched == "1" else 0}
-        report |= {axis: v for axis, v in zip(_AXES, values, strict=False)}
-        probe = self.model.apply_probe(report)
-        self._events.append(Probed(report, probe))
-
-    def _modes(self, text: str) -> None:
-        """`[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`: the parser's modal state."""
-        modal = self.model.modal
-        for word in text.split():
-            if word in ("G20", "G21"):
-                self.model.units = "in" if word == "G20" else "mm"
-            elif word in ("G90", "G91"):
-                modal["distance"] = word
-            elif word in ("G93", "G94", "G95"):
-                modal["feed_mode"] = word
-            elif word.startswith("G5") and word[1:].replace(".", "").isdigit():
-                modal["wcs"] = word
-            elif word in ("G0", "G1", "G2", "G3", "G80") or word.startswith("G38"):
-                modal["motion"] = word
-            elif word.startswith("T") and word[1:].isdigit():
-                self.model.tool = int(word[1:])
-            elif word.startswith("F") and (feed := codec.numbers(word[1:])):
-                self.model.feed = feed[0]
 
     # -- the handshake ---------------------------------------------------------------
 

@@ -1,0 +1,112 @@
+"""grbl's reports under the common names model.py reads (g2core's: `stat`, `posx`, `mpox`, ...).
+
+The status report (report.c `report_realtime_status`: `<Idle|MPos:...|FS:...>`),
+the parser's modes (`[GC:...]`) and a probe's result (`[PRB:...]`); the
+session (session.py) applies what this makes of them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hostd.protocol.grbl import codec
+from hostd.protocol.grbl.codes import ALARM_STATE
+from hostd.protocol.model import MachineModel
+from hostd.protocol.states import MachineState
+
+# The board's state name -> the common state (report.c `report_realtime_status`).
+STATES: dict[str, MachineState] = {
+    "Idle": MachineState.READY,
+    "Run": MachineState.RUN,
+    "Hold": MachineState.HOLD,
+    "Jog": MachineState.JOG,
+    "Home": MachineState.HOMING,
+    "Alarm": MachineState.ALARM,
+    "Check": MachineState.READY,  # check mode: lines are parsed, nothing moves
+    "Door": MachineState.INTERLOCK,
+    "Sleep": MachineState.SHUTDOWN,  # left only by a reset
+    "Tool": MachineState.HOLD,  # a tool change waits for cycle start
+}
+_AXES = "xyzabc"
+_PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
+
+
+class ReportReader:
+    """Reads status reports, keeping what grbl sends only now and then (`WCO:`, `Bf:`)."""
+
+    def __init__(self) -> None:
+        self.wco: list[float] | None = None  # work coordinate offset, sent now and then
+        self.planner_free: int | None = None  # Bf: free planner blocks, when reported
+
+    def fields(self, report: codec.StatusReport, model: MachineModel) -> dict[str, Any]:
+        """A report's fields under the common names (model.py reads them)."""
+        state = STATES.get(report.state)
+        if report.state == "Alarm" and report.sub is not None:
+            state = ALARM_STATE.get(report.sub, MachineState.ALARM)
+        elif report.state == "Alarm" and model.state is MachineState.SHUTDOWN:
+            state = MachineState.SHUTDOWN  # an e-stop's alarm reads "Alarm" on classic grbl
+        fields: dict[str, Any] = {} if state is None else {"stat": int(state)}
+        raw = report.fields
+        if "WCO" in raw:
+            self.wco = codec.numbers(raw["WCO"])
+        mpos = codec.numbers(raw["MPos"]) if "MPos" in raw else None
+        wpos = codec.numbers(raw["WPos"]) if "WPos" in raw else None
+        wco = self.wco
+        if mpos is not None and wco is not None and len(wco) == len(mpos):
+            wpos = [m - o for m, o in zip(mpos, wco, strict=True)]
+        elif wpos is not None and wco is not None and len(wco) == len(wpos):
+            mpos = [w + o for w, o in zip(wpos, wco, strict=True)]
+        for prefix, values in (("mpo", mpos), ("pos", wpos)):
+            for axis, value in zip(_AXES, values or (), strict=False):
+                fields[f"{prefix}{axis}"] = value
+        speeds = codec.numbers(raw.get("FS") or raw.get("F") or "")
+        if speeds:
+            fields["vel"] = speeds[0]
+        if "Ln" in raw and raw["Ln"].isdigit():
+            fields["line"] = int(raw["Ln"])
+        if "Bf" in raw and (bf := codec.numbers(raw["Bf"])):
+            self.planner_free = int(bf[0])
+        if "H" in raw:
+            fields["home"] = 1 if raw["H"].startswith("1") else 0
+        if report.state == "Hold" and report.sub is not None:
+            fields["hold"] = report.sub
+        for key in ("Ov", "A"):
+            if key in raw:
+                fields[key.lower()] = raw[key]
+        ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
+        if ov is not None and len(ov) == 3:  # sent now and then (report.c's counters)
+            model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
+        # Pins as keys a signal can name: pin_x .. pin_d (door), pin_p (probe), pin_e
+        # (e-stop). grbl leaves Pn out when no pin is active, so every key is always set.
+        active = raw.get("Pn", "")
+        fields |= {key: int(letter in active) for letter, key in _PINS.items()}
+        return fields
+
+
+def apply_modes(model: MachineModel, text: str) -> None:
+    """`[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`: the parser's modal state."""
+    modal = model.modal
+    for word in text.split():
+        if word in ("G20", "G21"):
+            model.units = "in" if word == "G20" else "mm"
+        elif word in ("G90", "G91"):
+            modal["distance"] = word
+        elif word in ("G93", "G94", "G95"):
+            modal["feed_mode"] = word
+        elif word.startswith("G5") and word[1:].replace(".", "").isdigit():
+            modal["wcs"] = word
+        elif word in ("G0", "G1", "G2", "G3", "G80") or word.startswith("G38"):
+            modal["motion"] = word
+        elif word.startswith("T") and word[1:].isdigit():
+            model.tool = int(word[1:])
+        elif word.startswith("F") and (feed := codec.numbers(word[1:])):
+            model.feed = feed[0]
+
+
+def probe_report(text: str) -> dict[str, Any]:
+    """`[PRB:1.000,2.000,-3.250:1]`: where the probe stopped, and whether it touched."""
+    where, _, touched = text.rpartition(":")
+    values = codec.numbers(where) or []
+    report: dict[str, Any] = {"e": 1 if touched == "1" else 0}
+    report |= {axis: v for axis, v in zip(_AXES, values, strict=False)}
+    return report
