@@ -338,6 +338,24 @@ async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_i
     assert grbl.session.ready and grbl.session.quiet()
 
 
+async def test_what_reports_said_now_and_then_is_forgotten_with_the_connection() -> None:
+    """`Bf:` and `WCO:` come only in some reports: a planner full before an unplug must
+    not keep a job on the next connection from ever being at rest, hence never done."""
+    grbl = Grbl()
+    grbl.connect(report="<Run|MPos:1.000,0.000,0.000|Bf:0,128|FS:1000,0|WCO:5.000,0.000,0.000>")
+    grbl.session.close("unplugged")
+    grbl.connect()  # this board's reports carry no Bf
+    model = grbl.session.model
+    assert model.machine_position["x"] == 0.0
+    assert "x" not in model.position  # not the last connection's offset: not known yet
+    stream = moves(1)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok")
+    grbl.feed(IDLE)
+    assert stream.result.done() and stream.result.result().end is StreamEnd.COMPLETED
+
+
 @pytest.mark.parametrize(
     ("line", "why"),
     [

@@ -94,7 +94,6 @@ ADMISSION: Table = {
     CommandClass.HALT: (FORWARD, FORWARD, FORWARD),
     CommandClass.ACTION: (_REFUSED_BY_ALARM, _REFUSED_BY_SHUTDOWN, _REFUSED_BY_PANIC),
 }
-_GC_WORDS = {"G20": ("units", "in"), "G21": ("units", "mm")}
 _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 
 
@@ -260,6 +259,7 @@ class GrblSession(SessionBase):
 
     def close(self, reason: str, *, restarted: bool = False) -> None:
         self.phase = Phase.CLOSED
+        self._reports = ReportReader()  # the next connection's reports say WCO and Bf anew
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
         self._forget(NotConnected(f"link lost: {reason}"))
@@ -449,6 +449,7 @@ class GrblSession(SessionBase):
         what = "reset" if ours else "reset by itself"
         self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
+        self._reports = ReportReader()  # a reset empties the planner and clears G92
         self._job_log().info("controller reset", ours=ours)
         self.phase = Phase.HANDSHAKE
         self._resync = True
