@@ -45,10 +45,13 @@ class SessionBase:
     """The rules of behaviour.md that hold over every dialect; a dialect fills in the rest.
 
     A dialect gives: `_admit` (its command class table), `_pump` (its flow
-    control), `_query_status`, `_stop_board` (a fault's stop), `flushing`
-    and `no_data_in_flight`; and takes the board's lines, the timers and
-    the requests that differ (`receive`, `tick`, `send`, `realtime`,
-    `clear`, `reset`, `open`, `close`).
+    control), `_query_status`, `_stop_board` (a fault's stop), `_realtime`
+    (how a realtime command goes on its wire), `flushing`, `no_data_in_flight`
+    and `unanswered`; its words for jobs, jogs and settings (`encode_job_line`,
+    `jog_lines`, `settings_*`, `limit_settings`, `machine_limits`); and it
+    takes the board's lines, the timers and the requests that differ
+    (`receive`, `tick`, `next_deadline`, `send`, `clear`, `reset`, `open`,
+    `close`).
     """
 
     def __init__(self, machine_id: str, clock: Callable[[], float]) -> None:
