@@ -152,12 +152,9 @@ class Link:
     def write_lines(self, lines: list[bytes], *, control: bool = False) -> bool:
         """Whole encoded lines in one write: on the data channel, or with `control` on
         the control channel (the only one, on a one-port link)."""
-        # Each ends in its LF, and no LF is inside one: as many LFs as lines.
-        for line in lines:
-            if line[-1:] != b"\n":
-                _check_line(line)
         data = b"".join(lines)
-        if data.count(b"\n") != len(lines):
+        # Each ends in its LF and holds no other: as many LFs as lines, each at an end.
+        if data.count(b"\n") != len(lines) or any(line[-1:] != b"\n" for line in lines):
             for line in lines:
                 _check_line(line)  # raises, saying which
         channel = Channel.CONTROL if control and self.dual else Channel.DATA
