@@ -339,9 +339,7 @@ class G2Session(SessionBase):
 
     def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
         stream.acknowledged(entry.file_line)
-        current = self.stream
-        if current is not None and current.exhausted:  # the one case it can complete in
-            self._check_stream_complete()
+        self._check_stream_complete()
 
     def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
         if response.ok:
