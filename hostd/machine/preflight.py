@@ -236,9 +236,8 @@ async def recovery_for(machine: Machine, path: Path, job: Job) -> tuple[ResumePl
     Returns the plan and what is unsure about its line (`_recovery_line`);
     NotResumable when the job or the file allows no safe resume.
     """
-    limits = await _limits(machine)
-    line, about = _recovery_line(job)
-    return await _plan(machine, path, line, limits), about
+    line, about = _recovery_line(job)  # a job that cannot resume asks the board nothing
+    return await _plan(machine, path, line, await _limits(machine)), about
 
 
 async def _plan(
