@@ -339,8 +339,9 @@ async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_i
 
 
 async def test_what_reports_said_now_and_then_is_forgotten_with_the_connection() -> None:
-    """`Bf:` and `WCO:` come only in some reports: a planner full before an unplug must
-    not keep a job on the next connection from ever being at rest, hence never done."""
+    """`WCO:` comes only in some reports, `Bf:` in each while `$10` asks for it: a planner
+    full before an unplug must not keep a job on the next connection, whose board
+    prints no Bf, from ever being at rest, hence done; nor the old offset stay."""
     grbl = Grbl()
     grbl.connect(report="<Run|MPos:1.000,0.000,0.000|Bf:0,128|FS:1000,0|WCO:5.000,0.000,0.000>")
     grbl.session.close("unplugged")
@@ -353,6 +354,18 @@ async def test_what_reports_said_now_and_then_is_forgotten_with_the_connection()
     grbl.pump()
     grbl.feed("ok")
     grbl.feed(IDLE)
+    assert stream.result.done() and stream.result.result().end is StreamEnd.COMPLETED
+
+
+async def test_a_report_without_bf_says_nothing_of_the_planner() -> None:
+    """`$10` changed to leave Bf out: the last Bf read no longer holds a job back."""
+    grbl = Grbl()
+    grbl.connect(report="<Idle|MPos:0.000,0.000,0.000|Bf:0,128|FS:0,0>")
+    stream = moves(1)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok")
+    grbl.feed(IDLE)  # no Bf: the planner is not known to hold anything
     assert stream.result.done() and stream.result.result().end is StreamEnd.COMPLETED
 
 

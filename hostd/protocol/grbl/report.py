@@ -32,11 +32,13 @@ _PINS = {c: f"pin_{c.lower()}" for c in "XYZABCPDHRSE"}
 
 
 class ReportReader:
-    """Reads status reports, keeping what grbl sends only now and then (`WCO:`, `Bf:`)."""
+    """Reads status reports, keeping what grbl sends only now and then (`WCO:`)."""
 
     def __init__(self) -> None:
         self.wco: list[float] | None = None  # work coordinate offset, sent now and then
-        self.planner_free: int | None = None  # Bf: free planner blocks, when reported
+        # Bf: free planner blocks, from the last report. report.c prints Bf in every
+        # report while `$10` asks for it, so a report without it means unknown.
+        self.planner_free: int | None = None
 
     def fields(self, report: codec.StatusReport, model: MachineModel) -> dict[str, Any]:
         """A report's fields under the common names (model.py reads them)."""
@@ -64,8 +66,8 @@ class ReportReader:
             fields["vel"] = speeds[0]
         if "Ln" in raw and raw["Ln"].isdigit():
             fields["line"] = int(raw["Ln"])
-        if "Bf" in raw and (bf := codec.numbers(raw["Bf"])):
-            self.planner_free = int(bf[0])
+        bf = codec.numbers(raw["Bf"]) if "Bf" in raw else None
+        self.planner_free = int(bf[0]) if bf else None
         if "H" in raw:
             fields["home"] = 1 if raw["H"].startswith("1") else 0
         if report.state == "Hold" and report.sub is not None:

@@ -126,7 +126,7 @@ class GrblSession(SessionBase):
         self._rx_used = 0  # bytes of them: never more than the board's buffer holds
         self._said: list[str] = []  # what the board printed for the line it is answering
         self._report_waiters: list[Any] = []  # clients' `?`: answered by the next report
-        self._reports = ReportReader()  # what reports said now and then (WCO, Bf)
+        self._reports = ReportReader()  # what reports said now and then (WCO)
         self._asked_at: float | None = None  # a `?` unanswered since then
         self._next_poll = 0.0
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
@@ -259,7 +259,7 @@ class GrblSession(SessionBase):
 
     def close(self, reason: str, *, restarted: bool = False) -> None:
         self.phase = Phase.CLOSED
-        self._reports = ReportReader()  # the next connection's reports say WCO and Bf anew
+        self._reports = ReportReader()  # the next connection's reports say WCO anew
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
         self._forget(NotConnected(f"link lost: {reason}"))
@@ -449,7 +449,7 @@ class GrblSession(SessionBase):
         what = "reset" if ours else "reset by itself"
         self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
-        self._reports = ReportReader()  # a reset empties the planner and clears G92
+        self._reports = ReportReader()  # a reset clears G92: the offset is read anew
         self._job_log().info("controller reset", ours=ours)
         self.phase = Phase.HANDSHAKE
         self._resync = True
