@@ -559,7 +559,7 @@ class Api:
             file=job.file,
             line_executed=job.line_executed,
             lines_acked=job.lines_acked,
-            unsure=about + plan.unsure,
+            uncertain=about + plan.uncertain,
         )
         return result
 

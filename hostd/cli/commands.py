@@ -311,8 +311,8 @@ def resume_plan(out: Output, plan: dict[str, Any]) -> None:
     )
     out.message("restore: " + " | ".join(plan.get("preamble") or []))
     out.message("approach: " + " | ".join(plan.get("approach") or []))
-    for text in plan.get("unsure") or []:
-        out.message(f"unsure: {text}")
+    for text in plan.get("uncertain") or []:
+        out.message(f"uncertain: {text}")
 
 
 # -- analyze -------------------------------------------------------------------------

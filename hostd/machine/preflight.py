@@ -183,7 +183,7 @@ async def plan_at(
 
 def _at(plan: ResumePlan, line: int) -> ResumePlan:
     """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
-    return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.unsure)
+    return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.uncertain)
 
 
 # -- for one machine ----------------------------------------------------------

@@ -123,7 +123,7 @@ async def test_a_job_lost_to_an_unplug_is_recovered_and_ends_as_an_uninterrupted
     assert plan["line"] == executed and plan["spindle"] == "M4" and plan["speed"] == 800
     assert plan["preamble"][:3] == ["G21", "G17 G90 G91.1 G94", "G54"]  # no G64: grbl's
     assert plan["approach"][0] == "G92.1" and plan["approach"][1] == "G90 G53 G0 Z0"
-    assert any("G92" in text for text in plan["unsure"])
+    assert any("G92" in text for text in plan["uncertain"])
     resumed = await rpc.call("job.start", machine="sim1", file="laser.nc", start_line=plan["line"])
     assert resumed["preamble"] == plan["preamble"] + plan["approach"]
     done = await job_end(rpc, resumed["job"])

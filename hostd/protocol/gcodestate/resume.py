@@ -15,7 +15,7 @@ be in when that line runs. The plan's lines are, in order:
    the file had it, and the distance and motion modes put back.
 
 Every move is G90 (the file may be in G91). What the plan cannot know is said in
-`unsure`; a position it needs but cannot know is a `ResumeError`.
+`uncertain`; a position it needs but cannot know is a `ResumeError`.
 
 Positions: the model reads the file with the start unknown and every coordinate
 system's offset at zero. A position is therefore known once an absolute move
@@ -48,7 +48,7 @@ class ResumePlan:
     preamble: list[str]  # what restores the state (spindle, coolant not yet on)
     approach: list[str]  # up, across, spindle on, dwell, down
     position: dict[str, float | None]  # the work position the line starts from (file units)
-    unsure: list[str]
+    uncertain: list[str]
 
     @property
     def lines(self) -> list[str]:
@@ -69,7 +69,7 @@ class ResumePlan:
             "speed": s.speed,
             "tool": s.tool,
             "coolant": {"mist": s.mist, "flood": s.flood},
-            "unsure": self.unsure,
+            "uncertain": self.uncertain,
         }
 
 
@@ -95,13 +95,13 @@ def plan_resume(
     """The plan to resume at `line`; `safe_z` is the safe height in machine coordinates (mm)."""
     model = state_before(lines, line, dialect)
     state = model.state()
-    unsure: list[str] = []
+    uncertain: list[str] = []
     if model.line < line - 1:
         raise ResumeError(f"the file has {model.line} lines: there is no line {line}")
     if state.ended:
-        unsure.append("the program ended (M2/M30) before this line")
-    unsure += state.unrestorable()
-    unsure += [f"{text} (first at line {first})" for text, (first, _) in model.warnings.items()]
+        uncertain.append("the program ended (M2/M30) before this line")
+    uncertain += state.unrestorable()
+    uncertain += [f"{text} (first at line {first})" for text, (first, _) in model.warnings.items()]
     off = dataclasses.replace(state, spindle="M5", mist=False, flood=False)
     preamble = [_supported(text, dialect) for text in off.preamble("M6" not in dialect.unsupported)]
     preamble = [text for text in preamble if text]
@@ -137,7 +137,7 @@ def plan_resume(
         approach.append(f"G1 Z{_num(gz, 4)} F{_num(state.feed, 3)}")
     else:
         approach.append(f"G0 Z{_num(gz, 4)}")
-        unsure.append("no feed in force in G94: the tool goes down at the rapid rate")
+        uncertain.append("no feed in force in G94: the tool goes down at the rapid rate")
     if g92:
         words = " ".join(f"{a.upper()}{_num(float(work[a] or 0.0), 4)}" for a in g92 if a in work)
         approach.append(f"G92 {words}")
@@ -146,20 +146,20 @@ def plan_resume(
     if state.motion in ("G0", "G80"):
         approach.append(state.motion)
     elif state.motion in ("G2", "G3"):
-        unsure.append(
+        uncertain.append(
             f"the motion mode was {state.motion}: it is G1 after the approach, so a line "
             "that continues the arc without its own G2/G3 would be a straight move"
         )
     rotary = [a.upper() for a in ("a", "b", "c") if state.work.get(a) not in (None, 0.0)]
     if rotary:
-        unsure.append(f"rotary axes ({', '.join(rotary)}) are not moved by the approach")
-    unsure.append(
+        uncertain.append(f"rotary axes ({', '.join(rotary)}) are not moved by the approach")
+    uncertain.append(
         "the line the job stopped in is run again from its start: its first part is cut twice"
     )
     if any(v for v in g92.values()):
-        unsure.append("the G92 offset is set again from the file's positions (G92.1, then G92)")
+        uncertain.append("the G92 offset is set again from the file's positions (G92.1, then G92)")
     position = {a: work.get(a) for a in ("x", "y", "z")}
-    return ResumePlan(line, state, preamble, approach, position, unsure)
+    return ResumePlan(line, state, preamble, approach, position, uncertain)
 
 
 def _supported(text: str, dialect: Dialect) -> str:
