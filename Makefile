@@ -17,7 +17,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 	touch $@
 
 demo: $(STAMP)
-	$(BIN)/python -m hostd.demo
+	$(BIN)/python -m hostd.demo $(DEMO_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check hostd tests $(wildcard bench)

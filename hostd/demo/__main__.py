@@ -3,8 +3,11 @@
 Every step is a real command a user could type: `hostd serve` with a demo
 config (one simulated g2core on a pseudo-terminal pair), `hostd run` with
 its live progress bar, `hostd hold` and `hostd resume` a third of the way
-in, `hostd jobs` for the job's history row, then SIGTERM to the daemon.
-Exit status 0 only if every step did what it should.
+in, `hostd jobs` for the job's history row. Then the daemon and its dashboard
+stay up, with what to try next printed, until Ctrl-C (or SIGTERM); `--once`
+stops the daemon as soon as the job is done (the test of the demo uses it).
+Exit status 0 only if every step did what it should and the daemon stopped
+cleanly.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import signal
 import socket
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 from rich.console import Console
@@ -47,8 +51,15 @@ class DemoError(Exception):
 
 async def hostd(*args: str, env: dict[str, str]) -> None:
     """One CLI command, its output straight to the terminal; DemoError if it fails."""
-    proc = await asyncio.create_subprocess_exec(*HOSTD, *args, env=env)
-    if await proc.wait() != 0:
+    # Its own session: Ctrl-C is the demo's to handle, not each child's.
+    proc = await asyncio.create_subprocess_exec(*HOSTD, *args, env=env, start_new_session=True)
+    try:
+        await proc.wait()
+    except asyncio.CancelledError:  # Ctrl-C mid-step: the step goes with the demo
+        proc.terminate()
+        await proc.wait()
+        raise
+    if proc.returncode != 0:
         raise DemoError(f"hostd {' '.join(args)} exited {proc.returncode}")
 
 
@@ -78,7 +89,39 @@ async def hold_and_resume(sock: str, env: dict[str, str], console: Console) -> N
         await hostd("resume", "sim1", env=env)
 
 
-async def run(console: Console) -> int:
+async def until_stopped() -> None:
+    """Until Ctrl-C or SIGTERM reaches the demo."""
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+
+
+def next_steps(console: Console, sock: str, url: str) -> None:
+    """What a newcomer can try against the running demo, from another terminal."""
+    console.rule("the demo keeps running: try it")
+    console.print(f"dashboard:  [bold]{url}[/bold]", soft_wrap=True)
+    here = Path.cwd()
+    sample = SAMPLE.relative_to(here) if SAMPLE.is_relative_to(here) else SAMPLE
+    console.print("in another terminal, from this folder:")
+    for line in (
+        f"export HOSTD_SOCKET={sock}",
+        ".venv/bin/hostd status",
+        ".venv/bin/hostd send sim1 '{xvm:n}' 'G0 X10 Y10'",
+        f".venv/bin/hostd analyze {sample} -m sim1",
+        f".venv/bin/hostd run {sample} -m sim1",
+        ".venv/bin/hostd watch",
+    ):
+        console.print(f"  {line}", soft_wrap=True, highlight=False, markup=False)
+    console.print("Ctrl-C stops the demo (the daemon, its simulated board and the dashboard).")
+
+
+async def run(console: Console, *, once: bool = False) -> int:
     with tempfile.TemporaryDirectory(prefix="hostd-demo-") as tmp:
         sock = os.path.join(tmp, "hostd.sock")
         config = Path(tmp) / "demo.toml"
@@ -100,6 +143,7 @@ async def run(console: Console) -> int:
             "--config",
             str(config),
             env={**env, "NOTIFY_SOCKET": os.path.join(tmp, "notify")},
+            start_new_session=True,
         )
         try:
             await wait_ready(notify, daemon)
@@ -113,10 +157,17 @@ async def run(console: Console) -> int:
             await pauser
             console.print("\nthe job's history row: hostd jobs --machine sim1 --limit 1")
             await hostd("jobs", "--machine", "sim1", "--limit", "1", env=env)
-            if sys.stdin.isatty():
-                console.print(f"\nthe dashboard stays up at {url}: Ctrl-C stops the demo")
-                with contextlib.suppress(KeyboardInterrupt, asyncio.CancelledError):
-                    await daemon.wait()
+            if not once:
+                next_steps(console, sock, url)
+                stopped = asyncio.create_task(until_stopped())
+                died = asyncio.create_task(daemon.wait())
+                await asyncio.wait({stopped, died}, return_when=asyncio.FIRST_COMPLETED)
+                for task in (stopped, died):
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+                if daemon.returncode is not None:
+                    raise DemoError(f"hostd serve exited {daemon.returncode} while the demo ran")
         finally:
             if daemon.returncode is None:
                 daemon.send_signal(signal.SIGTERM)
@@ -137,10 +188,11 @@ def _free_port() -> int:
         return port
 
 
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else list(argv)
     console = Console()
     try:
-        return asyncio.run(run(console))
+        return asyncio.run(run(console, once="--once" in args))
     except (DemoError, TimeoutError, OSError) as exc:
         console.print(f"[red]demo failed[/red]: {exc or 'timed out'}")
         return 1
