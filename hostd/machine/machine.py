@@ -539,6 +539,7 @@ class Machine:
             dialect=self.config.dialect,
             supervisor=self.supervisor.state.value,
             indicator=self.faults.indicator().value,
+            lockout=self.engine.session.lockout(),
             faults=[f.to_json() for f in self.faults.active()],
             job=None if job is None else job.model_dump(mode="json"),
         )

@@ -152,6 +152,30 @@ class SessionBase:
         """0x18: the board restarts; so do the session's books."""
         raise NotImplementedError
 
+    def lockout(self) -> dict[str, str] | None:
+        """The lockout the board is in, in words an operator acts on; None outside one.
+
+        `state` is the common state's name, `message` what the board said caused it,
+        `clear` the API methods that end it, in order. A dialect whose board is
+        cleared another way says so by overriding `_lockout_exit`.
+        """
+        state = self.model.state
+        if state is None or not (state.is_lockout or state is MachineState.INTERLOCK):
+            return None
+        return {
+            "state": state.name,
+            "message": self.model.last_exception_message() or state.name.lower(),
+            "clear": self._lockout_exit(state),
+        }
+
+    def _lockout_exit(self, state: MachineState) -> str:
+        """g2core's rules (seed 000): {clear} ends ALARM and SHUTDOWN, only 0x18 a PANIC."""
+        if state is MachineState.PANIC:
+            return "machine.reset"
+        if state is MachineState.INTERLOCK:
+            return "close the interlock, then machine.cycle_start"
+        return "machine.clear"
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         """A job's line as it is written to this board; `number` its N word (the file line).
 

@@ -115,9 +115,14 @@ async def test_alarm_rejects_actions_until_clear(rpc: Rpc) -> None:
     await fails(204, rpc.call("machine.send", machine="sim1", line="G0 X1"))
     await fails(204, rpc.call("machine.jog", machine="sim1", axes={"x": 1}, feed=100))
     assert (await rpc.call("machine.send", machine="sim1", line="{xvm:n}"))["status"] == 0
+    # The snapshot says what locks the machine out and what ends it, not only the faults.
+    locked = (await rpc.call("machine.status", machine="sim1"))["lockout"]
+    assert locked["state"] == "ALARM" and locked["clear"] == "machine.clear"
+    assert locked["message"] and locked["message"] != "alarm"
     assert await rpc.call("machine.clear", machine="sim1") == {}
     snap = await rpc.call("machine.status", machine="sim1")
     assert snap["state"]["name"] == "PROGRAM_STOP"
+    assert snap["lockout"] is None
     assert snap["last_exception"]["st"] == 18
 
 

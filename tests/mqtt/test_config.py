@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import jinja2
 import pytest
 
 from hostd.api.mqtt import topics
@@ -73,9 +74,36 @@ def test_command_topics(topic: str, parsed: tuple[str, str] | None) -> None:
 def test_home_assistant_discovery_names_every_entity_once() -> None:
     found = topics.discovery("homeassistant", "hostd/shop", "laser1", "g2core")
     names = [topic for topic, _ in found]
-    assert len(set(names)) == len(names) == 5
+    assert len(set(names)) == len(names) == 6
     for topic, payload in found:
         entity = json.loads(payload)
         assert topic.startswith("homeassistant/") and topic.endswith("/config")
         assert entity["availability_topic"] == "hostd/shop/online"
         assert entity["state_topic"].startswith("hostd/shop/laser1/")
+
+
+@pytest.mark.parametrize(
+    ("snapshot", "problem", "lockout"),
+    [
+        ({"indicator": "normal", "lockout": None}, "OFF", "none"),
+        ({"indicator": "alert", "lockout": None}, "ON", "none"),
+        (
+            {
+                "indicator": "normal",
+                "lockout": {"state": "ALARM", "message": "Limit hit", "clear": "machine.clear"},
+            },
+            "ON",
+            "ALARM: Limit hit",
+        ),
+    ],
+)
+def test_home_assistant_shows_a_controller_lockout_as_a_problem(
+    snapshot: dict[str, object], problem: str, lockout: str
+) -> None:
+    """The templates rendered with Jinja2, as Home Assistant renders them."""
+    found = dict(topics.discovery("homeassistant", "hostd/shop", "laser1", "g2core"))
+    entities = {topic.split("/")[-2]: json.loads(payload) for topic, payload in found.items()}
+    seen = {"value_json": {"snapshot": snapshot}}
+    env = jinja2.Environment(undefined=jinja2.StrictUndefined)
+    assert env.from_string(entities["fault"]["value_template"]).render(seen) == problem
+    assert env.from_string(entities["lockout"]["value_template"]).render(seen) == lockout

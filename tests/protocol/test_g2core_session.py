@@ -473,3 +473,14 @@ async def test_the_executing_line_is_read_only_from_reports_that_show_motion() -
     assert stream.line_executed == 3
     wire.report(stat=5, line=1)  # never backwards
     assert stream.line_executed == 3
+
+
+async def test_the_lockout_says_what_caused_it_and_what_ends_it() -> None:
+    wire = ready()
+    assert wire.session.lockout() is None
+    wire.feed('{"er":{"fb":101.06,"st":20,"msg":"Internal error"}}')  # raises PANIC
+    assert wire.session.lockout() == {
+        "state": "PANIC",
+        "message": "Internal error",
+        "clear": "machine.reset",
+    }

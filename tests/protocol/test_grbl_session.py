@@ -442,3 +442,21 @@ async def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still
     assert stream.line_executed == 5
     grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:15,100|FS:100,0|Ln:2>")  # never backwards
     assert stream.line_executed == 6  # the planner is empty: all six answered lines ran
+
+
+async def test_the_lockout_says_what_ends_it_on_grbl() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    assert grbl.session.lockout() is None
+    grbl.feed("ALARM:9")  # homing failed: $X unlocks it
+    assert grbl.session.lockout() == {
+        "state": "ALARM",
+        "message": grbl.session.model.last_exception_message(),
+        "clear": "machine.clear",
+    }
+    assert "limit switch" in grbl.session.lockout()["message"]  # type: ignore[index]
+    grbl.feed("ALARM:1")  # a hard limit: the board reads nothing until a reset
+    assert grbl.session.lockout()["clear"] == "machine.reset, then machine.clear"  # type: ignore[index]
+    grbl.feed("ALARM:10")  # grblHAL's e-stop: SHUTDOWN
+    assert grbl.session.lockout()["state"] == "SHUTDOWN"  # type: ignore[index]
+    assert grbl.session.lockout()["clear"] == "machine.reset, then machine.clear"  # type: ignore[index]

@@ -163,3 +163,33 @@ async def test_watch_only_shows_the_machine_without_controls(
         hold = "rpc.call('machine.feedhold', {machine: 'sim1'}).catch(e => e.code)"
         assert await page.evaluate(hold) == -32601
         await screenshot(page, tmp_path, "watch-only")
+
+
+async def test_an_alarm_is_red_with_its_reason_and_is_cleared_from_the_page(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    expect = playwright.expect
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#lockout")).to_be_hidden()
+        rpc = await web.hostd.client()
+        try:
+            await rpc.call("machine.alarm", machine="sim1")
+        finally:
+            await rpc.close()
+        await expect(page.locator("#controller")).to_have_text("ALARM")
+        # Not a green "normal": the light is red and names the lockout, its reason and its way out.
+        await expect(page.locator("#indicator")).to_have_attribute("data-level", "alert")
+        await expect(page.locator("#indicator-text")).to_have_text("ALARM")
+        await expect(page.locator("#lockout")).to_be_visible()
+        await expect(page.locator("#lockout-message")).not_to_be_empty()
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Clear")
+        await expect(page.locator("[data-action=clear]")).to_have_class("needed")
+        await screenshot(page, tmp_path, "alarm")
+
+        await page.click("[data-action=clear]")  # asks first
+        await page.click("#confirm-yes")
+        await expect(page.locator("#indicator")).to_have_attribute("data-level", "normal")
+        await expect(page.locator("#lockout")).to_be_hidden()
+        await expect(page.locator("#controller")).not_to_have_text("ALARM")

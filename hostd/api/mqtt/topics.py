@@ -78,8 +78,9 @@ def discovery(
 ) -> list[tuple[str, bytes]]:
     """Retained discovery messages for one machine: (topic, payload).
 
-    The machine is one device with its state, supervisor, job state and job
-    progress as sensors and its fault indicator as a `problem` binary sensor;
+    The machine is one device with its state, supervisor, job state, job
+    progress and lockout (ALARM, SHUTDOWN, PANIC, INTERLOCK and why) as sensors,
+    and its fault indicator or a lockout as a `problem` binary sensor;
     all of them unavailable while the daemon's `online` topic says `offline`.
     """
     node = _object_id(prefix)
@@ -148,8 +149,23 @@ def discovery(
                 "name": "Fault",
                 "device_class": "problem",
                 "state_topic": status,
+                # A controller lockout is a problem too, whatever the fault table says.
                 "value_template": (
-                    "{{ 'ON' if value_json.snapshot.indicator == 'alert' else 'OFF' }}"
+                    "{{ 'ON' if value_json.snapshot.indicator == 'alert'"
+                    " or value_json.snapshot.lockout else 'OFF' }}"
+                ),
+            },
+        ),
+        (
+            "sensor",
+            "lockout",
+            {
+                "name": "Lockout",
+                "icon": "mdi:alert-octagon",
+                "state_topic": status,
+                "value_template": (
+                    "{% set l = value_json.snapshot.lockout %}"
+                    "{{ l.state ~ ': ' ~ l.message if l else 'none' }}"
                 ),
             },
         ),

@@ -684,6 +684,14 @@ class GrblSession(SessionBase):
         self._outbox.append(Queued(codec.encode("$X"), CommandClass.CLEAR, token, Context.OWN))
         return True
 
+    def _lockout_exit(self, state: MachineState) -> str:
+        """`$X` ends an ALARM, unless it was critical or is an e-stop: then a reset first."""
+        if state is MachineState.INTERLOCK:
+            return "close the door, then machine.cycle_start"
+        if state is MachineState.ALARM and self._needs_reset is None:
+            return "machine.clear"
+        return "machine.reset, then machine.clear"
+
 
 def _setting_numbers(keys: list[str]) -> None:
     """grbl's settings are numbered (`$110`): a key is the number."""

@@ -111,9 +111,22 @@ function showSnapshot(snap) {
     $(`w${axis}`).textContent = fmt(work[axis]);
     $(`m${axis}`).textContent = fmt(mach[axis]);
   }
-  const level = snap.indicator || "normal";
+  // A controller lockout (ALARM, SHUTDOWN, PANIC, INTERLOCK) outranks the fault table: the
+  // light goes red, and says why and what ends it.
+  const lockout = snap.lockout;
+  const level = lockout ? "alert" : snap.indicator || "normal";
   $("indicator").dataset.level = level;
-  $("indicator-text").textContent = level;
+  $("indicator-text").textContent = lockout ? lockout.state : level;
+  $("lockout").hidden = !lockout;
+  $("lockout-message").textContent = lockout ? lockout.message : "";
+  const buttons = { clear: "Clear", reset: "Reset", cycle_start: "Resume" };
+  $("lockout-clear").textContent = lockout
+    ? `To end it: ${lockout.clear.replace(/machine\.(\w+)/g, (_, m) => buttons[m] || m)}`
+    : "";
+  for (const action of ["clear", "reset"]) {
+    const button = document.querySelector(`[data-action=${action}]`);
+    if (button) button.classList.toggle("needed", Boolean(lockout && lockout.clear.includes(`machine.${action}`)));
+  }
   const faults = $("faults");
   faults.replaceChildren(...(snap.faults || []).map((fault) => {
     const li = document.createElement("li");
