@@ -219,7 +219,9 @@ def test_faults_of_a_healthy_machine_is_an_empty_list(idle: Daemon) -> None:
 
 
 def test_hold_stops_a_move_and_resume_finishes_it(idle: Daemon) -> None:
-    assert idle.cli("send", MACHINE, "G90 G1 X60 F300").returncode == 0  # ~1.2 s here
+    # ~2.4 s here: long enough that the hold's own process start (most of a second on a
+    # loaded machine) cannot outlast the move.
+    assert idle.cli("send", MACHINE, "G90 G1 X60 F150").returncode == 0
 
     held = idle.cli("hold", MACHINE)
     assert held.returncode == 0, held.stderr
@@ -228,7 +230,9 @@ def test_hold_stops_a_move_and_resume_finishes_it(idle: Daemon) -> None:
 
     resumed = idle.cli("resume", MACHINE)
     assert resumed.returncode == 0, resumed.stderr
-    idle.wait_machine(lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 60)
+    idle.wait_machine(
+        lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 60, timeout=30
+    )
 
 
 def test_clear_outside_an_alarm_does_nothing(idle: Daemon) -> None:
