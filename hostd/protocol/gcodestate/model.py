@@ -92,9 +92,12 @@ class ProgramError(Exception):
     """
 
     def __init__(self, line: int, message: str) -> None:
-        super().__init__(f"line {line}: {message}")
+        super().__init__(line, message)  # both in args: it is pickled back from a worker
         self.line = line
         self.message = message
+
+    def __str__(self) -> str:
+        return f"line {self.line}: {self.message}"
 
 
 def _code(letter: str, number: str) -> str:
