@@ -24,6 +24,7 @@ daemon's threads and loop) and are killed when the daemon stops (`close`).
 from __future__ import annotations
 
 import asyncio
+import importlib
 import multiprocessing
 import os
 import resource
@@ -44,12 +45,18 @@ DEFAULT_TIMEOUT = 120.0  # seconds per file: a million lines take about 10 s
 DEFAULT_MEMORY = 1 << 30  # bytes of address space per worker
 DEFAULT_WORKERS = 1  # files analysed at once; more wait their turn
 NICE = 10
+START_TIMEOUT = 60.0  # seconds for a new worker to start (not counted in a file's limit)
 
 
 class AnalysisLimit(MachineError):
     """A file's analysis went past the time or memory allowed for it."""
 
     code = 1013
+
+
+def _ready(module: str) -> None:
+    """Run on a new worker first: its start-up and imports are not counted in a file's time."""
+    importlib.import_module(module)
 
 
 def _limit(memory: int) -> None:
@@ -88,7 +95,7 @@ class WorkerPool:
         async with self._slots:
             if self._closed:
                 raise AnalysisLimit(f"{what}: the daemon is stopping")
-            executor = self._idle.pop() if self._idle else self._start()
+            executor = self._idle.pop() if self._idle else await self._start(fn.__module__)
             done = False
             try:
                 future = executor.submit(fn, *args)
@@ -116,7 +123,8 @@ class WorkerPool:
                 else:
                     self._kill(executor)
 
-    def _start(self) -> ProcessPoolExecutor:
+    async def _start(self, module: str) -> ProcessPoolExecutor:
+        """A new worker, started and ready (its imports done)."""
         executor = ProcessPoolExecutor(
             max_workers=1,
             mp_context=multiprocessing.get_context("forkserver"),
@@ -124,6 +132,13 @@ class WorkerPool:
             initargs=(self.memory,),
         )
         self._all.add(executor)
+        try:
+            await asyncio.wait_for(
+                asyncio.wrap_future(executor.submit(_ready, module)), START_TIMEOUT
+            )
+        except BaseException:
+            self._kill(executor)
+            raise
         return executor
 
     def _kill(self, executor: ProcessPoolExecutor) -> None:
