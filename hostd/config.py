@@ -53,7 +53,7 @@ class DaemonConfig(_Strict):
     # Reading a whole G-code file (file.analyze, job.recovery, job.start's checks) runs
     # on worker processes (hostd/machine/workers.py), each file within these limits:
     # seconds, and bytes of address space per worker (docs/gcode.md). Past one: 1013.
-    analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 120.0
+    analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 600.0
     analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
 
 

@@ -41,7 +41,9 @@ log = structlog.get_logger(__name__)
 
 T = TypeVar("T")
 
-DEFAULT_TIMEOUT = 120.0  # seconds per file: a million lines take about 10 s
+# Seconds per file: a million lines take 25 s on an idle two-core machine, and the
+# workers run niced, so several times that on a busy one.
+DEFAULT_TIMEOUT = 600.0
 DEFAULT_MEMORY = 1 << 30  # bytes of address space per worker
 DEFAULT_WORKERS = 1  # files analysed at once; more wait their turn
 NICE = 10
@@ -133,9 +135,10 @@ class WorkerPool:
         )
         self._all.add(executor)
         try:
-            await asyncio.wait_for(
-                asyncio.wrap_future(executor.submit(_ready, module)), START_TIMEOUT
-            )
+            # The first submit starts the process, and waits for the forkserver to fork
+            # it (to start the forkserver too, the first time): in a thread, not the loop.
+            ready = await asyncio.to_thread(executor.submit, _ready, module)
+            await asyncio.wait_for(asyncio.wrap_future(ready), START_TIMEOUT)
         except BaseException:
             self._kill(executor)
             raise
