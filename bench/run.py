@@ -25,6 +25,12 @@
   latency on the first while the other seven stream.
 - P7 MQTT: P1's rate and P2's `!` without `[mqtt]`, with the bridge on a
   mosquitto started for the run, and with that broker stopped.
+- P8 analysis: `file.analyze` of a 1,000,000-line file (CAM moves, arcs, and
+  the line that froze the daemon for 27 s in issue 24) on one connection; its
+  wall time, the peak memory of the daemon and of its analysis worker, and
+  `daemon.info` latency on another connection, asked every 10 ms while the
+  analysis runs; baseline: the same for 3 s before it. Target (issue 24):
+  every `daemon.info` answered within 50 ms.
 
 Targets: P1 >= 0.8x raw, P5 <= 0.10 s and P6's `!` p99 < 2 ms are issue
 15's; the `!` p99 < 1 ms of P2 and P2f is issue 11's.
@@ -49,6 +55,7 @@ import argparse
 import contextlib
 import json
 import os
+import select
 import shutil
 import socket
 import statistics
@@ -62,7 +69,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import profile as spy
-from bench.client import DaemonProcess, program
+from bench.client import Client, DaemonProcess, program
 from bench.procs import ControllerProcess, Flooder, SubscriberFleet
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost
 
@@ -88,6 +95,7 @@ class Settings:
     fanout_rate: float = 50.0  # status reports a second
     memory_small: int = 10_000
     memory_large: int = 1_000_000
+    analysis_lines: int = 1_000_000
 
     @classmethod
     def quick(cls) -> Settings:
@@ -97,6 +105,7 @@ class Settings:
             hold_samples=100,
             fanout_reports=100,
             memory_large=200_000,
+            analysis_lines=200_000,
         )
 
 
@@ -702,6 +711,60 @@ class Bench:
                 client.close()
         return max(before, streaming), streaming, rate
 
+    # P8 ---------------------------------------------------------------------------
+
+    def analysis(self) -> None:
+        n = self.s.analysis_lines
+        with self._daemon("p8") as (daemon, _controller):
+            # Written in place, as a file copied into the jobs directory: the upload of
+            # 30 MB is P4's business, not this figure's.
+            (daemon.workdir / "state" / "jobs" / "p8.gcode").write_text(_analysis_program(n))
+            analyst = Client(daemon.socket, timeout=3600)
+            asker = daemon.client()
+            try:
+                asker.call("daemon.info")
+                baseline: list[float] = []  # the same questions with nothing else running
+                until = time.monotonic() + 3.0
+                while time.monotonic() < until:
+                    asked = time.monotonic()
+                    asker.call("daemon.info")
+                    baseline.append(time.monotonic() - asked)
+                    time.sleep(0.01)
+                before = daemon.status_kb("VmHWM")
+                msg_id, request = analyst.request("file.analyze", file="p8.gcode")
+                latencies: list[float] = []
+                start = time.monotonic()
+                analyst.send(request)
+                while not select.select([analyst.sock], [], [], 0.01)[0]:
+                    asked = time.monotonic()
+                    asker.call("daemon.info")
+                    latencies.append(time.monotonic() - asked)
+                result = analyst.answer(msg_id)
+                wall = time.monotonic() - start
+                worker = max((_hwm_kb(pid) for pid in _descendants(daemon.pid)), default=0)
+                after = daemon.status_kb("VmHWM")
+            finally:
+                analyst.close()
+                asker.close()
+        p99 = pct(latencies, 99)
+        self.rows.append(
+            Row(
+                f"P8 analysis of {n:,} lines: daemon.info while it runs",
+                f"p99 {p99 * 1000:.2f} ms",
+                f"p99 {pct(baseline, 99) * 1000:.2f} ms idle",
+                f"max {max(latencies) * 1000:.2f} vs {max(baseline) * 1000:.2f} ms idle",
+                "< 50 ms",
+                max(latencies) < 0.050,
+                [
+                    f"wall {wall:.1f} s ({result['lines'] / wall:,.0f} lines/s) on the worker; "
+                    f"worker peak RSS {worker / 1024:.1f} MiB; daemon VmHWM "
+                    f"{before / 1024:.1f} -> {after / 1024:.1f} MiB; "
+                    f"{len(result['warnings'])} warning kinds; {len(latencies)} asked while "
+                    f"it ran, {len(baseline)} before it (baseline)"
+                ],
+            )
+        )
+
     # --- running it all ------------------------------------------------------------
 
     def run(self, only: set[str] | None = None) -> None:
@@ -731,6 +794,47 @@ class Bench:
         if wanted("p7"):
             _progress("p7...")
             self.mqtt()
+        if wanted("p8"):
+            _progress("p8...")
+            self.analysis()
+
+
+def _analysis_program(lines: int) -> str:
+    """P8's file: CAM moves and arcs, with issue 24's hostile line every 1,000 lines."""
+    hostile = "X111" * 16 + "#"
+    out = ["G21 G90 G17 G94", "T1 M6", "S12000 M3", "G0 X0 Y0 Z5", "G1 Z-1 F300"]
+    for i in range(lines - len(out)):
+        if i % 1000 == 999:
+            out.append(hostile)
+        elif i % 10 == 0:
+            out.append(f"G2 X{i % 300}.5 Y{i % 200}.5 I0.25 J0.25 F800")
+        else:
+            out.append(f"G1 X{i % 300}.{i % 997:03d} Y{(i * 7) % 200}.5 F800")
+    return "\n".join(out) + "\n"
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process under `pid` (the forkserver and the workers it forked)."""
+    parents: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                parents.setdefault(ppid, []).append(int(entry.name))
+    out, todo = [], [pid]
+    while todo:
+        for child in parents.get(todo.pop(), []):
+            out.append(child)
+            todo.append(child)
+    return out
+
+
+def _hwm_kb(pid: int) -> int:
+    with contextlib.suppress(OSError):
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    return 0
 
 
 def _free_port() -> int:
@@ -769,7 +873,7 @@ def main(argv: list[str] | None = None) -> int:
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
     parser.add_argument(
-        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6,p7 (p5 comes with p1)"
+        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6,p7,p8 (p5 comes with p1)"
     )
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(

@@ -50,6 +50,11 @@ class DaemonConfig(_Strict):
     # The event loop the daemon runs on: uvloop, or asyncio's own (docs/performance.md
     # has the figures behind the default; the test suite runs on the default).
     event_loop: Literal["asyncio", "uvloop"] = "uvloop"
+    # Reading a whole G-code file (file.analyze, job.recovery, job.start's checks) runs
+    # on worker processes (hostd/machine/workers.py), each file within these limits:
+    # seconds, and bytes of address space per worker (docs/gcode.md). Past one: 1013.
+    analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 600.0
+    analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
 
 
 class MachineConfig(_Strict):

@@ -18,6 +18,7 @@ import structlog
 from hostd.config import Config, MachineConfig
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
+from hostd.machine.workers import WorkerPool
 from hostd.sim import SimConfig, SimController
 from hostd.sim.grbl import GrblConfig, GrblSimController
 
@@ -40,6 +41,10 @@ class Daemon:
             str, SimController | GrblSimController
         ] = {}  # the simulated boards, by machine id
         self._stop = asyncio.Event()
+        # Whole-file reading, off this interpreter; its workers start on first use.
+        self.workers = WorkerPool(
+            timeout=config.daemon.analysis_timeout, memory=config.daemon.analysis_memory
+        )
 
     def machine(self, machine_id: str) -> Machine | None:
         return self.machines.get(machine_id)
@@ -68,6 +73,7 @@ class Daemon:
                 for task in tasks:
                     task.cancel()
         finally:
+            self.workers.close()
             for sim in self.sims.values():
                 with contextlib.suppress(Exception):
                     await sim.close()

@@ -523,7 +523,7 @@ class Api:
         machine = self._machine(p.machine)
         path = await self._resolve(p.file)
         preamble = await prepare_start(
-            machine, path, p.start_line, restore=p.restore, force=p.force
+            machine, path, p.start_line, restore=p.restore, force=p.force, pool=self.daemon.workers
         )
         job = await machine.start_make(p.file, p.start_line, preamble)
         return {"job": job.id, "preamble": preamble}
@@ -538,20 +538,21 @@ class Api:
     async def file_analyze(self, p: FileAnalyzeParams) -> dict[str, Any]:
         path = await self._resolve(p.file)
         machine = None if p.machine is None else self._machine(p.machine)
-        return (await analyze_for(machine, path)).to_json()
+        return (await analyze_for(machine, path, pool=self.daemon.workers)).to_json()
 
     async def job_recovery(self, p: JobRecoveryParams) -> dict[str, Any]:
         if p.job is None:
             assert p.machine is not None and p.file is not None and p.line is not None
             machine = self._machine(p.machine)
             path = await self._resolve(p.file)
-            plan = await plan_for(machine, path, p.line)
+            plan = await plan_for(machine, path, p.line, pool=self.daemon.workers)
             return {**plan.to_json(), "machine": p.machine, "file": p.file}
         job = await (await self._store()).get(p.job)
         if job is None:
             raise RpcError(1004, f"no job {p.job}")
         machine = self._machine(job.machine)
-        plan, about = await recovery_for(machine, self.jobs.path / (job.file or ""), job)
+        path = self.jobs.path / (job.file or "")
+        plan, about = await recovery_for(machine, path, job, pool=self.daemon.workers)
         result = plan.to_json()
         result.update(
             job=job.id,

@@ -3,7 +3,10 @@
 The G-code rules are in `hostd.protocol.gcodestate` (the model, the analysis, the
 resume plan) and the dialect's settings in its session (`limit_settings`,
 `machine_limits`); this module reads the file off the event loop and puts them
-together for one machine. The functions that take a `Machine` (`analyze_for`,
+together for one machine. Reading a file runs on the daemon's worker processes
+(`workers.WorkerPool`), never in the daemon's interpreter: a hostile or huge
+file costs a worker its time and memory limit, and the event loop nothing.
+The functions that take a `Machine` (`analyze_for`,
 `prepare_start`, `plan_for`, `recovery_for`) read what they need of it
 themselves: its board's limits (none when the board cannot say), its work
 offset, safe height and dwell.
@@ -12,8 +15,8 @@ offset, safe height and dwell.
 from __future__ import annotations
 
 import asyncio
-import functools
 import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,9 +25,11 @@ import structlog
 
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
+from hostd.machine.workers import WorkerPool
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
+from hostd.protocol.gcodestate.model import ProgramError
 from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
@@ -45,6 +50,22 @@ class NotResumable(MachineError):
     """No safe resume: the job, the file or the position does not allow one."""
 
     code = 1011
+
+
+class BadProgram(MachineError):
+    """A line of the file no board may run as written (a number that does not fit)."""
+
+    code = 1012
+
+    @classmethod
+    def of(cls, path: Path, error: ProgramError) -> BadProgram:
+        return cls(f"{path.name}, {error}", {"line": error.line, "reason": error.message})
+
+
+# Analyses kept, by the file's digest, dialect and speeds (each is a few kilobytes:
+# the model bounds its warnings and tools).
+ANALYSES_KEPT = 16
+_analyses: OrderedDict[tuple[object, ...], Analysis] = OrderedDict()
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,17 +116,38 @@ async def analyze_file(
     dialect: str,
     limits: MachineLimits | None = None,
     offset: dict[str, float] | None = None,
+    *,
+    pool: WorkerPool,
 ) -> Preflight:
-    """The file's figures, its estimate with the machine's speeds, and its travel check."""
+    """The file's figures, its estimate with the machine's speeds, and its travel check.
 
-    def run() -> Analysis:
+    Kept while the file holds the same bytes: running one program on workpiece
+    after workpiece analyses it once (hashing a file costs about a hundredth of
+    analysing it, and releases the GIL); a file uploaded again with other bytes
+    is analysed afresh. BadProgram for a line no board may run; AnalysisLimit
+    past the worker's limits.
+    """
+
+    def digest() -> bytes:
         with path.open("rb") as f:
-            fingerprint = hashlib.file_digest(f, "blake2b").digest()
-        velocity = tuple(sorted(limits.velocity.items())) if limits else ()
-        acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()
-        return _analysis(path, fingerprint, dialect, velocity, acceleration)
+            return hashlib.file_digest(f, "blake2b").digest()
 
-    analysis = await asyncio.to_thread(run)
+    velocity = tuple(sorted(limits.velocity.items())) if limits else ()
+    acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()
+    key = (path, await asyncio.to_thread(digest), dialect, velocity, acceleration)
+    analysis = _analyses.get(key)
+    if analysis is None:
+        try:
+            analysis = await pool.run(
+                f"analysing {path.name}", _analysis, path, dialect, velocity, acceleration
+            )
+        except ProgramError as exc:
+            raise BadProgram.of(path, exc) from None
+        _analyses[key] = analysis
+        while len(_analyses) > ANALYSES_KEPT:
+            _analyses.popitem(last=False)
+    else:
+        _analyses.move_to_end(key)
     beyond: list[str] = []
     checked = limits is not None and bool(limits.travel) and bool(offset)
     if limits is not None and offset:
@@ -113,21 +155,13 @@ async def analyze_file(
     return Preflight(analysis, limits, beyond, checked)
 
 
-@functools.lru_cache(maxsize=16)
 def _analysis(
     path: Path,
-    fingerprint: bytes,
     dialect: str,
     velocity: tuple[tuple[str, float], ...],
     acceleration: tuple[tuple[str, float], ...],
 ) -> Analysis:
-    """A file's analysis, kept while the file holds the same bytes (`fingerprint`).
-
-    Running one program on workpiece after workpiece analyses it once (hashing
-    a file costs about a hundredth of analysing it); a file uploaded again with
-    other bytes is analysed afresh.
-    """
-    del fingerprint  # part of the key only
+    """A file's analysis: run on a worker process."""
     with path.open(encoding="utf-8", errors="replace") as f:
         return analyze(
             f,
@@ -160,25 +194,32 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
 
 
 async def plan_at(
-    path: Path, line: int, dialect: str, *, safe_z: float | None, dwell: float
+    path: Path, line: int, dialect: str, *, safe_z: float | None, dwell: float, pool: WorkerPool
 ) -> ResumePlan:
     """The plan to resume the file at `line` (or the first line to send after it)."""
-
-    def run() -> ResumePlan:
-        with path.open(encoding="utf-8", errors="replace") as f:
-            plan = plan_resume(f, line, DIALECTS[dialect], safe_z=safe_z, dwell=dwell)
-        with path.open(encoding="utf-8", errors="replace") as f:
-            first = next(program_lines(f, line), None)
-        if first is None:
-            raise ResumeError(f"nothing to run at or after line {line}")
-        return plan if first[0] == line else _at(plan, first[0])
-
     try:
-        return await asyncio.to_thread(run)
+        return await pool.run(
+            f"planning a resume of {path.name}", _plan_file, path, line, dialect, safe_z, dwell
+        )
     except ResumeError as exc:
         raise NotResumable(str(exc)) from None
+    except ProgramError as exc:
+        raise BadProgram.of(path, exc) from None
     except FileNotFoundError:
         raise NotResumable(f"the file {path.name!r} is gone") from None
+
+
+def _plan_file(
+    path: Path, line: int, dialect: str, safe_z: float | None, dwell: float
+) -> ResumePlan:
+    """`plan_at`'s work, on a worker process."""
+    with path.open(encoding="utf-8", errors="replace") as f:
+        plan = plan_resume(f, line, DIALECTS[dialect], safe_z=safe_z, dwell=dwell)
+    with path.open(encoding="utf-8", errors="replace") as f:
+        first = next(program_lines(f, line), None)
+    if first is None:
+        raise ResumeError(f"nothing to run at or after line {line}")
+    return plan if first[0] == line else _at(plan, first[0])
 
 
 def _at(plan: ResumePlan, line: int) -> ResumePlan:
@@ -189,17 +230,23 @@ def _at(plan: ResumePlan, line: int) -> ResumePlan:
 # -- for one machine ----------------------------------------------------------
 
 
-async def analyze_for(machine: Machine | None, path: Path) -> Preflight:
+async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) -> Preflight:
     """`path` against `machine`: its dialect, speeds and travel; without one, g2core's rules."""
     if machine is None:
-        return await analyze_file(path, "g2core")
+        return await analyze_file(path, "g2core", pool=pool)
     limits = await _limits(machine)
     offset = work_offset(machine.snapshot())
-    return await analyze_file(path, machine.config.dialect, limits, offset)
+    return await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
 
 
 async def prepare_start(
-    machine: Machine, path: Path, start_line: int, *, restore: bool, force: bool
+    machine: Machine,
+    path: Path,
+    start_line: int,
+    *,
+    restore: bool,
+    force: bool,
+    pool: WorkerPool,
 ) -> list[str] | None:
     """What a make job of `path` from `start_line` needs before it starts: the preamble.
 
@@ -214,34 +261,36 @@ async def prepare_start(
     if not force and limits is not None and limits.travel and offset:
         # Only a check that can run is worth reading the file for: the travel
         # is known and so is the work offset (the machine is homed).
-        check = await analyze_file(path, machine.config.dialect, limits, offset)
+        check = await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
         if check.beyond:
             raise OutOfTravel(
                 f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
                 {"beyond_travel": check.beyond, "force": "true runs it anyway"},
             )
     if start_line > 1 and restore:
-        return (await _plan(machine, path, start_line, limits)).lines
+        return (await _plan(machine, path, start_line, limits, pool)).lines
     return None
 
 
-async def plan_for(machine: Machine, path: Path, line: int) -> ResumePlan:
+async def plan_for(machine: Machine, path: Path, line: int, *, pool: WorkerPool) -> ResumePlan:
     """The plan `prepare_start` would send to resume `path` at `line` on `machine`."""
-    return await _plan(machine, path, line, await _limits(machine))
+    return await _plan(machine, path, line, await _limits(machine), pool)
 
 
-async def recovery_for(machine: Machine, path: Path, job: Job) -> tuple[ResumePlan, list[str]]:
+async def recovery_for(
+    machine: Machine, path: Path, job: Job, *, pool: WorkerPool
+) -> tuple[ResumePlan, list[str]]:
     """Where `job` should resume on `machine`, and the plan that gets there safely.
 
     Returns the plan and what is unsure about its line (`_recovery_line`);
     NotResumable when the job or the file allows no safe resume.
     """
     line, about = _recovery_line(job)  # a job that cannot resume asks the board nothing
-    return await _plan(machine, path, line, await _limits(machine)), about
+    return await _plan(machine, path, line, await _limits(machine), pool), about
 
 
 async def _plan(
-    machine: Machine, path: Path, line: int, limits: MachineLimits | None
+    machine: Machine, path: Path, line: int, limits: MachineLimits | None, pool: WorkerPool
 ) -> ResumePlan:
     """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
     return await plan_at(
@@ -250,6 +299,7 @@ async def _plan(
         machine.config.dialect,
         safe_z=machine.safe_height(limits),
         dwell=machine.config.spindle_dwell,
+        pool=pool,
     )
 
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 
+from hostd.protocol.gcodewords import strip_comments
 from hostd.protocol.numbers import format_distance, format_feed
 from hostd.protocol.refusals import InvalidCommand, Refusal
 
@@ -40,8 +41,8 @@ INTEGER_DIGITS = 9
 # backtracking finds nothing more, and the match takes half the time.
 _PLAIN = re.compile(r"(?:[A-DF-Za-df-z][ \t]*+(?:[-+]?+[0-9]{0,9}+(?:\.[0-9]*+)?+)?+[ \t]*+)++")
 _ACTIVE_COMMENT = re.compile(r"\((?:\{|msg)", re.IGNORECASE)
-# The board: `(` to `)` is a comment; `;` or `%` ends the line; `*` starts a checksum.
-_COMMENT = re.compile(r"\([^)]*\)?")
+# The board: `(` to `)` is a comment (gcodewords.strip_comments); `;` or `%` ends the
+# line; `*` starts a checksum. Every pattern here is linear: no two ways to match a text.
 _LINE_END = re.compile(r"[;%*]")
 _EXPONENT = re.compile(r"[0-9.][eE][-+.0-9]")
 _RUN_TOGETHER = re.compile(r"[0-9.][ \t]+[0-9.]")
@@ -116,7 +117,7 @@ def jog_words(axes: Mapping[str, float], feed: float) -> str:
 
 def _code_part(text: str) -> str:
     """The line without its comments, up to where the board stops reading words."""
-    code = _COMMENT.sub(" ", text)
+    code, _ = strip_comments(text)
     end = _LINE_END.search(code)
     return code if end is None else code[: end.start()]
 

@@ -13,10 +13,11 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Iterator
 
-# `( ... )` comments (not nested, as in RS274NGC) and `;` to the end of line.
-_COMMENT = re.compile(r"\([^)]*\)?|;.*")
-# A line's own N word (RS274/NGC: first on the line), replaced by the host's.
-_N_WORD = re.compile(r"[nN][ \t]*[0-9]+[ \t]*")
+from hostd.protocol.gcodewords import strip_comments
+
+# A line's own N word (RS274/NGC: first on the line), replaced by the host's. Possessive:
+# linear, as every G-code pattern (gcodewords.py).
+_N_WORD = re.compile(r"[nN][ \t]*+[0-9]++[ \t]*+")
 # The highest N that every dialect takes: grbl's MAX_LINE_NUMBER (gcode.h), 10,000,000;
 # g2core's MAX_LINENUM is 2,000,000,000.
 MAX_LINE_NUMBER = 10_000_000
@@ -24,8 +25,8 @@ MAX_LINE_NUMBER = 10_000_000
 
 def strip_line(text: str) -> str:
     """The part of one program line that goes to the board ("" for none)."""
-    if "(" in text or ";" in text:
-        text = _COMMENT.sub("", text)
+    # `( ... )` comments (not nested, as in RS274NGC) and `;` to the end of line.
+    text, _ = strip_comments(text, "")
     text = text.strip()
     if text.startswith("%"):
         return ""

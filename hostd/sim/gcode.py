@@ -17,16 +17,15 @@ the parameters P I J K R. Any other G code answers 131, any other M code 132.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
+from hostd.protocol.gcodewords import read_words
 from hostd.protocol.status import Status
 from hostd.sim.config import AXES
 
 MM_PER_INCH = 25.4
 
-_WORD = re.compile(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))")
 _SUPPORTED_G = frozenset(
     {0, 1, 2, 3, 4, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 49, 53}
     | {54, 55, 56, 57, 58, 59}
@@ -425,14 +424,10 @@ class _Refused(Exception):
 
 
 def _words(text: str) -> list[tuple[str, float]] | Status:
-    words: list[tuple[str, float]] = []
-    pos = 0
-    while pos < len(text):
-        m = _WORD.match(text, pos)
-        if m is None:
-            if text[pos].isalpha():
-                return Status.BAD_NUMBER_FORMAT
-            return Status.GCODE_GENERIC_INPUT_ERROR
-        words.append((m.group(1), float(m.group(2))))
-        pos = m.end()
-    return words
+    """The words of a normalized line (the shared tokenizer), or the status it answers."""
+    words, end = read_words(text)
+    if end < len(text):
+        if text[end].isalpha():
+            return Status.BAD_NUMBER_FORMAT
+        return Status.GCODE_GENERIC_INPUT_ERROR
+    return [(letter, float(number)) for letter, number in words]

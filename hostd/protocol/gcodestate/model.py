@@ -22,20 +22,23 @@ whatever it can read.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Iterable, Mapping
 
 from hostd.protocol.gcodestate.dialects import G2CORE, Dialect
 from hostd.protocol.gcodestate.state import AXES, MM_PER_INCH, WCS, ModalState
+from hostd.protocol.gcodewords import (
+    INTEGER_DIGITS,
+    not_a_number,
+    read_words,
+    strip_comments,
+    too_long,
+)
 
 NAN = math.nan
 DEFAULT_RAPID = 5000.0  # mm/min: a rapid's speed when the machine's is not known
 _AXIS = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
 _LINEAR = 3  # axes below this index are lengths; A B C are degrees, never scaled
 _PARAMS = frozenset("DEFHIJKLPQRS")
-_WORD = re.compile(r"([A-Z])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))")
-_LINE = re.compile(r"(?:[ \t]*[A-Z][ \t]*[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))*[ \t]*")
-_COMMENT = re.compile(r"\([^)]*\)|;.*")
 # Plane -> (first axis, second axis, helix axis, the two offset letters), LinuxCNC's order.
 _PLANES = {"G17": (0, 1, 2, "I", "J"), "G18": (2, 0, 1, "K", "I"), "G19": (1, 2, 0, "J", "K")}
 _WCS_INDEX = {name: i for i, name in enumerate(WCS)}
@@ -71,7 +74,30 @@ _M_KNOWN = frozenset(
     {"M0", "M1", "M2", "M3", "M4", "M5", "M6", "M7", "M8", "M9", "M30", "M60", "M61"}
     | {"M48", "M49", "M50", "M51", "M52", "M53"}
 )
+# Memory bounds: a file of a million lines each spelling a G code its own way
+# (`G1.000001`, `G1.000002`...) or naming its own tool must not grow the analysis.
+CODE_CACHE_SIZE = 4096  # spellings of codes kept (`G01` -> `G1`); a real file uses dozens
+MAX_WARNINGS = 100  # distinct warning texts; the rest are counted under one
+MAX_TOOLS = 1000  # distinct T numbers listed
 _CODE_CACHE: dict[tuple[str, str], str] = {}
+MORE_WARNINGS = f"more warnings of other kinds: only the first {MAX_WARNINGS} are listed"
+
+
+class ProgramError(Exception):
+    """A line no board may run as the file wrote it: the analysis stops and says where.
+
+    `line` is the file's line number (1-based). Today: a number with more integer
+    digits than a board reads (it wraps past 2**31; Python reads 400 nines as
+    infinity, which a preamble would have sent as `Finf`), or one spelled `inf`/`nan`.
+    """
+
+    def __init__(self, line: int, message: str) -> None:
+        super().__init__(line, message)  # both in args: it is pickled back from a worker
+        self.line = line
+        self.message = message
+
+    def __str__(self) -> str:
+        return f"line {self.line}: {self.message}"
 
 
 def _code(letter: str, number: str) -> str:
@@ -80,6 +106,8 @@ def _code(letter: str, number: str) -> str:
     code = _CODE_CACHE.get(key)
     if code is None:
         code = f"{letter}{float(number):g}"
+        if len(_CODE_CACHE) >= CODE_CACHE_SIZE:
+            _CODE_CACHE.clear()  # bounded: a hostile file only costs the cache its hits
         _CODE_CACHE[key] = code
     return code
 
@@ -173,10 +201,9 @@ class GcodeModel:
         """Read one line of the file (its number is the count of lines read)."""
         self.line += 1
         if "(" in text or ";" in text:
-            text = _COMMENT.sub(" ", text)
-            if "(" in text:
+            text, unclosed = strip_comments(text)
+            if unclosed:
                 self.warn("an unclosed comment: the rest of the line is ignored")
-                text = text[: text.index("(")]
         text = text.strip()
         if not text:
             return
@@ -188,13 +215,28 @@ class GcodeModel:
                 return
             text = text[1:]
         text = text.upper()
-        if _LINE.fullmatch(text) is None:
-            self._unreadable(text)
+        words, end = read_words(text)
+        if end != len(text):
+            self._unreadable(text, end)
             return
+        wide = too_long(words, text)
+        if wide is not None:
+            letter, number = wide
+            shown = number if len(number) <= 16 else f"{number[:12]}...({len(number)} characters)"
+            raise ProgramError(
+                self.line,
+                f"the number of {letter}{shown} has more than {INTEGER_DIGITS} integer digits: "
+                "no board reads it (they wrap past 2,147,483,647)",
+            )
         self.blocks += 1
-        self._block(_WORD.findall(text))
+        self._block(words)
 
-    def _unreadable(self, text: str) -> None:
+    def _unreadable(self, text: str, at: int) -> None:
+        if not_a_number(text, at):
+            raise ProgramError(
+                self.line,
+                f"{text[at : at + 8]!r}: a number spelled inf or nan, which no board reads",
+            )
         if text[0] == "O":
             self.warn("O-word subroutines and loops are not modelled")
         elif "#" in text or "[" in text:
@@ -204,6 +246,9 @@ class GcodeModel:
 
     def warn(self, text: str) -> None:
         seen = self.warnings.get(text)
+        if seen is None and len(self.warnings) >= MAX_WARNINGS:
+            text = MORE_WARNINGS
+            seen = self.warnings.get(text)
         self.warnings[text] = (self.line, 1) if seen is None else (seen[0], seen[1] + 1)
 
     # --- one block, in RS274/NGC's order of execution ---------------------------------
@@ -295,7 +340,8 @@ class GcodeModel:
         t = params.get("T")
         if t is not None:
             self.selected_tool = int(t)
-            self.tools.add(int(t))
+            if len(self.tools) < MAX_TOOLS:
+                self.tools.add(int(t))
 
     def _mcodes_before(self, mcodes: list[str], params: dict[str, float]) -> None:
         for m in mcodes:

@@ -20,6 +20,7 @@ from enum import Enum
 
 from hostd.protocol.classes import CommandClass
 from hostd.protocol.commands import InvalidCommand, Refusal
+from hostd.protocol.gcodewords import strip_comments
 
 # Line-mode bytes of grbl.h: `?`, `~`, `!` (legacy, printable) and the 0x8x ones.
 STATUS = b"?"
@@ -203,7 +204,6 @@ def numbers(text: str) -> list[float] | None:
 
 # -- what the host writes --------------------------------------------------------
 
-_COMMENT = re.compile(r"\([^)]*\)|;.*")
 _PICKED_OUT = re.compile(r"[?!~]")
 _VIEWS = frozenset({"$", "$$", "$#", "$G", "$I", "$N", "$HELP", "$ES", "$ESH", "$EA", "$EAH"})
 _CLEARS = frozenset({"$X", "$H"})
@@ -237,7 +237,9 @@ def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
     InvalidCommand if it holds a byte grbl does not read as part of a line,
     or would not fit the board's receive buffer with its LF.
     """
-    code = _COMMENT.sub("", text).strip()
+    # Flat comments, as protocol.c drops them (an unclosed one to the end of the line),
+    # read in linear time: `re.sub(r"\([^)]*\)|;.*")` took quadratic time on "((((".
+    code = strip_comments(text, "")[0].strip()
     if not code.isascii() or any(c < " " or c == "\x7f" for c in code):
         raise InvalidCommand(Refusal.NOT_TEXT, "only printable ASCII reaches a grbl board")
     if _PICKED_OUT.search(code):

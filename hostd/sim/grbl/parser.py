@@ -17,16 +17,15 @@ timing (hostd/sim/gcode.py, motion.py).
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
+from hostd.protocol.gcodewords import read_words
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Arc, Move
 from hostd.sim.grbl.codes import Error
 
 MM_PER_INCH = 25.4
-_WORD = re.compile(r"([A-Z])([-+]?(?:\d+\.?\d*|\.\d+))")
 _PLANES: dict[int, tuple[str, str, str, str]] = {
     17: ("x", "y", "I", "J"),
     18: ("z", "x", "K", "I"),
@@ -151,17 +150,13 @@ def normalize(line: str) -> str:
 
 
 def _words(text: str) -> list[tuple[str, float]] | Error:
-    words: list[tuple[str, float]] = []
-    pos = 0
-    while pos < len(text):
-        if not text[pos].isalpha():
+    """The words of a normalized line (the shared tokenizer), or the error it answers."""
+    words, end = read_words(text)
+    if end < len(text):
+        if not text[end].isalpha():
             return Error.EXPECTED_COMMAND_LETTER
-        m = _WORD.match(text, pos)
-        if m is None:
-            return Error.BAD_NUMBER_FORMAT
-        words.append((m.group(1), float(m.group(2))))
-        pos = m.end()
-    return words
+        return Error.BAD_NUMBER_FORMAT
+    return [(letter, float(number)) for letter, number in words]
 
 
 class _Refused(Exception):

@@ -1,0 +1,161 @@
+"""Whole-file work (analysis, resume planning) off the daemon's interpreter.
+
+Reading a G-code file is pure Python and holds the GIL while it runs: in a
+thread, a long or hostile file would still starve the event loop, and with
+it every `daemon.info`, every feedhold. So it runs in worker processes, each
+its own interpreter, and the loop only awaits a future.
+
+Each worker is a `ProcessPoolExecutor` of one process, so that one stuck or
+swollen worker can be killed without failing the others' work:
+
+- time: past `timeout` seconds the worker is killed and replaced, and the
+  request is answered `AnalysisLimit` (1013);
+- memory: the worker's address space is capped (`RLIMIT_AS`, set in its
+  initializer); a file that needs more raises MemoryError there, or the
+  worker dies, and the request is answered `AnalysisLimit`; the worker is
+  replaced either way;
+- the workers run at a lower priority (`nice` 10): on a two-core machine the
+  daemon's own loop goes first.
+
+Workers start on first use (the forkserver method: never a fork of the
+daemon's threads and loop) and are killed when the daemon stops (`close`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import multiprocessing
+import os
+import resource
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
+
+import structlog
+
+from hostd.protocol.errors import MachineError
+
+log = structlog.get_logger(__name__)
+
+T = TypeVar("T")
+
+# Seconds per file: a million lines take 25 s on an idle two-core machine, and the
+# workers run niced, so several times that on a busy one.
+DEFAULT_TIMEOUT = 600.0
+DEFAULT_MEMORY = 1 << 30  # bytes of address space per worker
+DEFAULT_WORKERS = 1  # files analysed at once; more wait their turn
+NICE = 10
+START_TIMEOUT = 60.0  # seconds for a new worker to start (not counted in a file's limit)
+
+
+class AnalysisLimit(MachineError):
+    """A file's analysis went past the time or memory allowed for it."""
+
+    code = 1013
+
+
+def _ready(module: str) -> None:
+    """Run on a new worker first: its start-up and imports are not counted in a file's time."""
+    importlib.import_module(module)
+
+
+def _limit(memory: int) -> None:
+    """Worker initializer: cap the address space, and yield the CPU to the daemon."""
+    if memory > 0:
+        resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
+    os.nice(NICE)
+
+
+class WorkerPool:
+    """Run a picklable function on worker processes, with a time and memory limit each."""
+
+    def __init__(
+        self,
+        workers: int = DEFAULT_WORKERS,
+        *,
+        timeout: float = DEFAULT_TIMEOUT,
+        memory: int = DEFAULT_MEMORY,
+    ) -> None:
+        self.workers = workers
+        self.timeout = timeout
+        self.memory = memory
+        self._idle: list[ProcessPoolExecutor] = []
+        self._all: set[ProcessPoolExecutor] = set()
+        self._slots: asyncio.Semaphore | None = None
+        self._closed = False
+
+    async def run(self, what: str, fn: Callable[..., T], *args: Any) -> T:
+        """`fn(*args)` on a worker; AnalysisLimit past the limits. `what` names it to the user.
+
+        Exceptions `fn` raises come back as they are (pickled). Cancelled, the
+        worker is killed: nobody waits for its answer any more.
+        """
+        if self._slots is None:
+            self._slots = asyncio.Semaphore(self.workers)
+        async with self._slots:
+            if self._closed:
+                raise AnalysisLimit(f"{what}: the daemon is stopping")
+            executor = self._idle.pop() if self._idle else await self._start(fn.__module__)
+            done = False
+            try:
+                future = executor.submit(fn, *args)
+                result: T = await asyncio.wait_for(asyncio.wrap_future(future), self.timeout)
+                done = True
+                return result
+            except TimeoutError:
+                log.warning("analysis over its time limit: worker killed", what=what)
+                raise AnalysisLimit(
+                    f"{what} took longer than {self.timeout:g} s, the limit for one file",
+                    {"limit": "time", "seconds": self.timeout},
+                ) from None
+            except (MemoryError, BrokenProcessPool):
+                log.warning("analysis over its memory limit: worker replaced", what=what)
+                raise AnalysisLimit(
+                    f"{what} needed more than {self.memory >> 20} MiB, the limit for one file",
+                    {"limit": "memory", "bytes": self.memory},
+                ) from None
+            except Exception:
+                done = True  # the function's own error: the worker is fine
+                raise
+            finally:
+                if done and not self._closed:
+                    self._idle.append(executor)
+                else:
+                    self._kill(executor)
+
+    async def _start(self, module: str) -> ProcessPoolExecutor:
+        """A new worker, started and ready (its imports done)."""
+        executor = ProcessPoolExecutor(
+            max_workers=1,
+            mp_context=multiprocessing.get_context("forkserver"),
+            initializer=_limit,
+            initargs=(self.memory,),
+        )
+        self._all.add(executor)
+        try:
+            # The first submit starts the process, and waits for the forkserver to fork
+            # it (to start the forkserver too, the first time): in a thread, not the loop.
+            ready = await asyncio.to_thread(executor.submit, _ready, module)
+            await asyncio.wait_for(asyncio.wrap_future(ready), START_TIMEOUT)
+        except BaseException:
+            self._kill(executor)
+            raise
+        return executor
+
+    def _kill(self, executor: ProcessPoolExecutor) -> None:
+        """Stop a worker now, whatever it is doing."""
+        self._all.discard(executor)
+        processes = getattr(executor, "_processes", None) or {}
+        for process in list(processes.values()):
+            if process.is_alive():
+                process.kill()
+        executor.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        """Kill every worker (the daemon stops); later calls are refused."""
+        self._closed = True
+        self._idle.clear()
+        for executor in list(self._all):
+            self._kill(executor)
