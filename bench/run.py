@@ -25,7 +25,7 @@
   latency on the first while the other seven stream.
 - P7 MQTT: P1's rate and P2's `!` without `[mqtt]`, with the bridge on a
   mosquitto started for the run, and with that broker stopped.
-- P8 analysis: `file.analyze` of a 1,000,000-line file (CAM moves, arcs, and
+- P9 analysis: `file.analyze` of a 1,000,000-line file (CAM moves, arcs, and
   the line that froze the daemon for 27 s in issue 24) on one connection; its
   wall time, the peak memory of the daemon and of its analysis worker, and
   `daemon.info` latency on another connection, asked every 10 ms while the
@@ -711,14 +711,14 @@ class Bench:
                 client.close()
         return max(before, streaming), streaming, rate
 
-    # P8 ---------------------------------------------------------------------------
+    # P9 ---------------------------------------------------------------------------
 
     def analysis(self) -> None:
         n = self.s.analysis_lines
-        with self._daemon("p8") as (daemon, _controller):
+        with self._daemon("p9") as (daemon, _controller):
             # Written in place, as a file copied into the jobs directory: the upload of
             # 30 MB is P4's business, not this figure's.
-            (daemon.workdir / "state" / "jobs" / "p8.gcode").write_text(_analysis_program(n))
+            (daemon.workdir / "state" / "jobs" / "p9.gcode").write_text(_analysis_program(n))
             analyst = Client(daemon.socket, timeout=3600)
             asker = daemon.client()
             try:
@@ -731,7 +731,7 @@ class Bench:
                     baseline.append(time.monotonic() - asked)
                     time.sleep(0.01)
                 before = daemon.status_kb("VmHWM")
-                msg_id, request = analyst.request("file.analyze", file="p8.gcode")
+                msg_id, request = analyst.request("file.analyze", file="p9.gcode")
                 latencies: list[float] = []
                 start = time.monotonic()
                 analyst.send(request)
@@ -749,7 +749,7 @@ class Bench:
         p99 = pct(latencies, 99)
         self.rows.append(
             Row(
-                f"P8 analysis of {n:,} lines: daemon.info while it runs",
+                f"P9 analysis of {n:,} lines: daemon.info while it runs",
                 f"p99 {p99 * 1000:.2f} ms",
                 f"p99 {pct(baseline, 99) * 1000:.2f} ms idle",
                 f"max {max(latencies) * 1000:.2f} vs {max(baseline) * 1000:.2f} ms idle",
@@ -794,13 +794,13 @@ class Bench:
         if wanted("p7"):
             _progress("p7...")
             self.mqtt()
-        if wanted("p8"):
-            _progress("p8...")
+        if wanted("p9"):
+            _progress("p9...")
             self.analysis()
 
 
 def _analysis_program(lines: int) -> str:
-    """P8's file: CAM moves and arcs, with issue 24's hostile line every 1,000 lines."""
+    """P9's file: CAM moves and arcs, with issue 24's hostile line every 1,000 lines."""
     hostile = "X111" * 16 + "#"
     out = ["G21 G90 G17 G94", "T1 M6", "S12000 M3", "G0 X0 Y0 Z5", "G1 Z-1 F300"]
     for i in range(lines - len(out)):
@@ -873,7 +873,7 @@ def main(argv: list[str] | None = None) -> int:
         help="also sample the daemon with py-spy (found on PATH unless given)",
     )
     parser.add_argument(
-        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6,p7,p8 (p5 comes with p1)"
+        "--only", help="comma-separated subset: p1,p2,p2f,p3,p4,p6,p7,p9 (p5 comes with p1)"
     )
     parser.add_argument("--keep", action="store_true", help="keep the work directory")
     parser.add_argument(
