@@ -230,9 +230,7 @@ def test_hold_stops_a_move_and_resume_finishes_it(idle: Daemon) -> None:
 
     resumed = idle.cli("resume", MACHINE)
     assert resumed.returncode == 0, resumed.stderr
-    idle.wait_machine(
-        lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 60, timeout=30
-    )
+    idle.wait_machine(lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 60, timeout=30)
 
 
 def test_clear_outside_an_alarm_does_nothing(idle: Daemon) -> None:
