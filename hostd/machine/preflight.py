@@ -36,9 +36,9 @@ RESUMABLE = ("interrupted", "failed", "cancelled")
 
 
 class OutOfTravel(MachineError):
-    """The program's moves leave the machine's travel (`force` to run it anyway)."""
+    """The program's moves leave the machine's travel (`force` to run it anyway): api.md's 1008."""
 
-    code = 1010
+    code = 1008
 
 
 class NotResumable(MachineError):

@@ -241,7 +241,7 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     assert report["travel_checked"] and report["beyond_travel"][0].startswith("X runs")
     with pytest.raises(RpcFailure) as refused:
         await rpc.call("job.start", machine="sim1", file="wide.nc")
-    assert refused.value.code == 1010 and "travel" in refused.value.message
+    assert refused.value.code == 1008 and "travel" in refused.value.message
     assert refused.value.data["beyond_travel"] == report["beyond_travel"]
     await rpc.call("subscribe", topics=["job"], machine="sim1")
 
@@ -254,7 +254,7 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     await rpc.call("file.upload", name="wide.nc", data="G21 G90\nG1 X350 F6000\nG1 X0\n")
     with pytest.raises(RpcFailure) as again:
         await rpc.call("job.start", machine="sim1", file="wide.nc")
-    assert again.value.code == 1010
+    assert again.value.code == 1008
 
     forced = await rpc.call("job.start", machine="sim1", file="wide.nc", force=True)
     assert (await job_end(rpc, forced["job"]))["state"] in ("completed", "failed")
