@@ -8,12 +8,15 @@ machine is 1001, a missing job or file 1004.
 The additions to api.md, documented in docs/api.md: `file.upload` takes
 `final`, `upload` and `offset` (chunks stay in their own staging until the
 final one, a retry is idempotent), so a half-uploaded or mixed program is
-never started; a full disk or the jobs quota is error 1009.
+never started; a full disk or the jobs quota is error 1009. api.md's own
+chunks (`append: true` alone) continue what the same connection published
+(appends.py).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -26,9 +29,10 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hostd import __version__
+from hostd.api.appends import Appends, Chain
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
 from hostd.api.rpc import Methods, RpcError, encode_notification
-from hostd.api.server import current_client
+from hostd.api.server import Client, current_client
 from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
 from hostd.daemon import Daemon
 from hostd.machine.events import (
@@ -303,6 +307,7 @@ class Api:
             clock=clock,
         )
         self.subscriptions = Subscriptions(self._console_interest)
+        self.appends = Appends()
 
     def _console_interest(self) -> None:
         """Engines publish their raw traffic only while someone listens to it."""
@@ -465,6 +470,20 @@ class Api:
     # -- files ---------------------------------------------------------------
 
     async def file_upload(self, p: UploadParams) -> dict[str, Any]:
+        chain = self._chain()
+        async with chain.lock if chain is not None else contextlib.nullcontext():
+            return await self._upload(p, chain)
+
+    def _chain(self) -> Chain | None:
+        """The calling connection's uploads (appends.py); None without a connection (MQTT)."""
+        try:
+            client: Client = current_client()
+        except LookupError:
+            return None
+        return self.appends.of(client)
+
+    async def _upload(self, p: UploadParams, chain: Chain | None) -> dict[str, Any]:
+        by_name = p.append and p.upload is None and p.offset is None  # api.md's own chunks
         try:
             data = decode(p.data, p.encoding)
             done = await asyncio.to_thread(
@@ -475,6 +494,8 @@ class Api:
                 final=p.final,
                 upload_id=p.upload,
                 offset=p.offset,
+                by_name=by_name,
+                after=chain.last(p.name) if by_name and chain is not None else None,
             )
         except InvalidData as exc:
             raise RpcError(-32602, str(exc)) from None
@@ -485,6 +506,8 @@ class Api:
         except StorageError as exc:
             log.warning("upload refused", file=p.name, reason=exc.reason, error=exc.message)
             raise RpcError(STORAGE, exc.message, {"reason": exc.reason}) from None
+        if chain is not None and done.version is not None:
+            chain.published(done.name, done.version)
         result: dict[str, Any] = {"name": done.name, "size": done.size}
         if done.upload is not None:
             result["upload"] = done.upload
