@@ -29,6 +29,7 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hostd import __version__
+from hostd.api import openrpc
 from hostd.api.appends import Appends, Chain
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
 from hostd.api.rpc import Methods, RpcError, encode_notification
@@ -308,6 +309,8 @@ class Api:
         )
         self.subscriptions = Subscriptions(self._console_interest)
         self.appends = Appends()
+        self.methods: Methods | None = None  # the table build_methods made, for rpc.discover
+        self._discovered: dict[str, Any] | None = None
 
     def _console_interest(self) -> None:
         """Engines publish their raw traffic only while someone listens to it."""
@@ -373,6 +376,13 @@ class Api:
         return store
 
     # -- daemon and machines ---------------------------------------------
+
+    async def rpc_discover(self) -> dict[str, Any]:
+        """This API as an OpenRPC document, made from the method table (hostd/api/openrpc.py)."""
+        if self._discovered is None:
+            assert self.methods is not None, "build_methods has not run"
+            self._discovered = openrpc.document(self.methods, version=__version__, api=API_VERSION)
+        return self._discovered
 
     async def daemon_info(self) -> dict[str, Any]:
         return {"version": __version__, "api": API_VERSION, "machines": list(self.daemon.machines)}
@@ -658,6 +668,7 @@ def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:
 def build_methods(api: Api) -> Methods:
     """The api.md method table, name by name."""
     m = Methods()
+    m.register("rpc.discover", None, api.rpc_discover)
     m.register("daemon.info", None, api.daemon_info)
     m.register("machine.list", None, api.machine_list)
     m.register("machine.status", MachineParams, api.machine_status)
@@ -694,4 +705,5 @@ def build_methods(api: Api) -> Methods:
     m.register("fault.clear", FaultParams, api.fault_clear)
     m.register("subscribe", SubscribeParams, api.subscribe_client)
     m.register("unsubscribe", UnsubscribeParams, api.unsubscribe)
+    api.methods = m
     return m
