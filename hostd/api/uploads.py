@@ -437,8 +437,8 @@ def _check_continues(name: str, source: int | None, size: int, after: Version | 
     if after is None:
         raise ChunkError(
             f"`append` without `offset` continues the file this connection last uploaded"
-            f" as {name!r}, and it uploaded none (a new connection, or the daemon restarted"
-            f" since): {how}",
+            f" as {name!r}, and it uploaded none (a new connection, the daemon restarted"
+            f" since, or a request without a connection, as over MQTT): {how}",
             size,
         )
     if source is None:

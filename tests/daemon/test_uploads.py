@@ -15,6 +15,8 @@ from typing import Any
 import pytest
 
 from hostd.api.appends import Chain
+from hostd.api.methods import UploadParams
+from hostd.api.rpc import RpcError
 from hostd.api.server import Client
 from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
 
@@ -325,3 +327,15 @@ async def test_an_abandoned_upload_expires_and_its_id_is_then_unknown(
         assert "expired (60 s without a chunk)" in gone.message
         assert await rpc.call("file.list") == []
         await rpc.close()
+
+
+async def test_api_md_chunks_without_a_connection_are_refused(hostd: Running) -> None:
+    """A request no connection made (an MQTT command) has no upload of its own to continue."""
+    api = hostd.api
+    await api.file_upload(UploadParams(name="m.gcode", data="G0 X1\n"))
+
+    with pytest.raises(RpcError) as refused:
+        await api.file_upload(UploadParams(name="m.gcode", data="G0 X2\n", append=True))
+
+    assert refused.value.code == -32602 and "without a connection" in refused.value.message
+    assert (hostd.jobs / "m.gcode").read_bytes() == b"G0 X1\n"
