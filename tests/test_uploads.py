@@ -91,6 +91,19 @@ def test_an_append_by_name_continues_only_the_version_its_client_published(
     assert staged(jobs) == {}
 
 
+def test_an_append_by_name_tells_a_reused_inode_from_its_own_file(jobs: JobsDir) -> None:
+    """A file system may give a freed inode to the next file: the write time tells them apart."""
+    first = jobs.upload("a.gcode", b"G0 X1\n").version
+    assert first is not None
+    dev, ino, size, written = first
+    other_file_same_inode = (dev, ino, size, written - 1)
+
+    with pytest.raises(ChunkError, match="replaced by another upload"):
+        jobs.upload("a.gcode", b"G0 X2\n", append=True, by_name=True, after=other_file_same_inode)
+
+    assert (jobs.path / "a.gcode").read_bytes() == b"G0 X1\n"
+
+
 def test_an_append_by_name_without_a_version_of_its_own_is_refused(jobs: JobsDir) -> None:
     jobs.upload("a.gcode", b"old\n")
     jobs.upload("a.gcode", b"G0 X1\n", final=False)  # another upload, still open

@@ -77,9 +77,10 @@ class StorageError(Exception):
         self.message = message
 
 
-# A published file as one upload left it: (st_dev, st_ino, size). Each publish is a
-# rename of a new staging file, so another upload's version has another inode.
-Version = tuple[int, int, int]
+# A published file as one upload left it: (st_dev, st_ino, st_size, st_mtime_ns). Each
+# publish renames a new staging file: another upload's version is another inode, and
+# should the file system reuse a freed inode, it is written at another nanosecond.
+Version = tuple[int, int, int, int]
 
 
 @dataclass(frozen=True, slots=True)
@@ -253,6 +254,7 @@ class Uploads:
         if offset is None:
             raise ChunkError(f"a chunk of upload {upload_id} needs `offset` ({up.size})", up.size)
         fd = self._reopen(staging, upload_id, up)
+        written = 0  # the staging file's mtime once flushed, for the version published
         try:
             end = offset + len(data)
             if offset == up.size:
@@ -277,6 +279,7 @@ class Uploads:
                 except OSError as exc:  # what reached the disk is unknown: never publish it
                     self._discard(staging, upload_id)
                     raise _storage(exc, "cannot flush the upload", "it is discarded") from None
+                written = os.fstat(fd).st_mtime_ns  # a rename keeps it
         finally:
             os.close(fd)
         if not final:
@@ -287,7 +290,7 @@ class Uploads:
             raise _storage(exc, f"cannot publish {name!r}", "the file was not published") from None
         del self._open[upload_id]
         digest = hashlib.sha256(data).digest()
-        version = (*up.inode, up.size)
+        version = (*up.inode, up.size, written)
         chunk = (offset, len(data), digest)
         self._done[upload_id] = _Done(name, up.size, chunk, self._clock(), version)
         try:
@@ -444,7 +447,7 @@ def _check_continues(name: str, source: int | None, size: int, after: Version | 
     if source is None:
         raise ChunkError(f"{name!r} was deleted since this connection uploaded it: {how}", 0)
     st = os.fstat(source)
-    if (st.st_dev, st.st_ino, st.st_size) != after:
+    if (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns) != after:
         raise ChunkError(
             f"{name!r} was replaced by another upload since this connection uploaded it: {how}",
             size,
