@@ -8,7 +8,7 @@ call the file holds every chunk in order. What makes that safe here
 - The calls of one connection run one after another, in the order they
   arrived, even when the client pipelines them (`lock`): its chunks can
   never overtake each other.
-- Each connection remembers the version (inode and size) of each file it
+- Each connection remembers the version (inode, size, write time) of each file it
   last published. An append without `offset` continues that version, and
   only while it is still the one published; another client's upload of the
   same name, a delete, a daemon restart (a new connection remembers
