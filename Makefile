@@ -55,6 +55,12 @@ clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
 
 # Performance figures beside their baselines (bench/run.py); BENCH_ARGS=--quick to try things.
+# docs/openrpc.json: the API's OpenRPC document, as `rpc.discover` serves it (made from the
+# method table: hostd/api/openrpc.py). A test fails while the file is not up to date.
+.PHONY: openrpc
+openrpc: $(STAMP)
+	$(BIN)/python -m hostd.api.openrpc docs/openrpc.json
+
 .PHONY: bench soak
 bench: $(STAMP)
 	$(BIN)/python -m bench $(BENCH_ARGS)

@@ -72,18 +72,62 @@ def test_upload_ids_are_random_and_each_has_its_own_staging(jobs: JobsDir) -> No
     assert set(staged(jobs)) == ids
 
 
-def test_the_old_chunking_without_an_upload_id_is_refused_and_publishes_nothing(
+def test_an_append_by_name_continues_only_the_version_its_client_published(
     jobs: JobsDir,
 ) -> None:
-    """`append: true` without `upload` once meant "the next chunk of the name"."""
-    jobs.upload("a.gcode", b"old\n")
-    jobs.upload("a.gcode", b"G0 X1\n", final=False)  # an old client ignores the id
+    """api.md's chunks: `append: true` alone continues what that connection published."""
+    first = jobs.upload("a.gcode", b"G0 X1\n")
+    assert first.version is not None
 
+    second = jobs.upload("a.gcode", b"G0 X2\n", append=True, by_name=True, after=first.version)
+
+    assert (second.size, second.upload) == (12, None)
+    assert (jobs.path / "a.gcode").read_bytes() == b"G0 X1\nG0 X2\n"
+    assert second.version is not None and second.version[1] != first.version[1]  # a new file
+    with pytest.raises(ChunkError, match="replaced by another upload") as stale:
+        jobs.upload("a.gcode", b"G0 X3\n", append=True, by_name=True, after=first.version)
+    assert stale.value.expected == 12
+    assert (jobs.path / "a.gcode").read_bytes() == b"G0 X1\nG0 X2\n"
+    assert staged(jobs) == {}
+
+
+def test_an_append_by_name_tells_a_reused_inode_from_its_own_file(jobs: JobsDir) -> None:
+    """A file system may give a freed inode to the next file: the write time tells them apart."""
+    first = jobs.upload("a.gcode", b"G0 X1\n").version
+    assert first is not None
+    dev, ino, size, written = first
+    other_file_same_inode = (dev, ino, size, written - 1)
+
+    with pytest.raises(ChunkError, match="replaced by another upload"):
+        jobs.upload("a.gcode", b"G0 X2\n", append=True, by_name=True, after=other_file_same_inode)
+
+    assert (jobs.path / "a.gcode").read_bytes() == b"G0 X1\n"
+
+
+def test_an_append_by_name_without_a_version_of_its_own_is_refused(jobs: JobsDir) -> None:
+    jobs.upload("a.gcode", b"old\n")
+    jobs.upload("a.gcode", b"G0 X1\n", final=False)  # another upload, still open
+
+    with pytest.raises(ChunkError, match="it uploaded none") as refused:
+        jobs.upload("a.gcode", b"G0 X2\n", append=True, by_name=True)
+
+    assert refused.value.expected == 4 and "give `offset` 4" in str(refused.value)
+    assert (jobs.path / "a.gcode").read_bytes() == b"old\n"
+    gone = jobs.upload("b.gcode", b"G0\n").version
+    jobs.delete("b.gcode")
+    with pytest.raises(ChunkError, match="was deleted"):
+        jobs.upload("b.gcode", b"G1\n", append=True, by_name=True, after=gone)
+    assert not (jobs.path / "b.gcode").exists()
+
+
+def test_an_append_without_an_offset_by_a_caller_that_keeps_no_versions_is_refused(
+    jobs: JobsDir,
+) -> None:
+    """JobsDir itself does not guess: `append` alone, not by name, still needs `offset`."""
+    jobs.upload("a.gcode", b"old\n")
     with pytest.raises(ChunkError, match="needs offset 4") as refused:
         jobs.upload("a.gcode", b"G0 X2\n", append=True)
-
     assert refused.value.expected == 4
-    assert (jobs.path / "a.gcode").read_bytes() == b"old\n"
 
 
 def test_append_to_a_published_file_names_its_size(jobs: JobsDir) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from hostd.api.uploads import DEFAULT_EXPIRY, Uploaded, Uploads
+from hostd.api.uploads import DEFAULT_EXPIRY, Uploaded, Uploads, Version
 
 MAX_NAME = 200  # file systems stop at 255
 
@@ -105,10 +105,19 @@ class JobsDir:
         final: bool = True,
         upload_id: str | None = None,
         offset: int | None = None,
+        by_name: bool = False,
+        after: Version | None = None,
     ) -> Uploaded:
         """Start, continue or finish an upload of `name` (`Uploads.put`)."""
         return self.uploads.put(
-            check_name(name), data, append=append, final=final, upload_id=upload_id, offset=offset
+            check_name(name),
+            data,
+            append=append,
+            final=final,
+            upload_id=upload_id,
+            offset=offset,
+            by_name=by_name,
+            after=after,
         )
 
     def entries(self) -> list[FileInfo]:

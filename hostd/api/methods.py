@@ -8,12 +8,15 @@ machine is 1001, a missing job or file 1004.
 The additions to api.md, documented in docs/api.md: `file.upload` takes
 `final`, `upload` and `offset` (chunks stay in their own staging until the
 final one, a retry is idempotent), so a half-uploaded or mixed program is
-never started; a full disk or the jobs quota is error 1009.
+never started; a full disk or the jobs quota is error 1009. api.md's own
+chunks (`append: true` alone) continue what the same connection published
+(appends.py).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -26,9 +29,11 @@ import structlog
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hostd import __version__
+from hostd.api import openrpc
+from hostd.api.appends import Appends, Chain
 from hostd.api.files import InvalidData, JobsDir, NoSuchFileError, check_name, decode
 from hostd.api.rpc import Methods, RpcError, encode_notification
-from hostd.api.server import current_client
+from hostd.api.server import Client, current_client
 from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
 from hostd.daemon import Daemon
 from hostd.machine.events import (
@@ -303,6 +308,9 @@ class Api:
             clock=clock,
         )
         self.subscriptions = Subscriptions(self._console_interest)
+        self.appends = Appends()
+        self.methods: Methods | None = None  # the table build_methods made, for rpc.discover
+        self._discovered: dict[str, Any] | None = None
 
     def _console_interest(self) -> None:
         """Engines publish their raw traffic only while someone listens to it."""
@@ -368,6 +376,13 @@ class Api:
         return store
 
     # -- daemon and machines ---------------------------------------------
+
+    async def rpc_discover(self) -> dict[str, Any]:
+        """This API as an OpenRPC document, made from the method table (hostd/api/openrpc.py)."""
+        if self._discovered is None:
+            assert self.methods is not None, "build_methods has not run"
+            self._discovered = openrpc.document(self.methods, version=__version__, api=API_VERSION)
+        return self._discovered
 
     async def daemon_info(self) -> dict[str, Any]:
         return {"version": __version__, "api": API_VERSION, "machines": list(self.daemon.machines)}
@@ -465,6 +480,20 @@ class Api:
     # -- files ---------------------------------------------------------------
 
     async def file_upload(self, p: UploadParams) -> dict[str, Any]:
+        chain = self._chain()
+        async with chain.lock if chain is not None else contextlib.nullcontext():
+            return await self._upload(p, chain)
+
+    def _chain(self) -> Chain | None:
+        """The calling connection's uploads (appends.py); None without a connection (MQTT)."""
+        try:
+            client: Client = current_client()
+        except LookupError:
+            return None
+        return self.appends.of(client)
+
+    async def _upload(self, p: UploadParams, chain: Chain | None) -> dict[str, Any]:
+        by_name = p.append and p.upload is None and p.offset is None  # api.md's own chunks
         try:
             data = decode(p.data, p.encoding)
             done = await asyncio.to_thread(
@@ -475,6 +504,8 @@ class Api:
                 final=p.final,
                 upload_id=p.upload,
                 offset=p.offset,
+                by_name=by_name,
+                after=chain.last(p.name) if by_name and chain is not None else None,
             )
         except InvalidData as exc:
             raise RpcError(-32602, str(exc)) from None
@@ -485,6 +516,8 @@ class Api:
         except StorageError as exc:
             log.warning("upload refused", file=p.name, reason=exc.reason, error=exc.message)
             raise RpcError(STORAGE, exc.message, {"reason": exc.reason}) from None
+        if chain is not None and done.version is not None:
+            chain.published(done.name, done.version)
         result: dict[str, Any] = {"name": done.name, "size": done.size}
         if done.upload is not None:
             result["upload"] = done.upload
@@ -636,6 +669,7 @@ def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:
 def build_methods(api: Api) -> Methods:
     """The api.md method table, name by name."""
     m = Methods()
+    m.register("rpc.discover", None, api.rpc_discover)
     m.register("daemon.info", None, api.daemon_info)
     m.register("machine.list", None, api.machine_list)
     m.register("machine.status", MachineParams, api.machine_status)
@@ -672,4 +706,5 @@ def build_methods(api: Api) -> Methods:
     m.register("fault.clear", FaultParams, api.fault_clear)
     m.register("subscribe", SubscribeParams, api.subscribe_client)
     m.register("unsubscribe", UnsubscribeParams, api.unsubscribe)
+    api.methods = m
     return m

@@ -19,6 +19,12 @@ break a tool or start a fire. So (docs/api.md has the contract):
   disk is unknown).
 - Ids live in memory only: after a restart they are unknown and the
   start-up `clean` removes their staging, so a restart publishes nothing.
+- api.md's own chunking, `append: true` with neither `upload` nor `offset`,
+  continues the version of the file its connection last published
+  (`after`, kept per connection by appends.py): a copy of it with the chunk
+  is published whole, in one rename, and only while that version is still
+  the one published. Another client's file, one deleted, or one from before
+  a restart is never appended to: the chunk is refused.
 - An upload without a chunk for `expiry` seconds is removed, and an
   optional quota bounds published files plus staging.
 
@@ -71,13 +77,21 @@ class StorageError(Exception):
         self.message = message
 
 
+# A published file as one upload left it: (st_dev, st_ino, st_size, st_mtime_ns). Each
+# publish renames a new staging file: another upload's version is another inode, and
+# should the file system reuse a freed inode, it is written at another nanosecond.
+Version = tuple[int, int, int, int]
+
+
 @dataclass(frozen=True, slots=True)
 class Uploaded:
-    """The answer to one call: `upload` is the id while the upload stays open."""
+    """The answer to one call: `upload` is the id while the upload stays open;
+    `version` is the file this call published, if it published one."""
 
     name: str
     size: int
     upload: str | None = None
+    version: Version | None = None
 
 
 @dataclass(slots=True)
@@ -96,6 +110,7 @@ class _Done:
     size: int
     final: tuple[int, int, bytes]  # offset, length and SHA-256 of the final chunk
     at: float
+    version: Version
 
 
 class Uploads:
@@ -126,12 +141,17 @@ class Uploads:
         final: bool = True,
         upload_id: str | None = None,
         offset: int | None = None,
+        by_name: bool = False,
+        after: Version | None = None,
     ) -> Uploaded:
         """One `file.upload` call: start an upload, continue it at `offset`, or finish it.
 
         Without `upload_id` a new upload starts: empty, or with `append` a
-        copy of the published file, whose size `offset` must be (so an old
-        client's chunk can never be appended to a file it did not mean).
+        copy of the published file, whose size `offset` must be (so a chunk
+        can never be appended to a file its client did not mean). `by_name`:
+        api.md's append without an offset, which continues `after`, the
+        version its connection last published (None: it published none), and
+        only while that version is the one published.
         """
         with self._lock:
             try:
@@ -141,9 +161,9 @@ class Uploads:
                         return self._replay(upload_id, name, data, offset, final)
                     if upload_id is not None:
                         return self._chunk(jobs, staging, upload_id, name, data, offset, final)
-                    new = self._begin(jobs, staging, name, append, offset)
+                    new, start = self._begin(jobs, staging, name, append, offset, by_name, after)
                     try:
-                        return self._chunk(jobs, staging, new, name, data, offset or 0, final)
+                        return self._chunk(jobs, staging, new, name, data, start, final)
                     except BaseException:  # the client never learns this id: nothing may stay
                         self._discard(staging, new)
                         raise
@@ -164,10 +184,22 @@ class Uploads:
 
     # -- one upload ------------------------------------------------------------
 
-    def _begin(self, jobs: int, staging: int, name: str, append: bool, offset: int | None) -> str:
-        """A new staging file, empty or a copy of the published file; its id."""
+    def _begin(
+        self,
+        jobs: int,
+        staging: int,
+        name: str,
+        append: bool,
+        offset: int | None,
+        by_name: bool = False,
+        after: Version | None = None,
+    ) -> tuple[str, int]:
+        """A new staging file, empty or a copy of the published file; its id and size."""
         source, size = self._published(jobs, name) if append else (None, 0)
         try:
+            if by_name:
+                _check_continues(name, source, size, after)
+                offset = size
             if append and offset != size:
                 raise ChunkError(
                     f"appending to {name!r} needs offset {size}, the size of the file now"
@@ -195,7 +227,7 @@ class Uploads:
                 raise
             finally:
                 os.close(fd)
-            return upload_id
+            return upload_id, size
         finally:
             if source is not None:
                 os.close(source)
@@ -222,6 +254,7 @@ class Uploads:
         if offset is None:
             raise ChunkError(f"a chunk of upload {upload_id} needs `offset` ({up.size})", up.size)
         fd = self._reopen(staging, upload_id, up)
+        written = 0  # the staging file's mtime once flushed, for the version published
         try:
             end = offset + len(data)
             if offset == up.size:
@@ -246,6 +279,7 @@ class Uploads:
                 except OSError as exc:  # what reached the disk is unknown: never publish it
                     self._discard(staging, upload_id)
                     raise _storage(exc, "cannot flush the upload", "it is discarded") from None
+                written = os.fstat(fd).st_mtime_ns  # a rename keeps it
         finally:
             os.close(fd)
         if not final:
@@ -256,14 +290,16 @@ class Uploads:
             raise _storage(exc, f"cannot publish {name!r}", "the file was not published") from None
         del self._open[upload_id]
         digest = hashlib.sha256(data).digest()
-        self._done[upload_id] = _Done(name, up.size, (offset, len(data), digest), self._clock())
+        version = (*up.inode, up.size, written)
+        chunk = (offset, len(data), digest)
+        self._done[upload_id] = _Done(name, up.size, chunk, self._clock(), version)
         try:
             os.fsync(jobs)
         except OSError as exc:
             raise _storage(
                 exc, f"{name!r} is published whole", "its name may not survive a power cut"
             ) from None
-        return Uploaded(name, up.size)
+        return Uploaded(name, up.size, version=version)
 
     def _replay(
         self, upload_id: str, name: str, data: bytes, offset: int | None, final: bool
@@ -272,7 +308,7 @@ class Uploads:
         done = self._done[upload_id]
         chunk = (offset, len(data), hashlib.sha256(data).digest())
         if final and name == done.name and chunk == done.final:
-            return Uploaded(done.name, done.size)
+            return Uploaded(done.name, done.size, version=done.version)
         raise NoSuchUpload(
             f"upload {upload_id} is finished: {done.name!r} was published with {done.size} bytes"
         )
@@ -392,6 +428,30 @@ class Uploads:
         self._open.pop(upload_id, None)
         with contextlib.suppress(FileNotFoundError):
             os.unlink(upload_id, dir_fd=staging)
+
+
+def _check_continues(name: str, source: int | None, size: int, after: Version | None) -> None:
+    """An append by name continues `after`, the file as its connection last published it,
+    or nothing: never another client's file, one deleted, nor one from before a restart."""
+    how = (
+        "nothing was appended; upload the whole file again (or give `offset`"
+        f" {size} to append to {name!r} as it is now)"
+    )
+    if after is None:
+        raise ChunkError(
+            f"`append` without `offset` continues the file this connection last uploaded"
+            f" as {name!r}, and it uploaded none (a new connection, the daemon restarted"
+            f" since, or a request without a connection, as over MQTT): {how}",
+            size,
+        )
+    if source is None:
+        raise ChunkError(f"{name!r} was deleted since this connection uploaded it: {how}", 0)
+    st = os.fstat(source)
+    if (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns) != after:
+        raise ChunkError(
+            f"{name!r} was replaced by another upload since this connection uploaded it: {how}",
+            size,
+        )
 
 
 def _usage(dir_fd: int) -> int:

@@ -68,6 +68,7 @@ HEADERS: Final = {
 # What a watch-only dashboard may call: reads, and its own subscriptions.
 WATCH_METHODS: Final = frozenset(
     {
+        "rpc.discover",
         "daemon.info",
         "machine.list",
         "machine.status",

@@ -330,7 +330,7 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     if out.json:
         out.print_json(result)
         return OK
-    minutes, seconds = divmod(round(result["estimate"]), 60)
+    minutes, seconds = divmod(round(result["duration_s"]), 60)
     rows = [
         ("lines", str(result["lines"])),
         ("moves", f"{result['moves']} ({result['rapids']} rapid, {result['arcs']} arcs)"),
@@ -342,9 +342,8 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     for axis, (low, high) in result["bounds"].items():
         rows.append((f"{axis} (mm)", f"{low:.3f} .. {high:.3f}"))
     render.pairs(out.out, rows)
-    for w in result["warnings"]:
-        line = f"line {w['line']}: " if w.get("line") else ""
-        out.out.print(f"warning: {line}{w['text']} (x{w['count']})", markup=False)
+    for text in result["warnings"]:
+        out.out.print(f"warning: {text}", markup=False)
     return OK
 
 

@@ -29,7 +29,11 @@ from hostd.machine.workers import WorkerPool
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
+<<<<<<< HEAD
 from hostd.protocol.gcodestate.model import ProgramError
+=======
+from hostd.protocol.gcodestate.model import DEFAULT_RAPID
+>>>>>>> wt-contract
 from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
@@ -41,9 +45,9 @@ RESUMABLE = ("interrupted", "failed", "cancelled")
 
 
 class OutOfTravel(MachineError):
-    """The program's moves leave the machine's travel (`force` to run it anyway)."""
+    """The program's moves leave the machine's travel (`force` to run it anyway): api.md's 1008."""
 
-    code = 1010
+    code = 1008
 
 
 class NotResumable(MachineError):
@@ -76,7 +80,17 @@ class Preflight:
     checked: bool = False  # the travel and the work offset were known: the check ran
 
     def to_json(self) -> dict[str, Any]:
+        """file.analyze's answer: api.md's keys (`duration_s`, `warnings` as text) and ours.
+
+        `warnings` is api.md's list of strings; `warning_details` has the same
+        warnings as `{text, line, count}`. Without the machine's speeds the
+        estimate uses DEFAULT_LIMITS_TEXT's defaults, and a warning says so.
+        """
         a = self.analysis
+        details = [{"text": w.text, "line": w.line, "count": w.count} for w in a.warnings]
+        details += [{"text": text, "line": None, "count": 1} for text in self.beyond]
+        if self.limits is None or not self.limits.velocity:
+            details.insert(0, {"text": DEFAULT_LIMITS_TEXT, "line": None, "count": 1})
         return {
             "lines": a.lines,
             "blocks": a.blocks,
@@ -88,13 +102,30 @@ class Preflight:
             "units": list(a.units),
             "tools": list(a.tools),
             "max_speed": a.max_speed,
+            "duration_s": round(a.seconds, 3),
             "estimate": round(a.seconds, 3),
-            "warnings": [{"text": w.text, "line": w.line, "count": w.count} for w in a.warnings]
-            + [{"text": text, "line": None, "count": 1} for text in self.beyond],
+            "warnings": [_warning_text(w) for w in details],
+            "warning_details": details,
             "beyond_travel": self.beyond,
             "travel_checked": self.checked,
             "limits": None if self.limits is None else self.limits.to_json(),
         }
+
+
+# The estimate's defaults where the machine's speeds are not known (no `machine`, or a
+# board that did not say): GcodeModel's DEFAULT_RAPID, the program's own F, no acceleration.
+DEFAULT_LIMITS_TEXT = (
+    f"duration_s is estimated with default limits, not a machine's: rapids at"
+    f" {DEFAULT_RAPID:g} mm/min, feed moves at the program's F, no acceleration"
+    " (give a connected machine for its own speeds)"
+)
+
+
+def _warning_text(warning: dict[str, Any]) -> str:
+    """One warning as api.md's string: where, what, and how often."""
+    where = f"line {warning['line']}: " if warning["line"] else ""
+    times = f" ({warning['count']} times)" if warning["count"] > 1 else ""
+    return f"{where}{warning['text']}{times}"
 
 
 def work_offset(snapshot: dict[str, Any]) -> dict[str, float] | None:

@@ -241,7 +241,7 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     assert report["travel_checked"] and report["beyond_travel"][0].startswith("X runs")
     with pytest.raises(RpcFailure) as refused:
         await rpc.call("job.start", machine="sim1", file="wide.nc")
-    assert refused.value.code == 1010 and "travel" in refused.value.message
+    assert refused.value.code == 1008 and "travel" in refused.value.message
     assert refused.value.data["beyond_travel"] == report["beyond_travel"]
     await rpc.call("subscribe", topics=["job"], machine="sim1")
 
@@ -254,7 +254,7 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     await rpc.call("file.upload", name="wide.nc", data="G21 G90\nG1 X350 F6000\nG1 X0\n")
     with pytest.raises(RpcFailure) as again:
         await rpc.call("job.start", machine="sim1", file="wide.nc")
-    assert again.value.code == 1010
+    assert again.value.code == 1008
 
     forced = await rpc.call("job.start", machine="sim1", file="wide.nc", force=True)
     assert (await job_end(rpc, forced["job"]))["state"] in ("completed", "failed")
@@ -287,3 +287,22 @@ async def test_file_analyze_reports_the_figures(g2: tuple[Running, Rpc]) -> None
     assert report["lines"] == 20 and report["arcs"] == 3 and report["tools"] == [1, 2]
     assert report["units"] == ["G21"] and report["max_speed"] == 12000
     assert report["estimate"] > 0 and report["travel_checked"] is False
+    assert report["duration_s"] == report["estimate"]
+
+
+async def test_file_analyze_without_a_machine_estimates_with_defaults_and_says_so(
+    g2: tuple[Running, Rpc],
+) -> None:
+    _, rpc = g2
+    # 100 mm at F600 is 10 s; a 50 mm rapid at the default 5000 mm/min is 0.6 s.
+    await rpc.call("file.upload", name="line.nc", data="G21 G90\nG1 X100 F600\nG0 X50\n")
+
+    alone = await rpc.call("file.analyze", file="line.nc")
+
+    assert alone["duration_s"] == pytest.approx(10.6)
+    assert "default limits" in alone["warnings"][0] and "5000 mm/min" in alone["warnings"][0]
+    assert all(isinstance(text, str) for text in alone["warnings"])
+    assert alone["warning_details"][0]["text"] == alone["warnings"][0]
+    on_board = await rpc.call("file.analyze", file="line.nc", machine="sim1")
+    assert isinstance(on_board["duration_s"], float)
+    assert not any("default limits" in text for text in on_board["warnings"])

@@ -8,11 +8,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from hostd.api.appends import Chain
+from hostd.api.methods import UploadParams
+from hostd.api.rpc import RpcError
+from hostd.api.server import Client
 from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
 
 pytestmark = pytest.mark.asyncio
@@ -93,19 +98,131 @@ async def test_a_retried_chunk_is_idempotent_and_a_wrong_offset_names_the_right_
     assert (hostd.jobs / "a.gcode").read_bytes() == b"G0 X1\nG0 X2\nG0 X3\n"
 
 
-async def test_the_old_chunking_by_name_is_refused_and_publishes_nothing(
+async def test_api_md_chunks_on_one_connection_give_the_whole_file_in_order(
+    rpc: Rpc, hostd: Running
+) -> None:
+    """A client written from api.md: a first call, then `append: true`, nothing else."""
+    chunks = [f"G1 X{i} Y{i * 2}\n" for i in range(8)]
+    sent = ""
+    for i, text in enumerate(chunks):
+        params: dict[str, Any] = {"append": True} if i else {}
+        answer = await rpc.call("file.upload", name="part.gcode", data=text, **params)
+        sent += text
+        assert answer == {"name": "part.gcode", "size": len(sent)}
+        # Listed at every step as exactly what was sent so far, never part of a chunk.
+        assert (hostd.jobs / "part.gcode").read_text() == sent
+    assert await rpc.call("file.list") == [
+        {"name": "part.gcode", "size": len(sent), "modified": ANY_TIME}
+    ]
+    assert staged(hostd) == {}
+
+
+class _AnyTime:
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, str) and other.endswith("Z")
+
+
+ANY_TIME: Any = _AnyTime()
+
+
+async def test_api_md_chunks_pipelined_on_one_connection_stay_in_order(
+    rpc: Rpc, hostd: Running
+) -> None:
+    """Requests of one connection run concurrently; its chunks still land in order."""
+    chunks = [f"G1 X{i}\n" for i in range(40)]
+    requests = [
+        {"jsonrpc": "2.0", "id": i + 1, "method": "file.upload",
+         "params": {"name": "p.gcode", "data": text, **({"append": True} if i else {})}}
+        for i, text in enumerate(chunks)
+    ]  # fmt: skip
+    waiting = [asyncio.get_running_loop().create_future() for _ in requests]
+    rpc._waiting.update({r["id"]: w for r, w in zip(requests, waiting, strict=True)})
+    rpc.writer.write(b"".join(json.dumps(r).encode() + b"\n" for r in requests))
+
+    async with asyncio.timeout(15):
+        answers = await asyncio.gather(*waiting)
+
+    sizes = [a["result"]["size"] for a in answers]
+    assert sizes == [sum(len(c) for c in chunks[: i + 1]) for i in range(len(chunks))]
+    assert (hostd.jobs / "p.gcode").read_text() == "".join(chunks)
+
+
+async def test_api_md_chunks_of_two_clients_on_one_name_never_mix(rpc: Rpc, hostd: Running) -> None:
+    other = await hostd.client()
+    await rpc.call("file.upload", name="a.gcode", data="G0 X1 (mine)\n")
+    await other.call("file.upload", name="a.gcode", data="G0 Y1 (theirs)\n")
+
+    refused = await fails(
+        -32602, rpc.call("file.upload", name="a.gcode", data="G0 X2 (mine)\n", append=True)
+    )
+
+    assert "replaced by another upload" in refused.message
+    assert "nothing was appended" in refused.message
+    assert (hostd.jobs / "a.gcode").read_text() == "G0 Y1 (theirs)\n"
+    await other.call("file.upload", name="a.gcode", data="G0 Y2 (theirs)\n", append=True)
+    assert (hostd.jobs / "a.gcode").read_text() == "G0 Y1 (theirs)\nG0 Y2 (theirs)\n"
+    await other.close()
+
+
+async def test_api_md_chunks_on_a_new_connection_or_after_a_delete_are_refused(
     rpc: Rpc, hostd: Running
 ) -> None:
     await rpc.call("file.upload", name="a.gcode", data="old\n")
-    await rpc.call("file.upload", name="a.gcode", data="G0 X1\n", final=False)
+    later = await hostd.client()  # a reconnect: the daemon cannot know it is the same client
 
-    refused = await fails(-32602, rpc.call("file.upload", name="a.gcode", data="X", append=True))
+    refused = await fails(-32602, later.call("file.upload", name="a.gcode", data="X", append=True))
 
-    assert "needs offset 4" in refused.message and refused.data == {"expected_offset": 4}
+    assert "it uploaded none" in refused.message and refused.data == {"expected_offset": 4}
     assert (hostd.jobs / "a.gcode").read_bytes() == b"old\n"
-    appended = await rpc.call("file.upload", name="a.gcode", data="G0\n", append=True, offset=4)
+    appended = await later.call("file.upload", name="a.gcode", data="G0\n", append=True, offset=4)
     assert appended == {"name": "a.gcode", "size": 7}
     assert (hostd.jobs / "a.gcode").read_bytes() == b"old\nG0\n"
+    await later.call("file.delete", name="a.gcode")
+    deleted = await fails(-32602, later.call("file.upload", name="a.gcode", data="X", append=True))
+    assert "was deleted" in deleted.message
+    assert await later.call("file.list") == []
+    await later.close()
+
+
+async def test_api_md_chunks_after_a_restart_are_refused_and_the_file_stays_whole(
+    tmp_path: Path,
+) -> None:
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        await rpc.call("file.upload", name="part.gcode", data="G0 X1\n")
+        await rpc.call("file.upload", name="part.gcode", data="G0 X2\n", append=True)
+        await rpc.close()
+
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        refused = await fails(
+            -32602, rpc.call("file.upload", name="part.gcode", data="G0 X3\n", append=True)
+        )
+        assert "the daemon restarted" in refused.message
+        assert (hostd.jobs / "part.gcode").read_bytes() == b"G0 X1\nG0 X2\n"
+        await rpc.close()
+
+
+async def test_each_connection_forgets_its_uploads_when_it_leaves(
+    rpc: Rpc, hostd: Running, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    appends = hostd.api.appends
+    forgotten = asyncio.Event()
+    remember = appends.of
+
+    def of(client: Client) -> Chain:
+        chain = remember(client)
+        client.on_disconnect.append(forgotten.set)  # runs after the Appends' own hook
+        return chain
+
+    monkeypatch.setattr(appends, "of", of)
+    other = await hostd.client()
+    await other.call("file.upload", name="a.gcode", data="G0\n")
+    assert len(appends) == 1
+    await other.close()
+    async with asyncio.timeout(5):
+        await forgotten.wait()
+    assert len(appends) == 0
 
 
 async def test_an_unknown_or_malformed_upload_id_is_refused(rpc: Rpc) -> None:
@@ -210,3 +327,15 @@ async def test_an_abandoned_upload_expires_and_its_id_is_then_unknown(
         assert "expired (60 s without a chunk)" in gone.message
         assert await rpc.call("file.list") == []
         await rpc.close()
+
+
+async def test_api_md_chunks_without_a_connection_are_refused(hostd: Running) -> None:
+    """A request no connection made (an MQTT command) has no upload of its own to continue."""
+    api = hostd.api
+    await api.file_upload(UploadParams(name="m.gcode", data="G0 X1\n"))
+
+    with pytest.raises(RpcError) as refused:
+        await api.file_upload(UploadParams(name="m.gcode", data="G0 X2\n", append=True))
+
+    assert refused.value.code == -32602 and "without a connection" in refused.value.message
+    assert (hostd.jobs / "m.gcode").read_bytes() == b"G0 X1\n"

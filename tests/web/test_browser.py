@@ -193,3 +193,44 @@ async def test_an_alarm_is_red_with_its_reason_and_is_cleared_from_the_page(
         await expect(page.locator("#indicator")).to_have_attribute("data-level", "normal")
         await expect(page.locator("#lockout")).to_be_hidden()
         await expect(page.locator("#controller")).not_to_have_text("ALARM")
+
+
+async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_before_start(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    expect = playwright.expect
+    async with running_web(tmp_path) as web:
+        rpc = await web.hostd.client()
+        await web.hostd.idle(rpc)
+        await rpc.call("machine.send", machine="sim1", line="G28.2 X0 Y0 Z0")
+        await web.hostd.idle(rpc)
+        assert (await rpc.call("machine.status", machine="sim1"))["homed"] is True
+        page = await browser.new_page()
+        await log_in(page, web)
+
+        wide = tmp_path / "wide.nc"  # X to 350 mm: the simulator's travel is 0..300
+        wide.write_text("G21 G90\nG1 X350 Y10 F6000\nG38.2 Z-5 F100\nG1 X0\n")
+        await page.set_input_files("#upload-file", wide)
+        await page.click("#upload button")
+        await expect(page.locator("#files")).to_have_value("wide.nc")
+
+        await expect(page.locator("#travel")).to_be_visible()
+        await expect(page.locator("#travel")).to_contain_text("leaves sim1's travel")
+        await expect(page.locator("#travel")).to_contain_text("X runs")
+        await expect(page.locator("#start")).to_be_disabled()
+        await expect(page.locator("#warnings")).to_contain_text("line 3: G38.2 probing")
+        await expect(page.locator("#analysis")).to_contain_text("X 0.0…350.0")
+        await expect(page.locator("#analysis")).to_contain_text("about 4 s")  # the daemon's
+        await screenshot(page, tmp_path, "travel-refused")
+        assert await rpc.call("job.list", machine="sim1") == []  # nothing was started
+
+        fits = tmp_path / "fits.nc"
+        fits.write_text("G21 G90\nG1 X150 F6000\nG1 X0\n")
+        await page.set_input_files("#upload-file", fits)
+        await page.click("#upload button")
+        await expect(page.locator("#files")).to_have_value("fits.nc")
+        await expect(page.locator("#analysis")).to_contain_text("X 0.0…150.0")
+        await expect(page.locator("#travel")).to_be_hidden()
+        await expect(page.locator("#start")).to_be_enabled()
+        await expect(page.locator("#warnings li")).to_have_count(0)
+        await rpc.close()

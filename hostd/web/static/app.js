@@ -63,6 +63,8 @@ const view = {
   snapshots: new Map(),
   files: [],
   program: null, // {name, moves, bounds, sendable}
+  analysis: null, // the daemon's file.analyze of the program, for the machine shown
+  analyzed: null, // what it was asked for: "file|machine|homed"
   rate: null, // {acked, at, perSecond}
   console: [],
 };
@@ -135,6 +137,7 @@ function showSnapshot(snap) {
     return li;
   }));
   document.body.dataset.supervisor = snap.supervisor;
+  if (view.program && analysisKey(view.program.name) !== view.analyzed) analyzeProgram(view.program.name);
   showJob(snap.job);
   drawPreview();
 }
@@ -228,19 +231,64 @@ async function loadProgram(name) {
   const program = parseProgram(name, await response.text());
   if (!view.program || view.program.name !== name) return;
   view.program = program;
-  let analysis = null;
-  try { analysis = await rpc.call("file.analyze", { name }); } catch (error) { analysis = null; }
-  showAnalysis(program, analysis);
+  view.analysis = null;
+  showAnalysis(program, null);
   drawPreview();
+  await analyzeProgram(name);
+}
+
+// The travel check depends on the machine and on whether it is homed: asked again when they change.
+function analysisKey(name) {
+  const snap = view.snapshots.get(view.machine);
+  return `${name}|${view.machine}|${snap ? snap.homed : null}`;
+}
+
+// file.analyze {file, machine}: the daemon's figures, warnings and travel check (docs/api.md).
+async function analyzeProgram(name) {
+  const key = analysisKey(name);
+  view.analyzed = key;
+  const params = { file: name };
+  if (view.machine) params.machine = view.machine;
+  let analysis = null;
+  try {
+    analysis = await rpc.call("file.analyze", params);
+  } catch (error) {
+    analysis = { failed: error.message };
+  }
+  if (view.analyzed !== key || !view.program || view.program.name !== name) return; // superseded
+  view.analysis = analysis;
+  showAnalysis(view.program, analysis);
 }
 
 function showAnalysis(program, analysis) {
-  const b = program.bounds;
-  const parts = [`${program.name}: ${program.sendable} lines, ${program.moves.length} XY moves`];
-  if (b) parts.push(`X ${b.minX.toFixed(1)}…${b.maxX.toFixed(1)}, Y ${b.minY.toFixed(1)}…${b.maxY.toFixed(1)} mm`);
-  if (analysis && typeof analysis.duration === "number") parts.push(`about ${duration(analysis.duration)} (daemon)`);
+  const ok = analysis && !analysis.failed;
+  const parts = [`${program.name}: ${ok ? analysis.lines : program.sendable} lines`];
+  const bounds = ok ? analysis.bounds || {} : {};
+  const axes = ["x", "y", "z"].filter((axis) => Array.isArray(bounds[axis]));
+  if (axes.length) parts.push(axes.map((a) => `${a.toUpperCase()} ${bounds[a][0].toFixed(1)}…${bounds[a][1].toFixed(1)}`).join(", ") + " mm");
+  else if (program.bounds) {
+    const b = program.bounds;
+    parts.push(`X ${b.minX.toFixed(1)}…${b.maxX.toFixed(1)}, Y ${b.minY.toFixed(1)}…${b.maxY.toFixed(1)} mm`);
+  }
+  if (ok && typeof analysis.duration_s === "number") parts.push(`about ${duration(analysis.duration_s)}`);
   else if (program.seconds) parts.push(`about ${duration(program.seconds)} of feed moves (estimated here)`);
+  if (analysis && analysis.failed) parts.push(`not analysed: ${analysis.failed}`);
+  else if (!analysis) parts.push("analysing…");
   $("analysis").textContent = parts.join(" · ");
+  const beyond = ok ? analysis.beyond_travel || [] : [];
+  const travel = $("travel");
+  travel.hidden = beyond.length === 0;
+  travel.textContent = beyond.length
+    ? `Start is refused: the program leaves ${view.machine}'s travel. ${beyond.join("; ")}`
+    : "";
+  $("start").disabled = beyond.length > 0;
+  $("start").title = beyond.length ? "the program leaves the machine's travel" : "";
+  const warnings = ok ? (analysis.warnings || []).filter((text) => !beyond.includes(text)) : [];
+  $("warnings").replaceChildren(...warnings.map((text) => {
+    const li = document.createElement("li");
+    li.textContent = text;
+    return li;
+  }));
 }
 
 function drawPreview() {
@@ -397,6 +445,7 @@ function wire() {
   $("machine").addEventListener("change", () => {
     view.machine = $("machine").value;
     view.console = [];
+    view.analyzed = null;
     refreshMachine();
     refreshHistory();
   });
