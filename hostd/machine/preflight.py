@@ -29,11 +29,7 @@ from hostd.machine.workers import WorkerPool
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
-<<<<<<< HEAD
-from hostd.protocol.gcodestate.model import ProgramError
-=======
-from hostd.protocol.gcodestate.model import DEFAULT_RAPID
->>>>>>> wt-contract
+from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError
 from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
