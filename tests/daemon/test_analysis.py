@@ -41,7 +41,7 @@ async def test_daemon_info_and_a_feedhold_answer_while_a_hostile_analysis_runs(
         assert not analysis.done()
         result = await analysis
         assert result["lines"] == 60_000 + 1003
-        hostile = [w for w in result["warnings"] if w["line"] == 1]
+        hostile = [w for w in result["warning_details"] if w["line"] == 1]
         assert hostile and hostile[0]["count"] == 1001
     finally:
         await other.close()
