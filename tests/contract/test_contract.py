@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 from collections import defaultdict
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -363,3 +364,19 @@ async def test_the_contract_copy_is_valid_json_naming_every_topic_and_code() -> 
         "console",
     }
     assert len(contract["errors"]) == 16
+
+
+def test_the_contract_copy_is_the_spec_beside_the_checkout() -> None:
+    """The copy is the contract itself, not an old version of it.
+
+    CI lays ../shared beside the clone, and there the two must be the same; a
+    checkout without it has only the copy to go by (checked just above).
+    """
+    spec = Path(__file__).resolve().parents[2].parent / "shared/spec/api-contract.json"
+    if not spec.exists():
+        assert not os.environ.get("CI"), f"CI runs with {spec} beside the clone"
+        return
+    copy = Path(__file__).parent / "api-contract.json"
+    assert json.loads(copy.read_text(encoding="utf-8")) == json.loads(
+        spec.read_text(encoding="utf-8")
+    ), f"tests/contract/api-contract.json differs from {spec}: copy it again"
