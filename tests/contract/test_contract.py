@@ -366,7 +366,7 @@ async def test_the_contract_copy_is_valid_json_naming_every_topic_and_code() -> 
     assert len(contract["errors"]) == 16
 
 
-def test_the_contract_copy_is_the_spec_beside_the_checkout() -> None:
+async def test_the_contract_copy_is_the_spec_beside_the_checkout() -> None:
     """The copy is the contract itself, not an old version of it.
 
     CI lays ../shared beside the clone, and there the two must be the same; a
