@@ -115,6 +115,29 @@ async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() 
     assert model.position["x"] == 1.0 and model.machine_position["x"] == 11.0
 
 
+@pytest.mark.parametrize(
+    ("modes", "wcs", "motion"),
+    [
+        # grblHAL 1.1f report.c report_gcode_modes: G50 (scaling off) after G98/G99.
+        ("G1 G56 G17 G21 G90 G94 G40 G49 G98 G50 M5 M9 T0 F500 S0", "G56", "G1"),
+        ("G0 G54 G92 G17 G21 G90 G94 G40 G43.1 G99 G51:XY M3 M8 T1 F0 S100", "G54", "G0"),
+        ("G5.1 G59.2 G18 G21 G91 G93 G40 G49 G98 G50 M5 M9 T0 F0 S0", "G59.2", "G5.1"),
+        ("G38.2 G59 G17 G21 G90 G94 M5 M9 T0 F100 S0", "G59", "G38.2"),  # classic 1.1h
+    ],
+)
+async def test_the_modes_are_read_by_group_not_by_position(
+    modes: str, wcs: str, motion: str
+) -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.send("$G", object())
+    grbl.pump()
+    grbl.feed(f"[GC:{modes}]", "ok")
+    model = grbl.session.model
+    assert (model.modal["wcs"], model.modal["motion"], model.units) == (wcs, motion, "mm")
+    assert model.snapshot()["wcs"] == wcs
+
+
 async def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
     grbl = Grbl()
     grbl.session.open()
