@@ -13,7 +13,13 @@ from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
-from hostd.protocol.grbl.session import BANNER_WAIT, STOP_TIMEOUT, GrblSession, homing_time_bound
+from hostd.protocol.grbl.session import (
+    BANNER_WAIT,
+    STOP_TIMEOUT,
+    STORAGE_QUIET,
+    GrblSession,
+    homing_time_bound,
+)
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import (
@@ -602,6 +608,21 @@ async def test_settings_are_written_send_response_as_the_board_may_be_deaf_meanw
     assert grbl.lines()[-1] == b"$111=600\n"
     grbl.feed("ok")
     assert grbl.lines()[-1] == b"$$\n"
+    grbl.feed("$110=600.000", "ok")
+    assert closings(grbl) == []
+
+
+async def test_grblhal_may_be_quiet_after_answering_a_setting_while_it_writes_flash() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    grbl.session.send("$110=600", object())
+    grbl.pump()
+    grbl.feed("ok")  # grblHAL answers first, then writes its flash once idle
+    for t in range(1, 12):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    grbl.at(10.0 + STORAGE_QUIET)
+    assert len(closings(grbl)) == 1
 
 
 async def test_a_job_line_that_stores_offsets_is_answered_before_the_next_is_written() -> None:

@@ -167,6 +167,7 @@ class GrblSession(SessionBase):
         self._silent_asks: list[float] = []  # the first `?`s written since then
         self._homing_lines = 0  # `$H` lines unanswered: the board may be homing
         self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
+        self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
@@ -287,7 +288,8 @@ class GrblSession(SessionBase):
     def _silence_allowed(self) -> float | None:
         """Seconds the board may print nothing; None: however long (a homing cycle unbounded)."""
         allowed = self.link_silence
-        if self._storing is not None:
+        # classic grbl writes before it answers; grblHAL answers, then writes once idle.
+        if self._storing is not None or self._heard_at == self._stored_at:
             allowed += STORAGE_QUIET
         if self._homing_lines or self.model.state is MachineState.HOMING:
             bound = self.homing_timeout
@@ -402,6 +404,7 @@ class GrblSession(SessionBase):
         self._rx_used -= len(entry.line)
         if entry is self._storing:
             self._storing = None
+            self._stored_at = self._heard_at
         homing = self._homing_lines > 0 and codec.homes(entry.line)
         if homing:
             self._homing_lines -= 1
