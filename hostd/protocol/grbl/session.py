@@ -412,14 +412,14 @@ class GrblSession(SessionBase):
         body: dict[str, Any] = {"lines": self._said} if self._said else {}
         self._said = []
         response = Response(body, status, 0, b"ok" if status == 0 else b"error:%d" % status)
+        if status == 0 and homing:
+            self.model.homed = True  # a client's `$H` or a job's
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
         elif isinstance(source, _Own):
             self._own_answered(source, response)
         else:
-            if status == 0 and homing:
-                self.model.homed = True
             self._settle(source, response)
 
     def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
