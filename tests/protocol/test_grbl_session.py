@@ -584,6 +584,21 @@ async def test_grblhal_reporting_home_expects_the_silence_of_a_cycle() -> None:
     assert len(closings(grbl)) == 1  # homing over: the usual silence again
 
 
+async def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() -> None:
+    grbl = homing_board()
+    grbl.session.send("$H", object())
+    grbl.pump()
+    # grbl 1.1h system.c: the cycle fails (limits.c raises the alarm), `$H` still says ok.
+    grbl.feed("ALARM:8", "ok")
+    assert grbl.session.model.homed is False
+    grbl.feed("<Alarm|MPos:0.000,0.000,0.000|FS:0,0>")
+    assert grbl.session.model.state is S.ALARM
+    grbl.session.send("$H", object())
+    grbl.pump()
+    grbl.feed("ok")  # the next cycle succeeds
+    assert grbl.session.model.homed is True
+
+
 async def test_help_is_not_homing() -> None:
     grbl = Grbl()
     grbl.connect()

@@ -166,6 +166,7 @@ class GrblSession(SessionBase):
         self._heard_at = 0.0  # the last line the board printed, whatever it was
         self._silent_asks: list[float] = []  # the first `?`s written since then
         self._homing_lines = 0  # `$H` lines unanswered: the board may be homing
+        self._homing_failed = False  # an ALARM came while a `$H` was unanswered
         self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
         self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
@@ -356,6 +357,7 @@ class GrblSession(SessionBase):
         self._await_report = self._awaiting_rest = False
         self._asked_at = None
         self._homing_lines = 0
+        self._homing_failed = False
         self._storing = None
 
     def _settle_lost(self, entry: InFlight, error: MachineError) -> None:
@@ -412,8 +414,12 @@ class GrblSession(SessionBase):
         body: dict[str, Any] = {"lines": self._said} if self._said else {}
         self._said = []
         response = Response(body, status, 0, b"ok" if status == 0 else b"error:%d" % status)
-        if status == 0 and homing:
-            self.model.homed = True  # a client's `$H` or a job's
+        if homing and not self._homing_lines:
+            failed, self._homing_failed = self._homing_failed, False
+            if status == 0 and not failed:
+                # A client's `$H` or a job's. Classic grbl answers a failed cycle `ok`
+                # too, after its ALARM (system.c: `$H` breaks out with STATUS_OK).
+                self.model.homed = True
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
@@ -501,6 +507,8 @@ class GrblSession(SessionBase):
         self._recheck_waiting()
 
     def _on_alarm(self, code: int) -> None:
+        if self._homing_lines:
+            self._homing_failed = True
         text = alarm_text(code)
         state = ALARM_STATE.get(code, MachineState.ALARM)
         report = {"alarm": code, "msg": text}
