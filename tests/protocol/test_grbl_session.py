@@ -7,6 +7,8 @@ against the simulated firmware over ptys in tests/machine/test_grbl.py.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from hostd.machine.stream import JobStream
@@ -662,6 +664,10 @@ async def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
     one = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1"})
     two = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1", "43": "2"})
     assert one is not None and two is not None and two > one  # grblHAL's $43 locate cycles
+    # What a board prints is not trusted: no overflow, no endless list, no NaN.
+    for odd in ({"43": "1e300"}, {"43": "nan"}, {"130": "inf"}, {"25": "nan"}):
+        bound = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1"} | odd)
+        assert bound is None or math.isfinite(bound)
 
 
 async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:

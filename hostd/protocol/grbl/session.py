@@ -49,6 +49,7 @@ report.py.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -673,8 +674,7 @@ class GrblSession(SessionBase):
         line = entry.line
         if line[:1] == b"$" and codec.homes(line):
             self._homing_lines += 1
-        # Most lines hold neither `$`, `10` (G10) nor `.1` (G28.1, G30.1): the cheap test first.
-        if (line[:1] == b"$" or b"10" in line or b".1" in line) and codec.stores(line):
+        if codec.stores(line):
             self._storing = entry
             return True
         return False
@@ -836,14 +836,15 @@ def homing_time_bound(settings: Mapping[str, str]) -> float | None:
 
     def number(key: int) -> float | None:
         found = codec.numbers(settings.get(str(key), ""))
-        return found[0] if found and len(found) == 1 else None
+        ok = found is not None and len(found) == 1 and math.isfinite(found[0])
+        return found[0] if found and ok else None
 
     seek, feed = number(25), number(24)
     if seek is None or feed is None or seek <= 0 or feed <= 0:
         return None
     pulloff = max(number(27) or 0.0, 0.0)
     debounce = max(number(26) or 0.0, 0.0) / 1000
-    locates = max(int(number(43) or 1), 1)
+    locates = min(max(int(number(43) or 1), 1), 128)  # grblHAL takes 1..128
     total = 0.0
     for axis in range(6):
         travel = number(130 + axis)
