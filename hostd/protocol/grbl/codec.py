@@ -211,7 +211,7 @@ _CLEARS = frozenset({"$X", "$H"})
 
 _AXIS_LETTERS = frozenset(b"XYZABCUVW")
 _WORDS = re.compile(rb"([A-Z])\s*([-+]?[0-9]*\.?[0-9]*)")
-_MAY_STORE = re.compile(rb"[Gg]\s*0*(?:10|28\.1|30\.1)")  # G10, G28.1, G30.1, maybe
+MAY_STORE = re.compile(rb"[Gg]\s*0*(?:10|28\.1|30\.1)")  # G10, G28.1, G30.1, maybe
 _STORED_KEYS = (b"I", b"RST")  # `$I=` build info, `$RST=` restore (N0/N1 and numbers below)
 
 
@@ -228,7 +228,7 @@ def stores(line: bytes) -> bool:
     `G10 L1`/`L10`/`L11`), `G28.1`, `G30.1`. An AVR turns its interrupts off while
     it writes, serial receive included: bytes that arrive meanwhile are lost.
     """
-    if line[:1] != b"$" and not _MAY_STORE.search(line):
+    if line[:1] != b"$" and not MAY_STORE.search(line):
         return False  # most lines: one search, no parse
     code = _COMMENT.sub("", line.decode("ascii", "replace")).strip().upper().encode()
     if code.startswith(b"$"):

@@ -672,8 +672,11 @@ class GrblSession(SessionBase):
     def _special(self, entry: InFlight) -> bool:
         """Book a homing or storing line; True if nothing may be written after it yet."""
         line = entry.line
-        if line[:1] == b"$" and codec.homes(line):
-            self._homing_lines += 1
+        if line[:1] == b"$":
+            if codec.homes(line):
+                self._homing_lines += 1
+        elif not _MAY_STORE(line):
+            return False  # a job's line, almost always: one regex search
         if codec.stores(line):
             self._storing = entry
             return True
@@ -818,6 +821,7 @@ def _setting_numbers(keys: list[str]) -> None:
 
 
 _NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})
+_MAY_STORE = codec.MAY_STORE.search
 
 
 def homing_time_bound(settings: Mapping[str, str]) -> float | None:
