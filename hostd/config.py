@@ -65,9 +65,16 @@ class MachineConfig(_Strict):
     baudrate: Annotated[int, Field(gt=0)] = 115200
     window: Annotated[int, Field(ge=1, le=32)] = 4
     auto_connect: bool = True
-    # Seconds of silence before the board is asked for a status report; as
-    # long again without an answer and the link is taken for dead.
+    # g2core: seconds of silence before the board is asked for a status report; as
+    # long again without an answer and the link is taken for dead. grbl: a `?` no
+    # report has answered this long is asked again.
     heartbeat: Annotated[float, Field(gt=0)] = 2.0
+    # grbl: seconds without a byte from the board (with 3 `?` unanswered) before the
+    # link is taken for dead; longer while the board writes EEPROM or homes.
+    link_silence: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    # grbl: seconds a homing cycle may keep the board silent; unset, the bound its
+    # travel and homing feeds give ($24, $25, $27, $130..).
+    homing_timeout: Annotated[float, Field(gt=0, le=3600)] | None = None
     # Seconds to wait for the SYSTEM READY banner and the settings after opening.
     handshake_timeout: Annotated[float, Field(gt=0)] = 5.0
     # Status report interval asked of the board, seconds (g2core's minimum is 0.1).

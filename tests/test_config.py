@@ -42,6 +42,7 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
     assert config.machine("demo") is demo
     assert config.machine("nope") is None
     assert (config.daemon.jobs_quota, config.daemon.upload_expiry) == (None, 3600.0)
+    assert (demo.link_silence, demo.homing_timeout) == (10.0, None)  # grbl's liveness
 
 
 @pytest.mark.parametrize(
@@ -59,6 +60,9 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
         (GOOD.replace("[daemon]", "[daemon]\njobs_quota = 0"), "daemon.jobs_quota"),
         (GOOD.replace("[daemon]", '[daemon]\njobs_quota = "2G"'), "daemon.jobs_quota"),
         (GOOD.replace("[daemon]", "[daemon]\nupload_expiry = 0"), "daemon.upload_expiry"),
+        (GOOD.replace("window = 4", "link_silence = 0"), "machines[0].link_silence"),
+        (GOOD.replace("window = 4", "homing_timeout = -5"), "machines[0].homing_timeout"),
+        (GOOD.replace("window = 4", "homing_timeout = 7200"), "machines[0].homing_timeout"),
     ],
 )
 def test_bad_config_names_file_key_and_problem(tmp_path: Path, text: str, expected: str) -> None:

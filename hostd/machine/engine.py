@@ -102,6 +102,7 @@ class Engine:
         self._down.set()
         self._changed = asyncio.Event()  # pulsed after every step that may change a state
         self._attempt_failed: asyncio.Future[str] | None = None
+        self._hold_reopen = False  # the session gave up a board that may move: wait to be asked
         self._log = log.bind(machine=config.id)
         # Whether a line read or written is logged: asked once, not at every line.
         self._traffic_logged = _debug_enabled(self._log)
@@ -125,6 +126,7 @@ class Engine:
         failures = 0
         while True:
             await self._want.wait()
+            self._hold_reopen = False
             if not self.config.auto_connect:
                 self._want.clear()  # this request is being served; a later one sets it again
             was_ready = await self._connection()
@@ -132,6 +134,8 @@ class Engine:
                 self._stop.clear()
                 continue
             failures = 0 if was_ready else failures + 1
+            if self._hold_reopen:
+                continue  # until connect() asks: `_want` is clear
             if self._restarting():
                 # The board is rebooting: its device comes back in a moment.
                 self._want.set()
@@ -392,6 +396,12 @@ class Engine:
         elif isinstance(event, Ready):
             self._on_ready()
         elif isinstance(event, Closing):
+            if not event.reopen:
+                # The board may be moving: reopening its port could reset it (an Arduino's
+                # DTR). Only a connect asked for (machine.connect) opens it again.
+                self._log.warning("link given up; not reopened on its own", reason=event.reason)
+                self._want.clear()
+                self._hold_reopen = True
             self._end(event.reason)
 
     def _arm_timer(self) -> None:
@@ -595,6 +605,8 @@ def session_for(config: MachineConfig) -> SessionBase:
             config.id,
             status_interval=config.status_interval,
             heartbeat=config.heartbeat,
+            link_silence=config.link_silence,
+            homing_timeout=config.homing_timeout,
             handshake_timeout=config.handshake_timeout,
         )
     return G2Session(

@@ -238,10 +238,10 @@ class SessionBase:
     def ready(self) -> bool:
         return self.phase is Phase.READY
 
-    def _closing(self, reason: str) -> None:
+    def _closing(self, reason: str, *, reopen: bool = True) -> None:
         if self._closing_reason is None:
             self._closing_reason = reason
-            self._events.append(Closing(reason))
+            self._events.append(Closing(reason, reopen))
 
     def _context(self) -> Context:
         if self.model.state is MachineState.HOLD:

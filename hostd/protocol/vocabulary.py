@@ -138,9 +138,14 @@ class Ready:
 
 @dataclass(frozen=True, slots=True)
 class Closing:
-    """The session cannot go on over this link (a failed handshake, a reboot, silence)."""
+    """The session cannot go on over this link (a failed handshake, a reboot, silence).
+
+    `reopen` False: the board may still be moving, and reopening its port could
+    reset it mid-motion (an Arduino's DTR): the engine waits to be asked.
+    """
 
     reason: str
+    reopen: bool = True
 
 
 Event = Settled | Reported | Excepted | Probed | Detected | Ready | Closing

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from hostd.machine.events import FaultChanged, StatusChanged
+from hostd.machine.events import Console, FaultChanged, LinkChanged, StatusChanged
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.supervisor import State as Sup
@@ -302,3 +302,158 @@ async def test_a_reset_mid_job_fails_it_loses_position_and_resyncs(tmp_path: Pat
         assert bench.machine.snapshot()["last_exception"]["alarm"] == 3
         await engine.clear()
         await state(bench, S.READY)
+
+
+# --- a live board is never given up; a gone one is (issue 25) -----------------------
+
+# Quick timings, so that the silences below outlast them several times over.
+LIVENESS = {"heartbeat": 0.05, "link_silence": 0.3}
+
+
+def link_downs(bench: GrblBench) -> list[LinkChanged]:
+    return [e for e in bench.recorder.events if isinstance(e, LinkChanged) and not e.up]
+
+
+async def status_requests(bench: GrblBench, count: int) -> None:
+    """Until the engine has written `count` more `?`s from now."""
+    start = len(bench.recorder.events)
+
+    def enough(_: object) -> bool:
+        sent = bench.recorder.events[start:]
+        return (
+            sum(isinstance(e, Console) and e.direction == "tx" and e.text == "?" for e in sent)
+            >= count
+        )
+
+    await bench.recorder.wait_for(enough)
+
+
+def moves(count: int) -> str:
+    return "G21 G90\n" + "".join(f"G1 X{(i % 2) * 10} F3000\n" for i in range(count))
+
+
+async def test_a_job_runs_on_through_status_requests_lost_on_the_wire(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0)
+    async with grbl_bench(tmp_path, slow, **LIVENESS) as bench:
+        bench.write("job.nc", moves(30))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.board.lose_status_requests(3)
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 31
+        assert bench.board.board.status_lost == 0  # all three were lost
+        assert link_downs(bench) == []
+
+
+async def test_a_job_runs_on_while_the_board_answers_lines_but_no_status_request(
+    tmp_path: Path,
+) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0)
+    async with grbl_bench(tmp_path, slow, **LIVENESS) as bench:
+        bench.write("job.nc", moves(40))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.board.ignore_status_requests()
+        await status_requests(bench, 10)  # half a second without a report: past link_silence
+        assert bench.machine.engine.ready and link_downs(bench) == []
+        bench.board.ignore_status_requests(False)
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 41
+        assert link_downs(bench) == []
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        GrblConfig(flavour="grbl", homing=True, homing_time=30.0, speed_factor=30.0),
+        GrblConfig(
+            flavour="grblhal",
+            homing=True,
+            homing_time=30.0,
+            speed_factor=30.0,
+            hal_home_report=False,
+        ),
+    ],
+    ids=["grbl", "grblhal-no-home-report"],
+)
+async def test_a_30_s_homing_cycle_completes_though_the_board_is_silent_all_along(
+    tmp_path: Path, config: GrblConfig
+) -> None:
+    # 30 s on the machine, 1 s here: over three times link_silence without a byte.
+    async with grbl_bench(tmp_path, config, idle=False, **LIVENESS) as bench:
+        engine = bench.machine.engine
+        assert (await engine.send("$H", timeout=10)).ok
+        assert engine.model.homed is True
+        await bench.supervisor(Sup.IDLE)
+        assert link_downs(bench) == [] and bench.board.opens == 1
+
+
+async def test_a_job_that_homes_first_runs_on_through_the_cycle(tmp_path: Path) -> None:
+    config = GrblConfig(flavour="grbl", homing=True, homing_time=30.0, speed_factor=30.0)
+    async with grbl_bench(tmp_path, config, idle=False, **LIVENESS) as bench:
+        engine = bench.machine.engine
+        await engine.clear()  # `$X`: a job may start
+        await bench.supervisor(Sup.IDLE)
+        bench.write(
+            "job.nc", "$H\nG21 G90\n" + "".join(f"G1 X-{i % 5 + 1} F3000\n" for i in range(20))
+        )
+        job = await bench.machine.start_make("job.nc")
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 22
+        assert engine.model.homed is True and link_downs(bench) == []
+
+
+async def test_settings_go_one_at_a_time_to_a_board_deaf_while_it_writes_eeprom(
+    tmp_path: Path,
+) -> None:
+    config = GrblConfig(flavour="grbl", speed_factor=50.0, storage_write=0.4)
+    async with grbl_bench(tmp_path, config, **LIVENESS) as bench:
+        engine = bench.machine.engine
+        answers = await asyncio.gather(*(engine.send(f"$11{i}=600") for i in range(3)))
+        assert all(a.ok for a in answers)
+        assert [bench.board.board.settings[110 + i] for i in range(3)] == [600.0] * 3
+        assert link_downs(bench) == []  # 1.2 s of writing, each longer than link_silence
+
+
+async def test_a_board_that_hangs_mid_job_is_given_up_and_not_reopened_on_its_own(
+    tmp_path: Path,
+) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=2.0)
+    async with grbl_bench(tmp_path, slow, auto_connect=True, **LIVENESS) as bench:
+        bench.write("job.nc", moves(40))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.board.hang()
+        done = await bench.job_ended(job.id)
+        assert done.state == "interrupted" and done.error is not None
+        assert "silent" in done.error.message
+        (down,) = link_downs(bench)
+        assert "not reopened" in down.reason
+        engine = bench.machine.engine
+        assert not engine._want.is_set()  # waiting for machine.connect, though auto_connect
+        assert bench.board.opens == 1
+        bench.board.hang(False)
+        await bench.machine.connect()  # asked for: the port is opened again
+        assert engine.ready and bench.board.opens == 2
+
+
+async def test_a_board_unplugged_mid_job_is_detected_at_once(tmp_path: Path) -> None:
+    slow = GrblConfig(flavour="grbl", speed_factor=2.0)
+    async with grbl_bench(tmp_path, slow, heartbeat=1.0, link_silence=60.0) as bench:
+        bench.write("job.nc", moves(40))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        await bench.board.unplug()
+        done = await bench.job_ended(job.id)
+        assert done.state == "interrupted"
+        assert len(link_downs(bench)) == 1
+        assert "silent" not in link_downs(bench)[0].reason  # the OS said so, not a timeout
+
+
+async def test_grblhal_snapshot_reads_the_coordinate_system_not_scaling(tmp_path: Path) -> None:
+    async with grbl_bench(tmp_path, HAL) as bench:
+        assert bench.machine.snapshot()["wcs"] == "G54"  # `[GC:..G98 G50 ..]`: G50 is scaling
+        engine = bench.machine.engine
+        await engine.send("G55")
+        await engine.send("$G")
+        assert bench.machine.snapshot()["wcs"] == "G55"

@@ -7,13 +7,21 @@ against the simulated firmware over ptys in tests/machine/test_grbl.py.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
-from hostd.protocol.grbl.session import BANNER_WAIT, STOP_TIMEOUT, GrblSession
+from hostd.protocol.grbl.session import (
+    BANNER_WAIT,
+    STOP_TIMEOUT,
+    STORAGE_QUIET,
+    GrblSession,
+    homing_time_bound,
+)
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import (
@@ -33,7 +41,7 @@ pytestmark = pytest.mark.asyncio
 class Grbl:
     """A GrblSession and the board's side of the wire, by hand."""
 
-    def __init__(self, **options: float) -> None:
+    def __init__(self, **options: float | None) -> None:
         self.now = 0.0
         self.session = GrblSession("m1", clock=lambda: self.now, **options)
         self.written: list[tuple[Lane, bytes]] = []
@@ -65,12 +73,15 @@ class Grbl:
         return self.session._rx_used
 
     def connect(
-        self, opt: str = "V,15,128", report: str = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
+        self,
+        opt: str = "V,15,128",
+        report: str = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>",
+        settings: tuple[str, ...] = (),
     ) -> None:
         self.session.open()
         self.feed("", "Grbl 1.1h ['$' for help]")
         self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
-        self.feed("$32=1", "$110=500.000", "ok")
+        self.feed("$32=1", "$110=500.000", *settings, "ok")
         self.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
         self.feed(report)
         assert self.session.ready
@@ -113,6 +124,29 @@ async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() 
     )
     assert model.laser_mode is True
     assert model.position["x"] == 1.0 and model.machine_position["x"] == 11.0
+
+
+@pytest.mark.parametrize(
+    ("modes", "wcs", "motion"),
+    [
+        # grblHAL 1.1f report.c report_gcode_modes: G50 (scaling off) after G98/G99.
+        ("G1 G56 G17 G21 G90 G94 G40 G49 G98 G50 M5 M9 T0 F500 S0", "G56", "G1"),
+        ("G0 G54 G92 G17 G21 G90 G94 G40 G43.1 G99 G51:XY M3 M8 T1 F0 S100", "G54", "G0"),
+        ("G5.1 G59.2 G18 G21 G91 G93 G40 G49 G98 G50 M5 M9 T0 F0 S0", "G59.2", "G5.1"),
+        ("G38.2 G59 G17 G21 G90 G94 M5 M9 T0 F100 S0", "G59", "G38.2"),  # classic 1.1h
+    ],
+)
+async def test_the_modes_are_read_by_group_not_by_position(
+    modes: str, wcs: str, motion: str
+) -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.send("$G", object())
+    grbl.pump()
+    grbl.feed(f"[GC:{modes}]", "ok")
+    model = grbl.session.model
+    assert (model.modal["wcs"], model.modal["motion"], model.units) == (wcs, motion, "mm")
+    assert model.snapshot()["wcs"] == wcs
 
 
 async def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
@@ -283,8 +317,8 @@ async def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown()
     grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
     grbl.session.realtime(Realtime.QUEUE_FLUSH)
     grbl.pump()
-    grbl.at(STOP_TIMEOUT)
-    assert grbl.realtime()[-1] == b"\x18"
+    written = grbl.at(STOP_TIMEOUT)
+    assert (Lane.REALTIME, b"\x18") in written  # a `?` unanswered since may be asked again
     assert grbl.session.model.homed is False
 
 
@@ -386,18 +420,254 @@ async def test_lines_grbl_would_misread_are_refused(line: str, why: str) -> None
     assert refused.value.data["refusal"] == why
 
 
-async def test_a_silent_board_is_given_up_but_not_while_homing() -> None:
-    grbl = Grbl(heartbeat=2.0, status_interval=0.25)
+def closings(grbl: Grbl) -> list[Closing]:
+    return [e for e in grbl.events if isinstance(e, Closing)]
+
+
+def queries(grbl: Grbl) -> int:
+    return grbl.realtime().count(b"?")
+
+
+# grbl 1.1's defaults.h (DEFAULTS_GENERIC) for homing: feed 25, seek 500 mm/min, 250 ms
+# debounce, 1 mm pull-off, 200 mm of travel and 10 mm/s^2 on each axis.
+HOMING_SETTINGS = (
+    "$24=25.000",
+    "$25=500.000",
+    "$26=250",
+    "$27=1.000",
+    *(f"$12{i}=10.000" for i in range(3)),
+    *(f"$13{i}=200.000" for i in range(3)),
+)
+
+
+def homing_board(**options: float) -> Grbl:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0, **options)
+    grbl.connect(settings=HOMING_SETTINGS)
+    return grbl
+
+
+async def test_a_silent_board_is_asked_again_and_given_up_only_after_the_configured_silence() -> (
+    None
+):
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     grbl.at(0.25)
-    assert grbl.realtime() == [b"?"]
+    assert queries(grbl) == 1
     grbl.at(2.25)
-    assert any(isinstance(e, Closing) for e in grbl.events)
-    homing = Grbl(heartbeat=2.0, status_interval=0.25)
-    homing.connect("V,15,128", "<Home|MPos:0.000,0.000,0.000|FS:0,0>")
-    homing.at(0.25)
-    homing.at(10.0)
-    assert not any(isinstance(e, Closing) for e in homing.events)
+    grbl.at(4.25)
+    assert queries(grbl) == 3  # a `?` unanswered for `heartbeat` is asked again
+    grbl.at(9.9)
+    assert closings(grbl) == []
+    assert grbl.session.next_deadline() == 10.0
+    grbl.at(10.0)
+    (closing,) = closings(grbl)
+    assert "silent for 10.0 s" in closing.reason and "3 status requests" in closing.reason
+    assert closing.reopen  # it stood idle: reopening its port harms nothing
+
+
+async def test_a_single_lost_query_is_asked_again_and_the_job_goes_on() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    stream = moves(40)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.at(0.25)  # this `?` is lost on the wire: no report comes
+    grbl.at(1.0)
+    assert queries(grbl) == 1  # not asked again before `heartbeat`
+    grbl.at(2.25)
+    assert queries(grbl) == 2
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:10,20|FS:1000,0>")
+    grbl.at(2.5)
+    assert queries(grbl) == 3  # back to every status_interval
+    assert closings(grbl) == [] and not stream.done
+
+
+async def test_oks_keep_a_board_alive_while_its_status_reports_stop() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    stream = moves(400)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    sent = len(grbl.lines())
+    for tick in range(1, 61):  # half a minute of `ok`s, twice a second, and not one report
+        grbl.at(tick / 2)
+        grbl.feed("ok")
+    assert closings(grbl) == []
+    assert not stream.done
+    assert len(grbl.lines()) >= sent + 55  # the `ok`s freed room: lines kept going
+    assert 14 <= queries(grbl) <= 16  # `?` asked again every `heartbeat`, never given up on
+
+
+async def test_a_board_silent_mid_job_is_given_up_but_its_port_not_reopened() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    stream = moves(40)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|Bf:10,20|FS:1000,0>")
+    for t in range(1, 11):
+        grbl.at(float(t))
+    grbl.at(12.0)
+    (closing,) = closings(grbl)
+    assert not closing.reopen and "may be moving" in closing.reason
+    grbl.session.close(closing.reason)
+    assert stream.result.result().end is StreamEnd.INTERRUPTED
+
+
+async def test_classic_homing_is_silent_for_its_whole_cycle_and_completes() -> None:
+    grbl = homing_board()
+    token = object()
+    grbl.session.send("$H", token)
+    assert grbl.pump() == [(Lane.DATA, b"$H\n")]
+    # limits_go_home serves no `?` (limits.c): not a byte for two and a half minutes.
+    for t in range(1, 151):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    assert queries(grbl) >= 70  # still asked, as the board takes no harm from it
+    grbl.feed("ok", "<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>")
+    settled = grbl.settled(token)
+    assert settled is not None and settled.outcome == Response({}, 0, 0, b"ok")
+    assert grbl.session.model.homed is True
+    grbl.at(151.0)
+    grbl.at(160.0)
+    assert closings(grbl) == []
+
+
+async def test_a_homing_cycle_is_bounded_by_the_boards_travel_and_feeds() -> None:
+    grbl = homing_board()
+    bound = homing_time_bound(grbl.session.settings)
+    # Per axis: 300 mm at 500 mm/min, 2 pull-offs of 1 mm at 500, 10 mm at 25 mm/min,
+    # 4 debounces of 0.25 s and 4 accelerations; three axes, and half as much again.
+    per_axis = 36.0 + 2 * 0.12 + 24.0 + 1.0 + 3 * (500 / 60 / 10) + 25 / 60 / 10
+    assert bound == pytest.approx(1.5 * 3 * per_axis, rel=1e-3)
+    grbl.session.send("$H", object())
+    grbl.pump()
+    t = 0.0
+    while not closings(grbl) and t < 1000:
+        t += 1.0
+        grbl.at(t)
+    (closing,) = closings(grbl)
+    assert t == pytest.approx(bound, abs=1.0)  # a board gone mid-cycle is still found
+    assert not closing.reopen  # it may be moving: an Arduino's reset would stop it there
+
+
+async def test_a_configured_homing_timeout_replaces_the_bound() -> None:
+    grbl = homing_board(homing_timeout=60.0)
+    grbl.session.send("$H", object())
+    grbl.pump()
+    for t in range(1, 60):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    grbl.at(60.0)
+    assert len(closings(grbl)) == 1
+
+
+async def test_homing_without_the_settings_to_bound_it_is_never_cut_off() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()  # `$$` said nothing of $24/$25/$130
+    grbl.session.send("$H", object())
+    grbl.pump()
+    for t in range(1, 3601, 60):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+
+
+async def test_grblhal_reporting_home_expects_the_silence_of_a_cycle() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect(settings=HOMING_SETTINGS)
+    # A cycle started on the board (a button, `$H` from another sender): its one report.
+    grbl.feed("<Home|MPos:0.000,0.000,0.000|FS:0,0>")
+    for t in range(1, 201):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    grbl.feed("<Idle|MPos:-1.000,-1.000,-1.000|FS:0,0>")
+    for t in range(201, 213):
+        grbl.at(float(t))
+    assert len(closings(grbl)) == 1  # homing over: the usual silence again
+
+
+async def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() -> None:
+    grbl = homing_board()
+    grbl.session.send("$H", object())
+    grbl.pump()
+    # grbl 1.1h system.c: the cycle fails (limits.c raises the alarm), `$H` still says ok.
+    grbl.feed("ALARM:8", "ok")
+    assert grbl.session.model.homed is False
+    grbl.feed("<Alarm|MPos:0.000,0.000,0.000|FS:0,0>")
+    assert grbl.session.model.state is S.ALARM
+    grbl.session.send("$H", object())
+    grbl.pump()
+    grbl.feed("ok")  # the next cycle succeeds
+    assert grbl.session.model.homed is True
+
+
+async def test_help_is_not_homing() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.send("$HELP", object())
+    grbl.pump()
+    grbl.feed("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]", "ok")
+    assert grbl.session.model.homed is not True
+
+
+async def test_settings_are_written_send_response_as_the_board_may_be_deaf_meanwhile() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    first, second, query = object(), object(), object()
+    grbl.session.send("$110=600", first)
+    grbl.session.send("$111=600", second)
+    grbl.session.send("$$", query)
+    assert grbl.pump() == [(Lane.DATA, b"$110=600\n")]  # nothing after it until its `ok`
+    for t in range(1, 12):  # the write keeps it quiet for longer than `link_silence`
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    grbl.feed("ok")
+    assert grbl.lines()[-1] == b"$111=600\n"
+    grbl.feed("ok")
+    assert grbl.lines()[-1] == b"$$\n"
+    grbl.feed("$110=600.000", "ok")
+    assert closings(grbl) == []
+
+
+async def test_grblhal_may_be_quiet_after_answering_a_setting_while_it_writes_flash() -> None:
+    grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
+    grbl.connect()
+    grbl.session.send("$110=600", object())
+    grbl.pump()
+    grbl.feed("ok")  # grblHAL answers first, then writes its flash once idle
+    for t in range(1, 12):
+        grbl.at(float(t))
+    assert closings(grbl) == []
+    grbl.at(10.0 + STORAGE_QUIET)
+    assert len(closings(grbl)) == 1
+
+
+async def test_a_job_line_that_stores_offsets_is_answered_before_the_next_is_written() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    text = ["G1 X1 F100", "G10 L20 P1 X0", "G1 X2", "G28.1", "G1 X3"]
+    stream = JobStream(enumerate(text, 1), job_id=1, encode=lambda line, _n: codec.encode(line))
+    grbl.session.start_stream(stream)
+    assert [data for _, data in grbl.pump()] == [b"G1 X1 F100\n", b"G10 L20 P1 X0\n"]
+    grbl.feed("ok")
+    assert grbl.pump() == []
+    grbl.feed("ok")
+    assert grbl.lines()[-2:] == [b"G1 X2\n", b"G28.1\n"]
+    grbl.feed("ok", "ok")
+    assert grbl.lines()[-1] == b"G1 X3\n"
+
+
+async def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
+    assert homing_time_bound({}) is None
+    assert homing_time_bound({"24": "25", "25": "500"}) is None  # no travel
+    assert homing_time_bound({"25": "500", "130": "200"}) is None  # no locate feed
+    one = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1"})
+    two = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1", "43": "2"})
+    assert one is not None and two is not None and two > one  # grblHAL's $43 locate cycles
+    # What a board prints is not trusted: no overflow, no endless list, no NaN.
+    for odd in ({"43": "1e300"}, {"43": "nan"}, {"130": "inf"}, {"25": "nan"}):
+        bound = homing_time_bound({"24": "25", "25": "500", "130": "200", "27": "1"} | odd)
+        assert bound is None or math.isfinite(bound)
 
 
 async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:

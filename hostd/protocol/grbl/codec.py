@@ -209,6 +209,47 @@ _VIEWS = frozenset({"$", "$$", "$#", "$G", "$I", "$N", "$HELP", "$ES", "$ESH", "
 _CLEARS = frozenset({"$X", "$H"})
 
 
+_AXIS_LETTERS = frozenset(b"XYZABCUVW")
+_WORDS = re.compile(rb"([A-Z])\s*([-+]?[0-9]*\.?[0-9]*)")
+MAY_STORE = re.compile(rb"[Gg]\s*0*(?:10|28\.1|30\.1)")  # G10, G28.1, G30.1, maybe
+_STORED_KEYS = (b"I", b"RST")  # `$I=` build info, `$RST=` restore (N0/N1 and numbers below)
+
+
+def homes(line: bytes) -> bool:
+    """`$H`, or grblHAL's one-axis `$HX`, `$HYZ`; not `$HELP`."""
+    code = line.strip().upper()
+    return code.startswith(b"$H") and set(code[2:]) <= _AXIS_LETTERS
+
+
+def stores(line: bytes) -> bool:
+    """The line writes the board's EEPROM or flash (the grbl wiki's "EEPROM Issues").
+
+    `$x=`, `$I=`, `$Nx=`, `$RST=`, `G10 L2`/`L20` (and grblHAL's tool table,
+    `G10 L1`/`L10`/`L11`), `G28.1`, `G30.1`. An AVR turns its interrupts off while
+    it writes, serial receive included: bytes that arrive meanwhile are lost.
+    """
+    if line[:1] != b"$" and not MAY_STORE.search(line):
+        return False  # most lines: one search, no parse
+    code = _COMMENT.sub("", line.decode("ascii", "replace")).strip().upper().encode()
+    if code.startswith(b"$"):
+        key, eq, _ = code[1:].partition(b"=")
+        key = key.strip()
+        numbered_line = key.startswith(b"N") and key[1:].isdigit()
+        return bool(eq) and (key.isdigit() or key in _STORED_KEYS or numbered_line)
+    g: set[float] = set()
+    l_words: set[float] = set()
+    for letter, value in _WORDS.findall(code):
+        try:
+            number = float(value)
+        except ValueError:
+            continue
+        if letter == b"G":
+            g.add(number)
+        elif letter == b"L":
+            l_words.add(number)
+    return 28.1 in g or 30.1 in g or (10 in g and bool(l_words & {1, 2, 10, 11, 20}))
+
+
 class GrblLine(Enum):
     """How a client's line is written to a grbl board."""
 

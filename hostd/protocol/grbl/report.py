@@ -85,23 +85,48 @@ class ReportReader:
         return fields
 
 
+# `[GC:...]`'s words by modal group (NIST RS274NGC 3.4; grblHAL report.c
+# report_gcode_modes, gnea/grbl report.c report_gcode_modes). The words come in an
+# order that differs by build: grblHAL adds G92, G7/G8, G66, G96/G97, G40,
+# G43/G49, G98/G99 and G50/G51 (scaling, printed `G51:XY`) between them, so a word
+# is placed by its group, never by where it stands. The groups the snapshot has no
+# field for are named too, so that none of their words is taken for another's.
+_MOTION = {"G0", "G1", "G2", "G3", "G5", "G5.1", "G33", "G33.1", "G73", "G76"} | {
+    f"G{n}" for n in (*range(80, 90), "38.2", "38.3", "38.4", "38.5")
+}
+_GROUPS: dict[str, str] = (
+    dict.fromkeys(_MOTION, "motion")
+    | dict.fromkeys(("G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3"), "wcs")
+    | dict.fromkeys(("G90", "G91"), "distance")
+    | dict.fromkeys(("G93", "G94", "G95"), "feed_mode")
+    | dict.fromkeys(("G20", "G21"), "units")
+    | dict.fromkeys(("G17", "G18", "G19"), "plane")
+    | dict.fromkeys(("G50", "G51"), "scaling")
+    | dict.fromkeys(("G43", "G43.1", "G43.2", "G49"), "tool_length")
+    | dict.fromkeys(("G40", "G41", "G41.1", "G42", "G42.1"), "cutter_comp")
+    | dict.fromkeys(("G7", "G8", "G92", "G96", "G97", "G98", "G99", "G66", "G67"), "other")
+)
+_KEPT = frozenset({"motion", "wcs", "distance", "feed_mode"})  # the snapshot's modal fields
+
+
 def apply_modes(model: MachineModel, text: str) -> None:
-    """`[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`: the parser's modal state."""
+    """`[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]`: the parser's modal state.
+
+    A word is read by its modal group: grblHAL's `G50` (scaling off) once read as
+    the coordinate system because it starts like `G54`. `G51:XY` is scaling on,
+    with the axes it scales.
+    """
     modal = model.modal
     for word in text.split():
-        if word in ("G20", "G21"):
-            model.units = "in" if word == "G20" else "mm"
-        elif word in ("G90", "G91"):
-            modal["distance"] = word
-        elif word in ("G93", "G94", "G95"):
-            modal["feed_mode"] = word
-        elif word.startswith("G5") and word[1:].replace(".", "").isdigit():
-            modal["wcs"] = word
-        elif word in ("G0", "G1", "G2", "G3", "G80") or word.startswith("G38"):
-            modal["motion"] = word
-        elif word.startswith("T") and word[1:].isdigit():
+        code = word.partition(":")[0]
+        group = _GROUPS.get(code)
+        if group == "units":
+            model.units = "in" if code == "G20" else "mm"
+        elif group in _KEPT:
+            modal[group] = code
+        elif group is None and len(word) > 1 and word[1:].isdigit() and word[0] == "T":
             model.tool = int(word[1:])
-        elif word.startswith("F") and (feed := codec.numbers(word[1:])):
+        elif group is None and word.startswith("F") and (feed := codec.numbers(word[1:])):
             model.feed = feed[0]
 
 

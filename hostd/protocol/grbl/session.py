@@ -13,6 +13,23 @@ the rules beside g2core's.
   stream wherever they are (protocol.c); they take no buffer room and get no
   answer. grbl pushes no status: the session asks `?` every
   `status_interval`.
+- **Liveness**: every line the board prints says it lives, `ok`s included: a
+  board busy answering a job's lines is alive even when its status reports
+  stop. A `?` no report answers within `heartbeat` is asked again (one can be
+  lost to line noise, or to an AVR's EEPROM write, which turns the serial
+  interrupt off). The link is given up only after `link_silence` seconds
+  without a byte and at least `SILENT_QUERIES` unanswered `?`s. While a line
+  writes EEPROM or flash the board may be deaf for up to 2 s more
+  (`STORAGE_QUIET`); while it homes (a `$H` unanswered, or a report saying
+  Home) it may be silent for the whole cycle (classic grbl's limits_go_home
+  serves no `?`; grblHAL forces one `<Home>` report and then serves none), so
+  the silence allowed is then the cycle's bound from its settings
+  (`homing_time_bound`) or `homing_timeout`. A board given up while it may be
+  moving is not reopened on its own: reopening an Arduino's port resets it.
+- **EEPROM and flash writes** (`$x=`, `$I=`, `$Nx=`, `$RST=`, G10 L2/L20,
+  G28.1, G30.1) go send-response: nothing more is written until the board
+  answers one, as the grbl wiki's "EEPROM Issues" asks, since bytes that
+  arrive during the write are lost.
 - **Lockouts**: `ALARM:N` puts the board in ALARM; only `$X`, `$H` and 0x18
   reach it (grbl answers anything else `error:9`). An e-stop (ALARM:10), a
   failed self test or a motor fault, and Sleep, are left only by a reset: the
@@ -32,6 +49,7 @@ report.py.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -75,11 +93,24 @@ from hostd.protocol.vocabulary import (
 )
 
 # STATES lives in report.py with the rest of the report mapping and stays importable from here.
-__all__ = ["ADMISSION", "BANNER_WAIT", "HOMING_SILENCE", "STATES", "STOP_TIMEOUT", "GrblSession"]
+__all__ = [
+    "ADMISSION",
+    "BANNER_WAIT",
+    "SILENT_QUERIES",
+    "STATES",
+    "STOP_TIMEOUT",
+    "STORAGE_QUIET",
+    "GrblSession",
+    "homing_time_bound",
+]
 
 BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints its banner
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
-HOMING_SILENCE = 120.0  # s a board may stay silent while it homes (it answers no `?`)
+SILENT_QUERIES = 3  # `?`s unanswered in a silence before the link is given up
+# s of silence allowed on top of `link_silence` while a line writes EEPROM or flash: an
+# AVR writes a byte in 3.4 ms with its interrupts off (`$RST=*` rewrites ~1 KB); an STM32
+# erases a flash sector in 1-2 s.
+STORAGE_QUIET = 2.5
 
 _REFUSED_BY_ALARM = Status.COMMAND_REJECTED_BY_ALARM
 _REFUSED_BY_SHUTDOWN = Status.COMMAND_REJECTED_BY_SHUTDOWN
@@ -110,12 +141,16 @@ class GrblSession(SessionBase):
         *,
         status_interval: float = 0.25,
         heartbeat: float = 2.0,
+        link_silence: float = 10.0,
+        homing_timeout: float | None = None,
         handshake_timeout: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(machine_id, clock)
         self.status_interval = status_interval
-        self.heartbeat = heartbeat
+        self.heartbeat = heartbeat  # a `?` unanswered this long is asked again
+        self.link_silence = link_silence  # s without a byte (and SILENT_QUERIES `?`): gone
+        self.homing_timeout = homing_timeout  # None: the bound the settings give
         self.handshake_timeout = handshake_timeout
         self.flavour: str | None = None  # "grbl" or "grblHAL"
         self.version: str | None = None
@@ -127,8 +162,14 @@ class GrblSession(SessionBase):
         self._said: list[str] = []  # what the board printed for the line it is answering
         self._report_waiters: list[Any] = []  # clients' `?`: answered by the next report
         self._reports = ReportReader()  # what reports said now and then (WCO)
-        self._asked_at: float | None = None  # a `?` unanswered since then
+        self._asked_at: float | None = None  # the last `?`, while no report has answered it
         self._next_poll = 0.0
+        self._heard_at = 0.0  # the last line the board printed, whatever it was
+        self._silent_asks: list[float] = []  # the first `?`s written since then
+        self._homing_lines = 0  # `$H` lines unanswered: the board may be homing
+        self._homing_failed = False  # an ALARM came while a `$H` was unanswered
+        self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
+        self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
@@ -240,11 +281,44 @@ class GrblSession(SessionBase):
             if self._asked_at is None:
                 deadlines.append(self._next_poll)
             else:
-                deadlines.append(self._asked_at + self._silence_allowed())
+                deadlines.append(self._asked_at + self.heartbeat)
+            lost = self._lost_at()
+            if lost is not None:
+                deadlines.append(lost)
         return min(deadlines, default=None)
 
-    def _silence_allowed(self) -> float:
-        return HOMING_SILENCE if self.model.state is MachineState.HOMING else self.heartbeat
+    def _silence_allowed(self) -> float | None:
+        """Seconds the board may print nothing; None: however long (a homing cycle unbounded)."""
+        allowed = self.link_silence
+        # classic grbl writes before it answers; grblHAL answers, then writes once idle.
+        if self._storing is not None or self._heard_at == self._stored_at:
+            allowed += STORAGE_QUIET
+        if self._homing_lines or self.model.state is MachineState.HOMING:
+            bound = self.homing_timeout
+            if bound is None:
+                bound = homing_time_bound(self.settings)
+            if bound is None:
+                return None
+            allowed = max(allowed, bound)
+        return allowed
+
+    def _lost_at(self) -> float | None:
+        """When the link is given up if the board stays silent: its silence has lasted what
+        is allowed, and SILENT_QUERIES `?`s went unanswered, the last given `heartbeat`."""
+        allowed = self._silence_allowed()
+        if allowed is None or len(self._silent_asks) < SILENT_QUERIES:
+            return None
+        last = self._silent_asks[SILENT_QUERIES - 1]
+        return max(self._heard_at + allowed, last + self.heartbeat)
+
+    def _may_be_moving(self) -> bool:
+        """Not known to stand still: a reopen (an Arduino's reset) could stop it mid-motion."""
+        state = self.model.state
+        still = state is not None and (state.is_resting or state.is_lockout)
+        planner_empty = (
+            self._reports.planner_free is None or self._reports.planner_free >= self.blocks
+        )
+        return not (still and planner_empty) or bool(self._inflight) or self._homing_lines > 0
 
     # -- the connection ------------------------------------------------------------
 
@@ -283,6 +357,9 @@ class GrblSession(SessionBase):
         self._report_waiters.clear()
         self._await_report = self._awaiting_rest = False
         self._asked_at = None
+        self._homing_lines = 0
+        self._homing_failed = False
+        self._storing = None
 
     def _settle_lost(self, entry: InFlight, error: MachineError) -> None:
         if entry.file_line is not None:
@@ -293,6 +370,9 @@ class GrblSession(SessionBase):
     # -- reading -----------------------------------------------------------------------
 
     def receive(self, line: bytes) -> None:
+        self._heard_at = self.clock()  # any line, `ok`s too: the board lives
+        if self._silent_asks:
+            self._silent_asks.clear()
         msg = codec.parse(line)
         if isinstance(msg, codec.Ok | codec.Error):
             self._answered(msg)
@@ -325,18 +405,28 @@ class GrblSession(SessionBase):
             return
         entry = self._inflight.popleft()
         self._rx_used -= len(entry.line)
+        if entry is self._storing:
+            self._storing = None
+            self._stored_at = self._heard_at
+        homing = self._homing_lines > 0 and codec.homes(entry.line)
+        if homing:
+            self._homing_lines -= 1
         status = 0 if isinstance(msg, codec.Ok) else msg.code
         body: dict[str, Any] = {"lines": self._said} if self._said else {}
         self._said = []
         response = Response(body, status, 0, b"ok" if status == 0 else b"error:%d" % status)
+        if homing and not self._homing_lines:
+            failed, self._homing_failed = self._homing_failed, False
+            if status == 0 and not failed:
+                # A client's `$H` or a job's. Classic grbl answers a failed cycle `ok`
+                # too, after its ALARM (system.c: `$H` breaks out with STATUS_OK).
+                self.model.homed = True
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
         elif isinstance(source, _Own):
             self._own_answered(source, response)
         else:
-            if status == 0 and entry.line.upper().startswith(b"$H"):
-                self.model.homed = True
             self._settle(source, response)
 
     def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
@@ -418,6 +508,8 @@ class GrblSession(SessionBase):
         self._recheck_waiting()
 
     def _on_alarm(self, code: int) -> None:
+        if self._homing_lines:
+            self._homing_failed = True
         text = alarm_text(code)
         state = ALARM_STATE.get(code, MachineState.ALARM)
         report = {"alarm": code, "msg": text}
@@ -493,7 +585,10 @@ class GrblSession(SessionBase):
         self.phase = Phase.READY
         self._handshake_deadline = None
         self._resync = self._first_report = False
-        self._next_poll = self.clock() + self.status_interval
+        now = self.clock()
+        self._next_poll = now + self.status_interval
+        self._heard_at = now
+        self._silent_asks.clear()
         self._events.append(Ready())
 
     def tick(self) -> None:
@@ -511,12 +606,20 @@ class GrblSession(SessionBase):
             self._reset_now()
         if self.phase is not Phase.READY:
             return
-        if self._asked_at is not None:
-            if now >= self._asked_at + self._silence_allowed():
-                silent = now - self._asked_at
-                self._closing(f"controller silent for {silent:g} s (no answer to '?')")
-        elif now >= self._next_poll:
-            self._ask_report()
+        lost = self._lost_at()
+        if lost is not None and now >= lost:
+            moving = self._may_be_moving()
+            self._closing(
+                f"controller silent for {now - self._heard_at:.1f} s: not a byte, and "
+                f"{len(self._silent_asks)} status requests unanswered"
+                + (" (it may be moving: the port is not reopened on its own)" if moving else ""),
+                reopen=not moving,
+            )
+        elif self._asked_at is None:
+            if now >= self._next_poll:
+                self._ask_report()
+        elif now >= self._asked_at + self.heartbeat:
+            self._ask_report()  # the `?` or its report may have been lost: ask again
 
     # -- writing -----------------------------------------------------------------------
 
@@ -526,6 +629,8 @@ class GrblSession(SessionBase):
     def _pump(self) -> None:
         if self.phase is not Phase.READY or self.halted or self.flushing():
             return
+        if self._storing is not None:
+            return  # bytes arriving while the board writes EEPROM are lost: wait for its answer
         state = self.model.state
         context = self._context()
         while self._outbox:
@@ -539,6 +644,8 @@ class GrblSession(SessionBase):
             queued = self._outbox.popleft()
             if self._admissible(queued, state, context):
                 self._book(queued.encoded, queued.token)
+                if self._storing is not None:
+                    return  # send-response: the next line waits for this one's answer
         stream = self.stream
         if (
             stream is None
@@ -559,11 +666,28 @@ class GrblSession(SessionBase):
             self._inflight.append(entry)
             self._rx_used += len(entry.line)
             self._out.append((Lane.DATA, entry.line))
+            if self._special(entry):
+                return
+
+    def _special(self, entry: InFlight) -> bool:
+        """Book a homing or storing line; True if nothing may be written after it yet."""
+        line = entry.line
+        if line[:1] == b"$":
+            if codec.homes(line):
+                self._homing_lines += 1
+        elif not _MAY_STORE(line):
+            return False  # a job's line, almost always: one regex search
+        if codec.stores(line):
+            self._storing = entry
+            return True
+        return False
 
     def _book(self, encoded: bytes, source: Any) -> None:
-        self._inflight.append(InFlight(encoded, source, None, isinstance(source, _Own)))
+        entry = InFlight(encoded, source, None, isinstance(source, _Own))
+        self._inflight.append(entry)
         self._rx_used += len(encoded)
         self._out.append((Lane.DATA, encoded))
+        self._special(entry)
 
     def _ask_own(self, text: str, purpose: _Own) -> None:
         """A line of the session's own: it goes now, budget or not (they are few and short)."""
@@ -572,9 +696,10 @@ class GrblSession(SessionBase):
 
     def _ask_report(self) -> None:
         now = self.clock()
-        if self._asked_at is None:
-            self._asked_at = now
+        self._asked_at = now
         self._next_poll = now + self.status_interval
+        if len(self._silent_asks) < SILENT_QUERIES:
+            self._silent_asks.append(now)
         self._out.append((Lane.REALTIME, codec.STATUS))
 
     def _query_status(self) -> None:
@@ -704,3 +829,45 @@ def _setting_numbers(keys: list[str]) -> None:
 
 
 _NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})
+_MAY_STORE = codec.MAY_STORE.search
+
+
+def homing_time_bound(settings: Mapping[str, str]) -> float | None:
+    """The longest a homing cycle can take, in seconds, from the board's `$$`; None if unknown.
+
+    grbl 1.1's limits_go_home (limits.c) and grblHAL's (machine_limits.c) home
+    each cycle alike: a search of 1.5 x the longest travel (`$130`..) at the seek
+    rate (`$25`), then for each locate cycle (grblHAL `$43`, grbl 1) a pull-off of
+    `$27` at the seek rate and an approach of 10 x `$27` (grblHAL's
+    HOMING_AXIS_LOCATE_SCALAR; grbl's is 5) at the feed rate (`$24`), and a last
+    pull-off; after each move a debounce delay of `$26` ms. Which axes home
+    together is a build option the host cannot read, so every axis is taken as a
+    cycle of its own (the longest case); each move also accelerates to its rate
+    and back (`$120`..). 1.5 times that covers a slow start and a report's delay.
+    """
+
+    def number(key: int) -> float | None:
+        found = codec.numbers(settings.get(str(key), ""))
+        ok = found is not None and len(found) == 1 and math.isfinite(found[0])
+        return found[0] if found and ok else None
+
+    seek, feed = number(25), number(24)
+    if seek is None or feed is None or seek <= 0 or feed <= 0:
+        return None
+    pulloff = max(number(27) or 0.0, 0.0)
+    debounce = max(number(26) or 0.0, 0.0) / 1000
+    locates = min(max(int(number(43) or 1), 1), 128)  # grblHAL takes 1..128
+    total = 0.0
+    for axis in range(6):
+        travel = number(130 + axis)
+        if travel is None or travel <= 0:
+            continue
+        moves = [(1.5 * travel, seek)]
+        moves += [(pulloff, seek), (10 * pulloff, feed)] * locates + [(pulloff, seek)]
+        accel = number(120 + axis)
+        for distance, rate in moves:
+            speed = rate / 60  # mm/s
+            total += distance / speed + debounce
+            if accel is not None and accel > 0:
+                total += speed / accel
+    return 1.5 * total if total > 0 else None

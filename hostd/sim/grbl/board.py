@@ -47,6 +47,16 @@ the modules above):
   position is lost: ALARM:3 (ALARM:6 when homing) is printed, then the
   banner (grbllib.c / main.c print it on every reset), then the unlock
   message. HAL ignores 0x18 while the e-stop input is active.
+- holds: a feed hold or the door sets sys.suspend, and protocol_execute_realtime
+  then runs protocol_exec_rt_suspend, which reads no line until the resume.
+  Classic sets it only once the deceleration is over (protocol.c: EXEC_CYCLE_STOP
+  with STEP_CONTROL_EXECUTE_HOLD sets SUSPEND_HOLD_COMPLETE): while it slows
+  down the main loop still reads and plans lines and answers them `ok`. HAL sets
+  it as the hold begins (state_machine.c initiate_hold: `sys.suspend = !sys.flags.soft_limit`).
+- EEPROM and flash (`GrblConfig.storage_write`): classic writes `$x=` and G10
+  L2/L20 before it answers, with its interrupts off, so bytes arriving then are
+  lost (eeprom.c); HAL answers, then writes to flash once idle (protocol.c
+  nvs_buffer_sync_physical) while its USB stack holds what arrives.
 """
 
 from __future__ import annotations
@@ -84,6 +94,9 @@ class GrblBoard:
         self.door_open = False
         self.probe = False
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
+        self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
+        self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
+        self.status_ignored = False  # `?` is not answered (reports stop), lines still are
         self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
         self.modal = Modal()
         self.homed = False
@@ -135,6 +148,9 @@ class GrblBoard:
         self.modal.reset()
         self.modal.position = dict(self.position)
         self._status_pending = False
+        self._deaf_until: float | None = None  # an EEPROM / flash write: no input till then
+        self._held = bytearray()  # HAL: what arrived meanwhile, waiting in the USB stack
+        self._nvs_dirty = False  # HAL: settings changed, written to flash once idle
         self._wco_counter = self._ovr_counter = 0  # report_init_message zeroes them
         self._report_flags: set[str] = {"overrides"}  # report_add_realtime(Report_Overrides)
 
@@ -192,8 +208,17 @@ class GrblBoard:
 
     def receive(self, data: bytes) -> None:
         """Bytes from the host: realtime ones act now, the rest queue or are lost."""
+        if self._deaf_until is not None:
+            if self.hal:
+                self._held += data  # USB: the host's bytes wait until the write is over
+            else:
+                self.lost_in_write += len(data)  # the RX interrupt is off: overrun
+            return
         capacity = self.config.rx_capacity
         for byte in data:
+            if byte == realtime.STATUS and (self.status_lost or self.status_ignored):
+                self.status_lost = max(self.status_lost - 1, 0)
+                continue
             if byte in realtime.REALTIME:
                 self.realtime(byte)
             elif byte >= 0x80 and self.hal:
@@ -254,21 +279,55 @@ class GrblBoard:
     def tick(self) -> bool:
         """Do one thing that is due; False when nothing is."""
         now = self._clock()
+        if self._deaf_until is not None:
+            if now < self._deaf_until:
+                return False  # the CPU writes EEPROM or flash: nothing else runs
+            self._deaf_until = None
+            held, self._held = bytes(self._held), bytearray()
+            self.receive(held)
+            return True
         if motion_control.advance(self, now):
             return True
         if self.blocking:
             return self.hal and self._read_line(critical=True)
+        if self._suspended():
+            return False
         if self._wait is not None:
             return motion_control.resume_wait(self, now)
+        if self._nvs_dirty and self.state in ("Idle", "Alarm", "EStop"):
+            self._nvs_dirty = False
+            self._deaf_until = now + self.config.storage_write
+            return True
         return self._read_line(critical=False)
+
+    def _suspended(self) -> bool:
+        """protocol_exec_rt_suspend holds the main loop: no line is read (see above)."""
+        if self.state == "Door":
+            return True
+        return self.state == "Hold" and (self.hal or self.hold == 2)
 
     def next_deadline(self) -> float | None:
         times: list[float] = []
+        if self._deaf_until is not None:
+            times.append(self._deaf_until)
         if self.active is not None:
             times.append(self.active.end)
-        if self._wait is not None and self._wait.kind in ("dwell", "home"):
+        if self._wait is not None and self._wait.kind in ("dwell", "home", "store"):
             times.append(self._wait.until)
         return min(times) if times else None
+
+    def _stored(self, line: str) -> Error | None:
+        """An EEPROM or flash write; the line's status, or None while classic writes."""
+        seconds = self.config.storage_write
+        if not seconds:
+            return Error.OK
+        if self.hal:
+            self._nvs_dirty = True  # written once idle (nvs_buffer_sync_physical)
+            return Error.OK
+        until = self._clock() + seconds
+        self._wait = motion_control.Wait("store", line, until=until)
+        self._deaf_until = until
+        return None
 
     # --- lines
 
@@ -353,8 +412,9 @@ class GrblBoard:
             if self.settings[20] and not system.in_travel(self, move.target):
                 self._soft_limit()
                 return None
-        if result.moves or result.dwell is not None or result.probe or result.stop:
-            kind = "room" if result.moves and not (result.dwell or result.stop) else "sync"
+        if result.moves or result.dwell is not None or result.probe or result.stop or result.stores:
+            sync = result.dwell is not None or result.stop or result.stores
+            kind = "room" if result.moves and not sync else "sync"
             self._wait = motion_control.Wait(kind, line, result)
             return None
         return Error.OK

@@ -24,10 +24,20 @@ class GrblConfig:
     below are the power-on values of `$20` (soft limits), `$21` (hard
     limits), `$22` (homing), `$32` (laser mode) and, on grblHAL, homing's
     init lock (`$22` bit 2: ALARM:11 until homed). Times are real seconds;
-    `speed_factor` divides every move's duration, `instant` makes moves end
-    at once. `reset_on_open`: opening the port resets the board, as an
+    `speed_factor` divides every move's duration and the homing cycle's
+    (`homing_time`, in the machine's seconds), `instant` makes moves end at
+    once. `reset_on_open`: opening the port resets the board, as an
     Arduino's DTR line does (None: True for grbl, False for grblHAL on
     native USB, which says nothing until spoken to).
+
+    `hal_home_report`: grblHAL built with COMPATIBILITY_LEVEL 0 (the default)
+    forces one `<Home|...>` report as a cycle starts (motion_control.c
+    mc_homing_cycle); False is a build that prints none. `storage_write`:
+    seconds an EEPROM or flash write keeps the board deaf (0: none). Classic
+    grbl writes before it answers, with its interrupts off: bytes that arrive
+    meanwhile are lost (eeprom.c eeprom_put_char's cli(); about 0.3 s for a
+    `$x=`). grblHAL answers first and writes its settings to flash once idle
+    (protocol.c nvs_buffer_sync_physical): bytes wait in the USB stack.
     """
 
     flavour: Flavour = "grbl"
@@ -42,7 +52,9 @@ class GrblConfig:
     speed_factor: float = 1.0
     instant: bool = False
     rapid_rate: float = 500.0  # mm/min, $110-$112 (the firmware defaults)
-    homing_time: float = 0.05  # s a homing cycle takes
+    homing_time: float = 0.05  # s a homing cycle takes (divided by speed_factor)
+    hal_home_report: bool = True
+    storage_write: float = 0.0
     feedhold_decel: float = 0.05  # s from `!` to standing still
     reset_on_open: bool | None = None
     history: int | None = None  # entries kept in `received` / `sent`; None keeps all
@@ -56,6 +68,8 @@ class GrblConfig:
             raise ValueError("planner_blocks must be at least 1")
         if self.speed_factor <= 0:
             raise ValueError("speed_factor must be positive")
+        if self.storage_write < 0 or self.homing_time < 0:
+            raise ValueError("storage_write and homing_time are seconds, not negative")
         if self.homing_init_lock and self.flavour != "grblhal":
             raise ValueError("homing_init_lock (ALARM:11) is a grblHAL setting")
 

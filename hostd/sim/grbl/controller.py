@@ -48,6 +48,8 @@ class GrblSimController(SimShell[GrblBoard, str]):
         self._attached = False
         self._open_pending = False  # reset-on-open waits for the opener's flush
         self._open_timer: asyncio.TimerHandle | None = None
+        self._hung = False
+        self.opens = 0  # times the port was opened (each resets an Arduino)
         self._board = GrblBoard(self.config, emit=self._emit, clock=time.monotonic)
 
     # --- lifecycle (start and close are the shell's)
@@ -134,6 +136,19 @@ class GrblSimController(SimShell[GrblBoard, str]):
         self._board.set_probe(active)
         self._kick()
 
+    def lose_status_requests(self, count: int = 1) -> None:
+        """The wire loses the next `count` `?` bytes (line noise, a USB-serial adapter)."""
+        self._board.status_lost += count
+
+    def ignore_status_requests(self, ignored: bool = True) -> None:
+        """`?` gets no report while lines still get their `ok` (reports stop, answers go on)."""
+        self._board.status_ignored = ignored
+
+    def hang(self, hung: bool = True) -> None:
+        """The firmware hangs with its USB device still there: it reads and prints nothing."""
+        self._hung = hung
+        self._kick()
+
     def inject_garbage(self, data: bytes) -> None:
         """Write `data` raw to the host, as a noisy or broken board might."""
         if self._port is not None and self._port.write(data):
@@ -158,6 +173,7 @@ class GrblSimController(SimShell[GrblBoard, str]):
 
     def port_attached(self, port: PtyPort) -> None:
         self._attached = True
+        self.opens += 1
         port.set_read_limit(1 << 16)
         if self.config.opens_with_reset:
             # An Arduino's DTR resets the board; its banner must come after the opener's
@@ -180,8 +196,8 @@ class GrblSimController(SimShell[GrblBoard, str]):
 
     def port_data(self, port: PtyPort, data: bytes) -> None:
         port.set_read_limit(1 << 16)
-        if self._open_pending:
-            return  # the board is still in its bootloader
+        if self._open_pending or self._hung:
+            return  # the board is still in its bootloader, or hangs
         self._keep(self.received, Received(time.monotonic(), PORT, data, "raw"))
         self._board.receive(data)
         self._kick()
@@ -206,15 +222,15 @@ class GrblSimController(SimShell[GrblBoard, str]):
 
     def _emit(self, line: str) -> None:
         port = self._port
-        if port is None or not self._attached or self._open_pending:
-            return  # a board with nobody listening talks to nobody
+        if port is None or not self._attached or self._open_pending or self._hung:
+            return  # a board with nobody listening talks to nobody; a hung one to nobody
         data = line.encode("latin-1", "replace")
         if port.write(data + EOL):
             self._keep(self.sent, Received(time.monotonic(), PORT, data, "line"))
 
     def _halted(self) -> bool:
-        """Never: this board does not hang, and its resets run inside the board."""
-        return False
+        """Only while `hang()` holds it; its resets run inside the board."""
+        return self._hung
 
     def _update_reading(self) -> None:
         """Nothing to re-plan: the port reads all it can (port_attached, port_data) and

@@ -37,7 +37,7 @@ if TYPE_CHECKING:
 class Wait:
     """What the line being executed waits for before its response (None: nothing)."""
 
-    kind: str  # "room", "sync", "dwell", "home", "probe"
+    kind: str  # "room", "sync", "dwell", "home", "probe", "store"
     line: str
     result: Executed | None = None
     until: float = 0.0
@@ -133,7 +133,7 @@ def resume_wait(board: GrblBoard, now: float) -> bool:
             return False
         assert result is not None
         return _after_sync(board, result, now)
-    if wait.kind in ("dwell", "home"):
+    if wait.kind in ("dwell", "home", "store"):
         if now < wait.until:
             return False
         if wait.kind == "home":
@@ -153,6 +153,13 @@ def _after_sync(board: GrblBoard, result: Executed, now: float) -> bool:
         return True
     if result.probe is not None:
         return _probe_start(board, result.probe, now)
+    if result.stores:
+        # settings.c settings_write_coord_data: FORCE_BUFFER_SYNC_DURING_EEPROM_WRITE
+        # synced the planner (this wait), then the write.
+        answer = board._stored(wait.line)
+        if answer is not None:
+            board._done(answer)
+        return True
     if result.stop in ("M2", "M30"):
         board._message(Msg.PROGRAM_END)
     elif result.stop == "M0":

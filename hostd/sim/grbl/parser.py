@@ -72,6 +72,7 @@ class Executed:
     probe: Probe | None = None
     stop: str | None = None  # "M0", "M1", "M2" or "M30", after the planner empties
     offsets_changed: bool = False  # a WCO change (grblHAL: WCO in the next report)
+    stores: bool = False  # G10 L2/L20 writes the offsets to EEPROM / flash
 
 
 @dataclass
@@ -271,7 +272,7 @@ def _block(m: Modal, words: list[tuple[str, float]], travel_ok: TravelCheck, jog
     if 10 in gset:
         _g10(m, values, mm)
         axes_taken = True
-        out = replace(out, offsets_changed=True)
+        out = replace(out, offsets_changed=True, stores=True)
     elif 92.0 in gset:
         if not axes:
             raise _Refused(Error.NO_AXIS_WORDS)

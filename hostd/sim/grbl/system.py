@@ -83,7 +83,7 @@ def execute_line(board: GrblBoard, line: str) -> Error | None:
     return Error.INVALID_STATEMENT
 
 
-def _store(board: GrblBoard, key: int, raw: str) -> Error:
+def _store(board: GrblBoard, key: int, raw: str) -> Error | None:
     try:
         value = float(raw)
     except ValueError:
@@ -93,7 +93,7 @@ def _store(board: GrblBoard, key: int, raw: str) -> Error:
     if key == 20 and value and not board.settings[22]:
         return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
     board.settings[key] = value if key in FLOAT_SETTINGS else int(value)
-    return Error.OK
+    return board._stored(f"${key}={raw}")
 
 
 def _check_mode(board: GrblBoard) -> Error | None:
@@ -141,9 +141,10 @@ def _home(board: GrblBoard) -> Error | None:
     if board.hal and board.estop:
         return Error.ESTOP
     board.state = "Home"
-    if board.hal:
-        board._send_status()  # mc_homing_cycle: "Force a status report"
-    duration = 0.0 if board.config.instant else board.config.homing_time
+    if board.hal and board.config.hal_home_report:
+        board._send_status()  # mc_homing_cycle: "Force a status report" (COMPATIBILITY_LEVEL 0)
+    cfg = board.config
+    duration = 0.0 if cfg.instant else cfg.homing_time / cfg.speed_factor
     board._wait = motion_control.Wait("home", "$H", until=board._clock() + duration)
     return None
 

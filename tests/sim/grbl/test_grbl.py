@@ -375,3 +375,130 @@ async def test_overrides_show_in_the_next_report(hal_host: GrblHost) -> None:
     await hal_host.status()
     hal_host.send(b"\x91\x91\x96")
     assert "|Ov:120,50,100" in await hal_host.status()
+
+
+# --- silence: homing, EEPROM and flash, lost and unanswered `?`
+
+
+async def test_classic_homing_prints_nothing_until_the_cycle_ends(tmp_path: Path) -> None:
+    config = replace(TIMED_CLASSIC, homing=True, homing_time=0.3)
+    async with Board(tmp_path, config) as (sim, host):
+        host.send(b"$X\n")
+        await host.until(is_answer)
+        host.send(b"$H\n")
+        await sim.wait_state("Home")
+        host.send(b"?")  # limits_go_home serves no `?`: it waits out the cycle
+        got = await host.until(is_answer)
+        assert got[0].startswith("<Home|MPos:-1.000,-1.000,-1.000")
+        assert got[1:] == ["ok"]  # no forced report before it, no [MSG:] after (classic)
+
+
+async def test_a_grblhal_build_without_the_forced_home_report(tmp_path: Path) -> None:
+    config = replace(TIMED_HAL, homing=True, hal_home_report=False)
+    async with Board(tmp_path, config) as (sim, host):
+        host.send(b"$H\n")
+        await sim.wait_state("Home")
+        got = await host.until(is_answer)
+        assert got == ["[MSG:]", "ok"]  # COMPATIBILITY_LEVEL > 0: not a report in the cycle
+
+
+async def test_homing_time_is_the_machines_divided_by_the_speed_factor(tmp_path: Path) -> None:
+    # A cycle of 30 s on the machine, 0.3 s here: the board is in Home for all of it.
+    config = replace(TIMED_CLASSIC, homing=True, homing_time=30.0, speed_factor=100.0)
+    async with Board(tmp_path, config) as (sim, host):
+        await host.ask(b"$X\n")
+        host.send(b"$H\n")
+        await sim.wait_state("Home")
+        assert await host.until(is_answer) == ["ok"]
+        assert sim.state == "Idle" and sim.board.homed
+
+
+async def test_classic_grbl_loses_bytes_while_it_writes_its_eeprom(tmp_path: Path) -> None:
+    config = replace(TIMED_CLASSIC, storage_write=0.3)
+    async with Board(tmp_path, config) as (sim, host):
+        host.send(b"$110=600\n")
+        await sim.wait_for(lambda: sim.board._deaf_until is not None)
+        host.send(b"?G1 X-1 F600\n")  # arrives during the write, interrupts off: lost
+        assert await host.until(is_answer) == ["ok"]
+        await sim.wait_for(lambda: sim.board.lost_in_write > 0)
+        assert sim.board.settings[110] == 600
+        assert await host.ask(b"$110\n") == ["$110=600.000", "ok"]  # the next line is fine
+        assert sim.position["x"] == 0  # the move was never read
+
+
+async def test_classic_syncs_then_writes_offsets_with_g10(tmp_path: Path) -> None:
+    config = replace(TIMED_CLASSIC, storage_write=0.2)
+    async with Board(tmp_path, config) as (sim, host):
+        assert await host.ask(b"G1 X-1 F600\n") == ["ok"]
+        host.send(b"G10 L20 P1 X0\n")
+        await sim.wait_state("Run")
+        await sim.wait_for(lambda: sim.board._deaf_until is not None, timeout=3)
+        assert sim.state == "Idle" and sim.position["x"] == -1  # the planner emptied first
+        assert await host.until(is_answer) == ["ok"]
+
+
+async def test_grblhal_answers_then_writes_flash_keeping_what_arrives(tmp_path: Path) -> None:
+    config = replace(TIMED_HAL, storage_write=0.3)
+    async with Board(tmp_path, config) as (sim, host):
+        assert await host.ask(b"$110=600\n") == ["ok"]  # the answer first
+        await sim.wait_for(lambda: sim.board._deaf_until is not None)
+        host.send(b"?")  # held by the USB stack meanwhile
+        report = await host.line()
+        assert report.startswith("<Idle|") and sim.board._deaf_until is None
+
+
+async def test_a_lost_status_request_gets_no_report(
+    classic_host: GrblHost, classic: GrblSimController
+) -> None:
+    classic.lose_status_requests(1)
+    classic_host.send(b"?")
+    assert await classic_host.ask(b"G4 P0\n") == ["ok"]  # only the answer: `?` was lost
+    assert (await classic_host.status()).startswith("<Idle|")
+
+
+async def test_oks_go_on_while_status_requests_are_ignored(
+    classic_host: GrblHost, classic: GrblSimController
+) -> None:
+    classic.ignore_status_requests()
+    for _ in range(5):
+        classic_host.send(b"?")
+        assert await classic_host.ask(b"G4 P0\n") == ["ok"]
+    classic.ignore_status_requests(False)
+    assert (await classic_host.status()).startswith("<Idle|")
+
+
+async def test_a_hung_board_says_nothing(
+    classic_host: GrblHost, classic: GrblSimController
+) -> None:
+    classic.hang()
+    classic_host.send(b"?$$\n")
+    with pytest.raises(TimeoutError):
+        await classic_host.line(timeout=0.3)
+    classic.hang(False)
+    assert (await classic_host.status()).startswith("<Idle|")
+
+
+@pytest.mark.parametrize(
+    ("config", "answered"), [(TIMED_CLASSIC, True), (TIMED_HAL, False)], ids=["grbl", "grblhal"]
+)
+async def test_lines_are_planned_while_a_hold_decelerates_on_classic_grbl_only(
+    tmp_path: Path, config: GrblConfig, answered: bool
+) -> None:
+    slow = replace(config, feedhold_decel=0.5)
+    async with Board(tmp_path, slow) as (sim, host):
+        assert await host.ask(b"G1 X-10 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        host.send(b"!")
+        await sim.wait_state("Hold:1")
+        host.send(b"G1 X-2 F600\n")
+        if answered:  # protocol.c: not suspended until the deceleration is over
+            assert await host.until(is_answer, timeout=0.4) == ["ok"]
+        else:  # state_machine.c initiate_hold: suspended at once
+            with pytest.raises(TimeoutError):
+                await host.line(timeout=0.3)
+        await sim.wait_state("Hold:0")
+        host.send(b"G4 P0\n")
+        with pytest.raises(TimeoutError):  # a complete hold reads nothing on either
+            await host.line(timeout=0.3)
+        host.send(b"~")
+        assert await host.until(is_answer) == ["ok"]  # read again once resumed
