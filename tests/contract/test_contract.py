@@ -366,13 +366,16 @@ async def test_the_contract_copy_is_valid_json_naming_every_topic_and_code() -> 
     assert len(contract["errors"]) == 16
 
 
+SPEC_BESIDE_CLONE = Path(__file__).resolve().parents[3] / "shared/spec/api-contract.json"
+
+
 async def test_the_contract_copy_is_the_spec_beside_the_checkout() -> None:
     """The copy is the contract itself, not an old version of it.
 
     CI lays ../shared beside the clone, and there the two must be the same; a
     checkout without it has only the copy to go by (checked just above).
     """
-    spec = Path(__file__).resolve().parents[2].parent / "shared/spec/api-contract.json"
+    spec = SPEC_BESIDE_CLONE
     if not spec.exists():
         assert not os.environ.get("CI"), f"CI runs with {spec} beside the clone"
         return

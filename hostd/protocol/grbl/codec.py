@@ -230,7 +230,7 @@ def stores(line: bytes) -> bool:
     """
     if line[:1] != b"$" and not MAY_STORE.search(line):
         return False  # most lines: one search, no parse
-    code = _COMMENT.sub("", line.decode("ascii", "replace")).strip().upper().encode()
+    code = strip_comments(line.decode("ascii", "replace"), "")[0].strip().upper().encode()
     if code.startswith(b"$"):
         key, eq, _ = code[1:].partition(b"=")
         key = key.strip()
