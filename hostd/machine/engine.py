@@ -596,6 +596,7 @@ def session_for(config: MachineConfig) -> SessionBase:
             status_interval=config.status_interval,
             heartbeat=config.heartbeat,
             handshake_timeout=config.handshake_timeout,
+            startup_motion=config.startup_motion,
         )
     return G2Session(
         config.id,

@@ -1,0 +1,96 @@
+"""Issue 24 through the real socket: maintenance commands are deliberate, files are
+checked before anything moves.
+
+A g2core board (sim1) and a grbl board (sim2), simulated on real ptys; every
+refusal is checked to have left nothing on the board's wire (`sim.received`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.test_api import fails
+
+pytestmark = pytest.mark.asyncio
+
+G2, GRBL = "sim1", "sim2"
+
+
+@pytest_asyncio.fixture
+async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
+        client = await d.client()
+        for machine in (G2, GRBL):
+            await d.idle(client, machine)
+        yield d, client
+        await client.close()
+
+
+def reached(hostd: Running, machine: str, text: str) -> bool:
+    return any(text.encode() in r.data for r in hostd.daemon.sims[machine].received)
+
+
+@pytest.mark.parametrize(
+    ("machine", "line", "kind"),
+    [
+        (GRBL, "$RST=*", "restore"),
+        (GRBL, "$ rst = $", "restore"),
+        (GRBL, "$N0=G0X-100", "startup-block"),
+        (GRBL, "$N1=", "startup-block"),
+        (GRBL, "$SLP", "sleep"),
+        (GRBL, "$I=mine", "build-info"),
+        (GRBL, "$J=G91 X9999999999 F100", "absurd-jog"),
+        (GRBL, "$J=G91 X400 F100", "absurd-jog"),  # the sim's X travels 300 mm ($130)
+        (G2, "{defa:1}", "restore"),
+        (G2, '{"flash":true}', "bootloader"),
+    ],
+)
+async def test_machine_send_refuses_maintenance_commands(
+    both: tuple[Running, Rpc], machine: str, line: str, kind: str
+) -> None:
+    hostd, rpc = both
+    err = await fails(-32602, rpc.call("machine.send", machine=machine, line=line))
+    assert err.data == {"refusal": "maintenance", "maintenance": kind}
+    assert "machine.send refuses it" in err.message
+    assert not reached(hostd, machine, line)
+    # An ordinary line still goes.
+    assert (await rpc.call("machine.send", machine=machine, line="G0 X1"))["status"] == 0
+
+
+async def test_a_sane_jog_and_the_views_still_pass(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    assert (await rpc.call("machine.send", machine=GRBL, line="$J=G91 X-5 F600"))["status"] == 0
+    found = await rpc.call("machine.send", machine=GRBL, line="$N")
+    assert found["r"]["lines"] == ["$N0=", "$N1="]
+    status = await rpc.call("machine.status", machine=GRBL)
+    assert status["startup_blocks"] == []  # read at connect: none stored
+
+
+async def test_machine_maintenance_needs_the_machines_opt_in(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    err = await fails(-32602, rpc.call("machine.maintenance", machine=GRBL, line="$RST=$"))
+    assert "maintenance = true" in err.message and err.data["maintenance"] == "restore"
+    assert not reached(hostd, GRBL, "$RST")
+    err = await fails(-32602, rpc.call("machine.maintenance", machine=GRBL, line="G0 X1"))
+    assert "not a maintenance command" in err.message
+
+
+async def test_machine_maintenance_sends_on_purpose_where_allowed(tmp_path: Path) -> None:
+    grbl = {"dialect": "grbl", "maintenance": True}
+    async with running_daemon(tmp_path, machines=2, per_machine=[{"maintenance": True}, grbl]) as d:
+        rpc = await d.client()
+        await d.idle(rpc, GRBL)
+        # The simulated grbl has no $SLP: it answers error:3, which shows the line went.
+        err = await fails(1005, rpc.call("machine.maintenance", machine=GRBL, line="$SLP"))
+        assert err.data["status"] == 3
+        assert reached(d, GRBL, "$SLP")
+        # Never on purpose: an absurd jog, g2core's bootloader and factory defaults.
+        for machine, line in ((GRBL, "$J=G91 X99999 F100"), (G2, "{defa:1}"), (G2, "{flash:1}")):
+            err = await fails(-32602, rpc.call("machine.maintenance", machine=machine, line=line))
+            assert "it is never sent" in err.message
+        await rpc.close()
