@@ -319,7 +319,11 @@ def resume_plan(out: Output, plan: dict[str, Any]) -> None:
 
 
 async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
-    """Upload the file, then `file.analyze` it (with a machine's speeds and travel)."""
+    """Upload the file, then `file.analyze` it (with a machine's speeds and travel).
+
+    Exits FAILED when job.start would refuse the file: lines the board would refuse
+    or must not run (`problems`), or moves beyond the machine's travel.
+    """
     path = Path(args.file)
     name = args.name or path.name
     await upload(c, path, name)
@@ -327,9 +331,10 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     if args.machine is not None:
         params["machine"] = args.machine
     result = await c.call("file.analyze", **params)
+    refused = bool(result.get("problems_total") or result.get("beyond_travel"))
     if out.json:
         out.print_json(result)
-        return OK
+        return FAILED if refused else OK
     minutes, seconds = divmod(round(result["estimate"]), 60)
     rows = [
         ("lines", str(result["lines"])),
@@ -345,7 +350,14 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     for w in result["warnings"]:
         line = f"line {w['line']}: " if w.get("line") else ""
         out.out.print(f"warning: {line}{w['text']} (x{w['count']})", markup=False)
-    return OK
+    for p in result.get("problems", []):
+        out.out.print(f"refused: line {p['line']}: {p['text']}", markup=False)
+    more = result.get("problems_total", 0) - len(result.get("problems", []))
+    if more > 0:
+        out.out.print(f"refused: and {more} more lines", markup=False)
+    if refused:
+        out.message("job.start refuses this file (force starts it anyway)")
+    return FAILED if refused else OK
 
 
 # -- watch ---------------------------------------------------------------------------

@@ -21,7 +21,7 @@ from typing import Any
 import structlog
 
 from hostd.machine.machine import Machine
-from hostd.protocol.commands import InvalidCommand, Refusal
+from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Refusal
 from hostd.protocol.grbl.session import GrblSession
 from hostd.protocol.maintenance import Kind, Maintenance, maintenance_command
 from hostd.protocol.messages import Response
@@ -95,3 +95,18 @@ async def send_maintenance(machine: Machine, line: str, timeout: float) -> Respo
     if found.kind is Kind.STARTUP_BLOCK:
         await machine.engine.send("$N", timeout=timeout)  # the reset guard reads them anew
     return response
+
+
+def line_limit(machine: Machine) -> int:
+    """The longest job line, its LF included, the board takes as its session knows it:
+    grbl's receive buffer less one (`[OPT:]` or 128), g2core's 511 bytes and the LF."""
+    session = machine.engine.session
+    if isinstance(session, GrblSession):
+        return session.rx_size - 1
+    return int(getattr(session, "max_line_bytes", MAX_LINE_BYTES)) + 1
+
+
+def tool_change_policy(machine: Machine) -> str | None:
+    """running.md's `tool_change`, once the config has it; absent is no policy."""
+    policy = getattr(machine.config, "tool_change", None)
+    return policy if isinstance(policy, str) else None

@@ -14,7 +14,7 @@ import pytest
 import pytest_asyncio
 
 from tests.daemon.conftest import Rpc, Running, running_daemon
-from tests.daemon.test_api import fails
+from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
 
@@ -94,3 +94,51 @@ async def test_machine_maintenance_sends_on_purpose_where_allowed(tmp_path: Path
             err = await fails(-32602, rpc.call("machine.maintenance", machine=machine, line=line))
             assert "it is never sent" in err.message
         await rpc.close()
+
+
+# -- files checked at job.start (part 4) -----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("machine", "program", "kind", "line"),
+    [
+        (GRBL, "G21\nG1 X1 F100 (" + "x" * 200 + ")\nG0 X" + "1" * 140 + "\n", "unsendable", 3),
+        (GRBL, "G21\nT2 M6\nG0 X1\n", "tool-change", 2),
+        (G2, "G21\nG0 X1\nT2 M06\n", "tool-change", 3),
+        (GRBL, "G21\nG0 X1\nG43 H1 Z5\n", "unsupported", 3),
+        (G2, "G21\nG81 X1 Y1 Z-2 R1 F100\n", "unsupported", 2),
+        (GRBL, "G21\n$RST=*\n", "maintenance", 2),
+        (G2, "G21\nG0 X1" + " " * 520 + "Y1\n", "unsendable", 2),
+    ],
+)
+async def test_job_start_refuses_what_the_board_would_refuse_with_line_numbers(
+    both: tuple[Running, Rpc], machine: str, program: str, kind: str, line: int
+) -> None:
+    hostd, rpc = both
+    await rpc.call("file.upload", name="bad.nc", data=program)
+    before = len(hostd.daemon.sims[machine].received)
+    err = await fails(1008, rpc.call("job.start", machine=machine, file="bad.nc"))
+    assert err.data["problems"][0] == {
+        "line": line,
+        "kind": kind,
+        "text": err.data["problems"][0]["text"],
+    }
+    assert f"line {line}:" in err.message and err.data["problems_total"] == 1
+    assert len(hostd.daemon.sims[machine].received) - before <= 2  # a report or two, no line
+    assert not any(
+        r.kind == "line" and b"G0 X1" in r.data
+        for r in hostd.daemon.sims[machine].received[before:]
+    )
+    report = await rpc.call("file.analyze", file="bad.nc", machine=machine)
+    assert report["problems"] == err.data["problems"]
+    status = await rpc.call("machine.status", machine=machine)
+    assert status["job"] is None or status["job"]["file"] != "bad.nc"  # no job was made
+
+
+async def test_force_starts_a_refused_file_anyway(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    await rpc.call("file.upload", name="tools.nc", data="G21\nT2 M6\nG0 X1\n")
+    await fails(1008, rpc.call("job.start", machine=G2, file="tools.nc"))
+    await rpc.call("subscribe", topics=["job"], machine=G2)
+    started = await rpc.call("job.start", machine=G2, file="tools.nc", force=True)
+    assert (await job_end(rpc, started["job"]))["state"] == "completed"
