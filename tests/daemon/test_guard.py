@@ -142,3 +142,60 @@ async def test_force_starts_a_refused_file_anyway(both: tuple[Running, Rpc]) -> 
     await rpc.call("subscribe", topics=["job"], machine=G2)
     started = await rpc.call("job.start", machine=G2, file="tools.nc", force=True)
     assert (await job_end(rpc, started["job"]))["state"] == "completed"
+
+
+# -- grbl startup blocks and hostd's own reset (part 3) -------------------------------
+
+
+async def grbl_with_a_moving_startup_block(d: Running) -> Rpc:
+    rpc = await d.client()
+    await d.idle(rpc, GRBL)
+    stored = await rpc.call("machine.maintenance", machine=GRBL, line="$N0=G0 X-5")
+    assert stored["status"] == 0
+    await d.idle(rpc, GRBL)  # storing ran the block once (grbl system.c)
+    blocks = (await rpc.call("machine.status", machine=GRBL))["startup_blocks"]
+    assert blocks == [{"n": 0, "line": "G0X-5", "acts": "moves the machine (G0)"}]
+    return rpc
+
+
+async def cancel_a_job(rpc: Rpc) -> None:
+    await rpc.call("file.upload", name="long.nc", data="G1 X-100 F600\nG1 X0\n" * 20)
+    await rpc.call("subscribe", topics=["job", "exception"], machine=GRBL)
+    started = await rpc.call("job.start", machine=GRBL, file="long.nc")
+    await rpc.notification(lambda n: n["method"] == "job" and n["params"]["job"]["lines_acked"] > 0)
+    cancelled = await rpc.call("job.cancel", machine=GRBL)
+    assert cancelled["id"] == started["job"] and cancelled["state"] == "cancelled"
+
+
+async def test_a_cancel_holds_the_board_while_a_startup_block_would_move_it(
+    tmp_path: Path,
+) -> None:
+    grbl = {"dialect": "grbl", "maintenance": True}
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, grbl]) as d:
+        rpc = await grbl_with_a_moving_startup_block(d)
+        sim = d.daemon.sims[GRBL]
+        await cancel_a_job(rpc)
+        held = await rpc.notification(lambda n: n["method"] == "exception")
+        assert "held instead of reset" in held["params"]["report"]["msg"]
+        assert "$N0=G0X-5 moves the machine (G0)" in held["params"]["report"]["msg"]
+        status = await rpc.call("machine.status", machine=GRBL)
+        assert status["supervisor"] == "busy" and status["board_state"] == "Hold:0"
+        assert not any(r.data == b"\x18" for r in sim.received)  # no reset of hostd's own
+        err = await fails(1003, rpc.call("machine.cycle_start", machine=GRBL))
+        assert "machine.reset runs it" in err.message  # `~` would run the cancelled moves
+        await fails(1003, rpc.call("machine.send", machine=GRBL, line="G0 X1"))
+        # The operator's reset: asked for, it goes, and the block runs.
+        await rpc.call("machine.reset", machine=GRBL)
+        await d.idle(rpc, GRBL)
+        assert any(r.data == b"\x18" for r in sim.received)
+        await rpc.close()
+
+
+async def test_startup_motion_allowed_a_cancel_resets_as_before(tmp_path: Path) -> None:
+    grbl = {"dialect": "grbl", "maintenance": True, "startup_motion": True}
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, grbl]) as d:
+        rpc = await grbl_with_a_moving_startup_block(d)
+        await cancel_a_job(rpc)
+        await d.idle(rpc, GRBL)  # reset, re-synced: the block ran, as configured
+        assert any(r.data == b"\x18" for r in d.daemon.sims[GRBL].received)
+        await rpc.close()

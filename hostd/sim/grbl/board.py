@@ -85,6 +85,8 @@ class GrblBoard:
         self.probe = False
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
         self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
+        # `$N0`, `$N1` (N_STARTUP_LINE 2): kept in EEPROM, run after every reset (system.c).
+        self.startup_lines = ["", ""]
         self.modal = Modal()
         self.homed = False
         self.alarm: Alarm | None = None
@@ -162,6 +164,8 @@ class GrblBoard:
             self.state = "Idle"
             if self.door_open:
                 realtime.door_event(self)
+            if self.state == "Idle":
+                system.execute_startup(self)  # protocol.c: "All systems go!"
         self._cold = False
 
     def _bits(self, key: int) -> int:
