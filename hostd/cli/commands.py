@@ -256,6 +256,8 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
     params: dict[str, Any] = {"machine": args.machine, "file": name}
     if args.start_line is not None:
         params["start_line"] = args.start_line
+    if getattr(args, "force", False):
+        params["force"] = True  # past job.start's refusals (travel, lines the board refuses)
     if getattr(args, "from_line", None) is not None:
         plan = await c.call("job.recovery", machine=args.machine, file=name, line=args.from_line)
         resume_plan(out, plan)
