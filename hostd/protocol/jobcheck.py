@@ -28,11 +28,13 @@ from dataclasses import dataclass
 from hostd.protocol.commands import InvalidCommand, Refusal, encode_line
 from hostd.protocol.gcodestate.dialects import DIALECTS
 from hostd.protocol.grbl import codec
-from hostd.protocol.maintenance import maintenance_command, normalized
+from hostd.protocol.maintenance import maintenance_command
 from hostd.protocol.program import number_line
 
 MAX_FINDINGS = 50  # listed one by one; the rest are counted
-_WORD = re.compile(r"([A-Z])([^A-Z]*)")
+# A G or M word: the letter, blanks, the number. Disjoint classes: no backtracking. Lines
+# come without comments (program_lines), so no word is read out of one.
+_CODE = re.compile(r"([GM])\s*([0-9.]+)")
 _POLICIES = frozenset({"pause", "probe", "ignore"})  # running.md's tool_change, but "refuse"
 
 
@@ -115,13 +117,12 @@ def _check_line(
         encode(number_line(text, number) if numbered else text)
     except InvalidCommand as exc:
         return Finding(number, "unsendable", exc.message)
-    found = maintenance_command(dialect, text)
-    if found is not None:
-        return Finding(number, "maintenance", found.why)
     if text[:1] in ("$", "{"):
-        return None  # not G-code
-    codes = [f"{m[1]}{_code(m[2])}" for m in _WORD.finditer(normalized(text)) if m[1] in "GM"]
-    for code in codes:
+        # Not G-code: a `$` or JSON command, maybe maintenance.
+        found = maintenance_command(dialect, text)
+        return None if found is None else Finding(number, "maintenance", found.why)
+    for letter, digits in _CODE.findall(text.upper()):
+        code = letter + _code(digits)
         if code == "M6":
             if not policy:
                 return Finding(
@@ -136,6 +137,9 @@ def _check_line(
 
 
 def _code(number: str) -> str:
+    """`01` is 1, `38.20` is 38.2: the code as the tables name it."""
+    if number.isdigit() and len(number) < 6:
+        return str(int(number))
     try:
         value = float(number)
     except ValueError:
