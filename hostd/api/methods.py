@@ -41,7 +41,7 @@ from hostd.machine.events import (
     StatusChanged,
     SupervisorChanged,
 )
-from hostd.machine.guard import check_send, send_maintenance
+from hostd.machine.guard import check_jog, check_send, send_maintenance
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import analyze_for, plan_for, prepare_start, recovery_for
 from hostd.protocol.commands import InvalidCommand, Realtime
@@ -451,7 +451,12 @@ class Api:
         return {}
 
     async def machine_jog(self, p: JogParams) -> dict[str, Any]:
-        job = await self._machine(p.machine).jog(p.axes, p.feed)
+        machine = self._machine(p.machine)
+        try:
+            check_jog(machine, p.axes)
+        except InvalidCommand as exc:
+            raise RpcError(-32602, exc.message, exc.data) from None
+        job = await machine.jog(p.axes, p.feed)
         return {"job": job.id}
 
     async def machine_override(self, p: OverrideParams) -> dict[str, Any]:

@@ -23,7 +23,7 @@ import structlog
 from hostd.machine.machine import Machine
 from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Refusal
 from hostd.protocol.grbl.session import GrblSession
-from hostd.protocol.maintenance import Kind, Maintenance, maintenance_command
+from hostd.protocol.maintenance import Kind, Maintenance, absurd_jog, maintenance_command
 from hostd.protocol.messages import Response
 
 log = structlog.get_logger(__name__)
@@ -73,6 +73,19 @@ def check_send(machine: Machine, line: str) -> None:
         + ("" if machine.config.maintenance else f" (set maintenance = true for {machine.id})")
     )
     raise MaintenanceRefused(found, f"{found.why}: machine.send refuses it; {how}")
+
+
+def check_jog(machine: Machine, axes: dict[str, float]) -> None:
+    """Refuse a `machine.jog` no machine's travel has room for, on either dialect.
+
+    The distances are relative, in the machine's units: longer than the axis's travel
+    span where the session knows it (grbl's `$130`..), else than SANE_JOG_MM.
+    """
+    words = "G91" + "".join(f"{axis.upper()}{distance:.6f}" for axis, distance in axes.items())
+    why = absurd_jog(words, _travel(machine), inches=machine.engine.model.units == "in")
+    if why is not None:
+        found = Maintenance(Kind.ABSURD_JOG, why, on_purpose=False)
+        raise MaintenanceRefused(found, f"{why}: machine.jog refuses it")
 
 
 async def send_maintenance(machine: Machine, line: str, timeout: float) -> Response:

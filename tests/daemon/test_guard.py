@@ -199,3 +199,17 @@ async def test_startup_motion_allowed_a_cancel_resets_as_before(tmp_path: Path) 
         await d.idle(rpc, GRBL)  # reset, re-synced: the block ran, as configured
         assert any(r.data == b"\x18" for r in d.daemon.sims[GRBL].received)
         await rpc.close()
+
+
+async def test_machine_jog_refuses_a_jog_no_travel_has_room_for(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    # grbl: the travel from `$130` (300 mm on the simulated board).
+    err = await fails(-32602, rpc.call("machine.jog", machine=GRBL, axes={"x": -400}, feed=600))
+    assert err.data == {"refusal": "maintenance", "maintenance": "absurd-jog"}
+    assert "more than the axis travels" in err.message
+    assert not reached(hostd, GRBL, "X-400")
+    # g2core: no travel in the session; the documented bound, 10,000 mm.
+    err = await fails(-32602, rpc.call("machine.jog", machine=G2, axes={"y": 20000}, feed=600))
+    assert "beyond any machine's travel" in err.message
+    for machine in (GRBL, G2):
+        await rpc.call("machine.jog", machine=machine, axes={"x": -5}, feed=600)
