@@ -88,6 +88,13 @@ class MachineConfig(_Strict):
     # reach its speed before the tool goes down.
     safe_z: Annotated[float, Field(allow_inf_nan=False)] | None = None
     spindle_dwell: Annotated[float, Field(ge=0, le=60)] = 2.0
+    # Maintenance commands (grbl `$RST=`, `$N0=`, `$I=`, `$SLP`; docs/operations.md):
+    # machine.send always refuses them; machine.maintenance sends them only when true.
+    maintenance: bool = False
+    # grbl: a startup block ($N0/$N1) that moves runs at every reset. False: after a
+    # cancel or a failed job hostd holds the board instead of resetting it (only
+    # machine.reset, asked by the operator, resets it). True: it resets as usual.
+    startup_motion: bool = False
 
     @field_validator("baudrate")
     @classmethod

@@ -29,6 +29,9 @@ class Notifier:
         self._sock: socket.socket | None = None
         if self._address is not None:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # A receiver that stops reading (its queue holds net.unix.max_dgram_qlen, 10 by
+            # default) must not block the event loop in sendto: the message is dropped.
+            self._sock.setblocking(False)
 
     @property
     def enabled(self) -> bool:

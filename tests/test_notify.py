@@ -110,3 +110,11 @@ async def test_an_unhealthy_daemon_stops_pinging(tmp_path: Path) -> None:
             sock.recv(64)
         task.cancel()
         notifier.close()
+
+
+def test_a_receiver_that_stops_reading_never_blocks_the_sender(tmp_path: Path) -> None:
+    with receiver(tmp_path / "notify"):
+        notifier = Notifier({"NOTIFY_SOCKET": str(tmp_path / "notify")})
+        for _ in range(100):  # ten times what the kernel queues for an unread socket
+            notifier.send(WATCHDOG=1)
+        notifier.close()

@@ -46,6 +46,7 @@ from hostd.machine.events import (
     StatusChanged,
     SupervisorChanged,
 )
+from hostd.machine.guard import check_jog, check_send, send_maintenance
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import analyze_for, plan_for, prepare_start, recovery_for
 from hostd.protocol.commands import InvalidCommand, Realtime
@@ -417,9 +418,19 @@ class Api:
     async def machine_send(self, p: SendParams) -> dict[str, Any]:
         machine = self._machine(p.machine)
         try:
+            check_send(machine, p.line)  # maintenance commands: machine.maintenance only
             response = await machine.engine.send(p.line, timeout=p.timeout)
         except InvalidCommand as exc:
-            raise RpcError(-32602, exc.message, {"refusal": exc.refusal.value}) from None
+            raise RpcError(-32602, exc.message, exc.data) from None
+        return {"status": response.status, "r": response.body}
+
+    async def machine_maintenance(self, p: SendParams) -> dict[str, Any]:
+        """One maintenance command, on purpose, where the machine's config allows it."""
+        machine = self._machine(p.machine)
+        try:
+            response = await send_maintenance(machine, p.line, p.timeout)
+        except InvalidCommand as exc:
+            raise RpcError(-32602, exc.message, exc.data) from None
         return {"status": response.status, "r": response.body}
 
     async def machine_feedhold(self, p: MachineParams) -> dict[str, Any]:
@@ -455,7 +466,12 @@ class Api:
         return {}
 
     async def machine_jog(self, p: JogParams) -> dict[str, Any]:
-        job = await self._machine(p.machine).jog(p.axes, p.feed)
+        machine = self._machine(p.machine)
+        try:
+            check_jog(machine, p.axes)
+        except InvalidCommand as exc:
+            raise RpcError(-32602, exc.message, exc.data) from None
+        job = await machine.jog(p.axes, p.feed)
         return {"job": job.id}
 
     async def machine_override(self, p: OverrideParams) -> dict[str, Any]:
@@ -676,6 +692,7 @@ def build_methods(api: Api) -> Methods:
     m.register("machine.connect", MachineParams, api.machine_connect)
     m.register("machine.disconnect", MachineParams, api.machine_disconnect)
     m.register("machine.send", SendParams, api.machine_send)
+    m.register("machine.maintenance", SendParams, api.machine_maintenance)
     m.register("machine.feedhold", MachineParams, api.machine_feedhold, immediate=True)
     m.register("machine.cycle_start", MachineParams, api.machine_cycle_start, immediate=True)
     m.register("machine.queue_flush", MachineParams, api.machine_queue_flush, immediate=True)

@@ -256,6 +256,8 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
     params: dict[str, Any] = {"machine": args.machine, "file": name}
     if args.start_line is not None:
         params["start_line"] = args.start_line
+    if getattr(args, "force", False):
+        params["force"] = True  # past job.start's refusals (travel, lines the board refuses)
     if getattr(args, "from_line", None) is not None:
         plan = await c.call("job.recovery", machine=args.machine, file=name, line=args.from_line)
         resume_plan(out, plan)
@@ -319,7 +321,11 @@ def resume_plan(out: Output, plan: dict[str, Any]) -> None:
 
 
 async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
-    """Upload the file, then `file.analyze` it (with a machine's speeds and travel)."""
+    """Upload the file, then `file.analyze` it (with a machine's speeds and travel).
+
+    Exits FAILED when job.start would refuse the file: lines the board would refuse
+    or must not run (`problems`), or moves beyond the machine's travel.
+    """
     path = Path(args.file)
     name = args.name or path.name
     await upload(c, path, name)
@@ -327,9 +333,10 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     if args.machine is not None:
         params["machine"] = args.machine
     result = await c.call("file.analyze", **params)
+    refused = bool(result.get("problems_total") or result.get("beyond_travel"))
     if out.json:
         out.print_json(result)
-        return OK
+        return FAILED if refused else OK
     minutes, seconds = divmod(round(result["duration_s"]), 60)
     rows = [
         ("lines", str(result["lines"])),
@@ -344,7 +351,14 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     render.pairs(out.out, rows)
     for text in result["warnings"]:
         out.out.print(f"warning: {text}", markup=False)
-    return OK
+    for p in result.get("problems", []):
+        out.out.print(f"refused: line {p['line']}: {p['text']}", markup=False)
+    more = result.get("problems_total", 0) - len(result.get("problems", []))
+    if more > 0:
+        out.out.print(f"refused: and {more} more lines", markup=False)
+    if refused:
+        out.message("job.start refuses this file (force starts it anyway)")
+    return FAILED if refused else OK
 
 
 # -- watch ---------------------------------------------------------------------------

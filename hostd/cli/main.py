@@ -104,6 +104,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="resume at LINE: show the restore and approach plan, ask, then run (job.recovery)",
     )
     p.add_argument("--yes", "-y", action="store_true", help="do not ask before a --from resume")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="start a file job.start refuses (beyond the travel, lines the board would refuse)",
+    )
 
     p = client("analyze", "analyze", "a G-code file's figures: bounds, estimate, warnings")
     p.add_argument("file", metavar="FILE")

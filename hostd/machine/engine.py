@@ -608,6 +608,7 @@ def session_for(config: MachineConfig) -> SessionBase:
             link_silence=config.link_silence,
             homing_timeout=config.homing_timeout,
             handshake_timeout=config.handshake_timeout,
+            startup_motion=config.startup_motion,
         )
     return G2Session(
         config.id,

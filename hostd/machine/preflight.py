@@ -17,21 +17,24 @@ from __future__ import annotations
 import asyncio
 import hashlib
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import structlog
 
+from hostd.machine.guard import line_limit, tool_change_policy
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
+from hostd.protocol.commands import MAX_LINE_BYTES
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError
 from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
+from hostd.protocol.jobcheck import Findings, check_program
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
 
@@ -41,7 +44,16 @@ RESUMABLE = ("interrupted", "failed", "cancelled")
 
 
 class OutOfTravel(MachineError):
-    """The program's moves leave the machine's travel (`force` to run it anyway): api.md's 1008."""
+    """The program's moves leave the machine's travel (`force` to run it anyway).
+
+    api.md's 1008 (the contract's code for it; it was 1010 before issue 24)."""
+
+    code = 1008
+
+
+class NotRunnable(MachineError):
+    """Lines the board would refuse or must not run (`force` to start it anyway): 1008
+    too, since a client handles it as the travel refusal (look, then force or fix)."""
 
     code = 1008
 
@@ -74,6 +86,7 @@ class Preflight:
     limits: MachineLimits | None
     beyond: list[str]  # why the program leaves the travel, axis by axis
     checked: bool = False  # the travel and the work offset were known: the check ran
+    findings: Findings | None = None  # lines the board would refuse (jobcheck.py)
 
     def to_json(self) -> dict[str, Any]:
         """file.analyze's answer: api.md's keys (`duration_s`, `warnings` as text) and ours.
@@ -105,6 +118,8 @@ class Preflight:
             "beyond_travel": self.beyond,
             "travel_checked": self.checked,
             "limits": None if self.limits is None else self.limits.to_json(),
+            "problems": [] if self.findings is None else [f.to_json() for f in self.findings.found],
+            "problems_total": 0 if self.findings is None else self.findings.total,
         }
 
 
@@ -178,8 +193,42 @@ async def analyze_file(
     beyond: list[str] = []
     checked = limits is not None and bool(limits.travel) and bool(offset)
     if limits is not None and offset:
-        beyond = beyond_travel(analysis.bounds, offset, limits.travel)
+        beyond = beyond_travel(analysis.bounds, offset, limits.travel, analysis.bound_lines)
     return Preflight(analysis, limits, beyond, checked)
+
+
+async def check_file(
+    path: Path,
+    dialect: str,
+    max_line_bytes: int,
+    tool_change: str | None,
+    start_line: int = 1,
+    *,
+    pool: WorkerPool,
+) -> Findings:
+    """The lines of `path` (from `start_line`) the board would refuse or must not run."""
+    return await pool.run(
+        f"checking {path.name}",
+        _check_file,
+        path,
+        dialect,
+        max_line_bytes,
+        tool_change,
+        start_line,
+    )
+
+
+def _check_file(
+    path: Path, dialect: str, max_line_bytes: int, tool_change: str | None, start_line: int
+) -> Findings:
+    """`check_file`'s work, on a worker process."""
+    with path.open(encoding="utf-8", errors="replace") as f:
+        return check_program(
+            program_lines(f, start_line),
+            dialect=dialect,
+            max_line_bytes=max_line_bytes,
+            tool_change=tool_change,
+        )
 
 
 def _analysis(
@@ -260,10 +309,15 @@ def _at(plan: ResumePlan, line: int) -> ResumePlan:
 async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) -> Preflight:
     """`path` against `machine`: its dialect, speeds and travel; without one, g2core's rules."""
     if machine is None:
-        return await analyze_file(path, "g2core", pool=pool)
+        found = await check_file(path, "g2core", MAX_LINE_BYTES + 1, None, pool=pool)
+        return replace(await analyze_file(path, "g2core", pool=pool), findings=found)
     limits = await _limits(machine)
     offset = work_offset(machine.snapshot())
-    return await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
+    found = await check_file(
+        path, machine.config.dialect, line_limit(machine), tool_change_policy(machine), pool=pool
+    )
+    analysis = await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
+    return replace(analysis, findings=found)
 
 
 async def prepare_start(
@@ -283,6 +337,26 @@ async def prepare_start(
     plan's lines (the modal state restored, a safe approach) to send before
     the file's; else None.
     """
+    if not force:
+        # Lines the board would refuse, or must not run: a job that would fail at its
+        # 20,000th line for what the host can see now fails before anything moves.
+        found = await check_file(
+            path,
+            machine.config.dialect,
+            line_limit(machine),
+            tool_change_policy(machine),
+            start_line,
+            pool=pool,
+        )
+        if found:
+            raise NotRunnable(
+                f"{path.name} cannot run on {machine.id}: {found.summary()}",
+                {
+                    "problems": [f.to_json() for f in found.found],
+                    "problems_total": found.total,
+                    "force": "true starts it anyway",
+                },
+            )
     limits = await _limits(machine) if not force or start_line > 1 else None
     offset = work_offset(machine.snapshot())
     if not force and limits is not None and limits.travel and offset:

@@ -50,6 +50,8 @@ class MachineModel:
     board_state: str | None = None
     laser_mode: bool | None = None
     overrides: dict[str, float] | None = None  # percent: feed, rapid, spindle (grbl's Ov)
+    # grbl's `$N` blocks: [{"n", "line", "acts"}], `acts` what it does at a reset (or None).
+    startup_blocks: list[dict[str, Any]] | None = None
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
         """Take one status report (automatic or requested); return the new state if it changed."""
@@ -111,6 +113,7 @@ class MachineModel:
         self.board_state = None
         self.laser_mode = None
         self.overrides = None
+        self.startup_blocks = None
 
     def snapshot(self) -> dict[str, Any]:
         state = self.state
@@ -136,6 +139,7 @@ class MachineModel:
             "board_state": self.board_state,
             "laser_mode": self.laser_mode,
             "overrides": None if self.overrides is None else dict(self.overrides),
+            "startup_blocks": self.startup_blocks,
         }
 
 

@@ -36,6 +36,9 @@ class Refusal(StrEnum):
     RESERVED_KEY = "reserved-key"
     # A setting's text value the board would read differently.
     BAD_VALUE = "bad-value"
+    # A maintenance command (protocol/maintenance.py): wipes, stores, sleeps or jogs
+    # absurdly; only `machine.maintenance` sends it, and only where the config allows.
+    MAINTENANCE = "maintenance"
 
 
 class InvalidCommand(ValueError):

@@ -68,6 +68,11 @@ class SessionBase:
         self._await_report = False  # an exception came: actions and job lines wait for a report
         self._awaiting_rest = False  # the job is answered: waiting for the board to stop
         self._operation = False  # the machine runs an operation: client actions are busy
+        # `~` went out: the hold is ending, whatever the last report says, so no line is
+        # admitted into it any more, until the board shows a state other than HOLD and
+        # other than the one it was in when the `~` went (`_resumed_from`), or a new `!`.
+        self._resuming = False
+        self._resumed_from: MachineState | None = None
         self._closing_reason: str | None = None  # asked to be closed: nothing more is due
         self._log = log.bind(machine=machine_id)
 
@@ -113,7 +118,25 @@ class SessionBase:
             raise Rejected(verdict, self._locked_message())
         if self.halted and cls not in (CommandClass.HALT, CommandClass.RESET):
             raise self._write_refused()
+        if command is Realtime.CYCLE_START:
+            self._end_hold_admission()
+        elif command is Realtime.FEEDHOLD:
+            self._resuming = False  # a hold of ours begins: lines may run inside it again
         self._realtime(command)
+
+    def _end_hold_admission(self) -> None:
+        """The `~` and the end of in-hold admission are one step (issue 24, part 5).
+
+        In-hold lines already admitted are written now, ahead of the `~`, while the
+        board still holds; those that cannot go now (no room) fail. From here on no
+        line is admitted into the hold, even while reports still say HOLD (the board
+        has not read the `~` yet): a line written after the `~` must never carry the
+        hold's context.
+        """
+        self._pump()
+        self._resuming = True
+        self._resumed_from = self.model.state
+        self._recheck_waiting()
 
     def _realtime(self, command: Realtime) -> None:
         """The dialect's bytes for an admitted realtime command."""
@@ -244,7 +267,7 @@ class SessionBase:
             self._events.append(Closing(reason, reopen))
 
     def _context(self) -> Context:
-        if self.model.state is MachineState.HOLD:
+        if self.model.state is MachineState.HOLD and not self._resuming:
             return Context.HOLD
         return Context.JOB if self._job_running() or self._operation else Context.FREE
 
@@ -273,6 +296,9 @@ class SessionBase:
         way to the stop that ends it, and nothing is written before then, so
         the write itself decides.
         """
+        state = self.model.state
+        if self._resuming and state is not MachineState.HOLD and state is not self._resumed_from:
+            self._resuming = False  # the board shows the hold ended
         if self.flushing():
             return
         state, context = self.model.state, self._context()

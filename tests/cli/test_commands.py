@@ -296,3 +296,32 @@ def test_a_file_over_one_chunk_arrives_whole(daemon: Daemon) -> None:
     assert size == len(text.encode())
     [listed] = [f for f in daemon.call("file.list") if f["name"] == "big.gcode"]
     assert listed["size"] == size
+
+
+# -- analyze ---------------------------------------------------------------------------
+
+
+def test_analyze_exits_1_when_job_start_would_refuse_the_file(idle: Daemon, tmp_path: Path) -> None:
+    path = tmp_path / "tools.gcode"
+    path.write_text("G21 G90\nT2 M6\nG0 X1\n", encoding="utf-8")
+
+    refused = idle.cli("analyze", str(path), "--machine", MACHINE)
+
+    assert refused.returncode == 1, refused.stderr
+    assert "refused: line 2: M6 (tool change)" in refused.stdout
+    assert "job.start refuses this file" in refused.stderr
+
+    clean = tmp_path / "clean.gcode"
+    clean.write_text(SMALL, encoding="utf-8")
+    assert idle.cli("analyze", str(clean), "--machine", MACHINE).returncode == 0
+
+
+def test_run_of_a_refused_file_says_why_and_force_runs_it(idle: Daemon, tmp_path: Path) -> None:
+    path = tmp_path / "tools.gcode"
+    path.write_text("G21 G90\nT2 M6\nG0 X1\nM2\n", encoding="utf-8")
+
+    refused = idle.cli("run", str(path), "--machine", MACHINE)
+    assert refused.returncode == 1 and "1008" in refused.stderr and "line 2" in refused.stderr
+
+    forced = idle.cli("run", str(path), "--machine", MACHINE, "--force")
+    assert forced.returncode == 0, forced.stderr

@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 
 from tests.daemon.conftest import Rpc, RpcFailure, Running
+from tests.daemon.test_api import fails
 
 pytestmark = pytest.mark.asyncio
 
@@ -219,7 +220,9 @@ async def test_a_job_line_the_board_would_misread_fails_the_job_unsent(
 ) -> None:
     await rpc.call("file.upload", name="bad.gcode", data="G0 X1\nG0 X1e300\nG0 X2\n")
     await rpc.call("subscribe", topics=["job"], machine="sim1")
-    job = await rpc.call("job.start", machine="sim1", file="bad.gcode")
+    refused = await fails(1008, rpc.call("job.start", machine="sim1", file="bad.gcode"))
+    assert refused.data["problems"][0]["line"] == 2  # refused before anything moved
+    job = await rpc.call("job.start", machine="sim1", file="bad.gcode", force=True)
     note = await rpc.notification(
         lambda n: (
             n["method"] == "job"

@@ -211,7 +211,8 @@ async def test_a_resume_ends_in_the_state_of_a_whole_run(
     assert isinstance(sim, SimController)
     await rpc.call("file.upload", name="mill.nc", data=_MILL)
     await rpc.call("subscribe", topics=["job"], machine="sim1")
-    whole = await rpc.call("job.start", machine="sim1", file="mill.nc")
+    # The file changes tools (M6) and the machine has no tool-change policy: forced.
+    whole = await rpc.call("job.start", machine="sim1", file="mill.nc", force=True)
     assert (await job_end(rpc, whole["job"]))["state"] == "completed"
     expected = _g2_state(sim)
     await rpc.call("machine.send", machine="sim1", line="G92.1 G0 X100 Y100 Z50")
@@ -219,7 +220,9 @@ async def test_a_resume_ends_in_the_state_of_a_whole_run(
 
     plan = await rpc.call("job.recovery", machine="sim1", file="mill.nc", line=line)
     assert plan["line"] == line, what
-    resumed = await rpc.call("job.start", machine="sim1", file="mill.nc", start_line=line)
+    resumed = await rpc.call(
+        "job.start", machine="sim1", file="mill.nc", start_line=line, force=True
+    )
     assert (await job_end(rpc, resumed["job"]))["state"] == "completed"
     assert _g2_state(sim) == expected, what
     if line == 13:
@@ -242,6 +245,7 @@ async def test_a_program_beyond_the_travel_is_refused_unless_forced(
     with pytest.raises(RpcFailure) as refused:
         await rpc.call("job.start", machine="sim1", file="wide.nc")
     assert refused.value.code == 1008 and "travel" in refused.value.message
+    assert "(at line 2)" in refused.value.message  # where the program leaves it
     assert refused.value.data["beyond_travel"] == report["beyond_travel"]
     await rpc.call("subscribe", topics=["job"], machine="sim1")
 

@@ -242,6 +242,54 @@ async def test_a_line_sent_in_a_hold_runs_inside_it_at_once() -> None:
         wire.session.send("$xvm=1000", object())
 
 
+async def test_no_line_written_after_the_resume_carries_the_hold() -> None:
+    """Issue 24 part 5: the `~` ends in-hold admission in the same step."""
+    wire = ready(window=4)
+    wire.session.start_stream(moves(50))
+    wire.pump()
+    wire.session.pause_stream()
+    wire.answer_all()
+    wire.report(stat=6)
+    wire.clear()
+    tokens = [object() for _ in range(6)]
+    for i, token in enumerate(tokens):  # more than the control lane holds: some wait
+        wire.session.send(f"G0 Z{i + 1}", token)
+    wire.session.resume_stream()  # in the same step as the sends: nothing written yet
+    wire.pump()
+    written = wire.lines()
+    cycle_start = written.index(b"~\n")
+    assert not any(b"gc2" in line for line in written[cycle_start:])
+    assert any(b"gc2" in line for line in written[:cycle_start])
+    sent = b"".join(written)
+    waited = [t for i, t in enumerate(tokens) if b'"G0 Z%d"' % (i + 1) not in sent]
+    assert waited  # the lane was full: these were still on the host at the `~`
+    for token in waited:
+        settled = wire.settled(token)
+        assert settled is not None and isinstance(settled.outcome, Busy)
+        assert "the hold ended" in settled.outcome.message
+    # The board has not reported the end of the hold yet; a line sent now is not run in it.
+    with pytest.raises(Busy):
+        wire.session.send("G0 Z9", object())
+    wire.pump()
+    assert not any(b"Z9" in line for line in wire.lines())
+
+
+async def test_a_hold_after_a_resume_takes_in_hold_lines_again() -> None:
+    wire = ready()
+    wire.report(stat=6)
+    wire.session.realtime(Realtime.CYCLE_START)
+    wire.pump()
+    token = object()
+    wire.session.send("G0 X1", token)  # the hold is ending: a free line, after the `~`
+    assert wire.pump() == [(Lane.DATA, b"G0 X1\n")]
+    wire.report(stat=5)
+    wire.report(stat=3)
+    wire.session.realtime(Realtime.FEEDHOLD)
+    wire.report(stat=6)
+    wire.session.send("M5", object())
+    assert (Lane.CONTROL, b'{"gc2":"M5"}\n') in wire.pump()
+
+
 async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent() -> None:
     wire = ready(window=1)
     first, second = object(), object()

@@ -41,7 +41,7 @@ pytestmark = pytest.mark.asyncio
 class Grbl:
     """A GrblSession and the board's side of the wire, by hand."""
 
-    def __init__(self, **options: float | None) -> None:
+    def __init__(self, **options: float | bool | None) -> None:
         self.now = 0.0
         self.session = GrblSession("m1", clock=lambda: self.now, **options)
         self.written: list[tuple[Lane, bytes]] = []
@@ -77,11 +77,13 @@ class Grbl:
         opt: str = "V,15,128",
         report: str = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>",
         settings: tuple[str, ...] = (),
+        startup: tuple[str, str] = ("", ""),
     ) -> None:
         self.session.open()
         self.feed("", "Grbl 1.1h ['$' for help]")
         self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
-        self.feed("$32=1", "$110=500.000", *settings, "ok")
+        self.feed("$32=1", "$110=500.000", "$130=300.000", *settings, "ok")
+        self.feed(f"$N0={startup[0]}", f"$N1={startup[1]}", "ok")
         self.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
         self.feed(report)
         assert self.session.ready
@@ -110,6 +112,8 @@ async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() 
     grbl.feed("[VER:1.1h.20190830:]", "[OPT:V,15,128]", "ok")
     assert grbl.lines()[-1] == b"$$\n"
     grbl.feed("$32=1", "ok")
+    assert grbl.lines()[-1] == b"$N\n"  # the startup blocks: they run at every reset
+    grbl.feed("$N0=G54", "$N1=", "ok")
     assert grbl.lines()[-1] == b"$G\n"
     grbl.feed("[GC:G0 G55 G17 G20 G91 G94 M5 M9 T2 F0 S0]", "ok")
     assert grbl.realtime() == [b"?"]
@@ -254,7 +258,8 @@ async def test_unlock_waits_for_every_line_to_be_answered() -> None:
         grbl.session.clear(object())  # a soft limit is critical: a reset comes first
     grbl.session.reset()
     grbl.pump()
-    grbl.feed("", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]", "[GC:G0 G54]", "ok")
+    grbl.feed("", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]", "$N0=", "ok")
+    grbl.feed("[GC:G0 G54]", "ok")
     grbl.feed("<Alarm|MPos:0.000,0.000,0.000|FS:0,0>")
     assert grbl.session.ready and grbl.session.model.state is S.ALARM
     token = object()
@@ -301,7 +306,9 @@ async def test_cancel_holds_then_resets_once_motion_rests() -> None:
     grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
     assert grbl.realtime()[-1] == b"\x18"
     grbl.feed("", "Grbl 1.1h ['$' for help]")
-    assert not grbl.session.ready  # re-syncing: $G, then a report
+    assert not grbl.session.ready  # re-syncing: $N, $G, then a report
+    assert grbl.lines()[-1] == b"$N\n"
+    grbl.feed("$N0=", "$N1=", "ok")
     assert grbl.lines()[-1] == b"$G\n"
     grbl.feed(
         "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok", "<Idle|MPos:1.600,0.000,0.000|FS:0,0>"
@@ -367,6 +374,7 @@ async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_i
     assert grbl.realtime()[-1] == codec.RESET
     assert not grbl.session.quiet()  # resetting
     grbl.feed("Grbl 1.1h ['$' for help]")  # the reset's welcome: it re-syncs
+    grbl.feed("$N0=", "$N1=", "ok")
     grbl.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
     grbl.feed(IDLE)
     assert grbl.session.ready and grbl.session.quiet()
@@ -730,3 +738,76 @@ async def test_the_lockout_says_what_ends_it_on_grbl() -> None:
     grbl.feed("ALARM:10")  # grblHAL's e-stop: SHUTDOWN
     assert grbl.session.lockout()["state"] == "SHUTDOWN"  # type: ignore[index]
     assert grbl.session.lockout()["clear"] == "machine.reset, then machine.clear"  # type: ignore[index]
+
+
+# -- startup blocks (issue 24, part 3) ----------------------------------------------
+
+
+def cancelled_at_rest(grbl: Grbl) -> JobStream:
+    stream = moves(50)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.realtime(Realtime.JOB_KILL)
+    grbl.pump()
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    return stream
+
+
+async def test_the_startup_blocks_are_read_at_connect_and_shown_with_what_they_do() -> None:
+    grbl = Grbl()
+    grbl.connect(startup=("G54G21", "G0X-100"))
+    blocks = grbl.session.model.snapshot()["startup_blocks"]
+    assert blocks == [
+        {"n": 0, "line": "G54G21", "acts": None},
+        {"n": 1, "line": "G0X-100", "acts": "moves the machine (G0)"},
+    ]
+
+
+async def test_a_cancel_holds_instead_of_resetting_while_a_startup_block_moves() -> None:
+    grbl = Grbl()
+    grbl.connect(startup=("", "X-100"))
+    stream = cancelled_at_rest(grbl)
+    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert codec.RESET not in grbl.realtime()  # the block would run: no reset of ours
+    (held,) = [e for e in grbl.events if isinstance(e, Excepted)]
+    assert "held instead of reset" in held.fields["msg"] and "$N1=X-100" in held.fields["msg"]
+    assert grbl.session.model.snapshot()["last_exception"] == held.fields
+    assert not grbl.session.quiet()  # the machine stays busy: the board still holds the job
+    with pytest.raises(Busy, match=r"machine\.reset runs it"):
+        grbl.session.realtime(Realtime.CYCLE_START)  # `~` would run the cancelled moves
+    with pytest.raises(Busy, match="held instead of reset"):
+        grbl.session.send("G0 X1", object())
+    grbl.session.reset()  # the operator's reset: asked for, it goes
+    grbl.pump()
+    assert grbl.realtime()[-1] == codec.RESET
+
+
+async def test_a_stop_timeout_holds_too_while_a_startup_block_starts_the_spindle() -> None:
+    grbl = Grbl()
+    grbl.connect(startup=("M3S1000", ""))
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.realtime(Realtime.QUEUE_FLUSH)
+    grbl.pump()
+    grbl.at(STOP_TIMEOUT)
+    assert codec.RESET not in grbl.realtime()
+    assert "starts the spindle or laser (M3)" in grbl.session.model.last_exception["msg"]
+
+
+async def test_startup_motion_allowed_resets_as_usual() -> None:
+    grbl = Grbl(startup_motion=True)
+    grbl.connect(startup=("G0X-100", ""))
+    cancelled_at_rest(grbl)
+    assert grbl.realtime()[-1] == codec.RESET
+
+
+async def test_a_reset_reads_the_startup_blocks_again() -> None:
+    grbl = Grbl()
+    grbl.connect(startup=("G0X-100", ""))
+    grbl.session.reset()
+    grbl.pump()
+    grbl.feed("Grbl 1.1h ['$' for help]", "$N0=", "$N1=", "ok")  # `$RST=*` cleared them
+    grbl.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok", IDLE)
+    assert grbl.session.ready and grbl.session.model.startup_blocks == []
+    cancelled_at_rest(grbl)
+    assert grbl.realtime()[-1] == codec.RESET

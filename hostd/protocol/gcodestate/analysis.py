@@ -43,6 +43,8 @@ class Analysis:
     warnings: tuple[GcodeWarning, ...]
     final: ModalState
     seconds: float = 0.0  # the estimated duration: moves at their feeds, dwells
+    # The file line where each axis's bound was reached: (low, high), for travel errors.
+    bound_lines: dict[str, tuple[int, int]] | None = None
 
     @property
     def file_units(self) -> str | None:
@@ -107,14 +109,19 @@ def result(model: GcodeModel) -> Analysis:
         warnings=tuple(GcodeWarning(t, line, n) for t, (line, n) in model.warnings.items()),
         final=model.state(),
         seconds=model.seconds,
+        bound_lines={AXES[i]: (model.low_at[i], model.high_at[i]) for i in sorted(model.moved)},
     )
 
 
 def beyond_travel(
-    bounds: Bounds, offset: Mapping[str, float], travel: Mapping[str, tuple[float, float]]
+    bounds: Bounds,
+    offset: Mapping[str, float],
+    travel: Mapping[str, tuple[float, float]],
+    lines: Mapping[str, tuple[int, int]] | None = None,
 ) -> list[str]:
     """The axes whose moves leave the machine's travel: program bounds (mm) moved by the
-    work offset in force (machine minus work position, mm), against travel (mm)."""
+    work offset in force (machine minus work position, mm), against travel (mm).
+    `lines`: where each bound was reached (Analysis.bound_lines), named in the text."""
     out = []
     for axis, (low, high) in bounds.items():
         if axis not in travel or axis not in offset:
@@ -122,8 +129,18 @@ def beyond_travel(
         t_low, t_high = travel[axis]
         m_low, m_high = low + offset[axis], high + offset[axis]
         if m_low < t_low - 1e-6 or m_high > t_high + 1e-6:
+            where = ""
+            if lines and axis in lines:
+                at = [
+                    f"line {n}"
+                    for n, out_of in zip(
+                        lines[axis], (m_low < t_low - 1e-6, m_high > t_high + 1e-6), strict=True
+                    )
+                    if out_of and n
+                ]
+                where = f" (at {', '.join(at)})" if at else ""
             out.append(
                 f"{axis.upper()} runs from {m_low:.3f} to {m_high:.3f} mm (machine), "
-                f"outside the travel {t_low:.3f} to {t_high:.3f} mm"
+                f"outside the travel {t_low:.3f} to {t_high:.3f} mm{where}"
             )
     return out

@@ -180,6 +180,8 @@ class GcodeModel:
         self.track_bounds = track_bounds
         self.low = [math.inf] * 6
         self.high = [-math.inf] * 6
+        self.low_at = [0] * 6  # the file line that went furthest, each way (travel errors)
+        self.high_at = [0] * 6
         self.moved: set[int] = set()  # axes named in a move
         # The estimate (with `track_bounds`): seconds of motion and dwell. Axis speed limits
         # in mm/min (a rapid runs at them; DEFAULT_RAPID where not known), accelerations in
@@ -548,8 +550,10 @@ class GcodeModel:
         for i, v in enumerate(self.pos):
             if v < low[i]:
                 low[i] = v
+                self.low_at[i] = self.line
             if v > high[i]:
                 high[i] = v
+                self.high_at[i] = self.line
 
     def _arc(self, start: list[float], params: dict[str, float], clockwise: bool) -> None:
         a, b, _, off_a, off_b = _PLANES[self.plane]
@@ -636,8 +640,11 @@ class GcodeModel:
             if along <= sweep:
                 x = cx + radius * math.cos(angle)
                 y = cy + radius * math.sin(angle)
-                low[a], high[a] = min(low[a], x), max(high[a], x)
-                low[b], high[b] = min(low[b], y), max(high[b], y)
+                for i, v in ((a, x), (b, y)):
+                    if v < low[i]:
+                        low[i], self.low_at[i] = v, self.line
+                    if v > high[i]:
+                        high[i], self.high_at[i] = v, self.line
 
     # --- the snapshot ---------------------------------------------------------------
 

@@ -72,6 +72,7 @@ from hostd.protocol.grbl.codes import (
 from hostd.protocol.grbl.report import STATES, ReportReader, apply_modes, probe_report
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
+from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.program import number_line
@@ -131,6 +132,7 @@ _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N
 class _Own(OwnLine, Enum):
     BUILD = auto()  # $I: [VER:...] and [OPT:...,blocks,rx]
     SETTINGS = auto()  # $$: laser mode ($32)
+    STARTUP = auto()  # $N: the startup blocks the board runs at every reset
     MODES = auto()  # $G: [GC:...]
 
 
@@ -144,9 +146,14 @@ class GrblSession(SessionBase):
         link_silence: float = 10.0,
         homing_timeout: float | None = None,
         handshake_timeout: float = 5.0,
+        startup_motion: bool = False,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(machine_id, clock)
+        # A startup block that moves runs at every reset: unless the config allows it,
+        # a stop holds the board instead of resetting it (`_held`, docs/dialects.md).
+        self.startup_motion = startup_motion
+        self._held: str | None = None
         self.status_interval = status_interval
         self.heartbeat = heartbeat  # a `?` unanswered this long is asked again
         self.link_silence = link_silence  # s without a byte (and SILENT_QUERIES `?`): gone
@@ -186,7 +193,7 @@ class GrblSession(SessionBase):
         return admit(cls, state, ADMISSION)
 
     def flushing(self) -> bool:
-        return self._stopping is not None or self._resetting
+        return self._stopping is not None or self._resetting or self._held is not None
 
     def no_data_in_flight(self) -> bool:
         return not self._inflight
@@ -336,6 +343,7 @@ class GrblSession(SessionBase):
         self._reports = ReportReader()  # the next connection's reports say WCO anew
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
+        self._held = None
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -421,6 +429,8 @@ class GrblSession(SessionBase):
                 # A client's `$H` or a job's. Classic grbl answers a failed cycle `ok`
                 # too, after its ALARM (system.c: `$H` breaks out with STATUS_OK).
                 self.model.homed = True
+        if status == 0 and entry.line.upper() == b"$N\n":
+            self._startup_read()  # ours at connect and after a reset, or a client's
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
@@ -466,7 +476,7 @@ class GrblSession(SessionBase):
         for token in waiters:
             self._settle(token, Response({"sr": fields}, 0, 0, b"?"))
         if self._stopping is not None and self._at_rest_for_reset(report):
-            self._reset_now()
+            self._stop_reset()
         if self._awaiting_rest:
             self._check_stream_complete(reported=True)
         if self._first_report:
@@ -536,6 +546,7 @@ class GrblSession(SessionBase):
         self._resetting = False
         self._needs_reset = None
         self._stopping = None
+        self._held = None
         if self.stream is not None and not self.stream.done:
             self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
@@ -546,7 +557,7 @@ class GrblSession(SessionBase):
         self.phase = Phase.HANDSHAKE
         self._resync = True
         self._handshake_deadline = self.clock() + self.handshake_timeout
-        self._ask_own("$G", _Own.MODES)
+        self._ask_own("$N", _Own.STARTUP)  # then `$G`: a `$RST=*` may have cleared them
 
     def _on_feedback(self, msg: codec.Feedback) -> None:
         text = f"[{msg.kind}:{msg.text}]"
@@ -569,6 +580,8 @@ class GrblSession(SessionBase):
         if own is _Own.BUILD:
             self._ask_own("$$", _Own.SETTINGS)
         elif own is _Own.SETTINGS:
+            self._ask_own("$N", _Own.STARTUP)
+        elif own is _Own.STARTUP:
             self._ask_own("$G", _Own.MODES)
         elif own is _Own.MODES and self.phase is Phase.HANDSHAKE:
             self._first_report = True
@@ -602,8 +615,7 @@ class GrblSession(SessionBase):
         if self._banner_deadline is not None and now >= self._banner_deadline:
             self._ask_build()  # grblHAL on native USB prints no banner when a port opens
         if self._stopping is not None and now >= self._stopping:
-            self.model.homed = False  # reset in motion, maybe: the position is not to be trusted
-            self._reset_now()
+            self._stop_reset(timed_out=True)
         if self.phase is not Phase.READY:
             return
         lost = self._lost_at()
@@ -730,8 +742,44 @@ class GrblSession(SessionBase):
 
     def _reset_now(self) -> None:
         self._stopping = None
+        self._held = None
         self._resetting = True
         self._out.append((Lane.REALTIME, codec.RESET))
+
+    def _stop_reset(self, *, timed_out: bool = False) -> None:
+        """The reset that ends a stop (a cancel, a failed job, a fault) once motion rests.
+
+        Not while a startup block would move the machine (or start its spindle) at
+        the reset, unless the config allows it: the board stays in its feedhold,
+        nothing more is written (`flushing`), and the operator decides, with
+        machine.reset, which runs the block.
+        """
+        moving = [b for b in self.model.startup_blocks or () if b["acts"]]
+        if moving and not self.startup_motion:
+            self._stopping = None
+            blocks = "; ".join(f"$N{b['n']}={b['line']} {b['acts']}" for b in moving)
+            self._held = (
+                f"{self.id} is held instead of reset: the startup block {blocks} at every "
+                "reset; machine.reset runs it, or allow it with startup_motion = true"
+            )
+            self._job_log().warning("stop held: a startup block would act", blocks=blocks)
+            report = {"msg": self._held, "startup_blocks": moving}
+            self.model.last_exception = report
+            self._events.append(Excepted(report))
+            return
+        if timed_out:
+            self.model.homed = False  # reset in motion, maybe: the position is not to be trusted
+        self._reset_now()
+
+    def _startup_read(self) -> None:
+        """`$N0=..` read: the snapshot shows the blocks, and a warning says which act."""
+        blocks = startup_blocks(self.settings)
+        self.model.startup_blocks = [b.to_json() for b in blocks]
+        for block in blocks:
+            if block.acts:
+                self._log.warning(
+                    "startup block acts at every reset", n=block.n, line=block.line, acts=block.acts
+                )
 
     def _stop_board(self) -> None:
         self._begin_stop()
@@ -747,6 +795,8 @@ class GrblSession(SessionBase):
             self._report_waiters.append(token)
             self._ask_report()
             return
+        if self._held is not None:
+            raise Busy(self._held)  # nothing is written until the operator resets
         cls = codec.classify(text)
         verdict = self._admit(cls, self.model.state)
         if verdict is not None:
@@ -779,6 +829,9 @@ class GrblSession(SessionBase):
         if command is Realtime.FEEDHOLD:
             self._out.append((Lane.REALTIME, codec.FEEDHOLD))
         elif command is Realtime.CYCLE_START:
+            if self._held is not None:
+                # The stopped job's moves are still in the board: `~` would run them.
+                raise Busy(self._held)
             self._out.append((Lane.REALTIME, codec.CYCLE_START))
         elif command is Realtime.ENQUIRY:
             self._ask_report()

@@ -98,6 +98,8 @@ class GrblBoard:
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
         self.status_ignored = False  # `?` is not answered (reports stop), lines still are
         self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
+        # `$N0`, `$N1` (N_STARTUP_LINE 2): kept in EEPROM, run after every reset (system.c).
+        self.startup_lines = ["", ""]
         self.modal = Modal()
         self.homed = False
         self.alarm: Alarm | None = None
@@ -178,6 +180,8 @@ class GrblBoard:
             self.state = "Idle"
             if self.door_open:
                 realtime.door_event(self)
+            if self.state == "Idle":
+                system.execute_startup(self)  # protocol.c: "All systems go!"
         self._cold = False
 
     def _bits(self, key: int) -> int:

@@ -67,9 +67,11 @@ def execute_line(board: GrblBoard, line: str) -> Error | None:
             board._emit(text)
         return Error.OK
     if cmd == "N":
-        board._emit("$N0=")
-        board._emit("$N1=")
+        for n, text in enumerate(board.startup_lines):
+            board._emit(f"$N{n}={text}")  # report_startup_line
         return Error.OK
+    if cmd.startswith("N") and has_arg:
+        return _store_startup(board, cmd[1:], arg)
     if cmd.isdigit():
         if not idle:
             return Error.IDLE_ERROR
@@ -81,6 +83,46 @@ def execute_line(board: GrblBoard, line: str) -> Error | None:
             return Error.OK
         return _store(board, key, arg)
     return Error.INVALID_STATEMENT
+
+
+def _store_startup(board: GrblBoard, number: str, block: str) -> Error | None:
+    """`$Nn=block`: stored only in Idle, after the block ran once to prove it valid.
+
+    system.c: "Execute gcode block to ensure block is valid": gc_execute_line runs it,
+    moves and all, and only a block it accepts is stored.
+    """
+    if board.state != "Idle":
+        return Error.IDLE_ERROR
+    try:
+        n = int(float(number))
+    except ValueError:
+        return Error.BAD_NUMBER_FORMAT
+    if not 0 <= n < len(board.startup_lines):
+        return Error.INVALID_STATEMENT
+    text = block.replace(" ", "").upper()
+    status = _run_block(board, text)
+    if status is not Error.OK:
+        return status
+    board.startup_lines[n] = text
+    return board._stored(f"$N{n}={text}")  # an EEPROM write, like a setting's
+
+
+def execute_startup(board: GrblBoard) -> None:
+    """system_execute_startup: each stored block runs, `>block:ok` (or its error) printed."""
+    for text in board.startup_lines:
+        if text:
+            status = _run_block(board, text)
+            answer = "ok" if status is Error.OK else f"error:{int(status)}"
+            board._emit(f">{text}:{answer}")  # report_execute_startup_message
+
+
+def _run_block(board: GrblBoard, text: str) -> Error:
+    """gc_execute_line outside the serial stream: its moves are planned, nothing waits."""
+    result = parser.execute(board.modal, text, travel_ok=partial(in_travel, board))
+    if isinstance(result, Error):
+        return result
+    board.planner.extend(result.moves)
+    return Error.OK
 
 
 def _store(board: GrblBoard, key: int, raw: str) -> Error | None:

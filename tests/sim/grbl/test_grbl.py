@@ -502,3 +502,21 @@ async def test_lines_are_planned_while_a_hold_decelerates_on_classic_grbl_only(
             await host.line(timeout=0.3)
         host.send(b"~")
         assert await host.until(is_answer) == ["ok"]  # read again once resumed
+
+
+# --- startup blocks ($N), system.c system_execute_startup
+
+
+async def test_startup_blocks_are_stored_listed_and_run_after_a_reset(
+    classic_host: GrblHost, classic: GrblSimController
+) -> None:
+    assert await classic_host.ask(b"$N\n") == ["$N0=", "$N1=", "ok"]
+    # Storing runs the block once to prove it valid (system.c: gc_execute_line).
+    assert await classic_host.ask(b"$N0=g0 x-5\n") == ["ok"]
+    assert await classic_host.ask(b"$N1=G1X1\n") == ["error:22"]  # no feed: not stored
+    assert await classic_host.ask(b"$N\n") == ["$N0=G0X-5", "$N1=", "ok"]
+    assert await classic_host.ask(b"G0X0\n") == ["ok"]
+    classic_host.send(b"\x18")
+    got = await classic_host.until(lambda s: s.startswith(">"))
+    assert got[-2:] == ["Grbl 1.1h ['$' for help]", ">G0X-5:ok"]  # report_execute_startup_message
+    await classic.wait_for(lambda: classic.board.position["x"] == -5.0)

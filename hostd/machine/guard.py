@@ -1,0 +1,125 @@
+"""What `machine.send` refuses and `machine.maintenance` allows (issue 24, part 3).
+
+The commands themselves are named in `hostd.protocol.maintenance`, per
+dialect; this module is the policy, for one machine:
+- `machine.send` refuses every maintenance command (-32602, `data.refusal`
+  "maintenance", `data.maintenance` its kind), naming the way to do it on
+  purpose;
+- `machine.maintenance` sends one, and only one that is maintenance, only
+  when the machine's config says `maintenance = true`, and never an absurd
+  jog or g2core's bootloader and defaults (nothing on purpose needs them
+  through the daemon);
+- after a maintenance line the board took, what the daemon knows of the
+  board's startup blocks is read again (`$N`), since the reset guard of the
+  grbl session decides by them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import structlog
+
+from hostd.machine.machine import Machine
+from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Refusal
+from hostd.protocol.grbl.session import GrblSession
+from hostd.protocol.maintenance import Kind, Maintenance, absurd_jog, maintenance_command
+from hostd.protocol.messages import Response
+
+log = structlog.get_logger(__name__)
+
+
+class MaintenanceRefused(InvalidCommand):
+    """A maintenance command where it may not go: the caller's input (-32602)."""
+
+    def __init__(self, found: Maintenance, message: str) -> None:
+        super().__init__(Refusal.MAINTENANCE, message)
+        self.found = found
+
+    @property
+    def data(self) -> dict[str, str]:
+        return {"refusal": self.refusal.value, "maintenance": self.found.kind.value}
+
+
+def _travel(machine: Machine) -> dict[str, tuple[float, float]]:
+    """The travel the session already knows (grbl's `$130`.. from the handshake's `$$`)."""
+    session = machine.engine.session
+    if not isinstance(session, GrblSession):
+        return {}
+    found: dict[str, Any] = {}
+    for key in session.limit_settings():
+        try:
+            found[key] = float(session.settings[key])
+        except (KeyError, ValueError):
+            continue
+    return dict(session.machine_limits(found).travel)
+
+
+def classify(machine: Machine, line: str) -> Maintenance | None:
+    """The maintenance command `line` is on `machine`'s board, or None."""
+    inches = machine.engine.model.units == "in"
+    return maintenance_command(machine.config.dialect, line, travel=_travel(machine), inches=inches)
+
+
+def check_send(machine: Machine, line: str) -> None:
+    """Refuse a maintenance command on `machine.send` (MaintenanceRefused), before anything."""
+    found = classify(machine, line)
+    if found is None:
+        return
+    how = (
+        "it is never sent"
+        if not found.on_purpose
+        else "send it with machine.maintenance"
+        + ("" if machine.config.maintenance else f" (set maintenance = true for {machine.id})")
+    )
+    raise MaintenanceRefused(found, f"{found.why}: machine.send refuses it; {how}")
+
+
+def check_jog(machine: Machine, axes: dict[str, float]) -> None:
+    """Refuse a `machine.jog` no machine's travel has room for, on either dialect.
+
+    The distances are relative, in the machine's units: longer than the axis's travel
+    span where the session knows it (grbl's `$130`..), else than SANE_JOG_MM.
+    """
+    words = "G91" + "".join(f"{axis.upper()}{distance:.6f}" for axis, distance in axes.items())
+    why = absurd_jog(words, _travel(machine), inches=machine.engine.model.units == "in")
+    if why is not None:
+        found = Maintenance(Kind.ABSURD_JOG, why, on_purpose=False)
+        raise MaintenanceRefused(found, f"{why}: machine.jog refuses it")
+
+
+async def send_maintenance(machine: Machine, line: str, timeout: float) -> Response:
+    """Send one maintenance command on purpose, where the machine's config allows it."""
+    found = classify(machine, line)
+    if found is None:
+        raise InvalidCommand(
+            Refusal.UNREADABLE, "not a maintenance command: send it with machine.send"
+        )
+    if not found.on_purpose:
+        raise MaintenanceRefused(found, f"{found.why}: it is never sent")
+    if not machine.config.maintenance:
+        raise MaintenanceRefused(
+            found,
+            f"{found.why}: maintenance commands are off for {machine.id} "
+            "(set maintenance = true in its [[machines]] table)",
+        )
+    log.warning("maintenance command", machine=machine.id, line=line, kind=found.kind.value)
+    response = await machine.engine.send(line, timeout=timeout)
+    if found.kind is Kind.STARTUP_BLOCK:
+        await machine.engine.send("$N", timeout=timeout)  # the reset guard reads them anew
+    return response
+
+
+def line_limit(machine: Machine) -> int:
+    """The longest job line, its LF included, the board takes as its session knows it:
+    grbl's receive buffer less one (`[OPT:]` or 128), g2core's 511 bytes and the LF."""
+    session = machine.engine.session
+    if isinstance(session, GrblSession):
+        return session.rx_size - 1
+    return int(getattr(session, "max_line_bytes", MAX_LINE_BYTES)) + 1
+
+
+def tool_change_policy(machine: Machine) -> str | None:
+    """running.md's `tool_change`, once the config has it; absent is no policy."""
+    policy = getattr(machine.config, "tool_change", None)
+    return policy if isinstance(policy, str) else None

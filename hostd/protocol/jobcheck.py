@@ -1,0 +1,171 @@
+"""What a program holds that the board will refuse or must not run (issue 24, part 4).
+
+`job.start` and `hostd analyze` read a file with this before anything moves,
+so that a job does not fail at its 20,000th line for something the host could
+see at the first. Each finding names its file line:
+
+- `unsendable`: a line the session would refuse to write, as its own encoder
+  says (grbl: longer than the receive buffer, `rx` of `[OPT:]` or 128, less
+  its LF; a `!`, `?` or `~`, which grbl takes as realtime; anything but
+  printable ASCII. g2core: over 511 bytes, NUL, control characters; see
+  commands.py), with the N word the job gives each line counted in;
+- `maintenance`: a maintenance command (protocol/maintenance.py) in a job;
+- `number`: a number no board reads (spelled inf or nan, or with more integer digits
+  than a board accumulates: gcodewords.INTEGER_DIGITS);
+- `tool-change`: `M6` on a machine without a tool-change policy (the config's
+  `tool_change`; absent or "refuse", no policy);
+- `unsupported`: a G or M code the dialect lacks (gcodestate/dialects.py).
+
+Lines are read once, each in linear time: words by a pattern whose two
+classes do not overlap, so it never backtracks.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+from hostd.protocol.commands import InvalidCommand, Refusal, encode_line
+from hostd.protocol.gcodestate.dialects import DIALECTS
+from hostd.protocol.gcodewords import (
+    INTEGER_DIGITS,
+    not_a_number,
+    read_words,
+    strip_comments,
+    too_long,
+)
+from hostd.protocol.grbl import codec
+from hostd.protocol.maintenance import maintenance_command
+from hostd.protocol.program import number_line
+
+MAX_FINDINGS = 50  # listed one by one; the rest are counted
+# A G or M word: the letter, blanks, the number. Disjoint classes: no backtracking. Lines
+# come without comments (program_lines), so no word is read out of one.
+_CODE = re.compile(r"([GM])\s*([0-9.]+)")
+_POLICIES = frozenset({"pause", "probe", "ignore"})  # running.md's tool_change, but "refuse"
+
+
+@dataclass(frozen=True, slots=True)
+class Finding:
+    line: int
+    kind: str  # unsendable, maintenance, number, tool-change, unsupported
+    text: str
+
+    def to_json(self) -> dict[str, object]:
+        return {"line": self.line, "kind": self.kind, "text": self.text}
+
+
+@dataclass(frozen=True, slots=True)
+class Findings:
+    found: tuple[Finding, ...]  # the first MAX_FINDINGS
+    total: int
+
+    def __bool__(self) -> bool:
+        return self.total > 0
+
+    def summary(self) -> str:
+        shown = "; ".join(f"line {f.line}: {f.text}" for f in self.found[:5])
+        more = self.total - min(len(self.found), 5)
+        return shown + (f"; and {more} more" if more > 0 else "")
+
+
+def check_program(
+    lines: Iterable[tuple[int, str]],
+    *,
+    dialect: str,
+    max_line_bytes: int,
+    tool_change: str | None = None,
+    numbered: bool = True,
+) -> Findings:
+    """Read a program's sendable lines ((file line, text), as `program_lines` gives them).
+
+    `max_line_bytes`: the longest line, its LF included, the board takes (grbl: its
+    receive buffer less one; g2core 511). `numbered`: job lines carry `N<line>`.
+    """
+    encode = _encoder(dialect, max_line_bytes)
+    unsupported = DIALECTS[dialect].unsupported if dialect in DIALECTS else frozenset()
+    policy = tool_change in _POLICIES
+    found: list[Finding] = []
+    total = 0
+    for number, text in lines:
+        finding = _check_line(number, text, dialect, encode, unsupported, policy, numbered)
+        if finding is not None:
+            total += 1
+            if len(found) < MAX_FINDINGS:
+                found.append(finding)
+    return Findings(tuple(found), total)
+
+
+def _encoder(dialect: str, max_line_bytes: int) -> Callable[[str], bytes]:
+    if dialect == "grbl":
+        return lambda text: codec.encode(text, max_bytes=max_line_bytes)
+
+    def g2core(text: str) -> bytes:
+        encoded = encode_line(text)
+        if len(encoded) > max_line_bytes:
+            raise InvalidCommand(
+                Refusal.TOO_LONG, f"longer than the board takes ({max_line_bytes} bytes)"
+            )
+        return encoded
+
+    return g2core
+
+
+def _check_line(
+    number: int,
+    text: str,
+    dialect: str,
+    encode: Callable[[str], bytes],
+    unsupported: frozenset[str],
+    policy: bool,
+    numbered: bool,
+) -> Finding | None:
+    try:
+        encode(number_line(text, number) if numbered else text)
+    except InvalidCommand as exc:
+        return Finding(number, "unsendable", exc.message)
+    if text[:1] in ("$", "{"):
+        # Not G-code: a `$` or JSON command, maybe maintenance.
+        found = maintenance_command(dialect, text)
+        return None if found is None else Finding(number, "maintenance", found.why)
+    bad = _bad_number(text)
+    if bad is not None:
+        return Finding(number, "number", bad)
+    for letter, digits in _CODE.findall(text.upper()):
+        code = letter + _code(digits)
+        if code == "M6":
+            if not policy:
+                return Finding(
+                    number,
+                    "tool-change",
+                    "M6 (tool change) with no tool-change policy for this machine",
+                )
+            continue
+        if code in unsupported:
+            return Finding(number, "unsupported", f"{code} is not supported by {dialect}")
+    return None
+
+
+def _bad_number(text: str) -> str | None:
+    """A number no board reads (`Finf`, `X1e400` spelled as 400 digits), as the model says."""
+    code = strip_comments(text, " ")[0].upper().strip()
+    words, end = read_words(code)
+    if end != len(code) and not_a_number(code, end):
+        return f"{code[end : end + 8]!r}: a number spelled inf or nan, which no board reads"
+    wide = too_long(words, code)
+    if wide is not None:
+        return f"{wide[0]}{wide[1][:12]}...: more than {INTEGER_DIGITS} integer digits"
+    return None
+
+
+def _code(number: str) -> str:
+    """`01` is 1, `38.20` is 38.2: the code as the tables name it."""
+    if number.isdigit() and len(number) < 6:
+        return str(int(number))
+    try:
+        value = float(number)
+    except ValueError:
+        return number
+    return f"{value:g}" if math.isfinite(value) else number

@@ -1,0 +1,55 @@
+"""What job.start refuses in a program, by plain calls (protocol/jobcheck.py)."""
+
+from __future__ import annotations
+
+import io
+
+from hostd.protocol.jobcheck import MAX_FINDINGS, Findings, check_program
+from hostd.protocol.program import program_lines
+
+
+def check(
+    text: str, dialect: str = "grbl", limit: int = 127, policy: str | None = None
+) -> Findings:
+    lines = program_lines(io.StringIO(text))
+    return check_program(lines, dialect=dialect, max_line_bytes=limit, tool_change=policy)
+
+
+def test_a_clean_program_has_no_findings() -> None:
+    assert not check("G21 G90\nG0 X1 Y1 (a long comment " + "x" * 300 + ")\nG1 X2 F100\nM5\n")
+
+
+def test_a_line_longer_than_grbls_buffer_counts_its_n_word() -> None:
+    # 125 bytes of G-code and the LF fit 127; with `N3 ` in front they do not.
+    line = "G1 X1" + " Y1" * 40
+    found = check(f"G21\nG90\n{line}\n")
+    assert [(f.line, f.kind) for f in found.found] == [(3, "unsendable")]
+    assert "receive buffer" in found.found[0].text
+    assert not check(f"G21\nG90\n{line}\n", limit=255)  # grblHAL's 1024 byte buffer, say
+
+
+def test_m6_needs_a_tool_change_policy() -> None:
+    found = check("G21\nT1 M06\n", dialect="g2core", limit=512)
+    assert [(f.line, f.kind) for f in found.found] == [(2, "tool-change")]
+    assert not check("G21\nT1 M06\n", dialect="g2core", limit=512, policy="pause")
+    assert check("T1 M6\n", dialect="g2core", limit=512, policy="refuse")
+
+
+def test_codes_the_dialect_lacks_are_named_with_their_line() -> None:
+    found = check("G21\nG0 X1\nG43 H1\nG38.2 Z-5 F10\nG81 X1 Y1 Z-1 R1\n")
+    assert [(f.line, f.text) for f in found.found] == [
+        (3, "G43 is not supported by grbl"),
+        (5, "G81 is not supported by grbl"),
+    ]
+
+
+def test_findings_are_bounded_and_counted() -> None:
+    found = check("G43 H1\n" * (MAX_FINDINGS + 25))
+    assert len(found.found) == MAX_FINDINGS and found.total == MAX_FINDINGS + 25
+    assert "and 70 more" in found.summary()
+
+
+def test_numbers_no_board_reads_are_refused_with_their_line() -> None:
+    found = check("G21\nG1 X1 F" + "9" * 400 + "\nG1 Xnan\nG1 X2 (F" + "9" * 40 + ")\n")
+    assert [(f.line, f.kind) for f in found.found] == [(2, "number"), (3, "number")]
+    assert "integer digits" in found.found[0].text and "nan" in found.found[1].text
