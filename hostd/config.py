@@ -76,6 +76,13 @@ class MachineConfig(_Strict):
     # reach its speed before the tool goes down.
     safe_z: Annotated[float, Field(allow_inf_nan=False)] | None = None
     spindle_dwell: Annotated[float, Field(ge=0, le=60)] = 2.0
+    # The slowest the tool goes back down to the resume depth, mm/min: the resume plunges
+    # at the file's own plunge feed (its last feed move along Z alone) or this, whichever
+    # is slower. Unset: the file's.
+    plunge_feed: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # The tool is a laser: a resume moves with the beam off and turns it on, without a
+    # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
+    laser: bool = False
 
     @field_validator("baudrate")
     @classmethod

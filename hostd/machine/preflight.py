@@ -12,6 +12,7 @@ offset, safe height and dwell.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import functools
 import hashlib
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from hostd.machine.machine import Machine
 from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
-from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
+from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
@@ -160,13 +161,31 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
 
 
 async def plan_at(
-    path: Path, line: int, dialect: str, *, safe_z: float | None, dwell: float
+    path: Path,
+    line: int,
+    dialect: str,
+    *,
+    board: Board | None,
+    safe_z: float | None,
+    dwell: float,
+    plunge_feed: float | None = None,
+    laser: bool = False,
 ) -> ResumePlan:
-    """The plan to resume the file at `line` (or the first line to send after it)."""
+    """The plan to resume the file at `line` (or the first line to send after it), on a
+    board that holds `board` (its stored offsets, G92 and speed, read just before)."""
 
     def run() -> ResumePlan:
         with path.open(encoding="utf-8", errors="replace") as f:
-            plan = plan_resume(f, line, DIALECTS[dialect], safe_z=safe_z, dwell=dwell)
+            plan = plan_resume(
+                f,
+                line,
+                DIALECTS[dialect],
+                board=board,
+                safe_z=safe_z,
+                dwell=dwell,
+                plunge_feed=plunge_feed,
+                laser=laser,
+            )
         with path.open(encoding="utf-8", errors="replace") as f:
             first = next(program_lines(f, line), None)
         if first is None:
@@ -183,7 +202,7 @@ async def plan_at(
 
 def _at(plan: ResumePlan, line: int) -> ResumePlan:
     """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
-    return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.uncertain)
+    return dataclasses.replace(plan, line=line)
 
 
 # -- for one machine ----------------------------------------------------------
@@ -243,13 +262,26 @@ async def recovery_for(machine: Machine, path: Path, job: Job) -> tuple[ResumePl
 async def _plan(
     machine: Machine, path: Path, line: int, limits: MachineLimits | None
 ) -> ResumePlan:
-    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
+    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell and
+    plunge feed, in machine coordinates from the offsets its board holds now."""
+    config = machine.config
+    try:
+        board = await machine.board_offsets()
+    except MachineError as exc:
+        raise NotResumable(
+            f"{machine.id}: its board's offsets could not be read ({exc.message}): "
+            "a resume is planned from them"
+        ) from None
+    laser = config.laser or machine.snapshot().get("laser_mode") is True
     return await plan_at(
         path,
         line,
-        machine.config.dialect,
+        config.dialect,
+        board=board,
         safe_z=machine.safe_height(limits),
-        dwell=machine.config.spindle_dwell,
+        dwell=config.spindle_dwell,
+        plunge_feed=config.plunge_feed,
+        laser=laser,
     )
 
 

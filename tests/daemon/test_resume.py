@@ -226,7 +226,7 @@ async def test_a_resume_ends_in_the_state_of_a_whole_run(
         # Line 12 changed the tool; line 13 is to set the new speed, so the old one is on.
         assert "T2 M6" in plan["preamble"] and "S9000 M3" in plan["approach"]
     if line == 17:
-        assert plan["approach"][-1] == "G92 X0 Y0"  # not "-2": Z had no offset
+        assert plan["approach"][-2:] == ["G92 X0 Y0", "F500"]  # not "-2": Z had no offset
 
 
 async def test_a_program_beyond_the_travel_is_refused_unless_forced(

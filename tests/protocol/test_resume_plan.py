@@ -110,9 +110,7 @@ def test_a_spindle_started_without_s_keeps_the_boards_speed_never_s0() -> None:
         _plan(text, 5, board=Board(OFFSETS, speed=0.0))
 
 
-def test_the_plunge_is_at_the_files_plunge_feed_or_the_configured_one_whichever_is_slower() -> (
-    None
-):
+def test_the_plunge_is_at_the_files_plunge_feed_or_the_configured_one_whichever_is_slower() -> None:
     text = "G21 G90\nG0 X0 Y0 Z5\nS10000 M3\nG1 Z-2 F300\nG1 X40 F1500\nG1 Y40\n"
     plan = _plan(text, 6)
     assert plan.plunge_feed == 300
