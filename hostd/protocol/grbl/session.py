@@ -154,6 +154,18 @@ class GrblSession(SessionBase):
     def unanswered(self) -> int:
         return len(self._inflight)
 
+    def quiet(self) -> bool:
+        """As every session's, but a query in flight (`$$`, `$#`, `$G`: views that move
+        nothing) leaves the machine quiet: a resume's `job.start` reads the board first,
+        and a status report read meanwhile must not make the machine busy, and the job
+        refused, until the next report."""
+        if self._inflight and not all(
+            codec.classify(entry.line.decode("ascii", "replace")) is CommandClass.QUERY
+            for entry in self._inflight
+        ):
+            return False
+        return not self._outbox and not self._job_running() and not self.flushing()
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         text = text if number is None else number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
