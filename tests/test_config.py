@@ -59,6 +59,8 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
         (GOOD.replace("[daemon]", "[daemon]\njobs_quota = 0"), "daemon.jobs_quota"),
         (GOOD.replace("[daemon]", '[daemon]\njobs_quota = "2G"'), "daemon.jobs_quota"),
         (GOOD.replace("[daemon]", "[daemon]\nupload_expiry = 0"), "daemon.upload_expiry"),
+        (GOOD.replace("window = 4", "window = 4\nplunge_feed = 0"), "machines[0].plunge_feed"),
+        (GOOD.replace("window = 4", "window = 4\nplunge_feed = nan"), "machines[0].plunge_feed"),
     ],
 )
 def test_bad_config_names_file_key_and_problem(tmp_path: Path, text: str, expected: str) -> None:

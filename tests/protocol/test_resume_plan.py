@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import pytest
 
+from hostd.protocol.g2core import G2Session
 from hostd.protocol.gcodestate import G2CORE, GRBL, Dialect, GcodeModel
 from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import AXES
+from hostd.protocol.grbl.session import GrblSession
 
 ZERO = dict.fromkeys(AXES, 0.0)
 # A machine whose G54 is 100, 100, -80 from machine zero (the stock's top is work Z0).
@@ -169,3 +171,39 @@ def test_a_g43_1_tool_length_offset_is_restored_with_its_value() -> None:
 def test_without_the_boards_offsets_there_is_no_plan() -> None:
     with pytest.raises(ResumeError, match="offsets are not known"):
         _plan(G53_RETRACT, 8, board=None)
+
+
+# -- what the sessions read of the board -------------------------------------------
+
+
+def test_grbl_reads_its_offsets_from_dollar_hash_and_its_speed_from_dollar_g() -> None:
+    session = GrblSession("m1", clock=lambda: 0.0)
+    assert session.offset_reads() == ["$#", "$G"]
+    hash_lines = [
+        "[G54:-40.000,-40.000,-20.000]",
+        "[G55:-80.000,-40.000,-20.000]",
+        "[G28:0.000,0.000,0.000]",
+        "[G92:1.500,0.000,0.000]",
+        "[TLO:0.000]",
+        "[PRB:0.000,0.000,0.000:0]",
+    ]
+    modes = ["[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S12000]"]
+    board = session.board_offsets([{"lines": hash_lines}, {"lines": modes}])
+    assert board.offsets["G55"] == {"x": -80.0, "y": -40.0, "z": -20.0}
+    assert "G28" not in board.offsets and board.g92["x"] == 1.5 and board.speed == 12000
+    session.settings["13"] = "1"  # $13=1: $# reports inches
+    inches = session.board_offsets([{"lines": ["[G54:1.000,2.000,-0.500]"]}])
+    assert inches.offsets["G54"] == {"x": 25.4, "y": 50.8, "z": -12.7}
+    assert inches.speed is None  # no $G answer: the board's speed is not known
+
+
+def test_g2core_reads_its_offset_groups_in_the_units_in_force() -> None:
+    session = G2Session("m1", clock=lambda: 0.0)
+    assert session.offset_reads()[0] == '{"g54": null}' and '{"g92": null}' in (
+        session.offset_reads()
+    )
+    bodies = [{"g54": {"x": 1, "y": 2, "z": -0.5, "a": 0}}, {"g92": {"x": 0, "y": 0, "z": 0}}]
+    session.model.units = "in"  # the status report's unit: F_CONVERT values are in inches
+    board = session.board_offsets(bodies)
+    assert board.offsets == {"G54": {"x": 25.4, "y": 50.8, "z": -12.7}}
+    assert board.g92 == {"x": 0.0, "y": 0.0, "z": 0.0} and board.speed is None
