@@ -799,8 +799,9 @@ class G2Session(SessionBase):
 
     def offset_reads(self) -> list[str]:
         """`{"g54":null}` .. `{"g59":null}` and `{"g92":null}`: groups of per-axis values
-        (config_app.cpp, `g54x`..; G10 writes them and g2core persists them)."""
-        return [json.dumps({group: None}) for group in (*_OFFSET_GROUPS, "g92")]
+        (config_app.cpp, `g54x`..; G10 writes them and g2core persists them), and
+        `{"g92e":null}`: program end only suspends G92 (its values stay, not in force)."""
+        return [json.dumps({group: None}) for group in (*_OFFSET_GROUPS, "g92", "g92e")]
 
     def board_offsets(self, bodies: list[JsonObject]) -> Board:
         """The groups' values, converted from the units the board reports in (F_CONVERT:
@@ -816,7 +817,8 @@ class G2Session(SessionBase):
                         if a in ("x", "y", "z") and isinstance(v, int | float)
                     }
         offsets = {f"G{g[1:]}": found[g] for g in _OFFSET_GROUPS if g in found}
-        return Board(offsets, found.get("g92", {}))
+        enabled = next((body["g92e"] for body in bodies if "g92e" in body), 1)
+        return Board(offsets, found.get("g92", {}) if enabled else {})
 
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight

@@ -207,3 +207,8 @@ def test_g2core_reads_its_offset_groups_in_the_units_in_force() -> None:
     board = session.board_offsets(bodies)
     assert board.offsets == {"G54": {"x": 25.4, "y": 50.8, "z": -12.7}}
     assert board.g92 == {"x": 0.0, "y": 0.0, "z": 0.0} and board.speed is None
+    # After M2/M30 g2core keeps the G92 values but suspends them (g92e 0): not in force.
+    held = [{"g92": {"x": 5, "y": 0, "z": 0}}, {"g92e": 1}]
+    assert session.board_offsets(held).g92["x"] == 5 * 25.4
+    suspended = [{"g92": {"x": 5, "y": 0, "z": 0}}, {"g92e": 0}]
+    assert session.board_offsets(suspended).g92 == {}
