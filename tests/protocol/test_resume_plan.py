@@ -212,3 +212,19 @@ def test_g2core_reads_its_offset_groups_in_the_units_in_force() -> None:
     assert session.board_offsets(held).g92["x"] == 5 * 25.4
     suspended = [{"g92": {"x": 5, "y": 0, "z": 0}}, {"g92e": 0}]
     assert session.board_offsets(suspended).g92 == {}
+
+
+def test_a_g92_the_board_holds_is_the_files_start_only_when_the_file_sets_none() -> None:
+    own = "G21 G90\nG0 X10 Y10 Z5\nG92 X0 Y0\nS9000 M3\nG1 Z-1 F200\nG1 X20 F900\nG1 Y5\n"
+    # The board kept the lost job's own G92 (10, 10 from G54): reading the file from it
+    # would have put the first move 10 mm off, and the file's G92 with it.
+    lost = Board(OFFSETS, {"x": 10.0, "y": 10.0})
+    plan = _plan(own, 7, board=lost)
+    assert plan.machine == _plan(own, 7).machine == {"x": 130.0, "y": 110.0, "z": -81.0}
+    assert any("replaced by the file's (line 3)" in t for t in plan.uncertain)
+    # A file that sets none ran in the G92 the operator set before the job: kept.
+    plain = "G21 G90\nG0 X0 Y0 Z5\nS9000 M3\nG1 Z-1 F200\nG1 X20 F900\nG1 Y5\n"
+    operator = Board(OFFSETS, {"x": 3.0})
+    plan = _plan(plain, 6, board=operator)
+    assert plan.machine["x"] == 123.0 and "G92.1" not in plan.approach
+    assert any("does not set before this line" in t for t in plan.uncertain)

@@ -150,6 +150,7 @@ class GcodeModel:
         self.wcs_file = [[NAN] * 6 for _ in WCS]  # what the file's G10 wrote (keep_offsets)
         self.g10_line: int | None = None  # the last line whose G10 L2/L20 set an offset
         self.g53_line: int | None = None  # the last line with a G53 move
+        self.g92_line: int | None = None  # the last line with a G92, G92.1, G92.2 or G92.3
         self.g92 = [float((g92 or {}).get(a, 0.0)) for a in AXES]  # in force before the file
         self.g92_on = any(self.g92)
         self.homes = {
@@ -377,6 +378,8 @@ class GcodeModel:
     # --- group 0: G10, G28, G30, G92 ------------------------------------------------
 
     def _nonmodal(self, g: str, axes: dict[int, float], params: dict[str, float]) -> None:
+        if g.startswith("G92"):
+            self.g92_line = self.line
         if g == "G10":
             self._g10(axes, params)
         elif g in ("G28", "G30"):

@@ -98,13 +98,24 @@ class ResumePlan:
 
 
 def state_before(lines: Iterable[str], line: int, dialect: Dialect, board: Board) -> GcodeModel:
-    """The model after reading lines 1 .. line - 1 (streamed, O(1) memory), from `board`."""
-    model = GcodeModel(dialect, offsets=board.offsets, g92=board.g92, keep_offsets=True)
+    """The model after reading lines 1 .. line - 1 (streamed, O(1) memory), from `board`.
+
+    Which G92 the file started with: none, when the file sets its own before the line
+    (the board's may be what the lost job itself set: taken as the start, it would
+    shift everything read before the file's G92); else the board's (an operator's,
+    set before the job, which the job ran with).
+    """
+    own = GcodeModel(dialect, offsets=board.offsets, keep_offsets=True)
+    held = None
+    if any(board.g92.values()):
+        held = GcodeModel(dialect, offsets=board.offsets, g92=board.g92, keep_offsets=True)
     for number, text in enumerate(lines, start=1):
         if number >= line:
             break
-        model.step(text)
-    return model
+        own.step(text)
+        if held is not None:
+            held.step(text)
+    return own if held is None or own.g92_line is not None else held
 
 
 def plan_resume(
@@ -139,6 +150,19 @@ def plan_resume(
     uncertain += state.unrestorable()
     uncertain += [f"{text} (first at line {first})" for text, (first, _) in model.warnings.items()]
     uncertain += _offsets_written(state, board)
+    g92_held = {a: v for a, v in board.g92.items() if v}
+    if g92_held:
+        held = " ".join(f"{a.upper()}{_num(v, 3)}" for a, v in g92_held.items())
+        if model.g92_line is None:
+            uncertain.append(
+                f"the board holds a G92 offset ({held} mm) that the file does not set "
+                "before this line: the plan takes it as the one the job ran with"
+            )
+        else:
+            uncertain.append(
+                f"the board's G92 offset ({held} mm) is replaced by the file's (line "
+                f"{model.g92_line})"
+            )
     off = dataclasses.replace(state, spindle="M5", mist=False, flood=False)
     preamble = [_supported(text, dialect) for text in off.preamble("M6" not in dialect.unsupported)]
     preamble = [text for text in preamble if text]
