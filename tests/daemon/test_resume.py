@@ -287,3 +287,14 @@ async def test_file_analyze_reports_the_figures(g2: tuple[Running, Rpc]) -> None
     assert report["lines"] == 20 and report["arcs"] == 3 and report["tools"] == [1, 2]
     assert report["units"] == ["G21"] and report["max_speed"] == 12000
     assert report["estimate"] > 0 and report["travel_checked"] is False
+
+
+async def test_without_the_boards_offsets_no_resume_is_planned(g2: tuple[Running, Rpc]) -> None:
+    """The approach is planned from the offsets the board holds: a machine that cannot
+    be asked (disconnected) gets no plan, rather than one from offsets taken as zero."""
+    _, rpc = g2
+    await rpc.call("file.upload", name="mill.nc", data=_MILL)
+    await rpc.call("machine.disconnect", machine="sim1")
+    with pytest.raises(RpcFailure) as refused:
+        await rpc.call("job.recovery", machine="sim1", file="mill.nc", line=9)
+    assert refused.value.code == 1011 and "offsets could not be read" in refused.value.message
