@@ -228,3 +228,10 @@ def test_a_g92_the_board_holds_is_the_files_start_only_when_the_file_sets_none()
     plan = _plan(plain, 6, board=operator)
     assert plan.machine["x"] == 123.0 and "G92.1" not in plan.approach
     assert any("does not set before this line" in t for t in plan.uncertain)
+
+
+def test_the_preamble_leaves_out_what_the_dialect_refuses_with_its_words() -> None:
+    text = "G21 G90 G64\nG43 H2\nG0 X0 Y0 Z5\nG1 X5 F500\nG1 Y5\n"
+    plan = _plan(text, 5, GRBL)
+    assert plan.preamble[:2] == ["G21", "G17 G90 G91.1 G94"] and "H2" not in plan.preamble
+    assert "G43 H2" in _plan(text, 5, G2CORE).preamble

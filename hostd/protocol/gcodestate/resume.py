@@ -338,6 +338,8 @@ def _supported(text: str, dialect: Dialect) -> str:
     """A preamble line without the words the dialect refuses (grbl: G64, G90.1, M6...)."""
     words = text.split()
     kept = [w for w in words if _code(w) not in dialect.unsupported]
+    if kept != words and not any(w[0] in "GMTSF" for w in kept):
+        return ""  # only the refused code's own words (G43's H) are left
     return " ".join(kept)
 
 
