@@ -95,6 +95,13 @@ class MachineConfig(_Strict):
     # cancel or a failed job hostd holds the board instead of resetting it (only
     # machine.reset, asked by the operator, resets it). True: it resets as usual.
     startup_motion: bool = False
+    # The slowest the tool goes back down to the resume depth, mm/min: the resume plunges
+    # at the file's own plunge feed (its last feed move along Z alone) or this, whichever
+    # is slower. Unset: the file's.
+    plunge_feed: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # The tool is a laser: a resume moves with the beam off and turns it on, without a
+    # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
+    laser: bool = False
 
     @field_validator("baudrate")
     @classmethod

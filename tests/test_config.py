@@ -63,6 +63,8 @@ def test_the_documented_example_loads_with_defaults_filled(tmp_path: Path) -> No
         (GOOD.replace("window = 4", "link_silence = 0"), "machines[0].link_silence"),
         (GOOD.replace("window = 4", "homing_timeout = -5"), "machines[0].homing_timeout"),
         (GOOD.replace("window = 4", "homing_timeout = 7200"), "machines[0].homing_timeout"),
+        (GOOD.replace("window = 4", "window = 4\nplunge_feed = 0"), "machines[0].plunge_feed"),
+        (GOOD.replace("window = 4", "window = 4\nplunge_feed = nan"), "machines[0].plunge_feed"),
     ],
 )
 def test_bad_config_names_file_key_and_problem(tmp_path: Path, text: str, expected: str) -> None:

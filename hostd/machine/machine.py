@@ -51,6 +51,7 @@ from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
+from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
@@ -260,6 +261,13 @@ class Machine:
         """Travel, traverse rates and accelerations, from the board's settings (its dialect's)."""
         session = self.engine.session
         return session.machine_limits(await self.read_settings(session.limit_settings()))
+
+    async def board_offsets(self) -> Board:
+        """The board's stored offsets (G54..), its G92 and spindle speed, in mm: what a
+        resume plans from (hostd.protocol.gcodestate.resume). Queries: any state."""
+        session = self.engine.session
+        answers = await asyncio.gather(*(self.engine.send(q) for q in session.offset_reads()))
+        return session.board_offsets([response.body for response in answers])
 
     def safe_height(self, limits: MachineLimits | None) -> float | None:
         """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates)."""

@@ -15,6 +15,7 @@ offset, safe height and dwell.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass, replace
@@ -32,7 +33,7 @@ from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
 from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError
-from hostd.protocol.gcodestate.resume import ResumeError, ResumePlan, plan_resume
+from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.jobcheck import Findings, check_program
 from hostd.protocol.limits import MachineLimits
@@ -270,12 +271,31 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
 
 
 async def plan_at(
-    path: Path, line: int, dialect: str, *, safe_z: float | None, dwell: float, pool: WorkerPool
+    path: Path,
+    line: int,
+    dialect: str,
+    *,
+    board: Board | None,
+    safe_z: float | None,
+    dwell: float,
+    plunge_feed: float | None = None,
+    laser: bool = False,
+    pool: WorkerPool,
 ) -> ResumePlan:
-    """The plan to resume the file at `line` (or the first line to send after it)."""
+    """The plan to resume the file at `line` (or the first line to send after it), on a
+    board that holds `board` (its stored offsets, G92 and speed, read just before)."""
     try:
         return await pool.run(
-            f"planning a resume of {path.name}", _plan_file, path, line, dialect, safe_z, dwell
+            f"planning a resume of {path.name}",
+            _plan_file,
+            path,
+            line,
+            dialect,
+            board,
+            safe_z,
+            dwell,
+            plunge_feed,
+            laser,
         )
     except ResumeError as exc:
         raise NotResumable(str(exc)) from None
@@ -286,11 +306,27 @@ async def plan_at(
 
 
 def _plan_file(
-    path: Path, line: int, dialect: str, safe_z: float | None, dwell: float
+    path: Path,
+    line: int,
+    dialect: str,
+    board: Board | None,
+    safe_z: float | None,
+    dwell: float,
+    plunge_feed: float | None,
+    laser: bool,
 ) -> ResumePlan:
     """`plan_at`'s work, on a worker process."""
     with path.open(encoding="utf-8", errors="replace") as f:
-        plan = plan_resume(f, line, DIALECTS[dialect], safe_z=safe_z, dwell=dwell)
+        plan = plan_resume(
+            f,
+            line,
+            DIALECTS[dialect],
+            board=board,
+            safe_z=safe_z,
+            dwell=dwell,
+            plunge_feed=plunge_feed,
+            laser=laser,
+        )
     with path.open(encoding="utf-8", errors="replace") as f:
         first = next(program_lines(f, line), None)
     if first is None:
@@ -300,7 +336,7 @@ def _plan_file(
 
 def _at(plan: ResumePlan, line: int) -> ResumePlan:
     """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
-    return ResumePlan(line, plan.state, plan.preamble, plan.approach, plan.position, plan.uncertain)
+    return dataclasses.replace(plan, line=line)
 
 
 # -- for one machine ----------------------------------------------------------
@@ -393,13 +429,26 @@ async def recovery_for(
 async def _plan(
     machine: Machine, path: Path, line: int, limits: MachineLimits | None, pool: WorkerPool
 ) -> ResumePlan:
-    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell."""
+    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell and
+    plunge feed, in machine coordinates from the offsets its board holds now."""
+    config = machine.config
+    try:
+        board = await machine.board_offsets()
+    except MachineError as exc:
+        raise NotResumable(
+            f"{machine.id}: its board's offsets could not be read ({exc.message}): "
+            "a resume is planned from them"
+        ) from None
+    laser = config.laser or machine.snapshot().get("laser_mode") is True
     return await plan_at(
         path,
         line,
-        machine.config.dialect,
+        config.dialect,
+        board=board,
         safe_z=machine.safe_height(limits),
-        dwell=machine.config.spindle_dwell,
+        dwell=config.spindle_dwell,
+        plunge_feed=config.plunge_feed,
+        laser=laser,
         pool=pool,
     )
 

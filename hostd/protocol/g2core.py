@@ -68,6 +68,7 @@ from hostd.protocol.g2handshake import (
     protocol_settings,
 )
 from hostd.protocol.gcode import jog_line
+from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
 from hostd.protocol.messages import (
@@ -796,6 +797,29 @@ class G2Session(SessionBase):
                 velocity[a] = vm
         return MachineLimits(travel, velocity)
 
+    def offset_reads(self) -> list[str]:
+        """`{"g54":null}` .. `{"g59":null}` and `{"g92":null}`: groups of per-axis values
+        (config_app.cpp, `g54x`..; G10 writes them and g2core persists them), and
+        `{"g92e":null}`: program end only suspends G92 (its values stay, not in force)."""
+        return [json.dumps({group: None}) for group in (*_OFFSET_GROUPS, "g92", "g92e")]
+
+    def board_offsets(self, bodies: list[JsonObject]) -> Board:
+        """The groups' values, converted from the units the board reports in (F_CONVERT:
+        the units in force, as the status report's `unit`) to mm."""
+        scale = 25.4 if self.model.units == "in" else 1.0
+        found: dict[str, dict[str, float]] = {}
+        for body in bodies:
+            for group, values in body.items():
+                if isinstance(values, dict):
+                    found[group] = {
+                        a: float(v) * scale
+                        for a, v in values.items()
+                        if a in ("x", "y", "z") and isinstance(v, int | float)
+                    }
+        offsets = {f"G{g[1:]}": found[g] for g in _OFFSET_GROUPS if g in found}
+        enabled = next((body["g92e"] for body in bodies if "g92e" in body), 1)
+        return Board(offsets, found.get("g92", {}) if enabled else {})
+
     def no_data_in_flight(self) -> bool:
         return not self.sender.data_in_flight
 
@@ -804,6 +828,7 @@ class G2Session(SessionBase):
 
 
 _LIMIT_AXES = ("x", "y", "z")
+_OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 
 
 def _lane_of(encoded: bytes) -> Lane:

@@ -20,6 +20,7 @@ import structlog
 from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
+from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
@@ -243,6 +244,14 @@ class SessionBase:
 
     def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
         """The limits those settings say (`settings_found`'s answer to `limit_settings`)."""
+        raise NotImplementedError
+
+    def offset_reads(self) -> list[str]:
+        """The queries that read the board's stored offsets (G54..), its G92 and its S."""
+        raise NotImplementedError
+
+    def board_offsets(self, bodies: list[JsonObject]) -> Board:
+        """What the answers to `offset_reads` say, in mm (a resume plans from it)."""
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------

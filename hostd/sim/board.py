@@ -76,6 +76,9 @@ class Board(Commands):
         self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
         self.overflow_reported = True  # as an `er` 113, or (False) not at all
         self.glitches = {}  # status values computed wrong (nan, inf), by key
+        # Every move the machine made, in order (motion.Traversed): a test's record of
+        # where the tool went, kept across resets like the machine itself.
+        self.traversed = deque(maxlen=config.history)
         self.power_on()
 
     # --- power and connection
@@ -84,7 +87,9 @@ class Board(Commands):
         """The state after a reset: READY, unhomed, nothing queued, default settings."""
         self.settings = Settings(self.config)
         self.state = MachineState.READY
-        self.interp = Interpreter()
+        # G54..G59 are persistent settings: they outlive a reset (config.cpp, NVM).
+        kept = self.interp.coords if hasattr(self, "interp") else None
+        self.interp = Interpreter() if kept is None else Interpreter(coords=kept)
         self.planner = deque()
         self._last_block_at = 0.0  # when the last block went into the planner
         self._planner_running = False  # PLANNER_IDLE/STARTUP (False) or moving blocks (True)

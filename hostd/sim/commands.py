@@ -139,6 +139,16 @@ class Commands(Planner):
             setattr(self, f"_{key}", 0)
         elif key == "rx":
             body[key] = RX_REPORT
+        elif key in _COORD_GROUPS or key == "g92":
+            # config_app.cpp's `g54`.. groups and `g92`: per axis, in the units in force
+            # (F_CONVERT).
+            scale = self.interp.scale
+            values = (
+                self.interp.offsets
+                if key == "g92"
+                else self.interp.coords[_COORD_GROUPS.index(key)]
+            )
+            body[key] = {a: reports.number(values[a] / scale, 3) for a in AXES}
         elif key in self.settings:
             body[key] = self.settings.get(key)
         elif key in reports.SR_KEYS:
@@ -244,6 +254,9 @@ class Commands(Planner):
     def _soft_limit_alarm(self, status: Status) -> None:
         if Status.SOFT_LIMIT_EXCEEDED <= status <= Status.SOFT_LIMIT_EXCEEDED_ARC:
             self._lockout(MachineState.ALARM, status, "soft_limits")
+
+
+_COORD_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 
 
 def _echo(value: relaxed.Value) -> Any:

@@ -8,10 +8,12 @@ and the machine state are the board's business (board.py); this is pure.
 Supported: N; G0 G1 G2 G3 (arcs with I/J/K offsets or R), G4 P (seconds),
 G17-G19, G20/G21, G28.2 (homing), G28.3 (set position), G38.2-G38.5
 (straight probes, cycle_probing.cpp), G40, G49, G53 (one
-block in machine coordinates), G54-G59 (accepted, no offsets), G61 G61.1
-G64, G80, G90/G91, G90.1/G91.1, G92/G92.1, G93/G94; M0 M1 (accepted, no
-pause), M2/M30 (program end), M3 M4 M5 M6 M7 M8 M9 (accepted); F S T and
-the parameters P I J K R. Any other G code answers 131, any other M code 132.
+block in machine coordinates), G10 L2/L20 P0-P6 (the stored offsets,
+`cm_set_g10_data`; L20 without G92, as canonical_machine.cpp), G54-G59, G61
+G61.1 G64, G80, G90/G91, G90.1/G91.1, G92/G92.1, G93/G94; M0 M1 (accepted,
+no pause), M2/M30 (program end), M3 M4 M5 (the spindle, kept with each move),
+M6 M7 M8 M9 (accepted); F S T and the parameters P I J K R L. Any other
+G code answers 131, any other M code 132.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from hostd.sim.config import AXES
 MM_PER_INCH = 25.4
 
 _SUPPORTED_G = frozenset(
-    {0, 1, 2, 3, 4, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 49, 53}
+    {0, 1, 2, 3, 4, 10, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 49, 53}
     | {54, 55, 56, 57, 58, 59}
     | {61, 61.1, 64, 80, 90, 91, 90.1, 91.1, 92, 92.1, 93, 94}
 )
@@ -63,6 +65,11 @@ class Move:
     n: int
     rapid: bool = False
     arc: Arc | None = None
+    # The spindle (or laser) as the move runs: both firmwares change it in step with the
+    # moves (g2core queues M3/M4/M5 in the planner, spindle.cpp; grbl syncs first,
+    # spindle_sync in spindle_control.c), so it is the interpreter's when the move is read.
+    spindle: str = "M5"
+    speed: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,7 +166,13 @@ class Interpreter:
     """The G-code model: modal state and the position the next block starts from."""
 
     position: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))
-    offsets: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))
+    offsets: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))  # G92
+    # G54..G59's stored offsets (mm): persistent settings (g54x.., config_app.cpp).
+    coords: list[dict[str, float]] = field(
+        default_factory=lambda: [dict.fromkeys(AXES, 0.0) for _ in range(6)]
+    )
+    spindle: str = "M5"
+    speed: float = 0.0
     metric: bool = True
     absolute: bool = True
     feed: float | None = None  # mm/min, None until an F word is seen
@@ -174,6 +187,9 @@ class Interpreter:
         return Interpreter(
             position=dict(self.position),
             offsets=dict(self.offsets),
+            coords=[dict(c) for c in self.coords],
+            spindle=self.spindle,
+            speed=self.speed,
             metric=self.metric,
             absolute=self.absolute,
             feed=self.feed,
@@ -190,6 +206,11 @@ class Interpreter:
         """mm per program unit."""
         return 1.0 if self.metric else MM_PER_INCH
 
+    def work_offset(self) -> dict[str, float]:
+        """The offset in force (mm): the coordinate system's plus G92 (cm_get_combined_offset)."""
+        coord = self.coords[self.coord - 1]
+        return {a: coord[a] + self.offsets[a] for a in AXES}
+
     def sync(self, position: Mapping[str, float]) -> None:
         """The planner was flushed: the next block starts where the machine stands."""
         self.position = {a: float(position[a]) for a in AXES}
@@ -197,6 +218,7 @@ class Interpreter:
     def program_end(self) -> None:
         """M2/M30 (and job kill): g2core restores the G-code defaults."""
         self.offsets = dict.fromkeys(AXES, 0.0)
+        self.spindle = "M5"  # _exec_program_finalize: spindle off
         self.absolute = True
         self.plane = 17
         self.motion = 1
@@ -270,6 +292,11 @@ class Interpreter:
             if params["F"] <= 0:
                 raise _Refused(Status.GCODE_GENERIC_INPUT_ERROR)
             self.feed = params["F"] * self.scale
+        if "S" in params:
+            self.speed = params["S"]
+        for m in mcodes:
+            if m in (3, 4, 5):
+                self.spindle = f"M{int(m)}"
         for plane in (17, 18, 19):
             if plane in gset:
                 self.plane = plane
@@ -302,9 +329,13 @@ class Interpreter:
             self.position.update(values)
             blocks.append(SetPosition(values, line))
             axes_used = True
+        elif 10 in gset:
+            self._g10(axes, params)
+            axes_used = True
         elif 92 in gset:
+            coord = self.coords[self.coord - 1]
             for a, v in axes.items():
-                self.offsets[a] = self.position[a] - v * self.scale
+                self.offsets[a] = self.position[a] - coord[a] - v * self.scale
             axes_used = True
         elif 92.1 in gset:
             self.offsets = dict.fromkeys(AXES, 0.0)
@@ -327,6 +358,19 @@ class Interpreter:
             blocks.append(ProgramEnd(line))
         return blocks
 
+    def _g10(self, axes: dict[str, float], params: dict[str, float]) -> None:
+        """G10 L2 (the offset) or L20 (the current position reads as given, G92 not
+        counted: canonical_machine.cpp cm_set_g10_data); P0 is the active system."""
+        if params.get("L") not in (2.0, 20.0) or "P" not in params:
+            raise _Refused(Status.GCODE_COMMAND_UNSUPPORTED)
+        p = int(params["P"])
+        if not 0 <= p <= 6:
+            raise _Refused(Status.P_WORD_IS_INVALID)
+        coord = self.coords[(p or self.coord) - 1]
+        for a, v in axes.items():
+            value = v * self.scale
+            coord[a] = value if params["L"] == 2.0 else self.position[a] - value
+
     def _motion(
         self,
         axes: dict[str, float],
@@ -341,11 +385,12 @@ class Interpreter:
         if machine and self.motion not in (0, 1):
             raise _Refused(Status.GCODE_G53_WITHOUT_G0_OR_G1)
         target = dict(self.position)
+        offset = self.work_offset()
         for a, v in axes.items():
             if machine:
                 target[a] = v * self.scale
             elif self.absolute:
-                target[a] = v * self.scale + self.offsets[a]
+                target[a] = v * self.scale + offset[a]
             else:
                 target[a] = self.position[a] + v * self.scale
         rapid = self.motion == 0
@@ -356,7 +401,8 @@ class Interpreter:
         if status != Status.OK:
             raise _Refused(status)
         self.position = target
-        return Move(target, self.feed or 0.0, line, rapid=rapid, arc=arc)
+        feed = self.feed or 0.0
+        return Move(target, feed, line, rapid, arc, self.spindle, self.speed)
 
     def _probe(self, axes: dict[str, float], line: int, on_contact: bool, alarm: bool) -> Probe:
         """cm_straight_probe: refusals raise an alarm; no soft limits while probing."""
@@ -365,9 +411,10 @@ class Interpreter:
         if not axes:
             raise _Refused(Status.AXIS_IS_MISSING, alarm="Axis is missing")
         target = dict(self.position)
+        offset = self.work_offset()
         for a, v in axes.items():
             if self.absolute:
-                target[a] = v * self.scale + self.offsets[a]
+                target[a] = v * self.scale + offset[a]
             else:
                 target[a] = self.position[a] + v * self.scale
         # _probe_restore_settings: the motion mode is cancelled when the cycle ends;

@@ -52,6 +52,28 @@ def remainder(move: Move, fraction: float) -> Move:
     return replace(move, arc=rest)
 
 
+@dataclass(frozen=True, slots=True)
+class Traversed:
+    """A move the machine made, from `start` (machine mm): what a test checks the tool's
+    path against. `laser`: the board was in laser mode, where the beam is off in G0."""
+
+    start: dict[str, float]
+    move: Move
+    laser: bool = False
+
+    @property
+    def cutting(self) -> bool:
+        """The spindle runs or the beam burns while it moves."""
+        if self.move.spindle == "M5" or self.move.speed <= 0:
+            return False
+        return not (self.laser and self.move.rapid)
+
+    def points(self, step: float) -> list[dict[str, float]]:
+        """Points along the path, at most `step` mm apart, both ends included."""
+        count = max(1, math.ceil(path_length(self.start, self.move) / step))
+        return [point_on(self.start, self.move, i / count) for i in range(count + 1)]
+
+
 @dataclass
 class Active:
     """The block being executed, started at `t0` from `start`.

@@ -22,7 +22,7 @@ from hostd.protocol.status import Status, message
 from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
-from hostd.sim.motion import Active
+from hostd.sim.motion import Active, Traversed
 from hostd.sim.probing import ProbeCycle
 from hostd.sim.scanner import DataLine
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
@@ -77,6 +77,7 @@ class Output:
     output_buffer: int
     overflow_reported: bool
     glitches: dict[str, float]
+    traversed: deque[Traversed]
     # What the firmware keeps: back to its start on every reset (Board.power_on).
     settings: Settings
     state: MachineState
@@ -291,10 +292,11 @@ class Output:
             "qr": self._free,
         }
         values |= self.inputs
+        offset = interp.work_offset()
         for axis in AXES:
-            values[f"pos{axis}"] = (machine[axis] - interp.offsets[axis]) / scale
+            values[f"pos{axis}"] = (machine[axis] - offset[axis]) / scale
             values[f"mpo{axis}"] = machine[axis]
-            values[f"ofs{axis}"] = interp.offsets[axis] / scale
+            values[f"ofs{axis}"] = offset[axis] / scale
             values[f"hom{axis}"] = 1 if self.homed[axis] else 0
         out = {key: reports.number(v, reports.places(key)) for key, v in values.items()}
         return out | self.glitches

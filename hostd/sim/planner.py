@@ -18,7 +18,7 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status, message
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Block, Dwell, Home, Move, Probe, ProgramEnd, SetPosition
-from hostd.sim.motion import Active, start_block
+from hostd.sim.motion import Active, Traversed, start_block
 from hostd.sim.output import CYCLES, Hold, Output
 from hostd.sim.probing import (
     MINIMUM_PROBE_TRAVEL,
@@ -116,6 +116,9 @@ class Planner(Output):
                 return
             block = started
         cfg = self.config
+        if isinstance(block, Move | Probe):
+            move = block if isinstance(block, Move) else block.move
+            self.traversed.append(Traversed(dict(self.position), move))
         self.active = start_block(
             block,
             self.position,

@@ -229,7 +229,7 @@ async def test_a_resume_ends_in_the_state_of_a_whole_run(
         # Line 12 changed the tool; line 13 is to set the new speed, so the old one is on.
         assert "T2 M6" in plan["preamble"] and "S9000 M3" in plan["approach"]
     if line == 17:
-        assert plan["approach"][-1] == "G92 X0 Y0"  # not "-2": Z had no offset
+        assert plan["approach"][-2:] == ["G92 X0 Y0", "F500"]  # not "-2": Z had no offset
 
 
 async def test_a_program_beyond_the_travel_is_refused_unless_forced(
@@ -310,3 +310,14 @@ async def test_file_analyze_without_a_machine_estimates_with_defaults_and_says_s
     on_board = await rpc.call("file.analyze", file="line.nc", machine="sim1")
     assert isinstance(on_board["duration_s"], float)
     assert not any("default limits" in text for text in on_board["warnings"])
+
+
+async def test_without_the_boards_offsets_no_resume_is_planned(g2: tuple[Running, Rpc]) -> None:
+    """The approach is planned from the offsets the board holds: a machine that cannot
+    be asked (disconnected) gets no plan, rather than one from offsets taken as zero."""
+    _, rpc = g2
+    await rpc.call("file.upload", name="mill.nc", data=_MILL)
+    await rpc.call("machine.disconnect", machine="sim1")
+    with pytest.raises(RpcFailure) as refused:
+        await rpc.call("job.recovery", machine="sim1", file="mill.nc", line=9)
+    assert refused.value.code == 1011 and "offsets could not be read" in refused.value.message

@@ -134,8 +134,7 @@ def test_the_preamble_puts_a_fresh_controller_into_the_same_modal_state() -> Non
     assert preamble == [
         "G20",
         "G18 G90 G91.1 G94 G61",
-        "G10 L2 P2 X1 Y2",
-        "G55",
+        "G55",  # never G10: the board stores its offsets (issue 24)
         "T4 M6",
         "T5",
         "F12.5",
@@ -148,7 +147,6 @@ def test_the_preamble_puts_a_fresh_controller_into_the_same_modal_state() -> Non
         assert getattr(fresh, field) == getattr(state, field), field
     for field in ("path", "spindle", "speed", "mist", "flood", "tool", "selected_tool"):
         assert getattr(fresh, field) == getattr(state, field), field
-    assert fresh.wcs_offsets["G55"] == state.wcs_offsets["G55"]
 
 
 def test_a_g92_offset_is_named_as_unrestorable_and_written_for_a_known_position() -> None:

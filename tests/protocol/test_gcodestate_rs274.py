@@ -38,6 +38,7 @@ FILES = [
     (NCFILES / "arcspiral.ngc", "1,000 R arcs in inches, modal G2", 7),
     (SAMPLES / "offsets.ngc", "G92 G92.1-3, G10 L2/L20, G54-G59.1, G53, G28/G30, G93/G95", 1),
     (SAMPLES / "inch.ngc", "inch, R arcs > 180 degrees, G92 in inches", 1),
+    (SAMPLES / "tlo.ngc", "G43.1 with its value, G53 and G92 under it, G49", 1),
 ]
 _MOTION = {0: "G0", 10: "G1", 20: "G2", 30: "G3", 800: "G80"}
 _PLANE = {170: "G17", 180: "G18", 190: "G19"}

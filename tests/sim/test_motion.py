@@ -145,3 +145,28 @@ async def test_soft_limits_can_be_switched_off(host: Host, sim: SimController) -
     assert (await host.ask(b"G0 Z-5\n"))["f"][1] == 0
     assert (await host.ask(b"{sl:1}\n"))["f"][1] == 0
     assert (await host.ask(b"G0 Z-6\n"))["f"][1] == 225
+
+
+async def test_g10_sets_the_stored_offsets_which_a_reset_keeps_and_the_groups_read(
+    sim: SimController, host: Host
+) -> None:
+    """G10 L2/L20 (cm_set_g10_data), the `g54`.. groups (config_app.cpp, F_CONVERT), and
+    the record of every move with its spindle (what the resume tests check)."""
+    assert (await host.ask(b"G10 L2 P1 X20 Y10 Z40\n"))["f"][1] == 0
+    await host.ask(b"S9000 M3\n")
+    await host.ask(b"G0 X5 Y5 Z0\n")  # G54: machine 25, 15, 40
+    await sim.wait_for(lambda: sim.position == {"x": 25.0, "y": 15.0, "z": 40.0})
+    await host.ask(b"G10 L20 P2 X0 Y0\n")  # G55's origin is where the tool stands
+    assert (await host.ask(b"{g55:n}\n"))["r"]["g55"] == {"x": 25, "y": 15, "z": 0}
+    assert (await host.ask(b"G20\n"))["f"][1] == 0
+    assert (await host.ask(b"{g54:n}\n"))["r"]["g54"]["x"] == round(20 / 25.4, 3)
+    moves = [t.move for t in sim._board.traversed]
+    assert moves[-1].target == {"x": 25.0, "y": 15.0, "z": 40.0}
+    assert (moves[-1].spindle, moves[-1].speed) == ("M3", 9000)
+    await sim.reset()
+    again = await Host.open(sim.data_path)
+    try:
+        assert (await again.ask(b"{g55:n}\n"))["r"]["g55"] == {"x": 25, "y": 15, "z": 0}
+        assert (await again.ask(b"{g92:n}\n"))["r"]["g92"] == {"x": 0, "y": 0, "z": 0}
+    finally:
+        await again.close()

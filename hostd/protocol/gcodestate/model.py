@@ -120,6 +120,10 @@ class GcodeModel:
     board; `homes`: the stored G28/G30 positions (mm, machine coordinates). Axes left
     out are unknown, and so is every position computed from them.
     `track_bounds` collects the extent of every move (analysis.py).
+    `g92`: the G92 offset in force before the file (mm; none: zero).
+    `keep_offsets`: the offsets given are the board's as it holds them now, and a G10
+    in the file does not change them in the model (a resume: the board stored what the
+    file's G10 wrote when the job ran it); what the file wrote is kept in `wcs_file`.
     """
 
     def __init__(
@@ -135,8 +139,11 @@ class GcodeModel:
         track_bounds: bool = False,
         velocity: Mapping[str, float] | None = None,
         acceleration: Mapping[str, float] | None = None,
+        keep_offsets: bool = False,
+        g92: Mapping[str, float] | None = None,
     ) -> None:
         self.dialect = dialect
+        self.keep_offsets = keep_offsets
         self.block_delete = block_delete
         self.line = 0
         self.n: int | None = None
@@ -158,12 +165,22 @@ class GcodeModel:
         self.tool: int | None = None
         self.selected_tool: int | None = None
         self.tool_length = "G49"
+        # The tool length offset in force (mm, Z): 0 under G49, G43.1's Z, unknown (NaN)
+        # under G43 (the machine's tool table); `tool_h` is G43's H word.
+        self.tlo = 0.0
+        self.tool_h: int | None = None
+        # The feed (mm/min, G94) of the last feed move along Z alone: how the file plunges.
+        self.plunge_feed: float | None = None
         self.ended = False
         self.pos = [_get(start, a) for a in AXES]
         self.wcs_offsets = [[_get((offsets or {}).get(w), a) for a in AXES] for w in WCS]
         self.wcs_set: list[set[int]] = [set() for _ in WCS]
-        self.g92 = [0.0] * 6
-        self.g92_on = False
+        self.wcs_file = [[NAN] * 6 for _ in WCS]  # what the file's G10 wrote (keep_offsets)
+        self.g10_line: int | None = None  # the last line whose G10 L2/L20 set an offset
+        self.g53_line: int | None = None  # the last line with a G53 move
+        self.g92_line: int | None = None  # the last line with a G92, G92.1, G92.2 or G92.3
+        self.g92 = [float((g92 or {}).get(a, 0.0)) for a in AXES]  # in force before the file
+        self.g92_on = any(self.g92)
         self.homes = {
             "G28": [_get((homes or {}).get("G28"), a) for a in AXES],
             "G30": [_get((homes or {}).get("G30"), a) for a in AXES],
@@ -296,9 +313,7 @@ class GcodeModel:
             elif g == "G53":
                 machine = True
             elif g in ("G43", "G43.1", "G49"):
-                if g != self.tool_length:
-                    self.tool_length = g
-                    self.pos[2] = NAN  # the programmed point moves by an offset we do not know
+                self._tool_length(g, axes, params)
             elif g in ("G41", "G42"):
                 self.warn(f"{g} cutter compensation is not modelled: positions are the program's")
             elif g not in _G_QUIET:
@@ -312,6 +327,8 @@ class GcodeModel:
                 self._direction = None  # a stop
         if mcodes:
             self._mcodes_before(mcodes, params)
+        if "G43.1" in gcodes:
+            axes = {}  # G43.1's axis words are the offset, not a move
         if nonmodal is not None:
             self._nonmodal(nonmodal, axes, params)
         elif motion is not None or axes or ("I" in params or "J" in params or "K" in params):
@@ -325,6 +342,30 @@ class GcodeModel:
             for m in mcodes:
                 if m in ("M2", "M30"):
                     self._program_end()
+
+    def _tool_length(self, g: str, axes: dict[int, float], params: dict[str, float]) -> None:
+        """G43 Hn (the machine's table: unknown here), G43.1 Z (the file's), G49 (none).
+
+        The model's position is the programmed point, the machine's minus the offset:
+        when the offset changes, the machine stays, so the programmed point moves by it.
+        """
+        h = int(params["H"]) if "H" in params else self.tool
+        if g == self.tool_length and g != "G43.1" and (g == "G49" or h == self.tool_h):
+            return  # the same offset again: nothing moves
+        if g == "G49":
+            tlo = 0.0
+            self.tool_h = None
+        elif g == "G43.1":
+            tlo = axes.get(2, 0.0) * self.scale
+            for i in axes:
+                if i != 2:
+                    self.warn("G43.1 on an axis other than Z is not modelled")
+        else:
+            tlo = NAN
+            self.tool_h = h
+        self.pos[2] += self.tlo - tlo
+        self.tlo = tlo
+        self.tool_length = g
 
     def _set_feed(self, value: float) -> None:
         self.feed = value
@@ -385,6 +426,8 @@ class GcodeModel:
     # --- group 0: G10, G28, G30, G92 ------------------------------------------------
 
     def _nonmodal(self, g: str, axes: dict[int, float], params: dict[str, float]) -> None:
+        if g.startswith("G92"):
+            self.g92_line = self.line
         if g == "G10":
             self._g10(axes, params)
         elif g in ("G28", "G30"):
@@ -434,12 +477,14 @@ class GcodeModel:
         if not 0 <= index < len(WCS):
             self.warn(f"G10 P{p}: no such coordinate system")
             return
-        offset = self.wcs_offsets[index]
+        offset = self.wcs_file[index] if self.keep_offsets else self.wcs_offsets[index]
         g92 = self._g92_now() if self.dialect.l20_uses_g92 else [0.0] * 6
         for i, v in axes.items():
             value = v * self._axis_scale(i)
             offset[i] = value if l_word == 2.0 else self.pos[i] - g92[i] - value
             self.wcs_set[index].add(i)
+        if axes:
+            self.g10_line = self.line
 
     # --- motion ------------------------------------------------------------------
 
@@ -458,8 +503,11 @@ class GcodeModel:
         scale = self.scale
         self.moved.update(axes)
         if machine:
+            self.g53_line = self.line
             for i, v in axes.items():
                 pos[i] = v * scale if i < _LINEAR else v
+            if 2 in axes:
+                pos[2] -= self.tlo  # G53 ignores the tool length offset: the machine's Z
         elif self.distance == "G90":
             offset = self.wcs_offsets[self.wcs]
             g92 = self.g92 if self.g92_on else None
@@ -474,6 +522,8 @@ class GcodeModel:
             self.rapids += 1
         elif motion == "G1":
             self.feeds += 1
+            if not rapid and set(axes) == {2} and self.feed_mode == "G94" and self.feed:
+                self.plunge_feed = self.feed * self.feed_scale
         elif motion in ("G2", "G3"):
             self.feeds += 1
             self.arcs += 1
@@ -696,6 +746,17 @@ class GcodeModel:
             g92={a: _known(v) for a, v in zip(AXES, g92, strict=True)},
             g92_stored={a: _known(v) for a, v in zip(AXES, self.g92, strict=True)},
             ended=self.ended,
+            tlo=_known(self.tlo),
+            tool_h=self.tool_h,
+            plunge_feed=self.plunge_feed,
+            wcs_file={
+                name: {a: _known(v) for a, v in zip(AXES, self.wcs_file[i], strict=True)}
+                for i, name in enumerate(WCS)
+            }
+            if self.keep_offsets
+            else None,
+            g10_line=self.g10_line,
+            g53_line=self.g53_line,
         )
 
 

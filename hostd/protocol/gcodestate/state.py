@@ -58,6 +58,16 @@ class ModalState:
     g92: Position  # mm, the G92 offset in force (zero when off or suspended)
     g92_stored: Position  # mm, the offset G92.3 would restore
     ended: bool  # M2/M30 was read
+    # The tool length offset in force (mm): 0 under G49, G43.1's Z; None under G43 (the
+    # value is in the machine's tool table), with `tool_h` its H word.
+    tlo: float | None = 0.0
+    tool_h: int | None = None
+    plunge_feed: float | None = None  # mm/min: the last feed move along Z alone (G94)
+    # What the file's G10 wrote, per system (mm), where the model kept the board's offsets
+    # instead (a resume); and the last line with a G10 that set one, with a G53 move.
+    wcs_file: Mapping[str, Position] | None = None
+    g10_line: int | None = None
+    g53_line: int | None = None
 
     @property
     def scale(self) -> float:
@@ -68,32 +78,26 @@ class ModalState:
         """G-code that puts a freshly reset controller into this modal state.
 
         In the order a controller needs it: units first (every later number is read in
-        them), then the modes, the coordinate offsets this file set with G10, the tool,
-        feed, spindle or laser, coolant. What it cannot restore on its own (a G92 offset
-        depends on where the machine stands) is listed by `unrestorable`; `g92_line`
-        writes it for a known position.
+        them), then the modes, the coordinate system, the tool and its length offset,
+        feed, spindle or laser, coolant. It never writes a coordinate system's offset
+        (G10): the board stores those, and keeps what the file's G10 wrote when the job
+        ran it; a resume says so instead (resume.py). What it cannot restore on its own
+        (a G92 offset depends on where the machine stands) is listed by `unrestorable`;
+        `g92_line` writes it for a known position.
         """
         lines = [
             self.units,
             f"{self.plane} {self.distance} {self.arc_distance} {self.feed_mode} {self.path}",
         ]
-        for wcs in WCS:
-            axes = self.wcs_set.get(wcs, ())
-            offsets = self.wcs_offsets.get(wcs, {})
-            words = []
-            for axis in axes:
-                value = offsets.get(axis)
-                if value is not None:
-                    words.append(f"{axis.upper()}{_num(_from_mm(value, axis, self.scale), 4)}")
-            if words:
-                lines.append(f"G10 L2 P{WCS.index(wcs) + 1} {' '.join(words)}")
         lines.append(self.wcs)
         if self.tool is not None:
             lines.append(f"T{self.tool} M6" if tool_change else f"T{self.tool}")
         if self.selected_tool is not None and self.selected_tool != self.tool:
             lines.append(f"T{self.selected_tool}")
-        if self.tool_length != "G49":
-            lines.append(self.tool_length)
+        if self.tool_length == "G43.1" and self.tlo is not None:
+            lines.append(f"G43.1 Z{_num(self.tlo / self.scale, 4)}")
+        elif self.tool_length == "G43":
+            lines.append("G43" if self.tool_h is None else f"G43 H{self.tool_h}")
         if self.feed is not None and self.feed_mode != "G93":
             lines.append(f"F{_num(self.feed, 3)}")
         if self.spindle != "M5" and self.speed is not None:
@@ -114,8 +118,8 @@ class ModalState:
                 "a G92 offset is in force: it depends on the machine's position when it is "
                 "set again (g92_line)"
             )
-        if self.tool_length != "G49":
-            out.append(f"{self.tool_length}: the tool length offset value is the machine's")
+        if self.tool_length == "G43":
+            out.append("G43: the tool length offset value is the machine's (its tool table)")
         if self.feed_mode == "G93":
             out.append("G93: inverse-time feed is given on every move, not restored")
         return out

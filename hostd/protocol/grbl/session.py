@@ -60,6 +60,7 @@ from hostd.protocol.classes import FORWARD, CommandClass, Table, admit
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
 from hostd.protocol.gcode import jog_words
+from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import (
     ALARM_STATE,
@@ -201,6 +202,18 @@ class GrblSession(SessionBase):
     def unanswered(self) -> int:
         return len(self._inflight)
 
+    def quiet(self) -> bool:
+        """As every session's, but a query in flight (`$$`, `$#`, `$G`: views that move
+        nothing) leaves the machine quiet: a resume's `job.start` reads the board first,
+        and a status report read meanwhile must not make the machine busy, and the job
+        refused, until the next report."""
+        if self._inflight and not all(
+            codec.classify(entry.line.decode("ascii", "replace")) is CommandClass.QUERY
+            for entry in self._inflight
+        ):
+            return False
+        return not self._outbox and not self._job_running() and not self.flushing()
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         text = text if number is None else number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
@@ -275,6 +288,36 @@ class GrblSession(SessionBase):
             if isinstance(span, float | int) and span > 0:
                 travel[axis] = (-float(span), 0.0)
         return MachineLimits(travel, velocity, accel)
+
+    def offset_reads(self) -> list[str]:
+        """`$#` (report_ngc_parameters: `[G54:x,y,z]`.. `[G92:..]`, report.c) and `$G`
+        (`[GC:...]`, whose S is the speed M3 would run at)."""
+        return ["$#", "$G"]
+
+    def board_offsets(self, bodies: list[JsonObject]) -> Board:
+        """In mm: `$#` reports in inches only with `$13=1` (report_util_axis_values)."""
+        inches = str(self.settings.get("13", "0")).strip() == "1"
+        scale = 25.4 if inches else 1.0
+        offsets: dict[str, dict[str, float]] = {}
+        g92: dict[str, float] = {}
+        speed: float | None = None
+        for body in bodies:
+            for text in body.get("lines", ()):
+                kind, _, values = str(text).strip("[]").partition(":")
+                if kind == "GC":
+                    for word in values.split():
+                        if word.startswith("S") and codec.numbers(word[1:]):
+                            speed = float(word[1:])
+                    continue
+                numbers = codec.numbers(values)
+                if numbers is None or kind not in _OFFSET_KINDS:
+                    continue
+                axes = dict(zip(("x", "y", "z"), (n * scale for n in numbers), strict=False))
+                if kind == "G92":
+                    g92 = axes
+                else:
+                    offsets[kind] = axes
+        return Board(offsets, g92, speed)
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
@@ -924,3 +967,6 @@ def homing_time_bound(settings: Mapping[str, str]) -> float | None:
             if accel is not None and accel > 0:
                 total += speed / accel
     return 1.5 * total if total > 0 else None
+
+
+_OFFSET_KINDS = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G92"})

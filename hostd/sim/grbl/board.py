@@ -73,7 +73,7 @@ from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
-from hostd.sim.motion import Active
+from hostd.sim.motion import Active, Traversed
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -104,6 +104,8 @@ class GrblBoard:
         self.homed = False
         self.alarm: Alarm | None = None
         self.state = "Idle"
+        # Every move the machine made, in order (motion.Traversed), kept across resets.
+        self.traversed: deque[Traversed] = deque(maxlen=config.history)
         self.power_on()
 
     # --- power, reset
@@ -122,7 +124,8 @@ class GrblBoard:
         for i in range(3):
             self.settings[110 + i] = cfg.rapid_rate
         self.position = dict.fromkeys(AXES, 0.0)
-        self.modal = Modal()
+        # G54..G59 live in EEPROM (settings_write_coord_data): a power cycle keeps them.
+        self.modal = Modal(wcs=self.modal.wcs) if hasattr(self, "modal") else Modal()
         self.homed = False
         self.alarm = None
         self.state = "Idle"

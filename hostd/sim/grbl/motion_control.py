@@ -18,7 +18,7 @@ empty, a dwell, the homing cycle, a probe cycle.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from hostd.sim.config import AXES
@@ -27,7 +27,7 @@ from hostd.sim.grbl import reports
 from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
 from hostd.sim.grbl.settings import HOMING_PULLOFF
-from hostd.sim.motion import Active, start_block
+from hostd.sim.motion import Active, Traversed, start_block
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -70,8 +70,9 @@ def advance(board: GrblBoard, now: float) -> bool:
 
 def _start(board: GrblBoard, now: float) -> None:
     move = board.planner[0]
+    board.traversed.append(Traversed(dict(board.position), move, board.settings[32] == 1))
     if not move.rapid and board.feed_ovr != 100:
-        move = Move(move.target, move.feed * board.feed_ovr / 100, move.n, arc=move.arc)
+        move = replace(move, feed=move.feed * board.feed_ovr / 100)
     board.active = start_block(
         move,
         board.position,

@@ -309,7 +309,7 @@ def _block(m: Modal, words: list[tuple[str, float]], travel_ok: TravelCheck, jog
         if jog and not travel_ok(target):
             raise _Refused(Error.TRAVEL_EXCEEDED)
         arc = _arc(m, target, values, scale) if m.motion in (2.0, 3.0) else None
-        move = Move(target, m.feed, m.line, rapid=rapid, arc=arc)
+        move = Move(target, m.feed, m.line, rapid, arc, m.spindle, m.speed)
         if m.motion in _PROBES:
             if m.feed <= 0:
                 raise _Refused(Error.UNDEFINED_FEED_RATE)

@@ -1,0 +1,20 @@
+(retracts to a machine height between features, as Fusion's posts do)
+G21 G90 G17 G54
+G0 Z5
+G0 X2 Y2
+S12000 M3
+G1 Z-1 F300
+G1 X14 F1500
+G1 Y8
+G53 G0 Z-2
+G0 X20 Y2
+G1 Z-1 F300
+G1 X28 F1500
+G1 Y8
+G53 G0 Z-2
+G0 X2 Y14
+G1 Z-1 F300
+G1 X28 F1500
+G53 G0 Z-2
+M5
+M30

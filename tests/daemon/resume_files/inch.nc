@@ -1,0 +1,18 @@
+(an inch file: feeds in inches per minute)
+G20 G90 G17 G54
+G0 Z0.2
+G0 X0.1 Y0.1
+S12000 M3
+G1 Z-0.04 F12
+G1 X0.9 F60
+G1 Y0.6
+G1 X0.1
+G1 Y0.1
+G0 Z0.2
+G0 X0.5 Y0.35
+G1 Z-0.08 F12
+G2 X0.5 Y0.35 I0.2 J0 F40
+G1 X0.8 Y0.35
+G0 Z0.2
+M5
+M30

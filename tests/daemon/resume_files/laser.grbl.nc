@@ -1,0 +1,17 @@
+(a laser job for grbl in laser mode: the beam is off in G0)
+G21 G90 G17 G54
+G0 Z0
+G0 X2 Y2
+M4 S600
+G1 X20 F2400
+G1 Y12
+G0 X2 Y14
+G1 X20 S900
+G2 X20 Y24 I0 J5
+G1 X2
+G0 X4 Y4
+G1 X8 S300
+G1 Y8
+M5
+G0 X0 Y0
+M30
