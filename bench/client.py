@@ -128,6 +128,20 @@ def program(lines: int) -> str:
     return "".join(f"G1 X{i % 3000 / 10:.3f} Y{i % 700 / 10:.3f} F3000\n" for i in range(lines))
 
 
+def raster(lines: int) -> str:
+    """A laser's raster: short `G1` moves along X, the power changing on each, as a photo's.
+
+    0.1 mm pixels at 6,000 mm/min are 1,000 moves a second; the board's rate
+    is set by the bench's controller (bench/planner.py), not by the feed.
+    """
+    head = "G1 X0 F6000 S0\n"
+    return head + "".join(
+        f"G1 X{(i % 1000) / 10 if (i // 1000) % 2 == 0 else 100 - (i % 1000) / 10:.1f} "
+        f"S{(i * 37) % 1000}\n"
+        for i in range(1, lines)
+    )
+
+
 class DaemonProcess:
     """`python -m hostd.service` with a config of one machine on `data_port`.
 
@@ -149,6 +163,8 @@ class DaemonProcess:
         event_loop: str = "uvloop",
         cpus: set[int] | None = None,
         module: str = "hostd.service",
+        dialects: Mapping[str, str] | None = None,
+        cgroup: Path | None = None,
     ) -> None:
         self.workdir = workdir
         self.machine = machine
@@ -163,12 +179,14 @@ class DaemonProcess:
             f'event_loop = "{event_loop}"\n'
             + tables  # further top-level tables ([mqtt], [web]), before the machines
             + "".join(
-                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n' + extra
+                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n'
+                f'dialect = "{(dialects or {}).get(id_, "g2core")}"\n' + extra
                 for id_, port in self.machines.items()
             )
         )
         self.log = workdir / "hostd.log"
         self.cpus = cpus
+        self.cgroup = cgroup  # a CPU cgroup's directory, joined before exec (bench/cgroup.py)
         self.module = module  # another entry point (a patched daemon) for experiments
         self.proc: subprocess.Popen[bytes] | None = None
         self.pid = 0
@@ -180,7 +198,7 @@ class DaemonProcess:
                 [*command, "--log-format", "json"],
                 stdout=subprocess.DEVNULL,
                 stderr=log,
-                preexec_fn=self._pin if self.cpus else None,
+                preexec_fn=self._place if self.cpus or self.cgroup else None,
             )
         self.pid = self.proc.pid
         deadline = time.monotonic() + timeout
@@ -200,10 +218,12 @@ class DaemonProcess:
                 raise TimeoutError(f"daemon not idle within {timeout} s; see {self.log}")
             time.sleep(0.05)
 
-    def _pin(self) -> None:
-        """In the child, before exec: every thread the daemon starts inherits it."""
-        assert self.cpus is not None
-        os.sched_setaffinity(0, self.cpus)
+    def _place(self) -> None:
+        """In the child, before exec: every thread the daemon starts inherits both."""
+        if self.cpus:
+            os.sched_setaffinity(0, self.cpus)
+        if self.cgroup is not None:
+            (self.cgroup / "cgroup.procs").write_text(str(os.getpid()))
 
     def client(self) -> Client:
         return Client(self.socket)
