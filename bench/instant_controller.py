@@ -32,8 +32,8 @@ g2core (the default), just enough for the daemon's handshake and jobs:
   with 0 (`{"r":{"xvm":0},"f":[1,0,13]}`); SETs are echoed.
 - The first G-code line of a job sends `{"sr":{"stat":5}}`; the expected
   number of lines (`expect N` on stdin; the report follows 10 ms after the
-  last line's answer, or when the planner has run the last block), or a
-  short idle, `{"sr":{"stat":3}}`. A planner that runs empty mid-job is
+  last line's answer, or when the planner has run the last block), or
+  without one a short idle (0.2 s), `{"sr":{"stat":3}}`. A planner that runs empty mid-job is
   recorded, not reported (a g2core would report stat 3 and the daemon
   would raise its underflow fault): the bench reads the record.
 - Realtime bytes: `!` (its arrival time is recorded with time.monotonic(),
@@ -246,9 +246,11 @@ class Controller:
             self.sr_plan = None if k >= count else (k + 1, count, period, due + period)
 
     def _idle_stop(self) -> bool:
-        """A lull in the lines ends a job, unless a rastering board knows how long it is:
-        it records running dry mid-job instead of saying so (the run would stop there)."""
-        return self.planner is None or not self.expected
+        """A lull in the lines ends a job, unless the board was told how long it is: then
+        its end is its last line, and a host late mid-job is not turned into a stop (the
+        daemon would take it for an underflow and end the run); a rastering board records
+        running dry instead."""
+        return not self.expected
 
     def _busy(self, now: float) -> bool:
         """Moving: blocks in the planner, or lines waiting for one."""

@@ -86,7 +86,6 @@ WINDOW = 4
 DIALECTS = ("g2core", "grbl")
 MACHINE = "bench"
 SECOND = "other"  # P2f's second machine
-LONG_JOB = 1_000_000  # lines: a job that outlasts the samples taken while it streams
 FLEET = 8  # P6's machines in one daemon
 
 
@@ -106,6 +105,7 @@ class Settings:
     memory_small: int = 10_000
     memory_large: int = 1_000_000
     latency_runs: int = 3  # P2, P6: runs of hold_samples holds, each its own p99
+    long_job: int = 1_000_000  # lines: a job that outlasts the samples taken while it streams
     p8_seconds: float = 8.0  # each P8 job's length at its rate
     p8_share: float = 0.25  # of one core
     p8_period_us: int = 10_000  # the cgroup's CFS period (bench/cgroup.py: why short)
@@ -121,7 +121,8 @@ class Settings:
             fanout_reports=100,
             memory_large=200_000,
             latency_runs=1,
-            p8_seconds=3.0,
+            long_job=200_000,
+            p8_seconds=2.0,
             p8_holds=60,
         )
 
@@ -406,7 +407,7 @@ class Bench:
         fleet = None
         runs: list[list[float]] = []
         try:
-            client.upload("p2.gcode", program(LONG_JOB))
+            client.upload("p2.gcode", program(self.s.long_job))
             fleet = SubscriberFleet(daemon.socket, self.s.hold_subscribers, "status,job", MACHINE)
             title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
             acked = 0
@@ -452,12 +453,12 @@ class Bench:
         machine: str,
         file: str,
     ) -> Iterator[int]:
-        """A job of LONG_JOB lines streaming at full rate on `machine` (its id), cancelled after.
+        """A job of `long_job` lines streaming at full rate on `machine` (its id), cancelled after.
 
         The controller's records are cleared first: its `bangs` are this job's.
         """
         daemon.wait_idle(machine=machine)
-        controller.expect(LONG_JOB)
+        controller.expect(self.s.long_job)
         controller.dump()
         job_id: int = client.call("job.start", machine=machine, file=file)["job"]
         time.sleep(0.3)  # streaming at full rate
@@ -522,7 +523,7 @@ class Bench:
         with self._machines("p2f", [MACHINE, SECOND]) as (daemon, controllers):
             client = daemon.client()
             try:
-                client.upload("p2f.gcode", program(LONG_JOB))
+                client.upload("p2f.gcode", program(self.s.long_job))
                 runs = [
                     self._flooded(daemon, controllers[0], client, target)
                     for target in (MACHINE, SECOND)
@@ -594,10 +595,10 @@ class Bench:
         with self._machines("p6", ids) as (daemon, controllers):
             client = daemon.client()
             try:
-                client.upload("p6.gcode", program(LONG_JOB))
+                client.upload("p6.gcode", program(self.s.long_job))
                 for machine, controller in zip(ids, controllers, strict=True):
                     daemon.wait_idle(machine=machine)
-                    controller.expect(LONG_JOB)
+                    controller.expect(self.s.long_job)
                     controller.dump()
                 jobs = {m: client.call("job.start", machine=m, file="p6.gcode")["job"] for m in ids}
                 time.sleep(0.5)  # every machine streaming at full rate
@@ -689,7 +690,7 @@ class Bench:
             client = daemon.client()
             try:
                 client.upload("p7.gcode", program(n))
-                client.upload("p7-long.gcode", program(LONG_JOB))
+                client.upload("p7-long.gcode", program(self.s.long_job))
                 client.call("subscribe", topics=["job"], machine=MACHINE)
                 rate, _ = self._job(daemon, controller, client, "p7.gcode", n)
                 with self._streaming(daemon, controller, client, MACHINE, "p7-long.gcode"):
@@ -966,8 +967,11 @@ def _free_port() -> int:
         return port
 
 
+_STARTED = time.monotonic()
+
+
 def _progress(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    print(f"{text} (at {time.monotonic() - _STARTED:.0f} s)", file=sys.stderr, flush=True)
 
 
 def render_table(rows: list[Row]) -> str:
