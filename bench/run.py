@@ -77,7 +77,7 @@ from typing import Any
 
 from bench import profile as spy
 from bench.cgroup import CgroupUnavailable, cpu_limit
-from bench.client import DaemonProcess, program, raster
+from bench.client import DaemonProcess, RpcFailure, program, raster
 from bench.procs import ControllerProcess, Flooder, SubscriberFleet, WebClient
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost, wire_lines
 from hostd.api.tokens import TokenStore
@@ -741,7 +741,7 @@ class Bench:
                 for machine, controller in zip(ids, controllers, strict=True):
                     daemon.wait_idle(machine=machine)
                     controller.expect(n)
-                jobs = {client.call("job.start", machine=m, file="p8.gcode")["job"]: m for m in ids}
+                jobs = {self._start(daemon, client, m, "p8.gcode"): m for m in ids}
                 time.sleep(1.0)  # the planners filled, the jobs under way: the window opens
                 for controller in controllers:
                     controller.dump()
@@ -831,6 +831,20 @@ class Bench:
                 [],
             )
         )
+
+    def _start(self, daemon: DaemonProcess, client: Any, machine: str, file: str) -> int:
+        """job.start; a machine that says busy (seen once in P8, not understood: the
+        daemon's log is kept with --keep) is waited for and asked again, and it is noted."""
+        for attempt in range(3):
+            try:
+                job: int = client.call("job.start", machine=machine, file=file)["job"]
+                return job
+            except RpcFailure as exc:
+                if exc.code != 1003 or attempt == 2:
+                    raise
+                self.notes.append(f"job.start on {machine} refused ({exc}); asked again")
+                daemon.wait_idle(machine=machine)
+        raise AssertionError("unreachable")
 
     # P3 ---------------------------------------------------------------------------
 
