@@ -128,6 +128,17 @@ def program(lines: int) -> str:
     return "".join(f"G1 X{i % 3000 / 10:.3f} Y{i % 700 / 10:.3f} F3000\n" for i in range(lines))
 
 
+def run_delay(pid: int) -> tuple[float, int]:
+    """(seconds the process's main thread waited on a run queue, its time slices) so far.
+
+    /proc/PID/schedstat: time on the CPU, time runnable but waiting for one, slices.
+    The wait is what a busy machine adds to every wake-up: the daemon's event loop
+    and the controllers are each one main thread.
+    """
+    _, waited, slices = Path(f"/proc/{pid}/schedstat").read_text().split()[:3]
+    return int(waited) / 1e9, int(slices)
+
+
 def raster(lines: int) -> str:
     """A laser's raster: short `G1` moves along X, the power changing on each, as a photo's.
 

@@ -35,6 +35,10 @@ class ControllerProcess:
         )
         self._expect_line("listening")
 
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
     def _send(self, command: str) -> None:
         assert self.proc.stdin is not None
         self.proc.stdin.write(command + "\n")

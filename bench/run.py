@@ -77,7 +77,7 @@ from typing import Any
 
 from bench import profile as spy
 from bench.cgroup import CgroupUnavailable, cpu_limit
-from bench.client import DaemonProcess, RpcFailure, program, raster
+from bench.client import DaemonProcess, RpcFailure, program, raster, run_delay
 from bench.procs import ControllerProcess, Flooder, SubscriberFleet, WebClient
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost, wire_lines
 from hostd.api.tokens import TokenStore
@@ -411,9 +411,13 @@ class Bench:
             fleet = SubscriberFleet(daemon.socket, self.s.hold_subscribers, "status,job", MACHINE)
             title = f"P2 job with {self.s.hold_subscribers} subscribers and holds"
             acked = 0
+            waits = _Waits(daemon.pid, controller.pid)
             for run in range(self.s.latency_runs):
                 with self._streaming(daemon, controller, client, MACHINE, "p2.gcode") as job_id:
-                    with self._profiled(daemon, f"p2-{run}", title) if run == 0 else _nothing():
+                    profiled = (
+                        self._profiled(daemon, f"p2-{run}", title) if run == 0 else _nothing()
+                    )
+                    with profiled, waits:
                         sent_at = self._feedholds(client, MACHINE)
                     acked += client.call("job.get", job=job_id)["lines_acked"]
                 runs.append(self._latencies(controller, sent_at, f"p2-{run}"))
@@ -439,7 +443,8 @@ class Bench:
                 [
                     f"jobs acked {acked:,} lines during the samples; "
                     f"fleet read {sum(fleet_result['messages']):,} notifications, "
-                    f"{fleet_result['closed']} subscribers disconnected"
+                    f"{fleet_result['closed']} subscribers disconnected",
+                    waits.describe(),
                 ],
             )
         )
@@ -605,9 +610,11 @@ class Bench:
                 acked0 = self._acked(client, jobs)
                 cpu0, t0 = daemon.cpu_seconds(), time.monotonic()
                 runs = []
+                waits = _Waits(daemon.pid, controllers[0].pid)
                 for run in range(self.s.latency_runs):
                     title = "P6 eight machines, holds on the first"
-                    with self._profiled(daemon, "p6", title) if run == 0 else _nothing():
+                    profiled = self._profiled(daemon, "p6", title) if run == 0 else _nothing()
+                    with profiled, waits:
                         sent_at = self._feedholds(client, MACHINE)
                     runs.append(self._latencies(controllers[0], sent_at, f"p6-{run}"))
                 seconds, cpu = time.monotonic() - t0, daemon.cpu_seconds() - cpu0
@@ -638,6 +645,7 @@ class Bench:
                     f"{lines:,} lines acked in {seconds:.1f} s ({others:,} by the other "
                     f"{FLEET - 1}); daemon CPU {cpu:.2f} s = {cpu / seconds:.0%} of a core; "
                     f"streaming to the end: {len(running)} of {FLEET}",
+                    waits.describe(),
                 ],
             )
         )
@@ -967,6 +975,42 @@ class Bench:
         if self.pinned:
             for row in self.rows:
                 row.figure = self._label(row.figure) if "(pinned)" not in row.figure else row.figure
+
+
+class _Waits:
+    """How long the daemon's event loop and a controller waited for a CPU while holds ran.
+
+    Summed over every `with` block; the run queue wait is what a busy machine adds
+    to each wake-up, before either process can do anything about a `!`.
+    """
+
+    def __init__(self, daemon: int, controller: int) -> None:
+        self.pids = {"daemon": daemon, "controller": controller}
+        self.waited = dict.fromkeys(self.pids, 0.0)
+        self.slices = dict.fromkeys(self.pids, 0)
+        self.seconds = 0.0
+        self._start: dict[str, tuple[float, int]] = {}
+        self._t0 = 0.0
+
+    def __enter__(self) -> None:
+        self._start = {name: run_delay(pid) for name, pid in self.pids.items()}
+        self._t0 = time.monotonic()
+
+    def __exit__(self, *_: object) -> None:
+        self.seconds += time.monotonic() - self._t0
+        for name, pid in self.pids.items():
+            waited, slices = run_delay(pid)
+            self.waited[name] += waited - self._start[name][0]
+            self.slices[name] += slices - self._start[name][1]
+
+    def describe(self) -> str:
+        parts = [
+            f"the {name} waited for a CPU {self.waited[name]:.2f} s "
+            f"({self.waited[name] / max(self.slices[name], 1) * 1e6:.0f} us a wake-up, "
+            f"{self.slices[name]:,} of them)"
+            for name in self.pids
+        ]
+        return f"in {self.seconds:.1f} s of holds, " + "; ".join(parts)
 
 
 @contextlib.contextmanager
