@@ -2,9 +2,10 @@
 
 cgroup v1 (`cpu.cfs_quota_us` / `cpu.cfs_period_us` in the `cpu` hierarchy)
 or v2 (`cpu.max`), whichever this machine mounts; writing them needs root.
-The bench makes a cgroup of its own, the daemon joins it before it execs
-(bench/client.py, so every thread it starts is in it), and the cgroup is
-removed once the daemon has exited.
+The bench makes a cgroup of its own, moves the daemon into it once it has
+started and been given its file (`cgroup.procs` takes a process with all
+its threads, and threads started later are born in it), and removes the
+cgroup once the daemon has exited.
 
 The period matters as much as the quota. CFS bandwidth control runs the
 group at full speed until its quota for the period is spent, then not at
@@ -48,6 +49,16 @@ class CpuLimit:
                 if value.strip().isdigit():
                     out[key] = int(value)
         return out
+
+    def enter(self, pid: int) -> None:
+        """Move a process, every thread of it, into this cgroup."""
+        (self.path / "cgroup.procs").write_text(str(pid))
+        moved = (self.path / "cgroup.procs").read_text().split()
+        threads = set(os.listdir(f"/proc/{pid}/task"))
+        if self.version == 1:  # v1 lists threads in `tasks`: all of them must be here
+            moved += (self.path / "tasks").read_text().split()
+        if str(pid) not in moved or (self.version == 1 and not threads <= set(moved)):
+            raise CgroupUnavailable(f"process {pid} did not move into {self.path} whole")
 
     def throttled_seconds(self) -> float:
         stat = self.stat()

@@ -175,7 +175,6 @@ class DaemonProcess:
         cpus: set[int] | None = None,
         module: str = "hostd.service",
         dialects: Mapping[str, str] | None = None,
-        cgroup: Path | None = None,
     ) -> None:
         self.workdir = workdir
         self.machine = machine
@@ -197,7 +196,6 @@ class DaemonProcess:
         )
         self.log = workdir / "hostd.log"
         self.cpus = cpus
-        self.cgroup = cgroup  # a CPU cgroup's directory, joined before exec (bench/cgroup.py)
         self.module = module  # another entry point (a patched daemon) for experiments
         self.proc: subprocess.Popen[bytes] | None = None
         self.pid = 0
@@ -209,7 +207,7 @@ class DaemonProcess:
                 [*command, "--log-format", "json"],
                 stdout=subprocess.DEVNULL,
                 stderr=log,
-                preexec_fn=self._place if self.cpus or self.cgroup else None,
+                preexec_fn=self._pin if self.cpus else None,
             )
         self.pid = self.proc.pid
         deadline = time.monotonic() + timeout
@@ -229,12 +227,10 @@ class DaemonProcess:
                 raise TimeoutError(f"daemon not idle within {timeout} s; see {self.log}")
             time.sleep(0.05)
 
-    def _place(self) -> None:
-        """In the child, before exec: every thread the daemon starts inherits both."""
-        if self.cpus:
-            os.sched_setaffinity(0, self.cpus)
-        if self.cgroup is not None:
-            (self.cgroup / "cgroup.procs").write_text(str(os.getpid()))
+    def _pin(self) -> None:
+        """In the child, before exec: every thread the daemon starts inherits it."""
+        assert self.cpus is not None
+        os.sched_setaffinity(0, self.cpus)
 
     def client(self) -> Client:
         return Client(self.socket)

@@ -119,7 +119,7 @@ class Settings:
             repeats=1,
             hold_samples=100,
             fanout_reports=100,
-            memory_large=200_000,
+            memory_large=100_000,
             latency_runs=1,
             long_job=200_000,
             p8_seconds=2.0,
@@ -250,7 +250,6 @@ class Bench:
         *,
         dialect: str = "g2core",
         rate: float = 0.0,
-        cgroup: Path | None = None,
     ) -> Iterator[tuple[DaemonProcess, list[ControllerProcess]]]:
         """A daemon of one machine per id, each on its own controller (instant unless `rate`)."""
         where = self._dir(name)
@@ -273,7 +272,6 @@ class Bench:
                 cpus=self.host_cpus,
                 module=self.module,
                 dialects=dict.fromkeys(ids, dialect),
-                cgroup=cgroup,
             )
             daemon.start()
             yield daemon, controllers
@@ -325,6 +323,7 @@ class Bench:
                 client.upload("profile.gcode", program(5 * n))
                 with self._profiled(daemon, f"p1-{dialect}", f"P1 job on {dialect}"):
                     self._job(daemon, controller, client, "profile.gcode", 5 * n)
+            overflows = controller.dump()["overflows"]  # grbl: bytes past its receive buffer
         finally:
             client.close()
             raw.close()
@@ -340,11 +339,12 @@ class Bench:
                 f"{r_rate:,.0f} raw ({_span(raw_rates, '{:,.0f}')})",
                 f"{ratio:.2f}x raw ({_span(ratios, '{:.2f}')})",
                 ">= 0.80x raw",
-                ratio >= 0.8,
+                ratio >= 0.8 and overflows == 0,
                 [
                     f"median of {len(d_rates)} runs each, interleaved; daemon runs: "
                     f"{', '.join(f'{r:,.0f}' for r in d_rates)}; raw runs: "
                     f"{', '.join(f'{r:,.0f}' for r in raw_rates)}"
+                    + (f"; receive-buffer overflows: {overflows}" if dialect == "grbl" else "")
                 ],
             )
         )
@@ -734,9 +734,10 @@ class Bench:
         tables = f'\n[web]\nlisten = "127.0.0.1:{port}"\n'
         with (
             cpu_limit(self.s.p8_share, self.s.p8_period_us) as limit,
-            self._machines(
-                f"p8-{dialect}", ids, tables, dialect=dialect, rate=rate, cgroup=limit.path
-            ) as (daemon, controllers),
+            self._machines(f"p8-{dialect}", ids, tables, dialect=dialect, rate=rate) as (
+                daemon,
+                controllers,
+            ),
         ):
             token = TokenStore(daemon.workdir / "state").create("bench")
             client = daemon.client()
@@ -744,6 +745,9 @@ class Bench:
             web: WebClient | None = None
             try:
                 client.upload("p8.gcode", raster(n))
+                # Started and given its file at full speed (the bench's time, not the
+                # figure); from here on every thread of it runs within the budget.
+                limit.enter(daemon.pid)
                 fleet = SubscriberFleet(daemon.socket, self.s.p8_subscribers, "status,job", None)
                 web = WebClient(f"http://127.0.0.1:{port}", token)
                 for machine, controller in zip(ids, controllers, strict=True):
