@@ -128,6 +128,31 @@ def program(lines: int) -> str:
     return "".join(f"G1 X{i % 3000 / 10:.3f} Y{i % 700 / 10:.3f} F3000\n" for i in range(lines))
 
 
+def run_delay(pid: int) -> tuple[float, int]:
+    """(seconds the process's main thread waited on a run queue, its time slices) so far.
+
+    /proc/PID/schedstat: time on the CPU, time runnable but waiting for one, slices.
+    The wait is what a busy machine adds to every wake-up: the daemon's event loop
+    and the controllers are each one main thread.
+    """
+    _, waited, slices = Path(f"/proc/{pid}/schedstat").read_text().split()[:3]
+    return int(waited) / 1e9, int(slices)
+
+
+def raster(lines: int) -> str:
+    """A laser's raster: short `G1` moves along X, the power changing on each, as a photo's.
+
+    0.1 mm pixels at 6,000 mm/min are 1,000 moves a second; the board's rate
+    is set by the bench's controller (bench/planner.py), not by the feed.
+    """
+    head = "G1 X0 F6000 S0\n"
+    return head + "".join(
+        f"G1 X{(i % 1000) / 10 if (i // 1000) % 2 == 0 else 100 - (i % 1000) / 10:.1f} "
+        f"S{(i * 37) % 1000}\n"
+        for i in range(1, lines)
+    )
+
+
 class DaemonProcess:
     """`python -m hostd.service` with a config of one machine on `data_port`.
 
@@ -149,6 +174,7 @@ class DaemonProcess:
         event_loop: str = "uvloop",
         cpus: set[int] | None = None,
         module: str = "hostd.service",
+        dialects: Mapping[str, str] | None = None,
     ) -> None:
         self.workdir = workdir
         self.machine = machine
@@ -163,7 +189,8 @@ class DaemonProcess:
             f'event_loop = "{event_loop}"\n'
             + tables  # further top-level tables ([mqtt], [web]), before the machines
             + "".join(
-                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n' + extra
+                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n'
+                f'dialect = "{(dialects or {}).get(id_, "g2core")}"\n' + extra
                 for id_, port in self.machines.items()
             )
         )

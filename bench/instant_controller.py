@@ -1,48 +1,81 @@
-"""An "instant" g2core: answers every line at once, from a blocking os.read/os.write loop.
+"""The bench's boards: a g2core or a grbl, answering each line as the firmware does.
+
+    python -m bench.instant_controller --link PATH [--dialect grbl] [--rate 1000]
 
 It sits on the master side of a pty pair whose slave is reachable through a
 symlink (`--link`), like a /dev/serial/by-id link, so that a daemon (or the
 raw baseline loop) opens it as a serial port. It is a separate process so
 that what it costs is not charged to the host being measured.
 
-What it does, just enough like g2core for the daemon's handshake and jobs:
+Without `--rate` a board is "instant": it answers every line as soon as it
+has read it, so the host alone sets the pace (P1, P2, P5, P6). With
+`--rate R` it is a board rastering R short moves a second: a line is
+answered when it enters a planner of `--blocks` blocks that runs one block
+every 1/R s (bench/planner.py), which records every time the planner ran
+empty mid-job because the next line had not arrived (P8).
+
+g2core (the default), just enough for the daemon's handshake and jobs:
 
 - The host's open ends with a tcflush, which discards anything written
   before it: the open is detected in pty packet mode (TIOCPKT), as the
   flush status packet, and only then is the SYSTEM READY banner written.
   While no host has the slave open the master polls POLLHUP; that is
   watched with a short poll, never with a blocking read.
-- Every line gets one `{"r":...,"f":[1,0,N]}` (body `{"n":L}` for a line
-  numbered `N<L>`, as g2core at jv 4; N: the line's length + 1,
-  + 2 for a `{`-line, as the daemon's line-mode sender expects). A GET of
-  `sr` (`{"sr":null}`, which is also what the daemon makes of `?` and
+- Every line gets one `{"r":...,"f":[1,0,N]}`: body `{"n":L}` for a line
+  numbered `N<L>` with L > 0, as g2core at jv 4 (synthetos/g2
+  g2core/json_parser.cpp:588, a line number is echoed when
+  `echo_json_linenum`, set for jv >= 4 at :683, and the number is not 0),
+  else `{}`; N: the line's length + 1, + 2 for a `{`-line (the terminator
+  is counted, docs of /work/shared/spec/g2core.md section 2). A GET of `sr`
+  (`{"sr":null}`, which is also what the daemon makes of `?` and
   `{"sr":n}`) is answered with the current `stat`, a GET of any other key
   with 0 (`{"r":{"xvm":0},"f":[1,0,13]}`); SETs are echoed.
 - The first G-code line of a job sends `{"sr":{"stat":5}}`; the expected
   number of lines (`expect N` on stdin; the report follows 10 ms after the
-  last line's answer, as a board's follows its last move), or a short idle,
-  `{"sr":{"stat":3}}`.
+  last line's answer, or when the planner has run the last block), or
+  without one a short idle (0.2 s), `{"sr":{"stat":3}}`. A planner that runs empty mid-job is
+  recorded, not reported (a g2core would report stat 3 and the daemon
+  would raise its underflow fault): the bench reads the record.
 - Realtime bytes: `!` (its arrival time is recorded with time.monotonic(),
   which is CLOCK_MONOTONIC and shared with the host on the same machine)
   holds (stat 6), `~` resumes (stat 5), 0x04 and `%` in a hold end the job
   (stat 4 / 3).
 
+grbl (`--dialect grbl`, grbl 1.1h as gnea/grbl prints it):
+
+- The banner `Grbl 1.1h ['$' for help]` after the host's tcflush
+  (report.c:172); every answer ends in CRLF.
+- Realtime bytes are picked out of the stream wherever they are and take
+  no room (serial.c:143-170, the receive interrupt): `?` is answered at once with a
+  status report `<Idle|MPos:...|Bf:15,127|FS:0,0>` (report.c:466-560,
+  with `$10=3`: machine position and buffer state), `!` holds (Hold:0),
+  `~` resumes, 0x18 resets (the banner again).
+- Every other byte goes to a receive buffer of 128 bytes (serial.h:27, a
+  ring that holds 127); a host that sends more than it holds overflows it,
+  which is counted (`overflows`): character counting must never let it.
+- Every line is answered `ok` (report.c:116), a motion line once it is in
+  the planner (15 blocks, `[OPT:V,15,128]`: planner.h:31, BLOCK_BUFFER_SIZE
+  16 less the one grbl keeps free, report.c:444); `$I`, `$$` and `$G`
+  with what grbl prints for them.
+
 Commands, one a line on stdin; answers on stdout:
 
 - `expect N`: the next job has N lines.
 - `sr COUNT RATE`: write `{"sr":{"posx":k}}` for k = 1..COUNT at RATE per
-  second, recording the time just before each write.
+  second, recording the time just before each write (g2core).
 - `dump`: one JSON line `{"bangs": [t, ...], "sr": [[k, t], ...], "lines": n,
-  "sched": how it is scheduled}`, then forget them.
-
-A board is hardware of its own, never kept off its CPU by the host's other
-processes; this process stands in for one on a CPU it shares with the bench's
-clients (50 subscribers reading in P2). So it asks for SCHED_FIFO (priority
-10): when a byte arrives it runs at once instead of after the readers' time
-slice, and a `!` is timed when a board would have read it. It blocks in every
-read, so it never holds the CPU. Without the privilege it tries nice -10, and
-says which it got (`sched`).
+  "sched": how it is scheduled, "job": {...}, "starved": [[t, s], ...],
+  "overflows": n, "late": s}`, then forget them. `job`: the G-code lines of
+  the job read since the last dump and the times of the first and last;
+  `starved`: each time the planner ran empty mid-job (when, for how long);
+  `late`: the most this process woke after a block freed (its own delay).
 - `quit`.
+
+A board is hardware of its own, but this process is not: by default it is
+scheduled like any other process, as the rest of the bench is (the
+headline figures are taken as on a user's computer). `--fifo` asks for
+SCHED_FIFO (priority 10) so that it is never kept waiting behind the
+bench's clients; the bench's `--pin` uses it, and its figures say so.
 
 It prints `listening` once the link exists and `opened` each time a host
 has opened the port and been sent its banner.
@@ -63,7 +96,10 @@ import sys
 import termios
 import time
 import tty
+from collections import deque
 from typing import Any
+
+from bench.planner import Planner
 
 BANNER = (
     b'{"r":{"fv":0.99,"fb":101.06,"hp":"bench","hv":"bench","id":"bench",'
@@ -77,6 +113,9 @@ IDLE_STOP = 0.2  # s without a G-code line while running: the job is over
 # move has run, well after answering the line (and the daemon checks for an underflow
 # if a stop comes while it still has lines to send).
 STOP_DELAY = 0.01
+# g2core's planner: 48 blocks (PLANNER_QUEUE_SIZE), and a data line is read only while 4
+# are free (PLANNER_BUFFER_HEADROOM): 44 lines ahead (/work/shared/spec/g2core.md 6, 7.1).
+G2CORE_BLOCKS = 44
 
 STOP, END, RUN, HOLD = 3, 4, 5, 6
 REALTIME = frozenset(b"!~%\x04\x18\x05")
@@ -84,7 +123,12 @@ _LINE_NUMBER = re.compile(rb"[Nn]([0-9]+)")
 
 
 class Controller:
-    def __init__(self, link: str) -> None:
+    """The g2core; GrblController below changes what the lines and the realtime bytes do."""
+
+    dialect = "g2core"
+    default_blocks = G2CORE_BLOCKS
+
+    def __init__(self, link: str, rate: float = 0.0, blocks: int | None = None) -> None:
         self.link = link
         master, slave = os.openpty()
         tty.setraw(slave)
@@ -105,7 +149,7 @@ class Controller:
         self.expected = 0
         self.received = 0  # G-code lines of the current job
         self.total_lines = 0  # every line, since the last dump
-        self.sched = "normal"  # how the process is scheduled (main() raises it)
+        self.sched = "normal"  # how the process is scheduled (main() may raise it)
         self.last_line_at = 0.0
         self.stop_due: float | None = None
         self.bangs: list[float] = []
@@ -113,6 +157,13 @@ class Controller:
         self.sr_plan: tuple[int, int, float, float] | None = None  # next k, count, period, due
         self.cmd_buf = b""
         self.running = True
+        # A rastering board (rate > 0): lines wait here, in order, for a planner block.
+        self.planner = Planner(blocks or self.default_blocks, 1.0 / rate) if rate > 0 else None
+        self.waiting: deque[tuple[bytes, float]] = deque()  # (line, when it was read)
+        self.job_lines = 0  # G-code lines of jobs since the last dump, first and last read
+        self.job_first: float | None = None
+        self.job_last: float | None = None
+        self.late = 0.0  # the most this process woke after a block freed
 
     # --- the loop
 
@@ -140,7 +191,7 @@ class Controller:
                     self._command()
             self._timers()
 
-    def _timeout(self) -> float | None:
+    def _deadlines(self) -> list[float]:
         now = time.monotonic()
         deadlines = []
         if not self.attached:
@@ -149,11 +200,19 @@ class Controller:
             deadlines.append(self.banner_due)
         if self.sr_plan is not None:
             deadlines.append(self.sr_plan[3])
-        if self.stat == RUN:
+        if self.stat == RUN and self._idle_stop():
             deadlines.append(self.last_line_at + IDLE_STOP)
         if self.stop_due is not None:
             deadlines.append(self.stop_due)
-        return None if not deadlines else min(deadlines) - now
+        if self.waiting and self.planner is not None:
+            free = self.planner.next_free_wall(now)
+            if free is not None:
+                deadlines.append(free)
+        return deadlines
+
+    def _timeout(self) -> float | None:
+        deadlines = self._deadlines()
+        return None if not deadlines else min(deadlines) - time.monotonic()
 
     def _timers(self) -> None:
         now = time.monotonic()
@@ -167,33 +226,56 @@ class Controller:
             return
         if self.banner_due is not None and now >= self.banner_due:
             self._banner()
+        if self.waiting:
+            out: list[bytes] = []
+            self._plan_waiting(now, out)
+            if out:
+                self._write(b"".join(out))
         if self.stop_due is not None and now >= self.stop_due:
             self.stop_due = None
             if self.stat == RUN:
                 self._set_stat(STOP)
-        if self.stat == RUN and now - self.last_line_at >= IDLE_STOP:
+        if self.stat == RUN and self._idle_stop() and now - self.last_line_at >= IDLE_STOP:
             self._set_stat(STOP)
         plan = self.sr_plan
         if plan is not None and now >= plan[3]:
             k, count, period, due = plan
-            out = b'{"sr":{"posx":%d}}\n' % k
+            out_sr = b'{"sr":{"posx":%d}}\n' % k
             self.sr_times.append((k, time.monotonic()))
-            self._write(out)
+            self._write(out_sr)
             self.sr_plan = None if k >= count else (k + 1, count, period, due + period)
+
+    def _idle_stop(self) -> bool:
+        """A lull in the lines ends a job, unless the board was told how long it is: then
+        its end is its last line, and a host late mid-job is not turned into a stop (the
+        daemon would take it for an underflow and end the run); a rastering board records
+        running dry instead."""
+        return not self.expected
+
+    def _busy(self, now: float) -> bool:
+        """Moving: blocks in the planner, or lines waiting for one."""
+        return bool(self.waiting) or (self.planner is not None and self.planner.busy(now))
 
     def _banner(self) -> None:
         self.banner_due = None
+        self._reset_board()
+        self._write(BANNER)
+        say("opened")
+
+    def _reset_board(self) -> None:
         self.stat = STOP
         self.stop_due = None
         self.received = 0
         self.buf.clear()
-        self._write(BANNER)
-        say("opened")
+        self.waiting.clear()
+        if self.planner is not None:
+            self.planner = Planner(self.planner.blocks, self.planner.period)
 
     def _detach(self) -> None:
         self.attached = False
         self.banner_due = None
         self.buf.clear()
+        self.waiting.clear()
         self.sr_plan = None
 
     def _read(self) -> None:
@@ -216,8 +298,13 @@ class Controller:
                 self.flushed = True
                 self._banner()
             return
-        self.buf += memoryview(packet)[1:]
         out: list[bytes] = []
+        self._data(memoryview(packet)[1:], now, out)
+        if out:
+            self._write(b"".join(out))
+
+    def _data(self, data: memoryview, now: float, out: list[bytes]) -> None:
+        self.buf += data
         buf = self.buf
         start = 0
         while (end := buf.find(b"\n", start)) >= 0:
@@ -225,8 +312,6 @@ class Controller:
             start = end + 1
             self._line(line, now, out)
         del buf[:start]
-        if out:
-            self._write(b"".join(out))
 
     def _line(self, line: bytes, now: float, out: list[bytes]) -> None:
         if not line:
@@ -236,20 +321,57 @@ class Controller:
             return
         self.total_lines += 1
         if line[:1] == b"{":
-            out.append(self._json(line))
+            out.append(self._json(line))  # a control: ahead of data lines still waiting
             return
         self.last_line_at = now
         if self.stat not in (RUN, HOLD):
             self.stat = RUN
             out.append(b'{"sr":{"stat":5}}\n')
+        if self.planner is None:
+            self._gcode(line, now, now, out)
+            return
+        self.waiting.append((line, now))
+        self._plan_waiting(now, out)
+
+    def _plan_waiting(self, now: float, out: list[bytes]) -> None:
+        """Lines that were waiting for a block take those that have freed, in order."""
+        planner = self.planner
+        assert planner is not None
+        while self.waiting:
+            if planner.queued(now) >= planner.blocks:
+                return  # full (held or not): the next one waits for a block to run
+            line, arrival = self.waiting.popleft()
+            due = planner.to_wall(planner.recent[0]) if len(planner.recent) >= planner.blocks else 0
+            if arrival < due:  # it waited for this block: did this process wake in time?
+                self.late = max(self.late, now - due)
+            self._gcode(line, arrival, now, out)
+
+    def _gcode(self, line: bytes, arrival: float, now: float, out: list[bytes]) -> None:
+        """A G-code line taken by the board: planned (if it models a planner) and answered."""
+        self._job_line(arrival, now)
         numbered = _LINE_NUMBER.match(line)  # jv 4 echoes the line's N word, as g2core does
         body = b'"n":%s' % numbered[1] if numbered and int(numbered[1]) else b""
         out.append(b'{"r":{%s},"f":[1,0,%d]}\n' % (body, len(line) + 1))
-        self.received += 1
         if self.expected and self.received >= self.expected:
             self.expected = 0
             self.received = 0
-            self.stop_due = now + STOP_DELAY
+            end = now if self.planner is None else self.planner.to_wall(self.planner.last_done)
+            self.stop_due = max(end, now) + STOP_DELAY
+
+    def _job_line(self, arrival: float, now: float) -> None:
+        """Book one G-code line of a job: the planner's block, the job's counts."""
+        self.received += 1
+        self.job_lines += 1
+        if self.job_first is None:
+            self.job_first = arrival
+        self.job_last = arrival
+        planner = self.planner
+        if planner is not None:
+            planner.add(arrival, now)
+            if self.received == 1:
+                planner.begin_job()
+            if self.expected and self.received >= self.expected:
+                planner.end_job()
 
     def _json(self, line: bytes) -> bytes:
         try:
@@ -271,17 +393,32 @@ class Controller:
             self.bangs.append(now)
             if self.stat == RUN:
                 self.stat = HOLD
+                self._hold(now)
                 out.append(b'{"sr":{"stat":6}}\n')
         elif char == ord("~"):
             if self.stat == HOLD:
                 self.stat = RUN
                 self.last_line_at = now
+                self._resume(now, out)
                 out.append(b'{"sr":{"stat":5}}\n')
         elif char == 0x04 or (char == ord("%") and self.stat == HOLD):
             self.stat = END if char == 0x04 else STOP
             self.expected = self.received = 0
             self.stop_due = None
+            self.waiting.clear()
+            if self.planner is not None:
+                self.planner = Planner(self.planner.blocks, self.planner.period)
             out.append(b'{"sr":{"stat":%d}}\n' % self.stat)
+
+    def _hold(self, now: float) -> None:
+        if self.planner is not None:
+            self.planner.hold(now)
+
+    def _resume(self, now: float, out: list[bytes]) -> None:
+        if self.planner is not None:
+            self.planner.resume(now)
+            if self.waiting:
+                self._plan_waiting(now, out)
 
     def _set_stat(self, stat: int) -> None:
         self.stat = stat
@@ -322,24 +459,211 @@ class Controller:
                 count, rate = int(words[1]), float(words[2])
                 self.sr_plan = (1, count, 1.0 / rate, time.monotonic())
             elif words[0] == "dump":
-                say(
-                    json.dumps(
-                        {
-                            "bangs": self.bangs,
-                            "sr": self.sr_times,
-                            "lines": self.total_lines,
-                            "sched": self.sched,
-                        }
-                    )
-                )
-                self.bangs, self.sr_times, self.total_lines = [], [], 0
+                say(json.dumps(self._records()))
+                self._forget_records()
             elif words[0] == "quit":
                 self.running = False
+
+    def _records(self) -> dict[str, Any]:
+        planner = self.planner
+        return {
+            "bangs": self.bangs,
+            "sr": self.sr_times,
+            "lines": self.total_lines,
+            "sched": self.sched,
+            "dialect": self.dialect,
+            "job": {"lines": self.job_lines, "first": self.job_first, "last": self.job_last},
+            "starved": [] if planner is None else [[s.at, s.seconds] for s in planner.starved],
+            "overflows": 0,
+            "late": self.late,
+        }
+
+    def _forget_records(self) -> None:
+        self.bangs, self.sr_times, self.total_lines = [], [], 0
+        self.job_lines, self.job_first, self.job_last = 0, None, None
+        self.late = 0.0
+        if self.planner is not None:
+            self.planner.starved = []
 
     def close(self) -> None:
         os.close(self.fd)
         with contextlib.suppress(OSError):
             os.unlink(self.link)
+
+
+# --- grbl ---------------------------------------------------------------------------------
+
+GRBL_BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"  # report.c:172
+GRBL_RX = 128  # serial.h: RX_BUFFER_SIZE; the ring holds one byte less
+GRBL_BLOCKS = 15  # planner.h BLOCK_BUFFER_SIZE 16, one kept free (report.c:444)
+GRBL_BUILD = b"[VER:1.1h.20190830:]\r\n[OPT:V,15,128]\r\nok\r\n"
+GRBL_MODES = b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n"
+# $$ as grbl 1.1h prints its defaults (settings.c, defaults.h), $10=3: MPos and Bf in reports,
+# and $32=1: laser mode, as the lasers of P8 are set up.
+GRBL_SETTINGS = (
+    b"$0=10\r\n$1=25\r\n$2=0\r\n$3=0\r\n$4=0\r\n$5=0\r\n$6=0\r\n$10=3\r\n$11=0.010\r\n"
+    b"$12=0.002\r\n$13=0\r\n$20=0\r\n$21=0\r\n$22=0\r\n$23=0\r\n$24=25.000\r\n"
+    b"$25=500.000\r\n$26=250\r\n$27=1.000\r\n$30=1000\r\n$31=0\r\n$32=1\r\n"
+    b"$100=250.000\r\n$101=250.000\r\n$102=250.000\r\n$110=6000.000\r\n$111=6000.000\r\n"
+    b"$112=500.000\r\n$120=1000.000\r\n$121=1000.000\r\n$122=10.000\r\n"
+    b"$130=300.000\r\n$131=200.000\r\n$132=50.000\r\nok\r\n"
+)
+OK = b"ok\r\n"
+_GRBL_PICKED = re.compile(rb"[?!~\x18\x80-\xff]")  # and every byte over 0x7f (serial.c:156)
+
+
+class GrblController(Controller):
+    """grbl 1.1: `ok` per line, a 128-byte receive buffer, `?` answered with a report."""
+
+    dialect = "grbl"
+    default_blocks = GRBL_BLOCKS
+
+    def __init__(self, link: str, rate: float = 0.0, blocks: int | None = None) -> None:
+        super().__init__(link, rate, blocks)
+        self.unanswered = 0  # bytes received and not answered: the host's count of them
+        self.overflows = 0
+        self.held = False
+        self.job_active = False  # an instant board "moves" from a job's first line to its last
+
+    def _banner(self) -> None:
+        self.banner_due = None
+        self._reset_board()
+        self.unanswered = 0
+        self.held = self.job_active = False
+        self._write(GRBL_BANNER)
+        say("opened")
+
+    def _data(self, data: memoryview, now: float, out: list[bytes]) -> None:
+        buf = self.buf
+        chunk = bytes(data)
+        if _GRBL_PICKED.search(chunk):  # rare: most reads hold none
+            # Picked out as they arrive (the receive interrupt), ahead of the lines before them.
+            for match in _GRBL_PICKED.finditer(chunk):
+                self._grbl_realtime(match[0][0], now, out)
+            chunk = _GRBL_PICKED.sub(b"", chunk)
+        buf += chunk
+        self.unanswered += len(chunk)
+        if self.unanswered > GRBL_RX - 1:
+            self.overflows += 1  # on a board the bytes past the buffer would be lost
+        start = 0
+        while (end := buf.find(b"\n", start)) >= 0:
+            line = bytes(buf[start:end]).rstrip(b"\r")
+            self._grbl_line(line, end + 1 - start, now, out)
+            start = end + 1
+        del buf[:start]
+
+    def _grbl_line(self, line: bytes, size: int, now: float, out: list[bytes]) -> None:
+        self.total_lines += 1
+        if line[:1] == b"$" or not line:
+            self.unanswered -= size
+            out.append(self._system(line))
+            return
+        self.last_line_at = now
+        if self.planner is None:
+            self.unanswered -= size
+            self._grbl_gcode(now, now, out)
+            return
+        self.waiting.append((line + b"\n", now))
+        self._plan_waiting(now, out)
+
+    def _plan_waiting(self, now: float, out: list[bytes]) -> None:
+        planner = self.planner
+        assert planner is not None
+        while self.waiting:
+            if planner.queued(now) >= planner.blocks:
+                return
+            line, arrival = self.waiting.popleft()
+            due = planner.to_wall(planner.recent[0]) if len(planner.recent) >= planner.blocks else 0
+            if arrival < due:
+                self.late = max(self.late, now - due)
+            self.unanswered -= len(line)
+            self._grbl_gcode(arrival, now, out)
+
+    def _grbl_gcode(self, arrival: float, now: float, out: list[bytes]) -> None:
+        if not self.job_active:
+            self.job_active = True
+        self._job_line(arrival, now)
+        out.append(OK)
+        if self.expected and self.received >= self.expected:
+            self.expected = self.received = 0
+            self.job_active = False
+
+    def _system(self, line: bytes) -> bytes:
+        if line == b"$I":
+            return GRBL_BUILD
+        if line == b"$$":
+            return GRBL_SETTINGS
+        if line == b"$G":
+            return GRBL_MODES
+        if line == b"$X":
+            return b"[MSG:Caution: Unlocked]\r\nok\r\n"
+        return OK
+
+    def _state(self, now: float) -> str:
+        if self.held:
+            return "Hold:0"
+        if self.planner is None:
+            return "Run" if self.job_active else "Idle"
+        return "Run" if self._busy(now) else "Idle"
+
+    def _report(self, now: float) -> bytes:
+        queued = 0 if self.planner is None else self.planner.queued(now)
+        moving = self._state(now) == "Run"
+        return b"<%s|MPos:0.000,0.000,0.000|Bf:%d,%d|FS:%d,0>\r\n" % (
+            self._state(now).encode(),
+            GRBL_BLOCKS - queued,
+            max(GRBL_RX - 1 - self.unanswered, 0),
+            1000 if moving else 0,
+        )
+
+    def _grbl_realtime(self, byte: int, now: float, out: list[bytes]) -> None:
+        if byte == ord("?"):
+            out.append(self._report(now))
+        elif byte == ord("!"):
+            self.bangs.append(now)
+            if self._state(now) == "Run":
+                self.held = True
+                self._hold(now)
+        elif byte == ord("~"):
+            if self.held:
+                self.held = False
+                self._resume(now, out)
+        elif byte == 0x18:
+            self._banner_after_reset(out)
+
+    def _resume(self, now: float, out: list[bytes]) -> None:
+        if self.planner is not None:
+            self.planner.resume(now)
+            if self.waiting:
+                self._plan_waiting(now, out)
+
+    def _banner_after_reset(self, out: list[bytes]) -> None:
+        self._reset_board()
+        self.unanswered = 0
+        self.held = self.job_active = False
+        self.expected = 0
+        out.append(GRBL_BANNER)
+
+    def _timers(self) -> None:
+        # grbl pushes no status and has no idle stop of its own: only the planner's times.
+        now = time.monotonic()
+        if not self.attached or self.banner_due is not None:
+            super()._timers()
+            return
+        if self.waiting:
+            out: list[bytes] = []
+            self._plan_waiting(now, out)
+            if out:
+                self._write(b"".join(out))
+
+    def _records(self) -> dict[str, Any]:
+        records = super()._records()
+        records["overflows"] = self.overflows
+        return records
+
+    def _forget_records(self) -> None:
+        super()._forget_records()
+        self.overflows = 0
 
 
 def say(text: str) -> None:
@@ -359,11 +683,18 @@ def _run_like_hardware() -> str:
 
 
 def main() -> None:
-    sched = _run_like_hardware()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--link", required=True, help="the symlink to create for the slave")
+    parser.add_argument("--dialect", choices=("g2core", "grbl"), default="g2core")
+    parser.add_argument(
+        "--rate", type=float, default=0.0, help="blocks a second the planner runs (0: instant)"
+    )
+    parser.add_argument("--blocks", type=int, help="the planner's blocks (default: the board's)")
+    parser.add_argument("--fifo", action="store_true", help="ask for SCHED_FIFO (pinned runs)")
     args = parser.parse_args()
-    controller = Controller(args.link)
+    sched = _run_like_hardware() if args.fifo else "normal"
+    kind = GrblController if args.dialect == "grbl" else Controller
+    controller = kind(args.link, args.rate, args.blocks)
     controller.sched = sched
     try:
         controller.serve()

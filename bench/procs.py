@@ -1,4 +1,4 @@
-"""The bench's helper processes: the instant controller, the subscriber fleet, the flooder."""
+"""The bench's helper processes: controllers, subscriber fleet, flooder, web client."""
 
 from __future__ import annotations
 
@@ -11,15 +11,33 @@ from typing import Any
 class ControllerProcess:
     """bench/instant_controller.py, driven through its stdin/stdout."""
 
-    def __init__(self, link: str) -> None:
+    def __init__(
+        self,
+        link: str,
+        dialect: str = "g2core",
+        *,
+        rate: float = 0.0,
+        blocks: int | None = None,
+        fifo: bool = False,
+    ) -> None:
         self.link = link
+        self.dialect = dialect
+        args = ["--link", link, "--dialect", dialect, "--rate", str(rate)]
+        if blocks is not None:
+            args += ["--blocks", str(blocks)]
+        if fifo:
+            args.append("--fifo")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bench.instant_controller", "--link", link],
+            [sys.executable, "-m", "bench.instant_controller", *args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
         )
         self._expect_line("listening")
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
 
     def _send(self, command: str) -> None:
         assert self.proc.stdin is not None
@@ -97,11 +115,11 @@ class _Helper:
 class SubscriberFleet(_Helper):
     """bench/subscribers.py: `count` clients subscribed to `topics`, read continuously."""
 
-    def __init__(self, socket: str, count: int, topics: str, machine: str) -> None:
+    def __init__(self, socket: str, count: int, topics: str, machine: str | None) -> None:
         super().__init__(
             "bench.subscribers",
             *("--socket", socket, "--count", str(count)),
-            *("--topics", topics, "--machine", machine),
+            *("--topics", topics, "--machine", machine or ""),
         )
 
 
@@ -114,3 +132,10 @@ class Flooder(_Helper):
             *("--socket", socket, "--machine", machine),
             *("--outstanding", str(outstanding), "--batch", str(batch)),
         )
+
+
+class WebClient(_Helper):
+    """bench/webclient.py: the dashboard's WebSocket, logged in with a token, read continuously."""
+
+    def __init__(self, url: str, token: str) -> None:
+        super().__init__("bench.webclient", "--url", url, "--token", token)

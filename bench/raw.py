@@ -2,9 +2,12 @@
 
 No asyncio, no daemon: it opens the slave as a serial host would (raw mode,
 then a tcflush, which is what makes the instant controller send its banner),
-writes the job's lines one `os.write` each keeping `window` unanswered, and
-counts one `{"r":` answer per line. What the daemon does on top of this is
-what the bench measures.
+writes the job's lines one `os.write` each, and counts one answer per line:
+on g2core `{"r":` with `window` lines unanswered, on grbl `ok` with as many
+bytes unanswered as the board's receive buffer holds (character counting,
+127 of 128). The lines are the ones the daemon writes (numbered `N<k>`, as
+the daemon numbers job lines), so both send the same bytes. What the daemon
+does on top of this is what the bench measures.
 """
 
 from __future__ import annotations
@@ -14,7 +17,10 @@ import select
 import termios
 import time
 import tty
+from collections import deque
 from dataclasses import dataclass
+
+from hostd.protocol.program import number_line
 
 REALTIME_EVERY = 100  # lines between a `!` and the next, in the latency pass
 RESUME_AFTER = 50  # lines after a `!` before its `~`
@@ -28,25 +34,67 @@ class RawResult:
     bangs_at: list[float]  # time.monotonic() right before each `!` was written
 
 
+GRBL_ROOM = 127  # bytes a grbl's 128-byte receive ring holds
+
+
+def wire_lines(text: str) -> list[bytes]:
+    """The job's lines as the daemon writes them: numbered from 1, each ending in LF."""
+    return [number_line(line, i).encode() + b"\n" for i, line in enumerate(text.splitlines(), 1)]
+
+
 class RawHost:
-    def __init__(self, path: str, timeout: float = 10.0) -> None:
+    def __init__(self, path: str, dialect: str = "g2core", timeout: float = 10.0) -> None:
+        self.dialect = dialect
         self.fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
         tty.setraw(self.fd)
         termios.tcflush(self.fd, termios.TCIOFLUSH)
         self.buf = b""
+        banner = b"SYSTEM READY" if dialect == "g2core" else b"['$' for help]"
         deadline = time.monotonic() + timeout
-        while b"SYSTEM READY" not in self.buf:
+        while banner not in self.buf:
             if time.monotonic() > deadline:
                 raise TimeoutError("no banner from the instant controller")
             ready, _, _ = select.select([self.fd], [], [], 0.1)
             if ready:
                 self.buf += os.read(self.fd, 4096)
-        self.buf = self.buf.split(b"SYSTEM READY", 1)[1].split(b"\n", 1)[1]
+        self.buf = self.buf.split(banner, 1)[1].split(b"\n", 1)[1]
 
     def close(self) -> None:
         os.close(self.fd)
 
     def stream(self, lines: list[bytes], window: int, *, realtime: bool = False) -> RawResult:
+        if self.dialect == "grbl":
+            return self._stream_counted(lines)
+        return self._stream_window(lines, window, realtime=realtime)
+
+    def _stream_counted(self, lines: list[bytes]) -> RawResult:
+        """grbl: write while the unanswered bytes fit the board's buffer; `ok` frees a line's."""
+        fd = self.fd
+        total = len(lines)
+        sent = acked = used = 0
+        sizes: deque[int] = deque()
+        pending = self.buf
+        cpu0, t0 = time.thread_time(), time.monotonic()
+        while acked < total:
+            while sent < total and used + len(lines[sent]) <= GRBL_ROOM:
+                os.write(fd, lines[sent])
+                used += len(lines[sent])
+                sizes.append(len(lines[sent]))
+                sent += 1
+            pending += os.read(fd, 65536)
+            *complete, pending = pending.split(b"\n")
+            for line in complete:
+                if line.startswith(b"ok"):
+                    acked += 1
+                    used -= sizes.popleft()
+        seconds = time.monotonic() - t0
+        cpu = time.thread_time() - cpu0
+        self.buf = pending
+        return RawResult(total, seconds, cpu, [])
+
+    def _stream_window(
+        self, lines: list[bytes], window: int, *, realtime: bool = False
+    ) -> RawResult:
         """Send every line (each ending in LF), `window` in flight; one answer frees one slot.
 
         With `realtime`, a `!` every REALTIME_EVERY lines and a `~` RESUME_AFTER

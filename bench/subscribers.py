@@ -26,15 +26,14 @@ POSX = re.compile(rb'"method":"status".*?"report":\{"posx":(\d+)\}')
 
 
 def subscribe(path: str, topics: list[str], machine: str) -> tuple[socket.socket, bytes]:
+    """One client subscribed to `topics` on `machine` (every machine if it is empty)."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     sock.settimeout(10)
     sock.connect(path)
-    request = {
-        "jsonrpc": "2.0",
-        "id": 1,
-        "method": "subscribe",
-        "params": {"topics": topics, "machine": machine},
-    }
+    params: dict[str, object] = {"topics": topics}
+    if machine:
+        params["machine"] = machine
+    request = {"jsonrpc": "2.0", "id": 1, "method": "subscribe", "params": params}
     sock.sendall(json.dumps(request).encode() + b"\n")
     buf = b""
     while True:
@@ -57,7 +56,7 @@ def main() -> None:
     parser.add_argument("--socket", required=True)
     parser.add_argument("--count", type=int, required=True)
     parser.add_argument("--topics", default="status")
-    parser.add_argument("--machine", default="bench")
+    parser.add_argument("--machine", default="bench", help="empty: every machine")
     args = parser.parse_args()
 
     topics = args.topics.split(",")
