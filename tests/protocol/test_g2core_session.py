@@ -27,7 +27,7 @@ from hostd.protocol.vocabulary import (
     Reported,
     StreamEnd,
 )
-from tests.protocol.g2wire import BANNER, Wire
+from tests.protocol.g2wire import BANNER, BUILDS, Wire
 
 pytestmark = pytest.mark.asyncio
 
@@ -436,15 +436,19 @@ async def test_a_long_job_streams_in_plain_calls() -> None:
     assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
 
 
-async def test_a_json_line_in_a_job_takes_the_control_lane_and_its_answer() -> None:
-    wire = ready(window=1)
-    stream = job("G1 X1 F100", '{"xvm":null}', "G1 X2")
+@pytest.mark.parametrize("fb", BUILDS)
+async def test_a_json_line_in_a_job_waits_for_the_lines_before_it(fb: float) -> None:
+    """The board reads a `{`-line ahead of data lines still waiting (xio.cpp:789): written
+    beside them it would run first, so it goes only once the lines before it are answered."""
+    wire = ready(fb=fb, window=4)
+    stream = job("G1 X1 F100", '{"out4":1}', "G1 X2")
     wire.session.start_stream(stream)
     wire.pump()
-    # The window holds one G-code line; the `{`-line goes in the control lane beside it.
-    assert wire.lines() == [b"G1 X1 F100\n", b'{"xvm":null}\n']
-    wire.answer(b'{"xvm":null}\n', {"xvm": 6000})  # the board runs it first
+    assert wire.lines() == [b"G1 X1 F100\n"]  # not the `{`-line, nor what follows it
     wire.answer(b"G1 X1 F100\n", {})
+    # Lines after it may follow at once: the board reads it ahead of them anyway.
+    assert wire.lines()[-2:] == [b'{"out4":1}\n', b"G1 X2\n"]
+    wire.answer(b'{"out4":1}\n', {"out4": 1})
     wire.answer(b"G1 X2\n", {})
     wire.report(stat=4)
     assert stream.result.result().end is StreamEnd.COMPLETED and stream.acked == 3
