@@ -905,13 +905,16 @@ class G2Session(SessionBase):
     def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
         return admit(cls, state)
 
+    def out_of_hold(self) -> bool:
+        """Also not while `hold` shows a hold that `stat` does not (a `!` at rest, 101.05+)."""
+        return super().out_of_hold() and not self.model.hold
+
     def _context(self) -> Context:
         """A board that holds is in a hold, whatever its stat says (a `!` at rest, 101.05+)."""
-        context = super()._context()
         state = self.model.state
-        if context is Context.FREE and self.model.hold and not (state and state.is_lockout):
+        if self.model.hold and not (state and state.is_lockout):
             return Context.HOLD
-        return context
+        return super()._context()
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:
         out = super().data_to_send()
