@@ -15,12 +15,21 @@ the write:
 - an exception report stops job lines until a status report says where the
   board is (an `er` may announce an alarm before its status report does);
 - after `%` or 0x04 no data line is written until the board shows the flush
-  happened (stat 3/4, or `er` 207): until then its answers to lines read
-  before the flush still arrive and are matched; then the rest, which it
-  discarded, are dropped from the books and accounted;
-- a clear is written only when none of our data lines is unanswered: the
-  board runs a `{`-line ahead of waiting G-code, and a stale line must not
-  run after the alarm is cleared.
+  happened (stat 3/4, or `er` 207 for each port the ^D went on): until then
+  its answers to lines read before the flush still arrive and are matched;
+  then the rest, which it discarded, are dropped from the books and
+  accounted. Before 101.02 a ^D is an ALARM that flushes nothing: each line
+  is answered 204, and the session clears the ALARM afterwards;
+- a lockout announced by an exception report stands until a report shows
+  it or a clear succeeds (a board passes through a hold first, or on
+  101.02-101.04 never gets there: then the session stops it itself);
+- a clear is written on the data port, and only when none of our data lines
+  is unanswered: the board runs a `{`-line ahead of waiting G-code, and a
+  stale line must not run after the alarm is cleared. For the same reason a
+  job's own `{`-line waits for the job's lines before it.
+
+What differs between firmware builds is in g2builds.py, read from the `fb`
+the handshake learns.
 
 The handshake (g2core.md section 10): the banner, or after `BANNER_WAIT` on
 a link that prints none a version request; the firmware build checked; the
