@@ -576,11 +576,14 @@ class G2Session(SessionBase):
             and self._flush is None
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
-            and stream.peek() is not None  # lines still on the host (not only "not looked yet")
+            and not self.model.hold  # a hold at rest (101.05+) is no starving either
+            and (waiting := stream.peek()) is not None  # lines still on the host
+            and not waiting.control  # a `{`-line waits for the lines before it, on purpose
         ):
-            # The board ran out of moves while the job still had lines on the host.
-            where = f"after file line {stream.last_acked_line}"
-            self._detected("underflow", stream.acked, f"the controller stopped {where}")
+            # The board ran out of moves while the job still had lines on the host:
+            # reported with the file line it stopped after (behaviour.md, faults).
+            line = stream.last_acked_line
+            self._detected("underflow", line, f"the controller stopped after file line {line}")
         if state.is_lockout:
             self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:

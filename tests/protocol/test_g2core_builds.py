@@ -277,3 +277,29 @@ async def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> 
     wire.feed(kill_report(101.06))
     wire.at(FLUSH_CONFIRM_TIMEOUT + 1)
     assert not wire.session.flushing()
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+async def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: float) -> None:
+    wire = ready(fb)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.report(stat=5)
+    for line in data_lines(wire)[:2]:
+        wire.answer(line, {})
+    wire.report(stat=3)  # the board stopped with the job's lines still on the host
+    assert [(d.fault, d.value) for d in faults(wire)] == [("underflow", 2)]
+    assert "after file line 2" in faults(wire)[0].message
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+async def test_a_stop_before_a_jobs_json_line_is_no_underflow(fb: float) -> None:
+    """The `{`-line waits for the lines before it: the planner drains there on purpose."""
+    wire = ready(fb)
+    stream = JobStream(iter(enumerate(["G1 X1 F100", '{"out4":1}', "G1 X2"], start=1)))
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.report(stat=5)
+    wire.report(stat=3)
+    assert faults(wire) == []
