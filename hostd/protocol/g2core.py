@@ -330,7 +330,7 @@ class G2Session(SessionBase):
         report = response.status_report
         if report is not None:
             self._on_status(report)
-        if entry.line == _CLEAR and response.ok:
+        if response.ok and (entry.line == _CLEAR or (self._held and _clears(entry.line))):
             self._cleared()
         elif response.status in _LOCKOUT_REJECTIONS:
             self._refused_in_lockout(Status(response.status))
@@ -991,6 +991,13 @@ _LOCKOUT_OF = {
     Status.COMMAND_REJECTED_BY_SHUTDOWN: MachineState.SHUTDOWN,
     Status.COMMAND_REJECTED_BY_PANIC: MachineState.PANIC,
 }
+
+
+def _clears(encoded: bytes) -> bool:
+    """A clear in another form (`$clear`, `M30`...): on 101.02-101.04 the board, never in
+    ALARM, runs it as a plain line, and its OK ends the lockout hostd kept."""
+    cls = classify(encoded.decode("latin-1").strip())
+    return cls is CommandClass.CLEAR or cls is CommandClass.PROGRAM_END
 
 
 def _lane_of(encoded: bytes) -> Lane:

@@ -112,6 +112,7 @@ class Board(Commands):
         self._init_message_due = False
         for port in self.rx:
             self.discard_rx(port)
+            self._control_last[port] = False
 
     def connected(self) -> None:
         """A host opened the board: per-open settings back to their defaults [10]."""

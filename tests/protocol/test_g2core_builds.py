@@ -303,3 +303,20 @@ async def test_a_stop_before_a_jobs_json_line_is_no_underflow(fb: float) -> None
     wire.report(stat=5)
     wire.report(stat=3)
     assert faults(wire) == []
+
+
+async def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
+    """101.03 never enters ALARM: an M30 (a clear in the class table) runs as a plain line,
+    and its OK ends the lockout hostd kept."""
+    wire = ready(101.03)
+    wire.feed(LIMIT % 101.03)
+    wire.feed(kill_report(101.03))
+    wire.answer_all()
+    wire.report(stat=4)
+    assert wire.session.model.state is S.ALARM
+    wire.session.send("M30", object())
+    wire.pump()
+    wire.answer(b"M30\n", {})
+    wire.answer_all()
+    wire.report(stat=4)
+    assert wire.session.model.state is S.PROGRAM_END
