@@ -61,7 +61,7 @@ class Build:
     @property
     def hold_at_rest(self) -> bool:
         """`!` at rest is a hold: `hold` 10, `stat` unchanged, no data line read until
-        `~`, `%` or ^D (edge-preview cycle_feedhold.cpp:597, :804)."""
+        `~`, `%` or ^D (edge-preview controller.cpp:279, cycle_feedhold.cpp:597, :827)."""
         return self.fb >= ALARM_THROUGH_HOLD
 
     @property
