@@ -191,3 +191,26 @@ async def test_a_clear_goes_on_the_data_port(tmp_path: Path, fb: float) -> None:
         clears = [r.port for r in rig.sim.received if r.data == b'{"clear":null}']
         assert clears == ["data"]
         assert rig.sim.state is S.PROGRAM_STOP
+
+
+@pytest.mark.parametrize("fb", [100.26, 101.03, 101.06])
+async def test_a_feedhold_and_flush_on_two_ports_leaves_nothing_to_run(
+    tmp_path: Path, fb: float
+) -> None:
+    """Before 101.05 a `%` flushes its own port alone: hostd sends `!` `%` on the data port
+    too; 101.05+ flushes every data port once held (docs/protocol.md, "Firmware builds")."""
+    async with rig_for(tmp_path, fb, dual=True) as rig:
+        stream = JobStream(program_lines(JOB))
+        await moving(rig, stream)
+        rig.engine.realtime(Realtime.FEEDHOLD)
+        rig.engine.realtime(Realtime.QUEUE_FLUSH)
+        assert await result(stream) is StreamEnd.CANCELLED
+        await rig.sim.wait_state(S.PROGRAM_STOP)
+        await settled(rig)
+        stopped_at = dict(rig.sim.position)
+        assert rig.sim.planner_len == 0
+        assert stream.acked + stream.rejected + stream.discarded == stream.sent
+        assert stream.discarded > 0
+        assert faults(rig) == []
+        await rig.engine.send("{stat:n}")
+        assert rig.sim.position == stopped_at and rig.sim.state is S.PROGRAM_STOP
