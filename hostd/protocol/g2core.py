@@ -517,9 +517,13 @@ class G2Session(SessionBase):
         return False
 
     def _cleared(self) -> None:
-        """A clear was answered OK: a lockout of ours ends; a report says where the board is."""
-        self._held = None
-        self._alarm_kill_due = False
+        """A clear was answered OK: a lockout of ours ends; a report says where the board is.
+
+        Not while a 101.05+ alarm's hold still runs: `cm_clear` finds no ALARM yet
+        and does nothing, and the board enters ALARM once held.
+        """
+        if not self._alarm_kill_due:
+            self._held = None
         self._kill_alarm = False
         self._await_report = True
         self._query_status()

@@ -320,3 +320,20 @@ async def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
     wire.answer_all()
     wire.report(stat=4)
     assert wire.session.model.state is S.PROGRAM_END
+
+
+async def test_101_06_a_clear_during_the_alarms_hold_leaves_the_lockout() -> None:
+    """cm_clear finds no ALARM while the alarm's hold runs: the board gets there after."""
+    wire = ready(101.06)
+    wire.feed(LIMIT % 101.06)
+    wire.answer_all()
+    wire.report(stat=6, hold=4)
+    assert wire.session.clear(object())
+    wire.pump()
+    wire.answer(CLEAR, {"clear": None})
+    wire.answer_all()
+    wire.report(stat=6, hold=10)
+    assert wire.session.model.state is S.ALARM
+    wire.feed(kill_report(101.06))
+    wire.report(stat=2, hold=0)
+    assert wire.session.model.state is S.ALARM
