@@ -337,3 +337,21 @@ async def test_101_06_a_clear_during_the_alarms_hold_leaves_the_lockout() -> Non
     wire.feed(kill_report(101.06))
     wire.report(stat=2, hold=0)
     assert wire.session.model.state is S.ALARM
+
+
+@pytest.mark.parametrize(
+    ("fb", "detail", "lockout"),
+    [
+        (100.26, "encoder_test_assertions()", S.PANIC),  # encoder.cpp:64, the only 92
+        (101.03, "encoder_test_assertions()", S.PANIC),
+        (101.06, "encoder_test_assertions()", S.PANIC),
+        (101.06, "encoder stopped returning values", S.ALARM),  # kinematics_four_cable.h:684
+    ],
+)
+async def test_status_92_is_a_panic_where_the_source_says_so(
+    fb: float, detail: str, lockout: S
+) -> None:
+    wire = ready(fb)
+    msg = f"Encoder assertion failure - {detail}"
+    wire.feed(json.dumps({"er": {"fb": fb, "st": 92, "msg": msg}}))
+    assert wire.session.model.state is lockout
