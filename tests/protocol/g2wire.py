@@ -19,6 +19,7 @@ BANNER = (
     '{"r":{"fv":1.0,"fb":101.06,"hp":3,"hv":0,"id":"3X3566-YMB","msg":"SYSTEM READY"},"f":[1,0,1]}'
 )
 BUILDS = (100.26, 101.03, 101.06)  # one of each set of rules (hostd/protocol/g2builds.py)
+JOB_KILLERS = tuple(fb for fb in BUILDS if fb >= 101.02)  # ^D kills with a flush; gc2
 
 
 def banner(fb: float) -> str:

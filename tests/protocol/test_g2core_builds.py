@@ -17,11 +17,10 @@ from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.g2core import FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import Detected, Excepted, Lane, StreamEnd
-from tests.protocol.g2wire import BUILDS, Wire
+from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire
 
 pytestmark = pytest.mark.asyncio
 
-JOB_KILLERS = [fb for fb in BUILDS if fb >= 101.02]  # ^D is a job kill with a flush
 KILL = b"\x04\n"
 CLEAR = b'{"clear":null}\n'
 LIMIT = '{"er":{"fb":%s,"st":203,"msg":"Limit hit - input 1"}}'
