@@ -55,7 +55,7 @@ class Build:
     @property
     def alarm_holds_first(self) -> bool:
         """The alarm's own feedhold runs first, and ALARM follows it after the board's own
-        job kill and `er` 207 (edge-preview alarm.cpp:174, cycle_feedhold.cpp:354)."""
+        job kill and `er` 207 (edge-preview alarm.cpp:172, cycle_feedhold.cpp:354)."""
         return self.fb >= ALARM_THROUGH_HOLD
 
     @property
