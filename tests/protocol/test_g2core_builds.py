@@ -354,3 +354,19 @@ async def test_status_92_is_a_panic_where_the_source_says_so(
     msg = f"Encoder assertion failure - {detail}"
     wire.feed(json.dumps({"er": {"fb": fb, "st": 92, "msg": msg}}))
     assert wire.session.model.state is lockout
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+async def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> None:
+    wire = ready(fb, dual=True)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    first, *rest = data_lines(wire)
+    wire.answer(first, {}, status=133)  # modal group violation: the job fails, the rest is killed
+    assert stream.result.result().end is StreamEnd.FAILED
+    assert (Lane.REALTIME, KILL) in wire.written and (Lane.DATA, KILL) in wire.written
+    wire.feed(kill_report(fb))
+    assert wire.session.flushing()  # the data port's kill is still to come
+    wire.feed(kill_report(fb))
+    assert stream.discarded == len(rest) and faults(wire) == []
