@@ -403,6 +403,7 @@ class G2Session(SessionBase):
             state = self.model.state
             if state is not None and state.is_lockout:
                 self._held = None  # the board shows the lockout: its reports rule again
+                self._alarm_kill_due = False  # its own kill, if any, came before (:354)
             else:
                 # 101.05+ passes through a hold (stat 6/5) before ALARM; 101.02-101.04
                 # never enter it: the announced lockout stands until a clear.
