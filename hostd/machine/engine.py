@@ -617,6 +617,7 @@ def session_for(config: MachineConfig) -> SessionBase:
         heartbeat=config.heartbeat,
         handshake_timeout=config.handshake_timeout,
         signal_keys=config.signals.keys(),
+        dual=config.control_port is not None,
     )
 
 

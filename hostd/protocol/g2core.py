@@ -15,12 +15,21 @@ the write:
 - an exception report stops job lines until a status report says where the
   board is (an `er` may announce an alarm before its status report does);
 - after `%` or 0x04 no data line is written until the board shows the flush
-  happened (stat 3/4, or `er` 207): until then its answers to lines read
-  before the flush still arrive and are matched; then the rest, which it
-  discarded, are dropped from the books and accounted;
-- a clear is written only when none of our data lines is unanswered: the
-  board runs a `{`-line ahead of waiting G-code, and a stale line must not
-  run after the alarm is cleared.
+  happened (stat 3/4, or `er` 207 for each port the ^D went on): until then
+  its answers to lines read before the flush still arrive and are matched;
+  then the rest, which it discarded, are dropped from the books and
+  accounted. Before 101.02 a ^D is an ALARM that flushes nothing: each line
+  is answered 204, and the session clears the ALARM afterwards;
+- a lockout announced by an exception report stands until a report shows
+  it or a clear succeeds (a board passes through a hold first, or on
+  101.02-101.04 never gets there: then the session stops it itself);
+- a clear is written on the data port, and only when none of our data lines
+  is unanswered: the board runs a `{`-line ahead of waiting G-code, and a
+  stale line must not run after the alarm is cleared. For the same reason a
+  job's own `{`-line waits for the job's lines before it.
+
+What differs between firmware builds is in g2builds.py, read from the `fb`
+the handshake learns.
 
 The handshake (g2core.md section 10): the banner, or after `BANNER_WAIT` on
 a link that prints none a version request; the firmware build checked; the
@@ -59,6 +68,7 @@ from hostd.protocol.errors import (
     NotConnected,
     Rejected,
 )
+from hostd.protocol.g2builds import NEWEST, Build
 from hostd.protocol.g2handshake import (
     BANNER_WAIT,
     OLDEST_BUILD,
@@ -148,6 +158,7 @@ class _Own(OwnLine, Enum):
     HEARTBEAT = auto()  # a silent board asked for a report
     QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
     REAPPLY = auto()  # a setting sent again once a lockout ended
+    CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
 
 
 class G2Session(SessionBase):
@@ -167,9 +178,14 @@ class G2Session(SessionBase):
         heartbeat: float = 2.0,
         handshake_timeout: float = 5.0,
         signal_keys: Iterable[str] = (),
+        dual: bool = False,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(machine_id, clock)
+        # Two ports (g2core.md section 9): a kill or a flush on the control port flushes
+        # only that port's input (xio.cpp flushToCommand), so each is sent on both.
+        self.dual = dual
+        self.build: Build = NEWEST  # the board's rules (g2builds.py), from its `fb`
         self.status_interval = status_interval
         self.heartbeat = heartbeat
         self.handshake_timeout = handshake_timeout
@@ -178,6 +194,12 @@ class G2Session(SessionBase):
         self._flush: Realtime | None = None  # QUEUE_FLUSH or JOB_KILL, awaiting its proof
         self._flush_out = False  # the flush's byte has been handed to the engine to write
         self._flush_deadline: float | None = None
+        self._kills_unseen = 0  # ^D written whose `er` 207 has not been read yet
+        self._kill_alarm = False  # a 100.x ^D written: its `er` 207 is an ALARM of ours
+        # A lockout an exception report announced: it stands until a report shows the
+        # board in it (2, 12, 13) or a clear succeeds, whatever stat a hold shows meanwhile.
+        self._held: MachineState | None = None
+        self._alarm_kill_due = False  # 101.05+: the alarm's own job kill (`er` 207) is to come
         self._settings_pending = False  # refused in a lockout: sent again when it ends
         self._lines_in = 0  # lines read and understood this connection (the serial fault's value)
         self._last_rx = 0.0
@@ -229,6 +251,9 @@ class G2Session(SessionBase):
         """The link is gone: settle every line and request it carried."""
         self.phase = Phase.CLOSED
         self._flush = None
+        self._kills_unseen = 0
+        self._kill_alarm = self._alarm_kill_due = False
+        self._held = None
         self._banner_deadline = self._handshake_deadline = None
         self._flush_deadline = self._heartbeat_deadline = None
         lost = NotConnected(f"link lost: {reason}")
@@ -306,6 +331,10 @@ class G2Session(SessionBase):
         report = response.status_report
         if report is not None:
             self._on_status(report)
+        if response.ok and (entry.line == _CLEAR or (self._held and _clears(entry.line))):
+            self._cleared()
+        elif response.status in _LOCKOUT_REJECTIONS:
+            self._refused_in_lockout(Status(response.status))
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
@@ -346,10 +375,15 @@ class G2Session(SessionBase):
         if response.ok:
             self._job_line_ok(stream, entry)
             return
+        status = response.status
+        if stream.done and self._kill_alarm and status == Status.COMMAND_REJECTED_BY_ALARM:
+            # A 100.x ^D is an ALARM that flushes nothing: each line it caught is read and
+            # refused (100.26 controller.cpp:259). None ran: the kill discarded it.
+            stream.discarded += 1
+            return
         stream.rejected += 1
         if stream.done:
             return  # already ended (an alarm, a cancel): this answer is accounted, no more
-        status = response.status
         text = message(status)
         if status in _LOCKOUT_REJECTIONS:
             stream.finish(StreamEnd.FAILED, status, text)
@@ -365,6 +399,17 @@ class G2Session(SessionBase):
     def _on_status(self, fields: dict[str, Any]) -> None:
         before = self.model.state
         changed = self.model.apply_status(fields)
+        held = self._held
+        if held is not None and "stat" in fields:
+            state = self.model.state
+            if state is not None and state.is_lockout:
+                self._held = None  # the board shows the lockout: its reports rule again
+                self._alarm_kill_due = False  # its own kill, if any, came before (:354)
+            else:
+                # 101.05+ passes through a hold (stat 6/5) before ALARM; 101.02-101.04
+                # never enter it: the announced lockout stands until a clear.
+                self.model.state = held
+                changed = None
         if "stat" in fields:
             self._await_report = False
             self._confirm_flush()
@@ -389,23 +434,112 @@ class G2Session(SessionBase):
             stream.executing(line)
 
     def _on_exception(self, report: ExceptionReport) -> None:
+        if report.status == Status.KILL_JOB and self._on_kill_report(report):
+            return
         self.model.apply_exception(report)
         self._job_log().warning("controller exception", status=report.status, msg=report.message)
         self._events.append(Excepted(report.fields))
         raised = LOCKOUT_RAISED_BY.get(report.status or -1)
+        if report.status == Status.ENCODER_ASSERTION_FAILURE and (
+            not self.build.alarm_holds_first or "assertions" in (report.message or "")
+        ):
+            # encoder.cpp:64 panics with 92 on every build; only edge-preview's
+            # kinematics_four_cable.h:684 alarms with it ("encoder stopped returning values").
+            raised = "PANIC"
         if report.status == Status.JSON_OUTPUT_TOO_LONG:
             # json_parser.cpp sends this instead of the answer of the line it is on.
             self._answer_too_long()
         if raised is not None:
-            lockout = MachineState[raised]
-            self.model.state = lockout
-            self._on_state(lockout)
-        elif report.status == Status.KILL_JOB and self._flush is not None:
-            self._confirm_flush(kill_seen=True)
-            return
+            self._announced(MachineState[raised])
         # Nothing of ours is written until a status report says where the board is.
         self._await_report = True
         self._query_status()
+
+    def _announced(self, lockout: MachineState) -> None:
+        """An exception report of the alarm, shutdown or panic class: locked out from now.
+
+        How the board gets there depends on its build (g2builds.py): at once
+        before 101.02; through a hold, its own job kill and `er` 207 from 101.05;
+        never on 101.02-101.04, whose board would run the next line it reads, so
+        hostd stops it itself (^D) and keeps its own lockout until a clear.
+        """
+        build = self.build
+        stop = False
+        if lockout is not MachineState.PANIC and self.model.state is not lockout:
+            if build.alarm_holds_first and not self.model.hold and not self._kills_unseen:
+                # Its hold ends in a job kill of its own; none when a hold (ours, or a
+                # kill's) is already under way: cm_request_feedhold ignores it then.
+                self._alarm_kill_due = True
+            stop = not build.alarm_is_state
+        self._held = lockout
+        self.model.state = lockout
+        self._on_state(lockout)  # the job ends failed with the lockout's code first
+        if stop:
+            self._write_realtime(Realtime.JOB_KILL)
+
+    def _on_kill_report(self, report: ExceptionReport) -> bool:
+        """An `er` 207; True when it is accounted here and is no new exception.
+
+        - From 101.05 an alarm's hold ends in a job kill of the board's own: its
+          207 follows the alarm's report and is a consequence of it (it must not
+          replace the alarm's reason, nor stand for a kill of ours).
+        - In a lockout a 207 tells nothing new either: the reason stays.
+        - Before 101.02 our ^D is an ALARM ("EOT Received"): a lockout of ours,
+          which we clear once its lines are answered.
+        - Otherwise it shows one of our ^D ran (a flush to the command on its port).
+        """
+        if self._alarm_kill_due:
+            self._alarm_kill_due = False
+            self._job_log().info("the alarm's own job kill", msg=report.message)
+            return True
+        locked = self._held is not None or (self.model.state and self.model.state.is_lockout)
+        if self.build.kill_alarms and not locked:
+            # Whoever wrote the ^D, the board is in ALARM now (cm_alarm, 100.26).
+            self.model.apply_exception(report)
+            self._events.append(Excepted(report.fields))
+            self._held = MachineState.ALARM
+            self.model.state = MachineState.ALARM
+            self._on_state(MachineState.ALARM)
+            if self._kill_alarm:  # ours: cleared once the lines it caught are answered
+                clear = Queued(encode_clear(), CommandClass.CLEAR, _Own.CLEAR, Context.OWN)
+                self._outbox.append(clear)
+            self._await_report = True
+            self._query_status()
+            return True
+        if self._flush is Realtime.JOB_KILL and self._kills_unseen > 0:
+            self._kills_unseen -= 1
+            if self._held is None and not (self.model.state and self.model.state.is_lockout):
+                self.model.apply_exception(report)
+                self._events.append(Excepted(report.fields))
+            self._confirm_flush(kill_seen=True)
+            return True
+        if locked:
+            self._job_log().info("a job kill in a lockout", msg=report.message)
+            return True
+        return False
+
+    def _cleared(self) -> None:
+        """A clear was answered OK: a lockout of ours ends; a report says where the board is.
+
+        Not while a 101.05+ alarm's hold still runs: `cm_clear` finds no ALARM yet
+        and does nothing, and the board enters ALARM once held.
+        """
+        if not self._alarm_kill_due:
+            self._held = None
+        self._kill_alarm = False
+        self._await_report = True
+        self._query_status()
+
+    def _refused_in_lockout(self, status: Status) -> None:
+        """A 204/205/206 answer says the board is locked out, even before any report does."""
+        state = self.model.state
+        lockout = _LOCKOUT_OF[status]
+        if state is lockout or self._held is not None:
+            return
+        if state is not None and state.is_lockout and lockout is not MachineState.PANIC:
+            return
+        self.model.state = lockout
+        self._on_state(lockout, state)
 
     def _answer_too_long(self) -> None:
         """The answer to the control line being run did not fit: that line fails with 113."""
@@ -448,11 +582,14 @@ class G2Session(SessionBase):
             and self._flush is None
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
-            and stream.peek() is not None  # lines still on the host (not only "not looked yet")
+            and not self.model.hold  # a hold at rest (101.05+) is no starving either
+            and (waiting := stream.peek()) is not None  # lines still on the host
+            and not waiting.control  # a `{`-line waits for the lines before it, on purpose
         ):
-            # The board ran out of moves while the job still had lines on the host.
-            where = f"after file line {stream.last_acked_line}"
-            self._detected("underflow", stream.acked, f"the controller stopped {where}")
+            # The board ran out of moves while the job still had lines on the host:
+            # reported with the file line it stopped after (behaviour.md, faults).
+            line = stream.last_acked_line
+            self._detected("underflow", line, f"the controller stopped after file line {line}")
         if state.is_lockout:
             self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:
@@ -478,6 +615,7 @@ class G2Session(SessionBase):
             # The board did not flush (not in a hold): its lines will be answered as usual.
             self._log.warning("flush not confirmed by the controller")
             self._flush = self._flush_deadline = None
+            self._kills_unseen = 0
         if self.phase is not Phase.READY or not self.heartbeat:
             return
         if self._heartbeat_deadline is not None:
@@ -498,6 +636,8 @@ class G2Session(SessionBase):
             self._closing(exc.message)
             return
         self._identity = fb
+        assert fb is not None  # check_firmware refuses a board that did not say
+        self.build = Build(fb)
         self._to_set = deque(protocol_settings(self.status_interval, self.signal_keys))
         self._next_setting()
 
@@ -529,6 +669,8 @@ class G2Session(SessionBase):
             self._events.append(Ready())
         elif own is _Own.HEARTBEAT:
             self._heartbeat_deadline = None
+        elif own is _Own.CLEAR and not response.ok:
+            self._log.error("controller refused the clear after a kill", status=response.status)
         elif own is _Own.REAPPLY and not response.ok:
             self._log.error("controller refused a setting", setting=entry.line)
 
@@ -579,7 +721,9 @@ class G2Session(SessionBase):
                 return  # a stale line must not run after the clear
             queued = self._outbox.popleft()
             if self._admissible(queued, state, context):
-                self._book(queued.encoded, queued.token, _lane_of(queued.encoded), own=queued.own)
+                # A clear goes on the data port, behind the lines it ends (g2core.md 9).
+                where = Lane.DATA if queued.cls is CommandClass.CLEAR else _lane_of(queued.encoded)
+                self._book(queued.encoded, queued.token, where, own=queued.own)
         stream = self.stream
         if (
             stream is None
@@ -587,6 +731,7 @@ class G2Session(SessionBase):
             or stream.paused
             or self._await_report
             or (state is not None and (state.is_lockout or state is MachineState.HOLD))
+            or self.model.hold  # a hold at rest (101.05+) shows in `hold` alone
         ):
             return
         out = self._out
@@ -596,6 +741,10 @@ class G2Session(SessionBase):
             entry = stream.peek()
             if entry is None:
                 self._check_stream_complete()
+                return
+            if entry.control and sender.data_in_flight:
+                # The board reads a `{`-line ahead of data lines still waiting: a job's
+                # JSON line would run before the moves written before it (xio.cpp:789).
                 return
             if not book(entry):  # a job may hold `{`-lines: they take the control lane
                 return
@@ -622,6 +771,26 @@ class G2Session(SessionBase):
 
     def _write_realtime(self, command: Realtime) -> None:
         self._out.append((Lane.REALTIME, encode_realtime(command)))
+        build = self.build
+        if command is Realtime.JOB_KILL and build.kill_alarms:
+            # Before 101.02 ^D is an ALARM and flushes nothing: every line in flight is
+            # read and answered 204, and those answers settle it (g2builds.py).
+            self._kill_alarm = True
+            if self.stream is not None and not self.stream.done:
+                self.stream.finish(StreamEnd.CANCELLED, None, "job killed")
+            return
+        if command is Realtime.JOB_KILL:
+            self._kills_unseen += 1
+            if self.dual:  # the data port's lines too: the ^D flushes its own port only
+                self._out.append((Lane.DATA, encode_realtime(command)))
+                self._kills_unseen += 1
+        elif (
+            command is Realtime.QUEUE_FLUSH and self.dual and not build.flush_reads_every_data_port
+        ):
+            # Before 101.05 a `%` flushes its own port alone; after a `!` on the same
+            # port it is a flush even at rest (xio.cpp `_last_control_was_feedhold`).
+            self._out.append((Lane.DATA, encode_realtime(Realtime.FEEDHOLD)))
+            self._out.append((Lane.DATA, encode_realtime(command)))
         if command in (Realtime.QUEUE_FLUSH, Realtime.JOB_KILL):
             # Whether the board flushes depends on its state *now*, which the last
             # report may not show yet: expect a flush, and let the confirmation
@@ -655,13 +824,14 @@ class G2Session(SessionBase):
         kind = self._flush
         if kind is None:
             return
-        if kind is Realtime.JOB_KILL and not kill_seen:
-            return
+        if kind is Realtime.JOB_KILL and (not kill_seen or self._kills_unseen > 0):
+            return  # on two ports, each port's kill tells of its own flush
         if kind is Realtime.QUEUE_FLUSH and not (
             self._flush_out and self.model.state in _FLUSH_CONFIRMED
         ):
             return
         self._flush = self._flush_deadline = None
+        self._kills_unseen = 0
         for entry in self.sender.dropped():
             self._settle_unanswered(entry, _discarded(kind))
 
@@ -719,6 +889,11 @@ class G2Session(SessionBase):
         if text.startswith("$"):
             # A text line is data: the board would keep it until the hold ends.
             raise Busy(f"{self.id} is in a hold: send settings as JSON ({{key:value}})")
+        if _is_gcode(text) and not self.build.in_hold_gcode:
+            raise Busy(
+                f"{self.id} is in a hold, and its firmware (build {self.build.fb:g}) runs no "
+                "G-code inside one (no gc2 before 101.02): resume or cancel first"
+            )
         encoded = encode_in_hold(text) if _is_gcode(text) else encode_line(text)
         self._lane.append(Queued(encoded, cls, token, context))
 
@@ -747,6 +922,17 @@ class G2Session(SessionBase):
 
     def _admit(self, cls: CommandClass, state: MachineState | None) -> int | None:
         return admit(cls, state)
+
+    def out_of_hold(self) -> bool:
+        """Also not while `hold` shows a hold that `stat` does not (a `!` at rest, 101.05+)."""
+        return super().out_of_hold() and not self.model.hold
+
+    def _context(self) -> Context:
+        """A board that holds is in a hold, whatever its stat says (a `!` at rest, 101.05+)."""
+        state = self.model.state
+        if self.model.hold and not (state and state.is_lockout):
+            return Context.HOLD
+        return super()._context()
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:
         out = super().data_to_send()
@@ -829,6 +1015,19 @@ class G2Session(SessionBase):
 
 _LIMIT_AXES = ("x", "y", "z")
 _OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
+_CLEAR = encode_clear()
+_LOCKOUT_OF = {
+    Status.COMMAND_REJECTED_BY_ALARM: MachineState.ALARM,
+    Status.COMMAND_REJECTED_BY_SHUTDOWN: MachineState.SHUTDOWN,
+    Status.COMMAND_REJECTED_BY_PANIC: MachineState.PANIC,
+}
+
+
+def _clears(encoded: bytes) -> bool:
+    """A clear in another form (`$clear`, `M30`...): on 101.02-101.04 the board, never in
+    ALARM, runs it as a plain line, and its OK ends the lockout hostd kept."""
+    cls = classify(encoded.decode("latin-1").strip())
+    return cls is CommandClass.CLEAR or cls is CommandClass.PROGRAM_END
 
 
 def _lane_of(encoded: bytes) -> Lane:

@@ -26,11 +26,18 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         "--speed-factor", type=float, default=1.0, help="moves run this much faster"
     )
     parser.add_argument("--instant", action="store_true", help="moves finish at once")
+    parser.add_argument(
+        "--fb",
+        type=float,
+        default=SimConfig.fb,
+        help="firmware build to be (100.26, 101.03, 101.06...): kills, flushes, alarms "
+        "and holds follow that build (docs/protocol.md, Firmware builds)",
+    )
     return parser.parse_args(argv)
 
 
 async def _serve(args: argparse.Namespace) -> None:
-    config = SimConfig(speed_factor=args.speed_factor, instant=args.instant)
+    config = SimConfig(speed_factor=args.speed_factor, instant=args.instant, fb=args.fb)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

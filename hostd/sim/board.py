@@ -26,6 +26,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable
 
+from hostd.protocol.g2builds import Build
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
 from hostd.sim import reports
@@ -34,7 +35,7 @@ from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Interpreter
 from hostd.sim.output import OUTPUT_BUFFER_LEN, Hold
 from hostd.sim.planner import BLOCK_TIMEOUT
-from hostd.sim.scanner import DataLine
+from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import Settings
 
 __all__ = ["BLOCK_TIMEOUT", "Board"]  # BLOCK_TIMEOUT lives in planner.py
@@ -64,8 +65,11 @@ class Board(Commands):
         self._emit_line = emit
         self._clock = clock
         self._request_reset = reset
+        self.build = Build(config.fb)
         self.rx = {}
         self._rx_bytes = {}
+        self._control_last = {}
+        self.rx_controls = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
@@ -113,6 +117,7 @@ class Board(Commands):
         self._init_message_due = False
         for port in self.rx:
             self.discard_rx(port)
+            self._control_last[port] = False
 
     def connected(self) -> None:
         """A host opened the board: per-open settings back to their defaults [10]."""
@@ -133,10 +138,14 @@ class Board(Commands):
     def open_rx(self, port: str) -> None:
         self.rx[port] = deque()
         self._rx_bytes[port] = 0
+        self._control_last[port] = False
+        self.rx_controls[port] = deque()
 
     def close_rx(self, port: str) -> None:
         self.rx.pop(port, None)
         self._rx_bytes.pop(port, None)
+        self._control_last.pop(port, None)
+        self.rx_controls.pop(port, None)
 
     def rx_bytes(self, port: str) -> int:
         """Bytes of data lines waiting in `port`'s RX buffer."""
@@ -148,10 +157,16 @@ class Board(Commands):
             queue.append(line)
             self._rx_bytes[port] += line.size
 
-    def control(self, text: bytes, linelen: int) -> None:
+    def queue_control(self, port: str, event: Realtime | ControlLine) -> None:
+        """A control that came in on a data-only port: it waits until the board reads
+        that port (`_dispatch_command`), and is then read ahead of the port's data lines."""
+        queue = self.rx_controls.get(port)
+        if queue is not None:
+            queue.append(event)
+
+    def control(self, text: bytes, linelen: int, port: str = "") -> None:
         """A `{...}` control line, run ahead of queued data lines [7.1]."""
-        self._json(text.decode("latin-1"), linelen, data=False)
-        self._flush_sr()
+        self._control_line(text, linelen, port)
 
     # --- injections (hardware inputs)
 

@@ -20,6 +20,7 @@ from hostd.sim.config import AXES, EPS
 from hostd.sim.gcode import Dwell, Home, Move, SetPosition
 from hostd.sim.output import Hold
 from hostd.sim.planner import Planner
+from hostd.sim.scanner import Realtime
 from hostd.sim.settings import Settings
 
 RX_REPORT = 254  # `{rx:n}` is a constant on ARM [7.1]
@@ -33,13 +34,29 @@ class Commands(Planner):
     def _dispatch(self) -> bool:
         if not self._dispatchable():
             return False
+        for port, controls in self.rx_controls.items():
+            if controls:  # readline returns a port's controls ahead of its data lines
+                event = controls.popleft()
+                if isinstance(event, Realtime):
+                    self.realtime(port, event.char)
+                else:
+                    self._control_line(event.text, event.linelen, port)
+                return True
         for port, queue in self.rx.items():
             if queue:
                 line = queue.popleft()
                 self._rx_bytes[port] -= line.size
+                self._control_last[port] = False
                 self._data_line(line.text.decode("latin-1"))
                 return True
         return False
+
+    def _control_line(self, text: bytes, linelen: int, port: str) -> None:
+        """A `{...}` line read as a control: run at once, and its port's last read a control."""
+        if port in self._control_last:
+            self._control_last[port] = True
+        self._json(text.decode("latin-1"), linelen, data=False)
+        self._flush_sr()
 
     def _data_line(self, text: str) -> None:
         linelen = len(text)
@@ -105,6 +122,8 @@ class Commands(Planner):
         if rejected is not None:  # SETs are actions: drained and rejected [10]
             body[key] = _echo(value)
             return rejected, 0
+        if key == "gc2" and not self.build.in_hold_gcode:
+            return Status.UNRECOGNIZED_NAME, 0  # no `gc2` before 101.02 (config_app.cpp)
         if key in ("gc", "gc2"):
             if not isinstance(value, str):
                 body[key] = _echo(value)

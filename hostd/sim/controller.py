@@ -373,14 +373,23 @@ class SimController(SimShell[Board, MachineState]):
         if name not in self._active or self._resetting:
             return
         board = self._board
+        # A data-only port (the second one opened) is read only when the board reads
+        # data: its controls wait there, ahead of its data lines (xio.cpp readline).
+        data_only = name != self._primary
         for event in self._scanners[name].feed(data):
             now = time.monotonic()
             if isinstance(event, Realtime):
                 self._record(now, name, bytes([event.char]), "realtime")
-                board.realtime(name, event.char)
+                if data_only:
+                    board.queue_control(name, event)
+                else:
+                    board.realtime(name, event.char)
             elif isinstance(event, ControlLine):
                 self._record(now, name, event.text, "line")
-                board.control(event.text, event.linelen)
+                if data_only:
+                    board.queue_control(name, event)
+                else:
+                    board.control(event.text, event.linelen, name)
             elif isinstance(event, DataLine):
                 self._record(now, name, event.text, "line")
                 board.queue_line(name, event)

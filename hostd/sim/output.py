@@ -17,6 +17,7 @@ from typing import Any
 
 import structlog
 
+from hostd.protocol.g2builds import Build
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status, message
 from hostd.sim import reports
@@ -24,7 +25,7 @@ from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
 from hostd.sim.motion import Active, Traversed
 from hostd.sim.probing import ProbeCycle
-from hostd.sim.scanner import DataLine
+from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
 log = structlog.get_logger(__name__)
@@ -69,6 +70,12 @@ class Output:
     _request_reset: Callable[[], None]
     rx: dict[str, deque[DataLine]]
     _rx_bytes: dict[str, int]
+    # Per port: its last line read was a control (xio.cpp `_last_returned_a_control`),
+    # so the next `xio_flush_to_command` flushes it.
+    _control_last: dict[str, bool]
+    # Controls that came in on a data-only port, read when that port is (board.py).
+    rx_controls: dict[str, deque[Realtime | ControlLine]]
+    build: Build  # the rules of the firmware build this board is (g2builds.py)
     output_blocked: bool
     ack_delay: float
     inputs: dict[str, float | int]

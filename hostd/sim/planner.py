@@ -31,6 +31,7 @@ from hostd.sim.probing import (
 log = structlog.get_logger(__name__)
 
 ENQ, JOB_KILL, RESET = 0x05, 0x04, 0x18
+_LOCKOUT_EXITS = ("alarm", "shutdown")  # a hold's exit that makes a lockout (101.05+)
 # planner.h BLOCK_TIMEOUT_MS: from rest, the planner takes blocks in before it moves
 # (PLANNER_STARTUP, planner.cpp mp_planner_callback) until it is full or none has come
 # for this long (real seconds; divided by speed_factor as moves are).
@@ -49,6 +50,10 @@ class Planner(Output):
     # --- the main loop's advance: run what the planner holds
 
     def _advance(self, now: float) -> bool:
+        if self.hold == Hold.HOLD and self._pending_exit in _LOCKOUT_EXITS:
+            # cm_operation_runner_callback runs the alarm's exit action once held.
+            self._alarm_held(now, self._pending_exit)
+            return True
         active = self.active
         if active is not None:
             if now < active.end:
@@ -243,41 +248,73 @@ class Planner(Output):
             return False
         if self._probing is not None or any(isinstance(b, Probe) for b in self.planner):
             return False  # cm_probing_cycle_callback: nothing is read until the cycle ends
+        if self.hold != Hold.OFF and not self.build.kill_alarms:
+            return False  # cm_feedhold_command_blocker (101.03 cycle_feedhold.cpp:294)
         if not self.state.is_lockout and len(self.planner) >= self.config.planner_depth:
             return False  # in a lockout lines are drained and rejected regardless [10]
-        return any(self.rx.values())
+        return any(self.rx.values()) or any(self.rx_controls.values())
 
-    def discard_rx(self, port: str | None = None) -> None:
-        """Drop data lines not yet read: they never get a response [7.1]."""
+    def discard_rx(self, port: str | None = None, *, controls: bool = True) -> None:
+        """Drop data lines not yet read: they never get a response [7.1]. A flush to the
+        command (`controls=False`) keeps the controls that came after it."""
         for name in [port] if port is not None else list(self.rx):
             if name in self.rx:
                 self.rx[name].clear()
                 self._rx_bytes[name] = 0
+            if controls and name in self.rx_controls:
+                self.rx_controls[name].clear()
 
     # --- feedhold, resume, flush, kill [8, seed 002]
 
     def realtime(self, port: str, char: int) -> None:
-        """A single-character control [8]."""
+        """A single-character control [8], as controller.cpp `_dispatch_kernel` runs it."""
         now = self._clock()
+        if port in self._control_last:
+            self._control_last[port] = True
         if char == ord("!"):
             self._feedhold(now)
         elif char == ord("~"):
             self._cycle_start()
         elif char == ord("%"):
-            self.discard_rx(port)  # everything before the % on its port is skipped
-            self._queue_flush(now)
+            self._queue_flush(now)  # cm_request_queue_flush(); xio_flush_to_command()
+            self._flush_to_command()
         elif char == JOB_KILL:
-            self._job_kill(now)
+            if self.build.kill_alarms:
+                # Before 101.02 ^D is an alarm, and nothing is flushed (100.26 controller.cpp:259).
+                self._lockout(MachineState.ALARM, Status.KILL_JOB, "EOT Received")
+            else:
+                self._job_kill(now)  # cm_request_job_kill(); xio_flush_to_command()
+                self._flush_to_command()
         elif char == ENQ:
             self._emit({"ack": True})
         elif char == RESET:
             self._request_reset()
         self._flush_sr()
 
+    def _flush_to_command(self) -> None:
+        """`xio_flush_to_command`: every port whose last line read was a control drops the
+        data lines it holds (xio.cpp `LineRXBuffer::flushToCommand`); the others keep theirs.
+
+        On a two-port link that is the control port alone: the data port's lines
+        are read and run after a ^D that came in on the control port.
+        """
+        for port, last in self._control_last.items():
+            if last:
+                self.discard_rx(port, controls=False)
+                self._control_last[port] = False
+
     def _feedhold(self, now: float) -> None:
         active = self.active
-        if self.hold != Hold.OFF or self.state != MachineState.RUN:
-            return  # ignored unless in a cycle
+        if self.hold != Hold.OFF or self.state.is_lockout:
+            return  # a new request is ignored unless the hold is off
+        if self.state != MachineState.RUN:
+            if self.build.hold_at_rest and self.state != MachineState.INTERLOCK:
+                # edge-preview `_feedhold_with_actions`: with the runtime idle the hold is
+                # in place at once; the machine is not in a cycle, so `stat` stays.
+                self.hold = Hold.HOLD
+                self._hold_point = dict(self.position)
+                self._sr_now = True
+            return  # 100.26 and 101.03 honour `!` only while moving
         self._set_state(MachineState.HOLD)
         if active is None:
             # The cycle's first move has not started (the planner primes): the runtime is
@@ -304,6 +341,8 @@ class Planner(Output):
             self._queue_flush(now)
         elif pending == "kill":
             self._job_kill(now)
+        elif pending in ("alarm", "shutdown"):
+            self._alarm_held(now, pending)
 
     def _leave_hold(self) -> None:
         if self._hold_point is not None:
@@ -313,15 +352,23 @@ class Planner(Output):
         self._p2 = None
 
     def _cycle_start(self) -> None:
+        if self._pending_exit in _LOCKOUT_EXITS:
+            return  # the alarm's own hold ends in its exit action, not in a restart
         if self.hold == Hold.DECEL:
             self._pending_exit = "resume"
             return
         if self.hold != Hold.HOLD or self.interlocked:
             return
+        at_rest = self.state != MachineState.HOLD  # a hold taken at rest (101.05+)
         self._leave_hold()
+        if at_rest:
+            self._sr_now = True
+            return
         self._set_state(MachineState.RUN if self.planner else MachineState.PROGRAM_STOP)
 
     def _queue_flush(self, now: float) -> None:
+        if self._pending_exit in _LOCKOUT_EXITS:
+            return
         if self.hold == Hold.DECEL:
             self._pending_exit = "flush"
             return
@@ -329,12 +376,13 @@ class Planner(Output):
             return
         self._leave_hold()
         self._flush_motion(now)
-        self.discard_rx()
+        if self.build.flush_reads_every_data_port:
+            self.discard_rx()  # edge-preview `_start_queue_flush`: xio_flush_device(DEV_IS_DATA)
         self._abort_probe()  # cycle_feedhold.cpp `_run_queue_flush`
         self._set_state(MachineState.PROGRAM_STOP)
 
     def _job_kill(self, now: float) -> None:
-        if self.state.is_lockout:
+        if self.state.is_lockout or self._pending_exit in _LOCKOUT_EXITS:
             return
         if self.hold == Hold.DECEL:
             self._pending_exit = "kill"
@@ -345,8 +393,7 @@ class Planner(Output):
             return
         if self.hold == Hold.HOLD:
             self._leave_hold()
-        self._flush_motion(now)
-        self.discard_rx()
+        self._flush_motion(now)  # `_run_queue_flush`: the planner, not the serial input
         self._abort_probe()
         self.interp.program_end()
         self._exception(Status.KILL_JOB, "Job killed by ^d")
@@ -371,10 +418,57 @@ class Planner(Output):
     def _lockout(
         self, state: MachineState, status: Status, detail: str, *, unhome: bool = False
     ) -> None:
+        """cm_alarm / cm_shutdown / cm_panic, as the board's build runs them (g2builds.py)."""
         if self.state == MachineState.PANIC:
             return
         if self.state == state or (state == MachineState.ALARM and self.state.is_lockout):
             return  # no alarm while already in an alarm state
+        build = self.build
+        if state == MachineState.PANIC or build.kill_alarms:
+            self._lock_now(state, status, detail, unhome=unhome)
+            return
+        # 101.02+: a feedhold is requested whose exit action makes the lockout; the
+        # exception report goes out now (alarm.cpp cm_alarm, cm_shutdown).
+        if unhome:
+            self.homed = dict.fromkeys(AXES, False)
+        log.info("sim board lockout requested", state=state.name, status=int(status))
+        self._exception(status, detail)
+        self._sr_requested = True
+        exit_ = "alarm" if state == MachineState.ALARM else "shutdown"
+        if not build.alarm_holds_first:
+            # 101.03: honoured only in a cycle that moves, and `_run_alarm` does nothing.
+            if self.hold == Hold.OFF and self.state == MachineState.RUN:
+                self._feedhold(self._clock())
+            return
+        if self.hold != Hold.OFF:
+            return  # edge-preview cm_request_feedhold: ignored unless the hold is off
+        now = self._clock()
+        if self.state == MachineState.RUN and self.active is not None:
+            self._feedhold(now)
+            self._pending_exit = exit_
+            return
+        if self.state == MachineState.RUN:
+            self._set_state(MachineState.HOLD)
+        self._enter_hold(now, at=now)  # at rest the hold is in place at once...
+        self._pending_exit = exit_  # ...and its exit action runs on the next pass (_advance)
+
+    def _alarm_held(self, now: float, exit_: str) -> None:
+        """edge-preview `_run_alarm`/`_run_shutdown` once held: the job is killed (with its
+        own `er` 207), then the machine is in ALARM or SHUTDOWN (cycle_feedhold.cpp:354)."""
+        if self.hold == Hold.HOLD:
+            self._leave_hold()
+        self._flush_motion(now)
+        self._abort_probe()
+        self.interp.program_end()
+        self._exception(Status.KILL_JOB, "Job killed by ^d")
+        self._pending_exit = None
+        self._set_state(MachineState.ALARM if exit_ == "alarm" else MachineState.SHUTDOWN)
+        self._sr_now = True
+
+    def _lock_now(
+        self, state: MachineState, status: Status, detail: str, *, unhome: bool = False
+    ) -> None:
+        """The lockout at once: PANIC on every build, ALARM and SHUTDOWN before 101.02."""
         self._flush_motion(self._clock())
         self.hold = Hold.OFF
         self._pending_exit = None
@@ -395,6 +489,8 @@ class Planner(Output):
         """ALARM -> PROGRAM_STOP, SHUTDOWN -> PROGRAM_END; PANIC stays [10]."""
         if self.state == MachineState.ALARM:
             self._set_state(MachineState.PROGRAM_STOP)
+            if self.build.kill_alarms:
+                self._flush_to_command()  # 100.26 canonical_machine.cpp:886
         elif self.state == MachineState.SHUTDOWN:
             self._set_state(MachineState.PROGRAM_END)
 

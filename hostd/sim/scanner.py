@@ -7,8 +7,9 @@ This is g2core's `LineRXBuffer::_scan_buffer` (xio.cpp; g2core.md sections 1,
 - A NUL byte discards everything buffered for the port ("scan ran into NULL").
 - `!` `~` 0x04 0x18 0x05 at the start of a line are single-character
   controls, recognised without waiting for a terminator; a CR/LF right after
-  one is swallowed. `%` is a control only while the machine has a hold (the
-  caller says when; a `!` just acted on counts, which is how `!%` works);
+  one is swallowed. `%` is a control while the machine has a hold (the
+  caller says when) or right after a `!` (xio.cpp:754
+  `_last_control_was_feedhold`, which is how `!%` works even at rest);
   otherwise it starts a data line.
 - A line starting with `{` is a control line: the board runs it at once,
   ahead of data lines still waiting. Its length for the response footer
@@ -75,6 +76,9 @@ class LineScanner:
         self._percent_is_control = percent_is_control
         self._buf = bytearray()
         self._skipping = False  # inside the tail of an over-long line
+        # xio.cpp `_last_control_was_feedhold`: a `%` right after a `!` is a control
+        # whether or not a hold is on (what makes `!%` a flush on any port).
+        self._after_feedhold = False
 
     @property
     def partial(self) -> int:
@@ -85,6 +89,7 @@ class LineScanner:
         """Forget everything: the port was flushed, opened or closed."""
         self._buf.clear()
         self._skipping = False
+        self._after_feedhold = False
 
     def feed(self, data: bytes) -> Iterator[ScanEvent]:
         self._buf += data
@@ -108,11 +113,14 @@ class LineScanner:
             if first == 0:
                 yield from self._nul()
                 return
-            if first in REALTIME or (first == PERCENT and self._percent_is_control()):
+            percent = first == PERCENT and (self._after_feedhold or self._percent_is_control())
+            if first in REALTIME or percent:
                 del buf[0]
                 _drop_terminators(buf)
+                self._after_feedhold = first == ord("!")
                 yield Realtime(first)
                 continue
+            self._after_feedhold = False
             end = _find_terminator(buf)
             region = buf if end < 0 else buf[:end]
             if 0 in region:

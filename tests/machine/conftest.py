@@ -191,12 +191,14 @@ class Bench:
 
 
 @contextlib.asynccontextmanager
-async def bench_for(tmp_path: Path, name: str = "m1", **overrides: object) -> AsyncIterator[Bench]:
+async def bench_for(
+    tmp_path: Path, name: str = "m1", sim_config: SimConfig = FAST, **overrides: object
+) -> AsyncIterator[Bench]:
     path = str(tmp_path / f"tty-{name}")
     jobs = tmp_path / "jobs"
     jobs.mkdir(exist_ok=True)
     store = JobStore(tmp_path / f"{name}.db")
-    async with SimController(path, config=FAST) as sim:
+    async with SimController(path, config=sim_config) as sim:
         machine = Machine(machine_config(path, id=name, **overrides), store, jobs)
         recorder = Recorder()
         machine.hub.subscribe(recorder)

@@ -9,6 +9,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -18,7 +20,7 @@ from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, MachineError
 from hostd.protocol.states import MachineState as S
 from hostd.sim import SimController
-from tests.machine.conftest import Bench, Rig
+from tests.machine.conftest import FAST, Bench, Rig, bench_for
 
 pytestmark = pytest.mark.asyncio
 
@@ -66,9 +68,17 @@ async def test_a_paused_job_writes_none_of_its_lines_until_resumed(bench: Bench)
 
 
 async def test_a_resume_the_board_never_held_for_writes_no_job_line_while_still_paused(
-    bench: Bench,
+    tmp_path: Path,
 ) -> None:
+    async with bench_for(tmp_path, sim_config=replace(FAST, fb=101.03)) as bench:
+        await _a_resume_the_board_never_held_for(bench)
+
+
+async def _a_resume_the_board_never_held_for(bench: Bench) -> None:
     """A pause the board ignored (nothing moving): the resume's lines follow `operation`.
+
+    Only a board before 101.05 ignores a `!` with nothing moving (g2builds.py):
+    101.06 holds at rest, and never lets this happen.
 
     The job's first window and the pause's `!` are written in one step, so the
     board reads them in one read, before it runs anything: the `!` finds nothing

@@ -18,11 +18,20 @@ from hostd.protocol.vocabulary import Event, Lane, Settled
 BANNER = (
     '{"r":{"fv":1.0,"fb":101.06,"hp":3,"hv":0,"id":"3X3566-YMB","msg":"SYSTEM READY"},"f":[1,0,1]}'
 )
+BUILDS = (100.26, 101.03, 101.06)  # one of each set of rules (hostd/protocol/g2builds.py)
+JOB_KILLERS = tuple(fb for fb in BUILDS if fb >= 101.02)  # ^D kills with a flush; gc2
+
+
+def banner(fb: float) -> str:
+    return BANNER.replace('"fb":101.06', f'"fb":{fb}')
+
+
 REPORT = {"stat": 1, "posx": 0, "posy": 0, "posz": 0, "unit": 1}
 
 
 class Wire:
-    def __init__(self, **options: Any) -> None:
+    def __init__(self, fb: float = 101.06, **options: Any) -> None:
+        self.fb = fb
         self.now = 0.0
         self.session = G2Session("m1", clock=lambda: self.now, **options)
         self.written: list[tuple[Lane, bytes]] = []
@@ -34,7 +43,10 @@ class Wire:
     def pump(self) -> list[tuple[Lane, bytes]]:
         out = self.session.data_to_send()
         self.written += out
-        self.unanswered += [data for lane, data in out if lane is not Lane.REALTIME]
+        # Realtime bytes get no answer, on the realtime lane or (two ports) the data lane.
+        self.unanswered += [
+            data for lane, data in out if lane is not Lane.REALTIME and not _single(data)
+        ]
         self.events += self.session.events()
         return out
 
@@ -71,7 +83,7 @@ class Wire:
         """Banner, settings, `{home:n}` and the first report: the session is ready."""
         self.session.open()
         self.pump()
-        self.feed(BANNER)
+        self.feed(banner(self.fb))
         while not self.session.ready:
             line = self.unanswered[0]
             self.answer(line, _echo(line, report))
@@ -96,6 +108,11 @@ class Wire:
 
     def of(self, kind: type[Any]) -> list[Any]:
         return [e for e in self.events if isinstance(e, kind)]
+
+
+def _single(data: bytes) -> bool:
+    """A single-character control with its LF (`!`, `~`, `%`, 0x04, ...)."""
+    return len(data) == 2 and data.endswith(b"\n") and data[:1] in b"!~%\x04\x05\x18"
 
 
 def _echo(line: bytes, report: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -13,6 +13,7 @@ import pytest
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.g2builds import Build
 from hostd.protocol.g2core import BANNER_WAIT, FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
@@ -27,9 +28,20 @@ from hostd.protocol.vocabulary import (
     Reported,
     StreamEnd,
 )
-from tests.protocol.g2wire import BANNER, Wire
+from tests.protocol.g2wire import BANNER, BUILDS, JOB_KILLERS, Wire
 
 pytestmark = pytest.mark.asyncio
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Every rule runs on every build (tests/protocol/g2wire.py BUILDS), unless a test
+    names the builds it applies to (hostd/protocol/g2builds.py)."""
+    named = any(
+        m.name == "parametrize" and "fb" in str(m.args[0])
+        for m in metafunc.definition.iter_markers()
+    )
+    if "fb" in metafunc.fixturenames and not named:
+        metafunc.parametrize("fb", BUILDS)
 
 
 def job(*lines: str) -> JobStream:
@@ -49,8 +61,8 @@ def ready(**options: object) -> Wire:
 # -- the handshake -------------------------------------------------------------
 
 
-async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time() -> None:
-    wire = Wire()
+async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(fb: float) -> None:
+    wire = Wire(fb)
     wire.session.open()
     assert wire.pump() == []
     wire.feed(BANNER)
@@ -60,8 +72,8 @@ async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(
     assert wire.lines()[-1] == b'{"jv":4}\n'
 
 
-async def test_the_handshake_ends_ready_after_settings_home_and_a_report() -> None:
-    wire = Wire(status_interval=0.1, signal_keys=["in1"])
+async def test_the_handshake_ends_ready_after_settings_home_and_a_report(fb: float) -> None:
+    wire = Wire(fb, status_interval=0.1, signal_keys=["in1"])
     wire.session.open()
     wire.feed(BANNER)
     while not wire.session.ready:
@@ -74,8 +86,8 @@ async def test_the_handshake_ends_ready_after_settings_home_and_a_report() -> No
     assert wire.session.model.homed is True and wire.session.model.state is S.READY
 
 
-async def test_a_board_that_prints_no_banner_is_asked_its_version() -> None:
-    wire = Wire()
+async def test_a_board_that_prints_no_banner_is_asked_its_version(fb: float) -> None:
+    wire = Wire(fb)
     wire.session.open()
     assert wire.session.next_deadline() == BANNER_WAIT
     assert wire.at(BANNER_WAIT) == [(Lane.CONTROL, b'{"fv":null,"fb":null}\n')]
@@ -83,8 +95,8 @@ async def test_a_board_that_prints_no_banner_is_asked_its_version() -> None:
     assert wire.lines()[-1] == b'{"ej":1}\n'
 
 
-async def test_after_a_reset_only_the_banner_will_do() -> None:
-    wire = Wire(handshake_timeout=5.0)
+async def test_after_a_reset_only_the_banner_will_do(fb: float) -> None:
+    wire = Wire(fb, handshake_timeout=5.0)
     wire.session.open(rebooting=True)
     assert wire.at(BANNER_WAIT) == []
     wire.at(5.0)
@@ -106,8 +118,8 @@ async def test_firmware_that_is_not_g2core_100_or_later_is_refused(
     assert not wire.session.ready
 
 
-async def test_a_refused_setting_fails_the_handshake_with_its_status() -> None:
-    wire = Wire()
+async def test_a_refused_setting_fails_the_handshake_with_its_status(fb: float) -> None:
+    wire = Wire(fb)
     wire.session.open()
     wire.feed(BANNER)
     wire.answer(wire.unanswered[0], {}, status=100)
@@ -115,8 +127,8 @@ async def test_a_refused_setting_fails_the_handshake_with_its_status() -> None:
     assert "controller refused {'ej': 1}: 100" in closing.reason
 
 
-async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared() -> None:
-    wire = Wire()
+async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared(fb: float) -> None:
+    wire = Wire(fb)
     wire.session.open()
     wire.feed(BANNER)
     while not wire.session.ready:
@@ -134,8 +146,8 @@ async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared() -> 
 # -- flow control --------------------------------------------------------------
 
 
-async def test_a_job_never_has_more_than_the_window_unanswered() -> None:
-    wire = ready(window=4)
+async def test_a_job_never_has_more_than_the_window_unanswered(fb: float) -> None:
+    wire = ready(fb=fb, window=4)
     stream = moves(2_000)
     wire.session.start_stream(stream)
     most = 0
@@ -150,8 +162,8 @@ async def test_a_job_never_has_more_than_the_window_unanswered() -> None:
     assert (stream.sent, stream.acked) == (2_000, 2_000)
 
 
-async def test_queries_take_the_control_lane_not_the_jobs_window() -> None:
-    wire = ready(window=4)
+async def test_queries_take_the_control_lane_not_the_jobs_window(fb: float) -> None:
+    wire = ready(fb=fb, window=4)
     wire.session.start_stream(moves(100))
     tokens = [object() for _ in range(10)]
     for token in tokens:
@@ -167,8 +179,8 @@ async def test_queries_take_the_control_lane_not_the_jobs_window() -> None:
     assert all(wire.settled(t) for t in tokens)
 
 
-async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait() -> None:
-    wire = ready()
+async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait(fb: float) -> None:
+    wire = ready(fb=fb)
     a, b = object(), object()
     wire.session.send("G0 X1", a)
     wire.session.send("{xvm:n}", b)
@@ -180,15 +192,15 @@ async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait() -> None:
     assert wire.settled(a) is None
 
 
-async def test_an_answer_to_no_line_is_a_lexical_fault_and_books_nothing() -> None:
-    wire = ready()
+async def test_an_answer_to_no_line_is_a_lexical_fault_and_books_nothing(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.feed('{"r":{},"f":[1,0,9]}')
     (fault,) = wire.of(Detected)
     assert fault.fault == "lexical"
 
 
-async def test_a_short_count_answer_is_a_report_not_an_answer() -> None:
-    wire = ready()
+async def test_a_short_count_answer_is_a_report_not_an_answer(fb: float) -> None:
+    wire = ready(fb=fb)
     token = object()
     wire.session.send("G28.2 X0", token)
     wire.pump()
@@ -202,8 +214,8 @@ async def test_a_short_count_answer_is_a_report_not_an_answer() -> None:
     assert settled.outcome.status == 240
 
 
-async def test_an_answer_too_long_fails_the_control_line_being_run() -> None:
-    wire = ready()
+async def test_an_answer_too_long_fails_the_control_line_being_run(fb: float) -> None:
+    wire = ready(fb=fb)
     token = object()
     wire.session.send("{sys:n}", token)
     wire.pump()
@@ -216,8 +228,8 @@ async def test_an_answer_too_long_fails_the_control_line_being_run() -> None:
 # -- holds ---------------------------------------------------------------------
 
 
-async def test_a_paused_job_writes_nothing_until_resumed() -> None:
-    wire = ready(window=4)
+async def test_a_paused_job_writes_nothing_until_resumed(fb: float) -> None:
+    wire = ready(fb=fb, window=4)
     stream = moves(50)
     wire.session.start_stream(stream)
     wire.pump()
@@ -232,8 +244,9 @@ async def test_a_paused_job_writes_nothing_until_resumed() -> None:
     assert len(wire.lines(Lane.DATA)) == 8
 
 
-async def test_a_line_sent_in_a_hold_runs_inside_it_at_once() -> None:
-    wire = ready()
+@pytest.mark.parametrize("fb", JOB_KILLERS)  # gc2 and ^D's flush: 101.02+
+async def test_a_line_sent_in_a_hold_runs_inside_it_at_once(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.report(stat=6)
     token = object()
     wire.session.send("M5", token)
@@ -290,8 +303,8 @@ async def test_a_hold_after_a_resume_takes_in_hold_lines_again() -> None:
     assert (Lane.CONTROL, b'{"gc2":"M5"}\n') in wire.pump()
 
 
-async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent() -> None:
-    wire = ready(window=1)
+async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent(fb: float) -> None:
+    wire = ready(fb=fb, window=1)
     first, second = object(), object()
     wire.session.send("G0 X1", first)
     wire.session.send("G0 X2", second)
@@ -304,8 +317,10 @@ async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent() -> Non
     assert b"G0 X2\n" not in wire.lines()
 
 
-async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pass() -> None:
-    wire = ready()
+async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pass(
+    fb: float,
+) -> None:
+    wire = ready(fb=fb)
     wire.session.set_operation(True)
     with pytest.raises(Busy, match="running an operation"):
         wire.session.send("G0 X1", object())
@@ -316,8 +331,8 @@ async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pas
 # -- lockouts, clears, flushes -------------------------------------------------
 
 
-async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared() -> None:
-    wire = ready()
+async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared(fb: float) -> None:
+    wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
     wire.pump()
@@ -333,8 +348,8 @@ async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared() -> No
     assert b'{"pos":null}\n' in wire.lines(Lane.CONTROL)
 
 
-async def test_a_clear_waits_until_no_data_line_is_unanswered() -> None:
-    wire = ready()
+async def test_a_clear_waits_until_no_data_line_is_unanswered(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.session.send("G0 X1", object())
     wire.pump()
     wire.feed('{"er":{"fb":101.06,"st":203,"msg":"Limit switch hit"}}')
@@ -343,13 +358,16 @@ async def test_a_clear_waits_until_no_data_line_is_unanswered() -> None:
     assert wire.session.clear(token)
     wire.pump()
     assert b'{"clear":null}\n' not in wire.lines()  # G0 X1 could still run after it
-    wire.answer(b"G0 X1\n", {}, status=204)
+    if Build(fb).alarm_is_state:
+        wire.answer(b"G0 X1\n", {}, status=204)
+    else:  # a board that never alarms was killed by hostd: the kill dropped G0 X1
+        wire.feed('{"er":{"fb":101.03,"st":207,"msg":"Kill job - Job killed by ^d"}}')
     wire.pump()
     assert wire.lines()[-1] == b'{"clear":null}\n'
 
 
-async def test_panic_is_left_only_by_a_reset() -> None:
-    wire = ready()
+async def test_panic_is_left_only_by_a_reset(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.feed('{"er":{"fb":101.06,"st":20,"msg":"Internal error"}}')  # raises PANIC
     with pytest.raises(Rejected, match="only by a reset"):
         wire.session.clear(object())
@@ -357,8 +375,11 @@ async def test_panic_is_left_only_by_a_reset() -> None:
     assert wire.pump()[-1] == (Lane.REALTIME, b"\x18\n")
 
 
-async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush() -> None:
-    wire = ready()
+@pytest.mark.parametrize("fb", JOB_KILLERS)  # gc2 and ^D's flush: 101.02+
+async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush(
+    fb: float,
+) -> None:
+    wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
     wire.pump()
@@ -377,8 +398,8 @@ async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flus
     assert not wire.session.flushing()
 
 
-async def test_a_stop_read_before_the_flush_went_out_proves_nothing() -> None:
-    wire = ready()
+async def test_a_stop_read_before_the_flush_went_out_proves_nothing(fb: float) -> None:
+    wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
     wire.pump()
@@ -392,8 +413,8 @@ async def test_a_stop_read_before_the_flush_went_out_proves_nothing() -> None:
     assert not wire.session.flushing() and stream.discarded == 4
 
 
-async def test_an_unconfirmed_flush_gives_up_after_its_timeout() -> None:
-    wire = ready()
+async def test_an_unconfirmed_flush_gives_up_after_its_timeout(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.session.realtime(Realtime.QUEUE_FLUSH)
     wire.pump()
     assert wire.session.flushing()
@@ -401,8 +422,8 @@ async def test_an_unconfirmed_flush_gives_up_after_its_timeout() -> None:
     assert not wire.session.flushing()
 
 
-async def test_an_exception_holds_actions_until_a_status_report() -> None:
-    wire = ready()
+async def test_an_exception_holds_actions_until_a_status_report(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.feed('{"er":{"fb":101.06,"st":107,"msg":"Input exceeds max length"}}')
     assert wire.lines() == [b'{"sr":null}\n']
     token = object()
@@ -415,8 +436,8 @@ async def test_an_exception_holds_actions_until_a_status_report() -> None:
 # -- what the board tells ------------------------------------------------------
 
 
-async def test_reports_carry_the_snapshot_they_left() -> None:
-    wire = ready()
+async def test_reports_carry_the_snapshot_they_left(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.report(stat=5, posx=1.5)
     wire.report(stat=3)
     first, second = wire.of(Reported)
@@ -424,29 +445,29 @@ async def test_reports_carry_the_snapshot_they_left() -> None:
     assert second.snapshot["state"]["name"] == "PROGRAM_STOP"
 
 
-async def test_a_probe_result_is_kept_and_told() -> None:
-    wire = ready()
+async def test_a_probe_result_is_kept_and_told(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.feed('{"prb":{"e":1,"x":1.5,"y":2.0,"z":-3.25}}')
     (probe,) = wire.of(Probed)
     assert probe.probe == {"ok": True, "position": {"x": 1.5, "y": 2.0, "z": -3.25}}
     assert wire.session.model.probe == probe.probe
 
 
-async def test_homed_is_asked_when_homing_ends() -> None:
-    wire = ready()
+async def test_homed_is_asked_when_homing_ends(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.report(stat=9)
     wire.report(stat=1)
     assert wire.lines()[-1] == b'{"home":null}\n'
 
 
-async def test_a_banner_mid_session_closes_it() -> None:
-    wire = ready()
+async def test_a_banner_mid_session_closes_it(fb: float) -> None:
+    wire = ready(fb=fb)
     wire.feed(BANNER)
     assert wire.of(Closing) == [Closing("controller restarted (unexpected SYSTEM READY)")]
 
 
-async def test_a_silent_board_is_asked_then_given_up() -> None:
-    wire = ready(heartbeat=2.0)
+async def test_a_silent_board_is_asked_then_given_up(fb: float) -> None:
+    wire = ready(fb=fb, heartbeat=2.0)
     assert wire.at(2.0) == [(Lane.CONTROL, b'{"sr":null}\n')]
     wire.at(3.9)
     assert wire.of(Closing) == []
@@ -455,8 +476,8 @@ async def test_a_silent_board_is_asked_then_given_up() -> None:
     assert "silent for 4 s" in closing.reason
 
 
-async def test_closing_settles_every_request_and_interrupts_the_job() -> None:
-    wire = ready()
+async def test_closing_settles_every_request_and_interrupts_the_job(fb: float) -> None:
+    wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
     waiting, queued = object(), object()
@@ -472,9 +493,9 @@ async def test_closing_settles_every_request_and_interrupts_the_job() -> None:
         wire.session.send("G0 X1", queued)
 
 
-async def test_a_long_job_streams_in_plain_calls() -> None:
+async def test_a_long_job_streams_in_plain_calls(fb: float) -> None:
     """The session alone moves a 10,000-line job: no port, no event loop turn a line."""
-    wire = ready(window=8)
+    wire = ready(fb=fb, window=8)
     stream = moves(10_000)
     wire.session.start_stream(stream)
     while not stream.done:
@@ -484,24 +505,28 @@ async def test_a_long_job_streams_in_plain_calls() -> None:
     assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
 
 
-async def test_a_json_line_in_a_job_takes_the_control_lane_and_its_answer() -> None:
-    wire = ready(window=1)
-    stream = job("G1 X1 F100", '{"xvm":null}', "G1 X2")
+@pytest.mark.parametrize("fb", BUILDS)
+async def test_a_json_line_in_a_job_waits_for_the_lines_before_it(fb: float) -> None:
+    """The board reads a `{`-line ahead of data lines still waiting (xio.cpp:789): written
+    beside them it would run first, so it goes only once the lines before it are answered."""
+    wire = ready(fb=fb, window=4)
+    stream = job("G1 X1 F100", '{"out4":1}', "G1 X2")
     wire.session.start_stream(stream)
     wire.pump()
-    # The window holds one G-code line; the `{`-line goes in the control lane beside it.
-    assert wire.lines() == [b"G1 X1 F100\n", b'{"xvm":null}\n']
-    wire.answer(b'{"xvm":null}\n', {"xvm": 6000})  # the board runs it first
+    assert wire.lines() == [b"G1 X1 F100\n"]  # not the `{`-line, nor what follows it
     wire.answer(b"G1 X1 F100\n", {})
+    # Lines after it may follow at once: the board reads it ahead of them anyway.
+    assert wire.lines()[-2:] == [b'{"out4":1}\n', b"G1 X2\n"]
+    wire.answer(b'{"out4":1}\n', {"out4": 1})
     wire.answer(b"G1 X2\n", {})
     wire.report(stat=4)
     assert stream.result.result().end is StreamEnd.COMPLETED and stream.acked == 3
 
 
-async def test_the_executing_line_is_read_only_from_reports_that_show_motion() -> None:
+async def test_the_executing_line_is_read_only_from_reports_that_show_motion(fb: float) -> None:
     """canonical_machine.cpp: `line` is the runtime's N while moving, the last line *read*
     once stopped or holding: only a RUN report says which line executes."""
-    wire = ready(window=4)
+    wire = ready(fb=fb, window=4)
     stream = JobStream(
         iter(enumerate((f"G1 X{i} F100" for i in range(10)), start=1)),
         job_id=1,

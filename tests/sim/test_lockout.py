@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+
 import pytest
 
 from hostd.protocol.states import MachineState
 from hostd.sim import SimController
 
-from .conftest import Host, has_stat
+from .conftest import TIMED, Host, has_stat
 
 pytestmark = pytest.mark.asyncio
 
@@ -36,17 +39,36 @@ async def test_limit_switch_alarm_rejects_actions_but_answers_gets(
     assert (await host.ask(b"G0 X1\n"))["f"][1] == 0
 
 
+@pytest.mark.parametrize(
+    ("fb", "kills"),
+    [
+        (100.26, []),  # cm_alarm sets ALARM at once (canonical_machine.cpp:969)
+        # `_run_alarm` kills the job once held: its own 207, then ALARM (cycle_feedhold.cpp:354)
+        (101.06, [{"fb": 101.06, "st": 207, "msg": "Kill job - Job killed by ^d"}]),
+    ],
+)
 async def test_lines_waiting_in_an_alarm_are_drained_and_rejected(
-    timed_sim: SimController, timed_host: Host
+    tmp_path: Path, fb: float, kills: list[dict[str, object]]
 ) -> None:
-    timed_host.send(b"G1 X10 F600\n" + b"G1 Y1\n" * 40)  # more than the planner takes
-    await timed_sim.wait_for(lambda: timed_sim.planner_len == timed_sim.config.planner_depth)
-    timed_host.send(b"{alarm:n}\n")
-    got = await timed_host.until(lambda m: m.get("f", [0, 0])[1] == 204)
-    er = [m["er"] for m in got if "er" in m]
-    assert er == [{"fb": 101.06, "st": 18, "msg": "System alarm - sent by host"}]
-    assert timed_sim.planner_len == 0
-    await timed_sim.wait_for(lambda: sum(1 for s in timed_sim.sent if b",204," in s.data) > 20)
+    config = replace(TIMED, fb=fb)
+    async with SimController(str(tmp_path / "ttyG2"), config=config) as timed_sim:
+        timed_host = await Host.open(timed_sim.data_path)
+        try:
+            timed_host.send(b"G1 X10 F600\n" + b"G1 Y1\n" * 40)  # more than the planner takes
+            await timed_sim.wait_for(
+                lambda: timed_sim.planner_len == timed_sim.config.planner_depth
+            )
+            timed_host.send(b"{alarm:n}\n")
+            got = await timed_host.until(lambda m: m.get("f", [0, 0])[1] == 204)
+            er = [m["er"] for m in got if "er" in m]
+            alarm = {"fb": fb, "st": 18, "msg": "System alarm - sent by host"}
+            assert er == [alarm, *kills]
+            assert timed_sim.planner_len == 0
+            await timed_sim.wait_for(
+                lambda: sum(1 for s in timed_sim.sent if b",204," in s.data) > 20
+            )
+        finally:
+            await timed_host.close()
 
 
 async def test_a_set_form_clear_is_rejected_in_alarm(host: Host, sim: SimController) -> None:
@@ -108,6 +130,8 @@ async def test_shutdown_by_command_and_job_kill_is_ignored_in_it(
 ) -> None:
     await host.ask(b"{shutd:n}\n")
     assert sim.state == MachineState.SHUTDOWN
+    # 101.06 reaches SHUTDOWN through a hold and a job kill of its own: one 207 so far.
+    assert len([s for s in sim.sent if b'"st":207' in s.data]) == 1
     host.send(b"\x04")
     assert (await host.ask(b"{stat:n}\n"))["r"] == {"stat": 12}
-    assert not [s for s in sim.sent if b'"st":207' in s.data]
+    assert len([s for s in sim.sent if b'"st":207' in s.data]) == 1

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+
 import pytest
 
 from hostd.protocol.states import MachineState
 from hostd.sim import SimController
 
-from .conftest import Host, has_stat, responses, states
+from .conftest import INSTANT, Host, has_stat, responses, states
 
 pytestmark = pytest.mark.asyncio
 
@@ -37,11 +40,21 @@ async def test_feedhold_stops_the_tool_and_cycle_start_resumes(
     timed_host.send(b"\x04")  # done: end the job rather than wait for it
 
 
-async def test_feedhold_is_ignored_when_not_moving(host: Host, sim: SimController) -> None:
-    host.send(b"!\n%\n$xvm\n")  # no hold, so the % is a data line: swallowed
-    assert (await host.response()) == {"r": {"xvm": 6000}, "f": [1, 0, 5]}
-    assert sim.state == MachineState.READY
-    assert [r.kind for r in sim.received] == ["realtime", "line", "line"]
+@pytest.mark.parametrize("fb", [100.26, 101.03])
+async def test_feedhold_is_ignored_when_not_moving(tmp_path: Path, fb: float) -> None:
+    """100.26 and 101.03 honour `!` only while moving (g2builds.py); 101.06 holds at rest
+    (tests/sim/test_builds.py)."""
+    async with SimController(str(tmp_path / "ttyG2"), config=replace(INSTANT, fb=fb)) as sim:
+        host = await Host.open(sim.data_path)
+        try:
+            # No hold; the `%` is a control all the same, right after a `!` (xio.cpp:754),
+            # and a flush request with no hold does nothing but flush its port's input.
+            host.send(b"!\n%\n$xvm\n")
+            assert (await host.response()) == {"r": {"xvm": 6000}, "f": [1, 0, 5]}
+            assert sim.state == MachineState.READY
+            assert [r.kind for r in sim.received] == ["realtime", "realtime", "line"]
+        finally:
+            await host.close()
 
 
 async def test_queue_flush_in_a_hold_drops_planned_and_buffered_lines(
@@ -134,6 +147,8 @@ async def test_homing_sets_homed_and_soft_limits_then_apply(host: Host, sim: Sim
     assert errors == [
         {"er": {"fb": 101.06, "st": 222, "msg": "Soft limit - X max - soft_limits"}},
         {"r": {}, "f": [1, 222, 8]},  # the line itself is answered with the same code
+        # then the alarm's hold (at rest, in place at once) runs its exit: a job kill
+        {"er": {"fb": 101.06, "st": 207, "msg": "Kill job - Job killed by ^d"}},
     ]
     assert sim.state == MachineState.ALARM
     assert sim.position["x"] == 0

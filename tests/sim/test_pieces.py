@@ -35,6 +35,12 @@ class TestScanner:
         assert scan(b"%\n") == [DataLine(b"%")]
         assert scan(b"%\n", hold=True) == [Realtime(ord("%"))]
 
+    def test_percent_right_after_a_bang_is_a_control_even_at_rest(self) -> None:
+        """xio.cpp:754 `_last_control_was_feedhold`: `!%` and `!\\n%\\n` flush anywhere."""
+        assert scan(b"!\n%\n") == [Realtime(ord("!")), Realtime(ord("%"))]
+        assert scan(b"!%") == [Realtime(ord("!")), Realtime(ord("%"))]
+        assert scan(b"!\nG0\n%\n") == [Realtime(ord("!")), DataLine(b"G0"), DataLine(b"%")]
+
     def test_a_control_line_counts_the_terminators_already_received(self) -> None:
         assert scan(b'{"gc":"G1 X0"}\n') == [ControlLine(b'{"gc":"G1 X0"}', 15)]
         assert scan(b"{a:n}\r\n\n") == [ControlLine(b"{a:n}", 8)]
