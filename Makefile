@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
-.PHONY: demo test lint typecheck unit clean system-deps
+.PHONY: demo test lint typecheck unit clean system-deps service-test
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -31,12 +31,19 @@ unit: $(STAMP)
 
 test: system-deps lint typecheck unit
 
+# The systemd unit under a real systemd (PID 1 in a systemd-nspawn container; root only):
+# tests/service. The Debian root is built once by debootstrap into /var/cache/hostd-test.
+service-test: system-deps $(STAMP)
+	HOSTD_SERVICE_TEST=1 $(BIN)/pytest tests/service -p no:randomly --timeout=900
+
 # The tests run the real parts: LinuxCNC's rs274 (the G-code reference), Debian's chromium and
-# its driver (the dashboard), mosquitto (MQTT) and systemd's tools (the unit). Each one missing
+# its driver (the dashboard), mosquitto (MQTT) and systemd's tools (the unit; debootstrap and
+# systemd-nspawn boot it under a real systemd: make service-test). Each one missing
 # is installed from Debian's packages when this runs as root; otherwise it stops at once with
 # the command to run. Nothing is ever skipped to get green.
 SYSTEM_DEPS := rs274:linuxcnc-uspace chromium:chromium chromedriver:chromium-driver \
-	mosquitto:mosquitto systemd-analyze:systemd
+	mosquitto:mosquitto systemd-analyze:systemd \
+	debootstrap:debootstrap systemd-nspawn:systemd-container
 system-deps:
 	@missing=""; for pair in $(SYSTEM_DEPS); do \
 	    cmd=$${pair%%:*}; pkg=$${pair#*:}; \

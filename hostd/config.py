@@ -13,7 +13,15 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    IPvAnyNetwork,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from hostd.api.mqtt.config import MqttConfig
 from hostd.link import BOOTLOADER_BAUD
@@ -140,6 +148,21 @@ class WebConfig(_Strict):
     # naming any other host are refused, against DNS rebinding. IP addresses,
     # `localhost` and the `listen` host always do.
     hosts: list[Annotated[str, Field(min_length=1, max_length=253)]] = []
+    # Reverse proxies (addresses or networks) whose X-Forwarded-For and X-Forwarded-Proto
+    # are believed: the client address (logs, login limit, connection caps) is then the
+    # last one in X-Forwarded-For that is not a trusted proxy. Nobody else's are.
+    trusted_proxies: list[IPvAnyNetwork] = []
+    # Seconds a new connection has to send its first request's headers; seconds an
+    # idle connection (between requests, or an upload's body that stops) stays open.
+    header_timeout: Annotated[float, Field(gt=0, le=600)] = 10.0
+    idle_timeout: Annotated[float, Field(gt=0, le=3600)] = 60.0
+    # Connections (HTTP and WebSocket) at once, in all and from one client address
+    # (a trusted proxy counts in the total only). The total is also kept within the
+    # descriptors the daemon can spare (docs/web.md).
+    max_connections: Annotated[int, Field(ge=1, le=100_000)] = 256
+    max_connections_per_address: Annotated[int, Field(ge=1, le=100_000)] = 32
+    # Seconds a login session may go unused before it ends.
+    session_expiry: Annotated[float, Field(gt=0)] = 7 * 86400.0
 
     @field_validator("listen")
     @classmethod

@@ -29,9 +29,10 @@ class Notifier:
         self._sock: socket.socket | None = None
         if self._address is not None:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            # A receiver that stops reading (its queue holds net.unix.max_dgram_qlen, 10 by
-            # default) must not block the event loop in sendto: the message is dropped.
+            # Never wait on the receiver: a full queue (systemd busy, a test not reading;
+            # Linux queues 10 datagrams by default) must not stop the event loop.
             self._sock.setblocking(False)
+        self._failing = False  # the last send failed: the next failure is not logged again
 
     @property
     def enabled(self) -> bool:
@@ -45,7 +46,11 @@ class Notifier:
         try:
             self._sock.sendto(payload, self._address)
         except OSError as exc:
-            log.warning("systemd notify failed", error=str(exc))
+            if not self._failing:
+                log.warning("systemd notify failed", error=str(exc))
+            self._failing = True
+        else:
+            self._failing = False
 
     async def watchdog(self, healthy: Callable[[], bool] = lambda: True) -> None:
         """Ping at half the interval systemd asked for, for as long as the loop runs."""

@@ -4,7 +4,10 @@ Start-up: the config is validated whole (a bad one is one message naming
 the file, the key and the problem, and exit status 2), then the socket path
 is checked (hostd/api/socketfile.py: a directory others could write, a
 planted symlink, a file, a live daemon's socket), then the machines are
-built, then the socket listens, then systemd is told READY=1. A start-up
+built (the soft descriptor limit raised to the hard one first, and the web
+server's connections kept within what is left past a reserve for the Unix
+socket, the ports and SQLite), then the socket listens, then systemd is
+told READY=1. A start-up
 failure is one line on stderr and exit status 1, never a traceback. SIGTERM
 or SIGINT: STOPPING=1, the socket stops accepting, every running job ends
 `interrupted` with its counts written, the ports are closed, the socket
@@ -16,6 +19,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import gc
+import resource
 import signal
 import sys
 from typing import TYPE_CHECKING
@@ -41,6 +45,12 @@ from hostd.machine.events import Event, SupervisorChanged
 from hostd.notify import Notifier
 
 log = structlog.get_logger(__name__)
+
+# Descriptors the daemon keeps beyond its clients and ports (SQLite and its journal, the
+# MQTT connection, the event loop, logging, systemd's notify socket, threads' files).
+RESERVE_BASE = 64
+# The soft limit set when the hard one is unlimited.
+DESCRIPTOR_CEILING = 65536
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -135,7 +145,8 @@ async def serve(
         max_clients=config.daemon.max_clients,
         line_timeout=config.daemon.line_timeout,
     )
-    web = _web_server(config, api, methods)
+    descriptors = raise_descriptor_limit()
+    web = _web_server(config, api, methods, descriptors)
     loop = asyncio.get_running_loop()
     bridge = (
         None
@@ -196,14 +207,54 @@ async def serve(
         log.info("hostd stopped")
 
 
-def _web_server(config: Config, api: Api, methods: Methods) -> WebServer | None:
+def raise_descriptor_limit() -> int:
+    """Raise the soft RLIMIT_NOFILE to the hard one (systemd's default soft limit is 1024,
+    its hard one 524288); the soft limit now."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard == resource.RLIM_INFINITY:
+        hard = DESCRIPTOR_CEILING
+    if soft != resource.RLIM_INFINITY and soft < hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        except (ValueError, OSError) as exc:
+            log.warning("descriptor limit not raised", soft=soft, hard=hard, error=str(exc))
+            return soft
+        log.info("descriptor limit raised", soft=hard, was=soft)
+        return hard
+    return soft if soft != resource.RLIM_INFINITY else DESCRIPTOR_CEILING
+
+
+def descriptor_reserve(config: Config) -> int:
+    """Descriptors kept from the web server: the Unix socket's clients (admitted, and as
+    many again being admitted), two serial ports and a spare per machine, SQLite, MQTT,
+    the event loop and logging (RESERVE_BASE)."""
+    return 2 * config.daemon.max_clients + 3 * len(config.machines) + RESERVE_BASE
+
+
+def _web_server(config: Config, api: Api, methods: Methods, descriptors: int) -> WebServer | None:
     """The dashboard (docs/web.md), only when the config has a `[web]` table."""
     if config.web is None:
         return None
     from hostd.api.web import WebServer  # aiohttp loads only for a daemon that serves the web
 
+    spare = max(descriptors - descriptor_reserve(config), 1)
+    if spare < config.web.max_connections:
+        log.warning(
+            "web connections capped by the descriptor limit",
+            max_connections=spare,
+            configured=config.web.max_connections,
+            limit=descriptors,
+            reserve=descriptor_reserve(config),
+        )
     tokens = TokenStore(config.daemon.state_dir)
-    return WebServer(methods, api.jobs, tokens, config.web, max_clients=config.daemon.max_clients)
+    return WebServer(
+        methods,
+        api.jobs,
+        tokens,
+        config.web,
+        max_clients=config.daemon.max_clients,
+        max_connections=spare,
+    )
 
 
 def _sweep_interval(config: Config) -> float:

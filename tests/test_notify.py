@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from structlog.testing import capture_logs
 
 from hostd.notify import Notifier
 
@@ -46,6 +47,21 @@ def test_without_notify_socket_nothing_happens() -> None:
     notifier = Notifier({})
     assert not notifier.enabled
     notifier.send(READY=1)  # no error, no effect
+
+
+def test_a_receiver_that_does_not_read_never_blocks_the_sender(tmp_path: Path) -> None:
+    """Its queue full (10 datagrams by default on Linux), a ping is dropped, not waited for:
+    the event loop that sends it is the daemon's."""
+    systemd = receiver(tmp_path / "notify")
+    notifier = Notifier({"NOTIFY_SOCKET": str(tmp_path / "notify")})
+    with capture_logs() as logs:
+        for _ in range(1000):
+            notifier.send(WATCHDOG=1)
+    assert [e["event"] for e in logs] == ["systemd notify failed"]  # once, not a thousand
+    assert systemd.recv(100) == b"WATCHDOG=1"
+    notifier.send(STATUS="again")
+    notifier.close()
+    systemd.close()
 
 
 def test_a_gone_receiver_is_logged_not_raised(tmp_path: Path) -> None:

@@ -44,7 +44,12 @@ def test_the_unit_has_what_running_md_asks_for() -> None:
         "PrivateTmp=yes",
         "DevicePolicy=closed",
         "DeviceAllow=char-ttyACM rw",
-        "RestrictAddressFamilies=AF_UNIX",
+        "DeviceAllow=char-ttyUSB rw",
+        "DeviceAllow=char-ttyAMA rw",  # a Raspberry Pi's GPIO UART, /dev/serial0
+        "DeviceAllow=char-ttyS rw",
+        "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6",  # [web] and [mqtt]
+        "LimitNOFILE=",
+        "SystemCallErrorNumber=EPERM",
     ):
         assert line in unit, line
 

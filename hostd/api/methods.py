@@ -238,21 +238,50 @@ class _Subscription:
     machine: str | None
 
 
+# Subscriptions one client may hold, and all clients together (docs/api.md): a tab that
+# subscribes in a loop must not make every notification cost a walk over thousands.
+MAX_SUBSCRIPTIONS_PER_CLIENT = 32
+MAX_SUBSCRIPTIONS = 4096
+
+
+SUBSCRIPTIONS_FULL = -32000  # the server's range: as a daemon full of clients
+
+
 class Subscriptions:
     """Which client wants which topics of which machine; fan-out never blocks.
 
     A notification is encoded once, however many clients get it, and not at
-    all when nobody wants it; `wants` is a dictionary look-up, since it is
-    asked for every status report of every machine.
+    all when nobody wants it; the same bytes go to every subscriber's queue.
+    `wants` is a dictionary look-up, since it is asked for every status report
+    of every machine. Bounded: `max_per_client` per owner, `max_total` in all.
     """
 
-    def __init__(self, on_change: Callable[[], None] | None = None) -> None:
+    def __init__(
+        self,
+        on_change: Callable[[], None] | None = None,
+        *,
+        max_per_client: int = MAX_SUBSCRIPTIONS_PER_CLIENT,
+        max_total: int = MAX_SUBSCRIPTIONS,
+    ) -> None:
         self._next = 1
         self._subs: dict[int, _Subscription] = {}
         self._interest: Counter[tuple[str, str | None]] = Counter()
+        self._owned: Counter[int] = Counter()  # id(owner) -> subscriptions it holds
         self._on_change = on_change
+        self.max_per_client = max_per_client
+        self.max_total = max_total
+
+    def __len__(self) -> int:
+        return len(self._subs)
 
     def add(self, owner: object, send: Send, topics: list[str], machine: str | None) -> int:
+        """A new subscription's id. Raises RpcError(-32000) past either bound."""
+        if self._owned[id(owner)] >= self.max_per_client:
+            why = f"subscription limit: {self.max_per_client} per client; unsubscribe first"
+            raise RpcError(SUBSCRIPTIONS_FULL, why)
+        if len(self._subs) >= self.max_total:
+            raise RpcError(SUBSCRIPTIONS_FULL, f"subscription limit: {self.max_total} in all")
+        self._owned[id(owner)] += 1
         sub_id = self._next
         self._next += 1
         sub = _Subscription(owner, send, frozenset(topics), machine)
@@ -265,6 +294,9 @@ class Subscriptions:
         sub = self._subs.pop(sub_id, None)
         if sub is None:
             return False
+        self._owned[id(sub.owner)] -= 1
+        if self._owned[id(sub.owner)] <= 0:
+            del self._owned[id(sub.owner)]
         self._interest.subtract((topic, sub.machine) for topic in sub.topics)
         self._changed()
         return True

@@ -109,6 +109,7 @@ class Client:
         self.on_disconnect: list[Callable[[], object]] = []
         self.log = log.bind(client=id, pid=peer.pid, uid=peer.uid)
         self._writer = writer
+        # Messages without their newline (the writer adds it), or how to end.
         self._queue: asyncio.Queue[bytes | _End] = asyncio.Queue(queue_size)
         self._queue_size = queue_size
         self._write_timeout = write_timeout
@@ -158,7 +159,8 @@ class Client:
         if self._closed or self._ending:
             return False
         try:
-            self._queue.put_nowait(line + b"\n")
+            # The line itself: a notification's one encoding is shared by every subscriber.
+            self._queue.put_nowait(line)
         except asyncio.QueueFull:
             self.log.warning("api client not reading; disconnected", bound=self._queue_size)
             self.close(f"outbound queue over {self._queue_size} messages")
@@ -217,6 +219,7 @@ class Client:
                         end = item
                         break
                     batch.append(item)
+                    batch.append(b"\n")
                     if self._queue.empty():
                         break
                     item = self._queue.get_nowait()

@@ -175,6 +175,14 @@ class Uploads:
         with self._lock, self._dirs() as (_, staging):
             return self._expire(staging)
 
+    def abort(self, upload_id: str) -> bool:
+        """Forget an open upload and remove its staging now (its sender failed or left);
+        whether it was open."""
+        with self._lock, self._dirs() as (_, staging):
+            known = upload_id in self._open
+            self._discard(staging, upload_id)
+            return known
+
     def clean(self) -> list[str]:
         """Start-up: forget every upload and remove all staging; the ids removed."""
         with self._lock, self._dirs() as (_, staging):

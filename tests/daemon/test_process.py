@@ -60,13 +60,17 @@ class Process:
 
 
 @contextlib.asynccontextmanager
-async def daemon_process(tmp_path: Path, config: Path) -> AsyncIterator[Process]:
+async def daemon_process(
+    tmp_path: Path, config: Path, wrapper: tuple[str, ...] = ()
+) -> AsyncIterator[Process]:
+    """`hostd serve` with `config`; `wrapper` runs it (e.g. prlimit with its options)."""
     notify_path = tmp_path / f"notify-{os.getpid()}-{len(os.listdir(tmp_path))}"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(notify_path))
     notify.setblocking(False)
     env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "400000"}
     proc = await asyncio.create_subprocess_exec(
+        *wrapper,
         *SERVE,
         "--config",
         str(config),

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import os
+import pwd
 import shutil
 import socket
+import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +34,7 @@ from hostd.api.mqtt.config import MqttConfig
 from tests.daemon.conftest import Running, running_daemon
 
 MOSQUITTO = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/sbin")
+REQUEST_IDS = itertools.count(1)
 WAIT = 15.0  # seconds any one expected message may take before the test fails
 
 
@@ -47,6 +51,8 @@ class Broker:
 
     directory: Path
     port: int = field(default_factory=free_port)
+    # Keep retained messages across a restart (saved at stop), as a production broker does.
+    persistence: bool = False
     log: list[str] = field(default_factory=list)
     _proc: asyncio.subprocess.Process | None = None
     _drain: asyncio.Task[None] | None = None
@@ -61,7 +67,10 @@ class Broker:
         conf.write_text(
             f"listener {self.port} 127.0.0.1\n"
             "allow_anonymous true\n"
-            "persistence false\n"
+            f"persistence {'true' if self.persistence else 'false'}\n"
+            f"persistence_location {self.directory}/\n"
+            # Started as root it would save as user `mosquitto`, who cannot reach tmp_path.
+            f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
             "log_dest stderr\n"
             "log_type error\nlog_type warning\nlog_type notice\nlog_type information\n"
         )
@@ -153,18 +162,53 @@ class Watcher:
 
         return decoded(await self.next(wanted))
 
-    async def request(
-        self, topic: str, params: Any, correlation: bytes = b"c1", caller: str = "tester"
-    ) -> dict[str, Any]:
-        """An MQTT 5 request with a response topic and correlation data; its reply."""
-        reply_to = f"replies/{os.getpid()}/{correlation.decode()}"
-        await self.client.subscribe(reply_to, qos=1)
+    async def send(
+        self,
+        topic: str,
+        params: Any,
+        correlation: bytes = b"c1",
+        caller: str = "tester",
+        *,
+        reply_to: str | None = None,
+        request_id: str | None = None,
+        sent_at: float | None = None,
+        retain: bool = False,
+        user: list[tuple[str, str]] | None = None,
+    ) -> str:
+        """Publish an MQTT 5 request as a caller would (its id and time, a response topic
+        under the prefix, correlation data); returns the response topic, subscribed."""
+        prefix = topic.rsplit("/", 3)[0]
+        if reply_to is None:
+            reply_to = f"{prefix}/replies/{os.getpid()}/{correlation.decode()}"
+        if not set(reply_to) & set("+#"):
+            await self.client.subscribe(reply_to, qos=1)
         properties = Properties(PacketTypes.PUBLISH)  # type: ignore[no-untyped-call]
         properties.ResponseTopic = reply_to
         properties.CorrelationData = correlation
-        properties.UserProperty = ("client_id", caller)
+        pairs = (
+            user
+            if user is not None
+            else [
+                ("client_id", caller),
+                ("request_id", request_id or f"{caller}-{next(REQUEST_IDS)}"),
+                ("sent_at", f"{time.time() if sent_at is None else sent_at:.3f}"),
+            ]
+        )
+        properties.UserProperty = pairs
         payload = params if isinstance(params, bytes) else json.dumps(params).encode()
-        await self.client.publish(topic, payload, qos=1, properties=properties)
+        await self.client.publish(topic, payload, qos=1, properties=properties, retain=retain)
+        return reply_to
+
+    async def request(
+        self,
+        topic: str,
+        params: Any,
+        correlation: bytes = b"c1",
+        caller: str = "tester",
+        **how: Any,
+    ) -> dict[str, Any]:
+        """An MQTT 5 request with a response topic and correlation data; its reply."""
+        reply_to = await self.send(topic, params, correlation, caller, **how)
         reply = await self.next(lambda m: str(m.topic) == reply_to)
         assert getattr(reply.properties, "CorrelationData", None) == correlation
         answer: dict[str, Any] = decoded(reply)

@@ -18,6 +18,7 @@ import playwright.async_api as playwright
 import pytest
 import pytest_asyncio
 
+from hostd.api.tokens import TokenStore
 from tests.web.conftest import Web, running_web
 
 CHROMIUM = "/usr/bin/chromium"
@@ -234,3 +235,18 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         await expect(page.locator("#start")).to_be_enabled()
         await expect(page.locator("#warnings li")).to_have_count(0)
         await rpc.close()
+
+
+async def test_revoking_the_token_sends_the_open_page_back_to_the_login(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        store = TokenStore(web.hostd.daemon.state_dir)  # as `hostd token revoke` does
+        assert store.revoke(store.records()[0].id)
+        # Its WebSocket is closed by the daemon; the page finds its session gone.
+        await page.wait_for_url(f"{web.url}/login")
+        # And the cookie it still holds opens nothing.
+        await page.goto(f"{web.url}/")
+        await page.wait_for_url(f"{web.url}/login")

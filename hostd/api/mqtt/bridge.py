@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import itertools
 import json
+import math
 import random
 import ssl
 import time
@@ -41,6 +42,7 @@ import aiomqtt
 import structlog
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
+from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from hostd.api import rpc
 from hostd.api.methods import Api
@@ -53,15 +55,23 @@ log = structlog.get_logger(__name__)
 
 # Commands running at once; one more is answered SERVER_FULL and does not run.
 MAX_COMMANDS: Final = 16
-# A command's payload beyond this is refused unread (the socket's line limit).
-MAX_PAYLOAD: Final = 1 << 20
-# Incoming messages the client holds for us; past it the client drops them (logged).
-MAX_INCOMING: Final = 100
+# Incoming messages the client holds for us. Each is refused or started at once, without
+# parsing, so the queue only fills if the loop is starved; past it the client drops (logged).
+MAX_INCOMING: Final = 10_000
 # How long a clean stop may spend telling the broker `offline`.
 STOP_TIMEOUT: Final = 2.0
 SERVER_FULL: Final = -32000
+# Past the command rate; a command too old, from the future, or already run.
+RATE_LIMITED: Final = -32001
+STALE: Final = -32002
 # Who sent a command: MQTT does not say; callers name themselves in this user property.
 CALLER_PROPERTY: Final = "client_id"
+# Every command carries its own id and the (Unix) time it was sent, as user properties.
+ID_PROPERTY: Final = "request_id"
+TIME_PROPERTY: Final = "sent_at"
+MAX_REQUEST_ID: Final = 128
+# Room in a packet, past the payload, for its topic and properties.
+PACKET_HEADROOM: Final = 64 << 10
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,6 +102,7 @@ class MqttBridge:
         *,
         password: str | None = None,
         clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
     ) -> None:
         self.config = config
         self.api = api
@@ -107,6 +118,9 @@ class MqttBridge:
         self._stopping = asyncio.Event()
         self._ids = itertools.count(1)
         self._commands: set[asyncio.Task[None]] = set()
+        self._wall = wall
+        self._bucket = TokenBucket(config.command_rate, config.command_burst, clock)
+        self._seen: dict[str, float] = {}  # request ids run within command_max_age
         self._log = log.bind(broker=f"{config.host}:{config.port}", prefix=self.prefix)
         unknown = sorted(set(config.allow) - set(methods))
         if unknown:
@@ -247,7 +261,15 @@ class MqttBridge:
             tls_context=tls,
             tls_insecure=config.tls_insecure if tls is not None else None,
             max_queued_incoming_messages=MAX_INCOMING,
+            properties=self._connect_properties(),
         )
+
+    def _connect_properties(self) -> Properties:
+        """MQTT 5 CONNECT: the broker sends us no packet over max_payload and its headroom
+        (it drops those for us), so a huge payload never reaches our memory at all."""
+        properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
+        properties.MaximumPacketSize = self.config.max_payload + PACKET_HEADROOM
+        return properties
 
     def _tls_context(self) -> ssl.SSLContext | None:
         config = self.config
@@ -292,6 +314,12 @@ class MqttBridge:
             if isinstance(item, Outgoing):
                 try:
                     await self._publish(client, item)
+                except (ValueError, TypeError) as exc:
+                    # Not publishable at all (a bad topic): retrying it would stop the bridge.
+                    self._log.error(
+                        "mqtt message not publishable; dropped", topic=item.topic, error=str(exc)
+                    )
+                    continue
                 except BaseException:
                     outbox.failed(item)
                     raise
@@ -321,9 +349,15 @@ class MqttBridge:
     # --- in: commands ---------------------------------------------------------
 
     async def _receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
-        await client.subscribe(topics.command_filter(self.prefix), qos=1)
+        # Retain as published: a retained command is seen as retained even when it arrives
+        # live, so that none is ever run (it would run again on every reconnect).
+        options = SubscribeOptions(qos=1, retainAsPublished=True)
+        await client.subscribe(topics.command_filter(self.prefix), options=options)
         async for message in client.messages:
-            self._command(message, commands)
+            try:
+                self._command(message, commands)
+            except Exception:  # one odd message must never stop the bridge
+                self._log.exception("mqtt message could not be handled", topic=str(message.topic))
 
     def _command(self, message: aiomqtt.Message, commands: asyncio.TaskGroup) -> None:
         topic = str(message.topic)
@@ -332,32 +366,134 @@ class MqttBridge:
             return
         machine, method = parsed
         properties = message.properties
-        reply_to: str | None = getattr(properties, "ResponseTopic", None)
+        reply_to: str | None = getattr(properties, "ResponseTopic", None) or None
         correlation: bytes | None = getattr(properties, "CorrelationData", None)
-        caller = MqttCaller(_caller(properties), topic)
-        said = self._log.bind(caller=caller.client_id, machine=machine, method=method)
-        refusal: tuple[int, str] | None = None
-        if not self.config.commands:
-            refusal = (rpc.METHOD_NOT_FOUND, "commands are off on this daemon ([mqtt] commands)")
-        elif method not in self.config.allow:
-            refusal = (rpc.METHOD_NOT_FOUND, f"method not allowed over MQTT: {method}")
-        elif not isinstance(message.payload, bytes) or len(message.payload) > MAX_PAYLOAD:
-            refusal = (rpc.INVALID_REQUEST, f"payload over {MAX_PAYLOAD} bytes")
-        elif len(self._commands) >= MAX_COMMANDS:
-            refusal = (SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later")
+        user = _user_properties(properties)
+        caller = MqttCaller(user.get(CALLER_PROPERTY, "unknown")[:128], topic)
+        request_id = user.get(ID_PROPERTY, "")[:MAX_REQUEST_ID]
+        said = self._log.bind(
+            caller=caller.client_id, machine=machine, method=method, request_id=request_id
+        )
+        payload = message.payload
+        refusal = self._refusal(message, method, reply_to, user)
+        if refusal is None and not isinstance(payload, bytes):
+            refusal = (rpc.INVALID_REQUEST, "payload is not bytes")
         if refusal is not None:
-            said.warning("mqtt command refused", reason=refusal[1])
-            if reply_to:
-                data = {"allowed": list(self.config.allow)} if self.config.commands else None
-                answer = rpc.encode_error(refusal[0], refusal[1], None, data)
-                self.outbox.event(reply_to, answer, correlation)
+            self._refuse(said, topic, caller, request_id, reply_to, correlation, refusal)
             return
-        assert isinstance(message.payload, bytes)
+        assert isinstance(payload, bytes)
+        self._seen[request_id] = self._wall()
         task = commands.create_task(
-            self._run_command(caller, machine, method, message.payload, reply_to, correlation)
+            self._run_command(caller, machine, method, payload, reply_to, correlation)
         )
         self._commands.add(task)
         task.add_done_callback(self._commands.discard)
+
+    def _refusal(
+        self,
+        message: aiomqtt.Message,
+        method: str,
+        reply_to: str | None,
+        user: Mapping[str, str],
+    ) -> tuple[int, str] | None:
+        """Why this command does not run, or None: each check costs no parsing of the payload."""
+        config = self.config
+        payload = message.payload
+        if message.retain:
+            return (
+                rpc.INVALID_REQUEST,
+                "retained commands are never run; clear the retained message",
+            )
+        if not self._bucket.take():
+            return (RATE_LIMITED, f"over {config.command_rate:g} commands/s; try again later")
+        if reply_to is not None:
+            problem = topics.response_topic_problem(self.prefix, reply_to)
+            if problem is not None:
+                return (rpc.INVALID_REQUEST, problem)
+        if not config.commands:
+            return (rpc.METHOD_NOT_FOUND, "commands are off on this daemon ([mqtt] commands)")
+        if method not in config.allow:
+            return (rpc.METHOD_NOT_FOUND, f"method not allowed over MQTT: {method}")
+        if isinstance(payload, bytes | bytearray) and len(payload) > config.max_payload:
+            return (
+                rpc.INVALID_REQUEST,
+                f"payload over {config.max_payload} bytes ([mqtt] max_payload)",
+            )
+        return self._stale(user) or (
+            (SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later")
+            if len(self._commands) >= MAX_COMMANDS
+            else None
+        )
+
+    def _stale(self, user: Mapping[str, str]) -> tuple[int, str] | None:
+        """The command's id and time: missing, too old, from the future, or seen before."""
+        max_age = self.config.command_max_age
+        request_id = user.get(ID_PROPERTY)
+        if not request_id or len(request_id) > MAX_REQUEST_ID:
+            why = f"a command needs a {ID_PROPERTY} user property (1 to {MAX_REQUEST_ID} chars)"
+            return (rpc.INVALID_REQUEST, why)
+        try:
+            sent = float(user.get(TIME_PROPERTY, ""))
+        except ValueError:
+            sent = math.nan
+        if not math.isfinite(sent):
+            why = f"a command needs a {TIME_PROPERTY} user property: Unix time in seconds"
+            return (rpc.INVALID_REQUEST, why)
+        now = self._wall()
+        age = now - sent
+        if age > max_age:
+            return (
+                STALE,
+                f"command sent {age:.1f} s ago, over {max_age:g} s ([mqtt] command_max_age)",
+            )
+        if age < -max_age:
+            return (STALE, f"command sent {-age:.1f} s in the future: check the clocks")
+        # Ids of commands run within max_age: one delivered twice (QoS 1) runs once.
+        self._seen = {i: t for i, t in self._seen.items() if now - t <= max_age}
+        if request_id in self._seen:
+            return (STALE, f"command {request_id} already run")
+        return None
+
+    def _refuse(
+        self,
+        said: Any,
+        topic: str,
+        caller: MqttCaller,
+        request_id: str,
+        reply_to: str | None,
+        correlation: bytes | None,
+        refusal: tuple[int, str],
+    ) -> None:
+        """Log it, and answer it: on its response topic when it has a usable one, else on
+        `<prefix>/errors`. Never silent."""
+        code, why = refusal
+        said.warning("mqtt command refused", code=code, reason=why, reply_to=reply_to)
+        usable = (
+            reply_to is not None and topics.response_topic_problem(self.prefix, reply_to) is None
+        )
+        data = {"allowed": list(self.config.allow)} if code == rpc.METHOD_NOT_FOUND else None
+        if usable and reply_to is not None:
+            self._answer(reply_to, rpc.encode_error(code, why, None, data), correlation)
+            return
+        error = {"code": code, "message": why}
+        note = {
+            "topic": topic,
+            "client_id": caller.client_id,
+            "request_id": request_id,
+            "error": error,
+        }
+        self._answer(topics.errors(self.prefix), topics.encode(note))
+
+    def _answer(self, topic: str, payload: bytes, correlation: bytes | None = None) -> None:
+        """An event for the broker; one pushed out at the `max_events` bound is logged."""
+        before = self.outbox.dropped
+        self.outbox.event(topic, payload, correlation)
+        if self.outbox.dropped > before:
+            self._log.warning(
+                "mqtt event dropped: broker behind",
+                bound=self.config.max_events,
+                dropped=self.outbox.dropped,
+            )
 
     async def _run_command(
         self,
@@ -406,15 +542,36 @@ class MqttBridge:
         else:
             said.warning("mqtt command failed", code=error)
         if reply_to and answer is not None:
-            self.outbox.event(reply_to, answer, correlation)
+            self._answer(reply_to, answer, correlation)
 
 
-def _caller(properties: Properties | None) -> str:
-    """The caller's own name for itself (user property `client_id`), or "unknown"."""
-    for key, value in getattr(properties, "UserProperty", None) or []:
-        if key == CALLER_PROPERTY:
-            return str(value)[:128]
-    return "unknown"
+def _user_properties(properties: Properties | None) -> dict[str, str]:
+    """The message's user properties (the first of each name), as strings."""
+    found: dict[str, str] = {}
+    for pair in getattr(properties, "UserProperty", None) or []:
+        if isinstance(pair, tuple) and len(pair) == 2:
+            found.setdefault(str(pair[0]), str(pair[1]))
+    return found
+
+
+class TokenBucket:
+    """`rate` a second, `burst` at once: whether one more may go now."""
+
+    def __init__(self, rate: float, burst: int, clock: Callable[[], float]) -> None:
+        self._rate = rate
+        self._burst = float(burst)
+        self._tokens = float(burst)
+        self._clock = clock
+        self._at = clock()
+
+    def take(self) -> bool:
+        now = self._clock()
+        self._tokens = min(self._burst, self._tokens + (now - self._at) * self._rate)
+        self._at = now
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        return False
 
 
 def _error_code(answer: bytes | None) -> int | None:

@@ -64,6 +64,17 @@ class MqttConfig(BaseModel):
     publish_timeout: Annotated[float, Field(gt=0, le=600)] = 10.0
     # Events (exceptions, command replies) kept while the broker is away; the oldest go first.
     max_events: Annotated[int, Field(ge=1, le=100_000)] = 100
+    # Seconds a command may take from its `sent_at` to the daemon; older is refused (a
+    # command queued by a broker through an outage must not move a machine minutes later).
+    command_max_age: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    # Commands a second the bridge takes, with bursts of `command_burst`; past it each is
+    # refused with a published error (-32000) and a log line.
+    command_rate: Annotated[float, Field(gt=0, le=10_000)] = 5.0
+    command_burst: Annotated[int, Field(ge=1, le=10_000)] = 20
+    # Bytes of a command's payload; larger is refused unread. The broker is told our
+    # maximum packet size (this plus room for the topic and properties): it never sends
+    # us anything bigger.
+    max_payload: Annotated[int, Field(ge=1024, le=16 << 20)] = 65536
 
     @field_validator("url")
     @classmethod

@@ -23,8 +23,36 @@ _NOTIFICATION_HEAD = b'{"jsonrpc":"2.0","method":"'
 _PARAMS_KEY = b'","params":'
 
 
+# A response topic is under `<prefix>/replies/`: never one of our own topics (a reply on
+# `<prefix>/<machine>/cmd/...` would be a command to ourselves), never a wildcard.
+REPLIES = "replies"
+MAX_TOPIC = 1024  # bytes of a response topic
+
+
 def online(prefix: str) -> str:
     return f"{prefix}/online"
+
+
+def errors(prefix: str) -> str:
+    """Refusals that have nowhere else to go (no usable response topic): an event topic."""
+    return f"{prefix}/errors"
+
+
+def response_topic_problem(prefix: str, topic: str) -> str | None:
+    """Why `topic` cannot be a response topic, or None when it can.
+
+    Checked before anything is published to it: a wildcard is not a topic one may
+    publish to (the client library raises), and a topic outside `<prefix>/replies/`
+    could be one of ours (a status, a command) or anyone's.
+    """
+    head = f"{prefix}/{REPLIES}/"
+    if "+" in topic or "#" in topic or "\x00" in topic:
+        return "response topic has a wildcard (+ #) or NUL"
+    if len(topic.encode("utf-8", "surrogatepass")) > MAX_TOPIC:
+        return f"response topic over {MAX_TOPIC} bytes"
+    if not topic.startswith(head) or len(topic) == len(head) or "//" in topic[len(head) - 1 :]:
+        return f"response topic must be under {head}"
+    return None
 
 
 def machine_topic(prefix: str, machine: str, name: str) -> str:

@@ -26,6 +26,8 @@ class Rpc {
       for (const { reject } of this.waiting.values()) reject(new Error("disconnected"));
       this.waiting.clear();
       this.onState(false);
+      // A revoked token or a restarted daemon ends the session: back to the login page.
+      fetch("/session").then((r) => { if (r.status === 401) location.replace("/login"); }, () => {});
       setTimeout(() => this.open(), this.delay);
       this.delay = Math.min(this.delay * 2, 10000);
     };
