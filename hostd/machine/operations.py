@@ -135,8 +135,8 @@ def _number(value: float) -> str:
 async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
     """Set work zero: each axis named reads the value given, now, in the active WCS."""
     engine = machine.engine
-    line = zero_line(engine.model.modal.get("wcs"), axes, machine.config.dialect)
     async with _operation(machine):
+        line = zero_line(engine.model.modal.get("wcs"), axes, machine.config.dialect)
         await engine.send(line, timeout=ANSWER_WAIT)
         # The position reports follow the offset; ask for one now so the answer's
         # snapshot already shows it.
@@ -151,12 +151,13 @@ async def _fresh_report(machine: Machine) -> None:
 
 
 def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
-    """Z up to the safe height in machine coordinates first (if known), then X and Y,
-    then Z down to its work zero: the tool never crosses the work low."""
+    """Z up to the safe height in machine coordinates first (if known) whenever X or Y
+    moves, asked or not; then X and Y; then Z down to its work zero, if asked: the
+    tool never crosses the work low."""
     chosen = axes or ["x", "y", "z"]
     lines: list[str] = []
     flat = [a for a in chosen if a != "z"]
-    if "z" in chosen and flat and safe_z is not None:
+    if flat and safe_z is not None:
         lines.append(f"G53 G0 Z{_number(safe_z)}")
     if flat:
         lines.append(f"G90 G0 {_axes_words(flat)}")
@@ -169,7 +170,7 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
     """Go to work zero; return once the board is at rest there."""
     engine = machine.engine
     async with _operation(machine):
-        safe = machine.safe_height(None) if axes is None or "z" in axes else None
+        safe = machine.config.safe_z  # the board's Z travel is not read here (a query)
         for line in goto_zero_lines(axes, safe):
             await engine.send(line, timeout=ANSWER_WAIT)
         # A board answers a move as it queues it, and may report rest until its

@@ -8,6 +8,7 @@ the lines on the wire are the firmware's own, and what is refused says why.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import pytest
 import pytest_asyncio
 
 from hostd.sim.grbl.controller import GrblSimController
-from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
@@ -175,6 +176,11 @@ async def test_goto_zero_raises_z_to_the_safe_height_first(tmp_path: Path) -> No
         sent = lines_sent(hostd, G2)
         moves = [line for line in sent if line.startswith((b"G53", b"G90 G0"))]
         assert moves[-3:] == [b"G53 G0 Z-1", b"G90 G0 X0 Y0", b"G90 G0 Z0"]
+        # X alone: Z still rises first, and stays up.
+        assert await rpc.call("machine.goto_zero", machine=G2, axes=["x"]) == {}
+        sent = lines_sent(hostd, G2)
+        moves = [line for line in sent if line.startswith((b"G53", b"G90 G0"))]
+        assert moves[-2:] == [b"G53 G0 Z-1", b"G90 G0 X0"]
         await rpc.close()
 
 
@@ -224,3 +230,24 @@ async def test_grbl_override_answers_the_overrides_in_force(both: tuple[Running,
     assert got == {"feed": 90, "spindle": 80, "rapid": 50}
     snap = await rpc.call("machine.status", machine=GRBL)
     assert snap["overrides"] == {"feed": 90, "rapid": 50, "spindle": 80}
+
+
+async def test_a_second_operation_while_one_runs_is_busy(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    await jog_to(hostd, rpc, G2, {"x": 6})
+    first, second = await asyncio.gather(
+        rpc.call("machine.home", machine=G2),
+        fails(1003, rpc.call("machine.goto_zero", machine=G2)),
+        return_exceptions=True,
+    )
+    assert first == {}, first
+    assert isinstance(second, RpcFailure) and "operation" in second.message
+    assert not any(line.startswith(b"G90 G0") for line in lines_sent(hostd, G2))
+
+
+async def test_operations_on_a_disconnected_machine_are_1002(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    await rpc.call("machine.disconnect", machine=G2)
+    await fails(1002, rpc.call("machine.home", machine=G2))
+    await fails(1002, rpc.call("machine.zero", machine=G2, axes={"x": 0}))
+    await fails(1002, rpc.call("machine.spindle", machine=G2, state="off"))
