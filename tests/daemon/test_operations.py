@@ -228,6 +228,9 @@ async def test_grbl_override_answers_the_overrides_in_force(both: tuple[Running,
     assert got == {"feed": 120, "spindle": 80, "rapid": 50}
     got = await rpc.call("machine.override", machine=GRBL, feed=90)
     assert got == {"feed": 90, "spindle": 80, "rapid": 50}
+    # The same again changes nothing on the board: still answered, from a later report.
+    got = await rpc.call("machine.override", machine=GRBL, feed=90)
+    assert got == {"feed": 90, "spindle": 80, "rapid": 50}
     snap = await rpc.call("machine.status", machine=GRBL)
     assert snap["overrides"] == {"feed": 90, "rapid": 50, "spindle": 80}
 
