@@ -19,7 +19,7 @@ import asyncio
 import contextlib
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -36,6 +36,7 @@ from hostd.api.rpc import Methods, RpcError, encode_notification
 from hostd.api.server import Client, current_client
 from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
 from hostd.daemon import Daemon
+from hostd.machine import operations
 from hostd.machine.events import (
     Console,
     Event,
@@ -95,6 +96,34 @@ class OverrideParams(MachineParams):
         if self.feed is None and self.rapid is None and self.spindle is None:
             raise ValueError("give feed, rapid or spindle")
         return self
+
+
+HomeAxis = Literal["x", "y", "z", "a", "b", "c"]
+Speed = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=1_000_000)]
+
+
+class HomeParams(MachineParams):
+    """`axes`: which to home (absent: all); each once."""
+
+    axes: Annotated[list[HomeAxis], Field(min_length=1, max_length=6)] | None = None
+
+    @field_validator("axes")
+    @classmethod
+    def _once(cls, axes: list[str] | None) -> list[str] | None:
+        if axes is not None and len(set(axes)) != len(axes):
+            raise ValueError("each axis once")
+        return axes
+
+
+class ZeroParams(MachineParams):
+    """`axes`: the work position each named axis should read now."""
+
+    axes: Annotated[dict[HomeAxis, Distance], Field(min_length=1)]
+
+
+class SpindleParams(MachineParams):
+    state: Literal["cw", "ccw", "off"]
+    speed: Speed | None = None
 
 
 class SendParams(MachineParams):
@@ -510,6 +539,28 @@ class Api:
         self._machine(p.machine).engine.override(p.feed, p.rapid, p.spindle)
         return {}
 
+    async def machine_home(self, p: HomeParams) -> dict[str, Any]:
+        await _operation(operations.home(self._machine(p.machine), _names(p.axes)))
+        return {}
+
+    async def machine_zero(self, p: ZeroParams) -> dict[str, Any]:
+        machine = self._machine(p.machine)
+        await _operation(operations.zero(machine, {str(a): v for a, v in p.axes.items()}))
+        return machine.snapshot()
+
+    async def machine_goto_zero(self, p: HomeParams) -> dict[str, Any]:
+        await _operation(operations.goto_zero(self._machine(p.machine), _names(p.axes)))
+        return {}
+
+    async def machine_spindle(self, p: SpindleParams) -> dict[str, Any]:
+        await _operation(operations.spindle(self._machine(p.machine), p.state, p.speed))
+        return {}
+
+    async def machine_override_in_force(self, p: OverrideParams) -> dict[str, Any]:
+        """machine.override: grbl's realtime bytes, then the overrides the board reports."""
+        machine = self._machine(p.machine)
+        return await operations.override(machine, p.feed, p.rapid, p.spindle)
+
     async def machine_safety_door(self, p: MachineParams) -> dict[str, Any]:
         self._machine(p.machine).engine.safety_door()
         return {}
@@ -707,6 +758,18 @@ class Api:
         return {}
 
 
+def _names(axes: list[HomeAxis] | None) -> list[str] | None:
+    return None if axes is None else [str(a) for a in axes]
+
+
+async def _operation(run: Awaitable[None]) -> None:
+    """An operation of hostd.machine.operations; a refused line is -32602, as in machine.send."""
+    try:
+        await run
+    except InvalidCommand as exc:
+        raise RpcError(-32602, exc.message, exc.data) from None
+
+
 def _merge(bodies: list[dict[str, Any]]) -> dict[str, Any]:
     merged: dict[str, Any] = {}
     for body in bodies:
@@ -735,7 +798,12 @@ def build_methods(api: Api) -> Methods:
     m.register("machine.shutdown", MachineParams, api.machine_shutdown)
     m.register("machine.jog", JogParams, api.machine_jog)
     m.register("machine.jog_stop", MachineParams, api.machine_jog_stop, immediate=True)
-    m.register("machine.override", OverrideParams, api.machine_override, immediate=True)
+    # Not immediate: it waits for the report that shows the overrides now in force.
+    m.register("machine.override", OverrideParams, api.machine_override_in_force)
+    m.register("machine.home", HomeParams, api.machine_home)
+    m.register("machine.zero", ZeroParams, api.machine_zero)
+    m.register("machine.goto_zero", HomeParams, api.machine_goto_zero)
+    m.register("machine.spindle", SpindleParams, api.machine_spindle)
     m.register("machine.safety_door", MachineParams, api.machine_safety_door, immediate=True)
     m.register("settings.get", SettingsGetParams, api.settings_get)
     m.register("settings.set", SettingsSetParams, api.settings_set)

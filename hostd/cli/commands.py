@@ -367,3 +367,83 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
 async def watch(c: Client, args: argparse.Namespace, out: Output) -> int:
     """Status, exceptions, supervisor and job changes as they come, until Ctrl-C (exit 0)."""
     return await live_view(c, args.machine, out)
+
+
+# -- the operator's day: home, zero, override, spindle -------------------------------
+
+AXIS_LETTERS: Final = "xyzabc"
+
+
+def axis_letters(text: str) -> list[str]:
+    """`xyz` -> ["x", "y", "z"]: each a machine axis, once (CliError otherwise)."""
+    letters = list(text.lower())
+    if not letters or any(a not in AXIS_LETTERS for a in letters):
+        raise CliError(f"axes are letters of {AXIS_LETTERS!r}, like xyz; got {text!r}")
+    if len(set(letters)) != len(letters):
+        raise CliError(f"each axis once; got {text!r}")
+    return letters
+
+
+async def home(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """machine.home answers once the board says the cycle ended."""
+    params: dict[str, Any] = {"machine": args.machine}
+    if args.axes is not None:
+        params["axes"] = axis_letters(args.axes)
+    out.message(f"{args.machine}: homing ...")
+    result = await c.call("machine.home", **params)
+    if out.json:
+        out.print_json(result)
+    else:
+        out.out.print(f"{args.machine}: homed", markup=False, highlight=False)
+    return OK
+
+
+async def zero(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """The named axes read 0 from now on in the active work coordinate system."""
+    axes = {a: 0.0 for a in axis_letters(args.axes)}
+    snap = await c.call("machine.zero", machine=args.machine, axes=axes)
+    if out.json:
+        out.print_json(snap)
+    else:
+        where = render.position(snap.get("work_position"), snap.get("units"))
+        wcs = snap.get("wcs") or "the active WCS"
+        out.out.print(
+            f"{args.machine}: {''.join(axes).upper()} zeroed in {wcs}; work position {where}",
+            markup=False,
+            highlight=False,
+        )
+    return OK
+
+
+async def override(c: Client, args: argparse.Namespace, out: Output) -> int:
+    params = {k: getattr(args, k) for k in ("feed", "spindle", "rapid")}
+    given = {k: v for k, v in params.items() if v is not None}
+    if not given:
+        raise CliError("give --feed, --spindle or --rapid (percent)")
+    now = await c.call("machine.override", machine=args.machine, **given)
+    if out.json:
+        out.print_json(now)
+    else:
+        shown = ", ".join(f"{k} {_percent(now.get(k))}" for k in ("feed", "spindle", "rapid"))
+        out.out.print(f"{args.machine}: overrides {shown}", markup=False, highlight=False)
+    return OK
+
+
+def _percent(value: Any) -> str:
+    return "unknown" if value is None else f"{value:g}%"
+
+
+async def spindle(c: Client, args: argparse.Namespace, out: Output) -> int:
+    if args.state == "off" and (args.ccw or args.speed is not None):
+        raise CliError("off takes neither --speed nor --ccw")
+    state = "off" if args.state == "off" else "ccw" if args.ccw else "cw"
+    params: dict[str, Any] = {"machine": args.machine, "state": state}
+    if args.speed is not None:
+        params["speed"] = args.speed
+    result = await c.call("machine.spindle", **params)
+    if out.json:
+        out.print_json(result)
+    else:
+        speed = "" if args.speed is None else f" at {args.speed:g}"
+        out.out.print(f"{args.machine}: spindle {state}{speed}", markup=False, highlight=False)
+    return OK

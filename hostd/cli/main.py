@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import importlib
+import math
 import os
 import sys
 from collections.abc import Awaitable, Callable, Sequence
@@ -124,6 +125,25 @@ def build_parser() -> argparse.ArgumentParser:
         client(name, "action", help).add_argument("machine", metavar="MACHINE")
     client("cancel", "cancel", "cancel the running job").add_argument("machine", metavar="MACHINE")
 
+    p = client("home", "home", "home the machine (all axes, or AXES like xyz)")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("axes", nargs="?", metavar="AXES")
+
+    p = client("zero", "zero", "set work zero on AXES (like xyz) at the current position")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("axes", metavar="AXES")
+
+    p = client("override", "override", "set feed, spindle and rapid overrides (percent)")
+    p.add_argument("machine", metavar="MACHINE")
+    for name in ("feed", "spindle", "rapid"):
+        p.add_argument(f"--{name}", type=_at_least_one, metavar="N", help=f"{name} percent")
+
+    p = client("spindle", "spindle", "turn the spindle on (clockwise, or --ccw) or off")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("state", choices=("on", "off"))
+    p.add_argument("--speed", type=_non_negative, metavar="S", help="spindle speed (S word)")
+    p.add_argument("--ccw", action="store_true", help="counter-clockwise (M4)")
+
     p = client("jobs", "jobs", "recent jobs, newest first")
     p.add_argument("--machine", "-m", metavar="M")
     p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")
@@ -205,6 +225,16 @@ def _positive(text: str) -> float:
     value = float(text)
     if not value > 0:
         raise argparse.ArgumentTypeError(f"{text}: must be > 0")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be zero or more: {text!r}")
     return value
 
 

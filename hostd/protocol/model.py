@@ -27,6 +27,7 @@ _MODAL = {"coor": ("wcs", _WCS), "dist": ("distance", _DISTANCE)}
 _MODAL |= {"frmo": ("feed_mode", _FEED_MODE), "momo": ("motion", _MOTION)}
 # A limit switch unhomes the machine (seed 000); so does SHUTDOWN.
 _UNHOMING_STATUS = frozenset({Status.LIMIT_SWITCH_HIT})
+_SPINDLE_DIRECTION = {0: "off", 1: "cw", 2: "ccw"}
 
 
 @dataclass(slots=True)
@@ -50,12 +51,17 @@ class MachineModel:
     board_state: str | None = None
     laser_mode: bool | None = None
     overrides: dict[str, float] | None = None  # percent: feed, rapid, spindle (grbl's Ov)
+    reports: int = 0  # status reports taken: one newer than a request is that request's
+    override_reports: int = 0  # how many reports carried the overrides: a fresh one is news
+    # The spindle as the board reports it: {"state": "cw"|"ccw"|"off", "speed"}; None unknown.
+    spindle: dict[str, Any] | None = None
     # grbl's `$N` blocks: [{"n", "line", "acts"}], `acts` what it does at a reset (or None).
     startup_blocks: list[dict[str, Any]] | None = None
 
     def apply_status(self, fields: JsonObject) -> MachineState | None:
         """Take one status report (automatic or requested); return the new state if it changed."""
         before = self.state
+        self.reports += 1
         for key, value in fields.items():
             if key == "stat":
                 self.state = state_from_code(value) or self.state
@@ -80,9 +86,20 @@ class MachineModel:
                 self.hold = int(value)
             elif key == "tool" and _is_number(value):
                 self.tool = int(value)
+            elif key in ("spc", "sps") and _is_number(value):
+                self._spindle_field(key, float(value))
         if self.state is MachineState.SHUTDOWN:
             self.homed = False
         return self.state if self.state is not before else None
+
+    def _spindle_field(self, key: str, value: float) -> None:
+        """g2core's `spc` (spindle.h spDirection: 0 off, 1 CW, 2 CCW) and `sps` (speed)."""
+        now = dict(self.spindle or {"state": None, "speed": None})
+        if key == "spc":
+            now["state"] = _SPINDLE_DIRECTION.get(int(value), now["state"])
+        else:
+            now["speed"] = value
+        self.spindle = now
 
     def apply_exception(self, report: ExceptionReport) -> None:
         self.last_exception = report.fields
@@ -113,6 +130,7 @@ class MachineModel:
         self.board_state = None
         self.laser_mode = None
         self.overrides = None
+        self.spindle = None
         self.startup_blocks = None
 
     def snapshot(self) -> dict[str, Any]:
@@ -139,6 +157,7 @@ class MachineModel:
             "board_state": self.board_state,
             "laser_mode": self.laser_mode,
             "overrides": None if self.overrides is None else dict(self.overrides),
+            "spindle": None if self.spindle is None else dict(self.spindle),
             "startup_blocks": self.startup_blocks,
         }
 

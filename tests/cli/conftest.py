@@ -179,7 +179,7 @@ def _accepting(path: str) -> bool:
         return True
 
 
-def _write_config(root: Path) -> Path:
+def _write_config(root: Path, extra: str = "") -> Path:
     config = root / "hostd.toml"
     config.write_text(
         f"""
@@ -191,16 +191,19 @@ state_dir = "{root / "state"}"
 id = "{MACHINE}"
 data_port = "sim"
 auto_connect = true
-""",
+{extra}""",
         encoding="utf-8",
     )
     return config
 
 
 @pytest.fixture(scope="module")
-def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+def daemon(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Iterator[Daemon]:
+    """`EXTRA_CONFIG` in a test module: more TOML after the machine (another machine)."""
     root = tmp_path_factory.mktemp("cli")
-    config = _write_config(root)
+    config = _write_config(root, getattr(request.module, "EXTRA_CONFIG", ""))
     sock = str(root / "hostd.sock")
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "TTY_COMPATIBLE")}
     env.update(HOSTD_SOCKET=sock, NO_COLOR="1", COLUMNS="200")

@@ -32,11 +32,7 @@ LATER: Final[frozenset[str]] = frozenset(CONTRACT["stages"]["turn3"])
 # Contract methods the daemon does not serve yet (all of the operator's-day additions).
 NOT_BUILT: Final = frozenset(
     {
-        "machine.home",
-        "machine.zero",
-        "machine.goto_zero",
         "machine.probe",
-        "machine.spindle",
         "machine.laser_test",
         "machine.frame",
         "macro.list",
@@ -47,12 +43,12 @@ NOT_BUILT: Final = frozenset(
 # Served, but not yet as the contract says: the reason, for the day it is.
 NOT_YET_AS_NAMED: Final = {
     "machine.override": (
-        "grbl only, answered {} (not {feed, spindle, rapid}); -32602 on g2core, which has no"
-        " override command"
+        "grbl answers {feed, spindle, rapid} as its report says them; g2core's fro/tro/spo"
+        " settings are not built yet: -32602 there"
     ),
 }
 # Object keys of the contract no object carries yet ("object.key").
-KEYS_NOT_BUILT: Final = frozenset({"snapshot.spindle", "snapshot.tool_change", "job.tool_changes"})
+KEYS_NOT_BUILT: Final = frozenset({"snapshot.tool_change", "job.tool_changes"})
 
 
 def object_problems(kind: str, value: Any, where: str) -> list[str]:

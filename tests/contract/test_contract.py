@@ -305,9 +305,20 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
         await s.fails(-32603, "file.list")
     await s.ok("daemon.info")  # the daemon goes on after a bug
 
-    # Beyond the travel: 1008 on a homed machine.
-    await s.ok("machine.send", machine=M, line="G28.2 X0 Y0 Z0")
+    # The operator's day: spindle, home, zero, go to zero.
+    await s.ok("machine.spindle", machine=M, state="cw", speed=1000)
+    await s.ok("machine.spindle", machine=M, state="off")
+    jog = await s.ok("machine.jog", machine=M, axes={"x": 2}, feed=600)
+    if jog:
+        await s.job_end(jog["job"])
     await s.idle()
+    await s.ok("machine.home", machine=M, axes=["x", "y", "z"])
+    await s.idle()
+    await s.ok("machine.zero", machine=M, axes={"x": 0, "z": 0})
+    await s.ok("machine.goto_zero", machine=M, axes=["x", "y"])
+    await s.idle()
+
+    # Beyond the travel: 1008 on a homed machine.
     await s.ok("file.upload", name="wide.gcode", data="G21 G90\nG1 X350 F6000\nG1 X0\n")
     await s.fails(1008, "job.start", machine=M, file="wide.gcode")
 

@@ -78,11 +78,24 @@ class ReportReader:
         ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
         if ov is not None and len(ov) == 3:  # sent now and then (report.c's counters)
             model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
+            model.override_reports += 1
+            # A report with Ov lists the accessories (`A:`, S spindle CW, C CCW) when any
+            # is on, and leaves A out when none is (report.c report_realtime_status).
+            turning = _spindle_state(raw.get("A", ""))
+            model.spindle = {"state": turning, "speed": (model.spindle or {}).get("speed")}
+        if (
+            speeds is not None and len(speeds) >= 2
+        ):  # FS:feed,speed: the speed the spindle runs at now
+            model.spindle = {"state": (model.spindle or {}).get("state"), "speed": speeds[1]}
         # Pins as keys a signal can name: pin_x .. pin_d (door), pin_p (probe), pin_e
         # (e-stop). grbl leaves Pn out when no pin is active, so every key is always set.
         active = raw.get("Pn", "")
         fields |= {key: int(letter in active) for letter, key in _PINS.items()}
         return fields
+
+
+def _spindle_state(accessories: str) -> str:
+    return "cw" if "S" in accessories else "ccw" if "C" in accessories else "off"
 
 
 # `[GC:...]`'s words by modal group (NIST RS274NGC 3.4; grblHAL report.c

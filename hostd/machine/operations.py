@@ -1,0 +1,242 @@
+"""The operator's day (issue 29), first slice: home, set work zero, go to zero, spindle, overrides.
+
+Each operation is lines a client could have typed into `machine.send`, sent the
+same way (`Engine.send`), so the session's command-class admission judges them
+exactly as any line: nothing reaches the board that a line would not. Before the
+first line the supervisor must be idle (1003 otherwise), unless the board is in a
+lockout: then the command class decides, which gives 204/205/206, or lets grbl's
+`$H` through in ALARM (gnea/grbl system.c: `$H` is one of the two commands
+ALARM accepts). One operation at a time per machine: a second one is 1003.
+
+Why not a job row (like a jog)? api.md fixes the job kinds to make/jog/settings,
+and these are single commands an operator gives, as `machine.send` is; the
+history of what moved the machine is its console.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from typing import Any, Final
+
+from hostd.machine.machine import Machine
+from hostd.machine.supervisor import State as SupState
+from hostd.protocol.commands import InvalidCommand
+from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
+from hostd.protocol.refusals import Refusal
+from hostd.protocol.states import MachineState
+
+HOME_AXES: Final = ("x", "y", "z")  # what "all axes" homes: the axes both sims and boards have
+# A homing cycle may take this long before the operation gives up waiting (the
+# board goes on: a feedhold or reset stops it). grbl's own bound is its session's.
+HOMING_WAIT: Final = 300.0
+MOVE_WAIT: Final = 600.0  # a go-to-zero's moves, from anywhere on the table at a slow rapid
+ANSWER_WAIT: Final = 10.0
+AT_ZERO: Final = 0.001  # mm (or in): the reports' resolution, three decimals
+# g2core's override factors (planner.h FEED_OVERRIDE_MIN/MAX, TRAVERSE_OVERRIDE_MAX;
+# settings_default.h SPINDLE_OVERRIDE_MIN/MAX), in percent.
+_WCS_P: Final = {"G54": 1, "G55": 2, "G56": 3, "G57": 4, "G58": 5, "G59": 6}
+
+_running: set[str] = set()  # machines with an operation of this module under way
+
+
+@contextlib.asynccontextmanager
+async def _operation(machine: Machine) -> AsyncIterator[None]:
+    """Admit one operation: connected, idle (or locked out: the command class decides)."""
+    state = machine.supervisor.state
+    if state is SupState.DISCONNECTED or not machine.engine.ready:
+        raise NotConnected(f"{machine.id} is not connected")
+    if machine.id in _running:
+        raise Busy(f"{machine.id} is already running an operation")
+    if not machine.engine.session.locked() and state is not SupState.IDLE:
+        raise Busy(f"{machine.id} is {state.value}: wait until it is idle")
+    _running.add(machine.id)
+    try:
+        yield
+    finally:
+        _running.discard(machine.id)
+
+
+def _axes_words(axes: Iterable[str]) -> str:
+    return " ".join(f"{a.upper()}0" for a in axes)
+
+
+def home_lines(dialect: str, axes: list[str] | None) -> list[str]:
+    """g2core: `G28.2` with a word per axis (cycle_homing.cpp homes the axes named);
+    grbl: `$H`, every axis the board's `$23`.. homes (one-axis `$HX` needs grblHAL's
+    single-axis homing setting, system.c go_home: refused here, not guessed)."""
+    if dialect == "grbl":
+        if axes is not None and set(axes) != set(HOME_AXES):
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                "grbl homes every axis at once with $H: leave axes out (or give x, y and z)",
+            )
+        return ["$H"]
+    return [f"G28.2 {_axes_words(axes or HOME_AXES)}"]
+
+
+async def home(machine: Machine, axes: list[str] | None) -> None:
+    """Home; return once the board says the cycle is done (ControllerError if it failed)."""
+    lines = home_lines(machine.config.dialect, axes)
+    engine = machine.engine
+    async with _operation(machine):
+        before = engine.model.last_exception
+        if machine.config.dialect == "grbl":
+            # grbl answers `$H` only once the cycle has ended (system.c); the session
+            # sets `homed` from that answer (hostd/protocol/grbl/session.py).
+            await engine.send(lines[0], timeout=HOMING_WAIT)
+            await _at_rest(machine)  # a report after the answer: out of ALARM, say
+            return
+        await engine.send(lines[0], timeout=ANSWER_WAIT)
+        # g2core answers G28.2 as it starts the cycle (cm_homing_cycle_start sets
+        # MACHINE_CYCLE / CYCLE_HOMING at once: the combined state reads HOMING, 9).
+        # A status report asked after the answer shows the cycle; its end is the
+        # state leaving HOMING.
+        await engine.send("{sr:n}", timeout=ANSWER_WAIT)
+        model = engine.model
+        try:
+            async with asyncio.timeout(HOMING_WAIT):
+                await engine.wait_for(lambda: model.state is not MachineState.HOMING)
+        except TimeoutError:
+            raise ControllerTimeout(f"{machine.id}: homing did not end") from None
+        failed = model.last_exception
+        if failed is not before and failed is not None and _homing_status(failed):
+            raise ControllerError(int(failed["st"]), str(failed.get("msg") or "homing failed"))
+        if model.state is not None and model.state.is_lockout:
+            raise ControllerError(0, f"{machine.id}: homing ended in {model.state.name}")
+
+
+def _homing_status(report: Mapping[str, Any]) -> bool:
+    """g2core's homing failures are statuses 240-247 (error.h STAT_HOMING_*)."""
+    status = report.get("st")
+    return isinstance(status, int) and 240 <= status <= 247
+
+
+def zero_line(wcs: str | None, axes: Mapping[str, float], dialect: str) -> str:
+    """`G10 L20 P<active WCS>`: the current position reads as given, in that WCS."""
+    words = " ".join(f"{a.upper()}{_number(v)}" for a, v in axes.items())
+    p = _WCS_P.get(wcs or "")
+    if p is None:
+        if dialect != "grbl":
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        p = 0  # gnea/grbl gcode.c: G10 P0 is the active coordinate system
+    return f"G10 L20 P{p} {words}"
+
+
+def _number(value: float) -> str:
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
+
+
+async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
+    """Set work zero: each axis named reads the value given, now, in the active WCS."""
+    engine = machine.engine
+    async with _operation(machine):
+        line = zero_line(engine.model.modal.get("wcs"), axes, machine.config.dialect)
+        await engine.send(line, timeout=ANSWER_WAIT)
+        # The position reports follow the offset; ask for one now so the answer's
+        # snapshot already shows it.
+        await _fresh_report(machine)
+
+
+async def _fresh_report(machine: Machine) -> None:
+    if machine.config.dialect == "grbl":
+        machine.engine.query_status()
+        return
+    await machine.engine.send("{sr:n}", timeout=ANSWER_WAIT)
+
+
+def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
+    """Z up to the safe height in machine coordinates first (if known) whenever X or Y
+    moves, asked or not; then X and Y; then Z down to its work zero, if asked: the
+    tool never crosses the work low."""
+    chosen = axes or ["x", "y", "z"]
+    lines: list[str] = []
+    flat = [a for a in chosen if a != "z"]
+    if flat and safe_z is not None:
+        lines.append(f"G53 G0 Z{_number(safe_z)}")
+    if flat:
+        lines.append(f"G90 G0 {_axes_words(flat)}")
+    if "z" in chosen:
+        lines.append("G90 G0 Z0")
+    return lines
+
+
+async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
+    """Go to work zero; return once the board is at rest there."""
+    engine = machine.engine
+    async with _operation(machine):
+        safe = machine.config.safe_z  # the board's Z travel is not read here (a query)
+        for line in goto_zero_lines(axes, safe):
+            await engine.send(line, timeout=ANSWER_WAIT)
+        # A board answers a move as it queues it, and may report rest until its
+        # planner starts: at rest *at zero* is the end (or a lockout, or an error).
+        chosen = axes or ["x", "y", "z"]
+        position = engine.model.position
+        await _at_rest(machine, lambda: all(abs(position.get(a, 0.0)) < AT_ZERO for a in chosen))
+
+
+async def _at_rest(machine: Machine, there: Callable[[], bool] = lambda: True) -> None:
+    """Until the board has run what it was given: a fresh report says it rests
+    (`there`, if given, holds too), or that it is locked out."""
+    engine = machine.engine
+    model = engine.model
+    asked = model.reports
+    await _fresh_report(machine)
+    try:
+        async with asyncio.timeout(MOVE_WAIT):
+            await engine.wait_for(
+                lambda: (
+                    model.reports > asked
+                    and model.state is not None
+                    and ((model.state.is_resting and there()) or model.state.is_lockout)
+                    and engine.quiet()
+                )
+            )
+    except TimeoutError:
+        raise ControllerTimeout(f"{machine.id}: the move did not end") from None
+    if model.state is not None and model.state.is_lockout:
+        raise ControllerError(0, f"{machine.id}: the move ended in {model.state.name}")
+
+
+def spindle_line(state: str, speed: float | None) -> str:
+    code = {"cw": "M3", "ccw": "M4", "off": "M5"}[state]
+    return code if speed is None else f"{code} S{_number(speed)}"
+
+
+async def spindle(machine: Machine, state: str, speed: float | None) -> None:
+    """M3/M4/M5 (with S): answered once the board took the line."""
+    async with _operation(machine):
+        await machine.engine.send(spindle_line(state, speed), timeout=ANSWER_WAIT)
+        await _fresh_report(machine)
+
+
+async def override(
+    machine: Machine, feed: int | None, rapid: int | None, spindle_: int | None
+) -> dict[str, float | None]:
+    """Write the overrides (grbl: realtime bytes) and answer those now in force.
+
+    grbl reports its overrides (`Ov:`) in the report after any change (report.c:
+    the override counter is zeroed), so the answer waits for that report.
+    """
+    engine = machine.engine
+    model = engine.model
+    seen = model.override_reports
+    engine.override(feed, rapid, spindle_)
+    engine.query_status()
+    try:
+        async with asyncio.timeout(ANSWER_WAIT):
+            await engine.wait_for(lambda: model.override_reports > seen)
+    except TimeoutError:
+        raise ControllerTimeout(f"{machine.id} did not report its overrides") from None
+    return in_force(machine)
+
+
+def in_force(machine: Machine) -> dict[str, float | None]:
+    """The overrides the board last reported, or nulls where it never said."""
+    now = machine.engine.model.overrides or {}
+    return {key: now.get(key) for key in ("feed", "spindle", "rapid")}
