@@ -66,7 +66,7 @@ async def test_grbl_refuses_a_host_raised_alarm_or_shutdown(both: tuple[Running,
     before = len(sim.received)
     for method, word in (("machine.alarm", "alarm"), ("machine.shutdown", "shutdown")):
         err = await fails(-32602, rpc.call(method, machine=GRBL))
-        assert f"no host-raised {word}" in err.message
+        assert f"no host-raised {word}" in err.message and err.data == {"refusal": "unreadable"}
     assert not any(b"{" in r.data for r in list(sim.received)[before:])  # no g2core JSON went
     snap = await rpc.call("machine.status", machine=GRBL)
     assert snap["state"]["name"] == "READY" and snap["supervisor"] == "idle"
