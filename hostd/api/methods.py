@@ -519,11 +519,11 @@ class Api:
         return {}
 
     async def machine_alarm(self, p: MachineParams) -> dict[str, Any]:
-        await self._machine(p.machine).engine.send("{alarm:n}")
+        await self._machine(p.machine).engine.alarm()  # refused where the dialect has none
         return {}
 
     async def machine_shutdown(self, p: MachineParams) -> dict[str, Any]:
-        await self._machine(p.machine).engine.send("{shutd:n}")
+        await self._machine(p.machine).engine.shutdown()
         return {}
 
     async def machine_jog(self, p: JogParams) -> dict[str, Any]:

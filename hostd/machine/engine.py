@@ -55,7 +55,6 @@ from hostd.protocol.linemode import LineModeSender
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.session import SessionBase
-from hostd.protocol.status import message
 from hostd.protocol.vocabulary import (
     Closing,
     Detected,
@@ -460,8 +459,16 @@ class Engine:
         finally:
             timer.cancel()
         if not response.ok:
-            raise ControllerError(response.status, message(response.status))
+            raise ControllerError(response.status, self.session.status_text(response.status))
         return response
+
+    async def alarm(self) -> Response:
+        """Raise an alarm on the board, in its dialect's words (InvalidCommand if it has none)."""
+        return await self.send(self.session.alarm_line())
+
+    async def shutdown(self) -> Response:
+        """Raise a shutdown on the board, in its dialect's words (InvalidCommand if it has none)."""
+        return await self.send(self.session.shutdown_line())
 
     def _expire(self, future: asyncio.Future[Response], timeout: float) -> None:
         if not future.done():

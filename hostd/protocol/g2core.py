@@ -955,6 +955,15 @@ class G2Session(SessionBase):
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]
 
+    def status_text(self, code: int) -> str:
+        return message(code)  # status.py: g2core's own table (error.h)
+
+    def alarm_line(self) -> str:
+        return "{alarm:n}"  # config_app.cpp: a GET that raises the alarm
+
+    def shutdown_line(self) -> str:
+        return "{shutd:n}"
+
     def settings_read(self, keys: list[str]) -> list[str]:
         return [json.dumps({key: None}) for key in keys]
 

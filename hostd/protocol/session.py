@@ -226,6 +226,32 @@ class SessionBase:
             Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no safety-door command"
         )
 
+    def status_text(self, code: int) -> str:
+        """The board's own words for a non-zero answer `code`, from its dialect's table.
+
+        The engine describes a refused line with this (error 1005's `msg`), so a
+        code is never read in another firmware's table. Never raises: the code
+        comes from the board, which may run a build newer than the table.
+        """
+        raise NotImplementedError
+
+    def alarm_line(self) -> str:
+        """The line that raises an alarm on the board (`machine.alarm`).
+
+        InvalidCommand (-32602) where the dialect has no host-raised alarm, so
+        the client hears so instead of a line the board would misread.
+        """
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no host-raised alarm"
+        )
+
+    def shutdown_line(self) -> str:
+        """The line that raises a shutdown on the board (`machine.shutdown`); as `alarm_line`."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{self.id}: this controller's dialect has no host-raised shutdown",
+        )
+
     def settings_read(self, keys: list[str]) -> list[str]:
         """The query lines that read these settings."""
         raise NotImplementedError

@@ -222,7 +222,7 @@ async def test_a_query_is_a_realtime_byte_answered_by_the_next_report() -> None:
     grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:500,0>")
     settled = grbl.settled(token)
     assert settled is not None and isinstance(settled.outcome, Response)
-    assert settled.outcome.body["sr"]["stat"] == int(S.RUN)
+    assert settled.outcome.body["report"]["state"] == "Run"  # grbl's names: report.c
 
 
 async def test_an_alarm_drains_the_job_and_only_unlock_or_home_get_through() -> None:

@@ -7,6 +7,8 @@ session (session.py) applies what this makes of them.
 
 from __future__ import annotations
 
+import math
+import re
 from typing import Any
 
 from hostd.protocol.grbl import codec
@@ -96,6 +98,36 @@ class ReportReader:
 
 def _spindle_state(accessories: str) -> str:
     return "cw" if "S" in accessories else "ccw" if "C" in accessories else "off"
+
+
+_INTEGER = re.compile(r"[-+]?[0-9]+")
+
+
+def grbl_named(report: codec.StatusReport) -> dict[str, Any]:
+    """A report under grbl's own names: a client's `?` through `machine.send`.
+
+    `fields` above is for the model; a client asked grbl, so it hears grbl.
+    `state` is the state word with its substate (`Hold:0`, as the snapshot's
+    `board_state`: report.c prints it first, unnamed); every other field keeps
+    the name report.c prints (`MPos`, `WPos`, `WCO`, `FS`, `F`, `Bf`, `Ln`,
+    `Ov`, `Pn`, `A`, grblHAL's `H`, ...). A value of finite numbers becomes a
+    list of them (integers stay integers: `FS:500,0`), any other value stays
+    the text the board sent (`Pn:XP`).
+    """
+    named: dict[str, Any] = {
+        "state": report.state + ("" if report.sub is None else f":{report.sub}")
+    }
+    for key, text in report.fields.items():
+        values = codec.numbers(text) if text else None
+        if values is None or not all(math.isfinite(v) for v in values):
+            named[key] = text
+            continue
+        parts = text.split(",")
+        named[key] = [
+            int(part) if _INTEGER.fullmatch(part.strip()) else value
+            for part, value in zip(parts, values, strict=True)
+        ]
+    return named
 
 
 # `[GC:...]`'s words by modal group (NIST RS274NGC 3.4; grblHAL report.c

@@ -70,7 +70,13 @@ from hostd.protocol.grbl.codes import (
     alarm_text,
     error_text,
 )
-from hostd.protocol.grbl.report import STATES, ReportReader, apply_modes, probe_report
+from hostd.protocol.grbl.report import (
+    STATES,
+    ReportReader,
+    apply_modes,
+    grbl_named,
+    probe_report,
+)
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.maintenance import startup_blocks
@@ -245,6 +251,13 @@ class GrblSession(SessionBase):
         """0x84 (protocol.c CMD_SAFETY_DOOR): the board enters Door as if its switch opened."""
         self._require_open()
         self._out.append((Lane.REALTIME, codec.SAFETY_DOOR))
+
+    def status_text(self, code: int) -> str:
+        return error_text(code)  # codes.py: grblHAL errors.c (classic grbl: 1-38)
+
+    # No alarm_line or shutdown_line: neither grbl 1.1 (system.c system_execute_line)
+    # nor grblHAL (system.c sys_commands) has a command that raises an alarm, and
+    # `$SLP` is a maintenance command (maintenance.py), so SessionBase refuses both.
 
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
@@ -517,7 +530,7 @@ class GrblSession(SessionBase):
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
         for token in waiters:
-            self._settle(token, Response({"sr": fields}, 0, 0, b"?"))
+            self._settle(token, Response({"report": grbl_named(report)}, 0, 0, b"?"))
         if self._stopping is not None and self._at_rest_for_reset(report):
             self._stop_reset()
         if self._awaiting_rest:

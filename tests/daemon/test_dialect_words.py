@@ -1,0 +1,91 @@
+"""Each machine answers in its dialect's words, through the real socket (issue 28).
+
+A g2core board and a grbl board side by side on real ptys, reached through
+the real Unix socket: a refused line is error 1005 with the firmware's own
+text for its own number, `machine.alarm` and `machine.shutdown` are what the
+dialect has (g2core's JSON, or a clear refusal on grbl), and a `?` on grbl
+answers in grbl's names. Every code, by plain calls on each session, is in
+tests/protocol/test_dialect_words.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from hostd.protocol.grbl.codes import ERRORS
+from hostd.protocol.status import MESSAGES
+from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.test_api import fails
+
+pytestmark = pytest.mark.asyncio
+
+G2, GRBL = "sim1", "sim2"
+
+
+@pytest_asyncio.fixture
+async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
+        client = await d.client()
+        for machine in (G2, GRBL):
+            await d.idle(client, machine)
+        yield d, client
+        await client.close()
+
+
+@pytest.mark.parametrize(
+    ("line", "code"),
+    [
+        ("G1 X1 Q5", 20),  # an unsupported word: "Internal error" in g2core's table
+        ("G0 G1 X1", 21),  # two motions from one modal group
+        ("G4", 28),  # a dwell with no P
+    ],
+)
+async def test_a_grbl_refusal_is_in_grbls_words(
+    both: tuple[Running, Rpc], line: str, code: int
+) -> None:
+    _, rpc = both
+    err = await fails(1005, rpc.call("machine.send", machine=GRBL, line=line))
+    assert err.data == {"status": code, "msg": ERRORS[code]}
+    assert ERRORS[code] in err.message and MESSAGES.get(code, "?") not in err.message
+
+
+async def test_a_g2core_refusal_is_in_g2cores_words(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    err = await fails(1005, rpc.call("machine.send", machine=G2, line="G5 X1"))
+    status = err.data["status"]
+    assert err.data == {"status": status, "msg": MESSAGES[status]}
+
+
+async def test_grbl_refuses_a_host_raised_alarm_or_shutdown(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    sim = hostd.daemon.sims[GRBL]
+    before = len(sim.received)
+    for method, word in (("machine.alarm", "alarm"), ("machine.shutdown", "shutdown")):
+        err = await fails(-32602, rpc.call(method, machine=GRBL))
+        assert f"no host-raised {word}" in err.message and err.data == {"refusal": "unreadable"}
+    assert not any(b"{" in r.data for r in list(sim.received)[before:])  # no g2core JSON went
+    snap = await rpc.call("machine.status", machine=GRBL)
+    assert snap["state"]["name"] == "READY" and snap["supervisor"] == "idle"
+    # g2core still raises both with its own JSON.
+    await rpc.call("subscribe", topics=["status"], machine=G2)
+    assert await rpc.call("machine.alarm", machine=G2) == {}
+    await rpc.notification(
+        lambda n: n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+    )
+
+
+async def test_a_query_on_grbl_answers_in_grbls_names(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    await rpc.call("machine.send", machine=GRBL, line="G0 X2 Y3")
+    answer = await rpc.call("machine.send", machine=GRBL, line="?")
+    report = answer["r"]["report"]
+    assert answer["status"] == 0 and set(answer["r"]) == {"report"}
+    assert report["state"] in ("Idle", "Run")
+    assert {"MPos", "FS"} <= set(report) or {"WPos", "FS"} <= set(report)
+    position = report.get("MPos") or report["WPos"]
+    assert len(position) >= 3 and all(isinstance(v, float) for v in position)
+    assert "stat" not in report and "posx" not in report  # g2core's names
