@@ -169,6 +169,20 @@ async def hostd(tmp_path: Path) -> AsyncIterator[Running]:
         yield running
 
 
+G2, GRBL = "sim1", "sim2"  # `both`'s machines: a simulated g2core and a simulated grbl
+
+
+@pytest_asyncio.fixture
+async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
+    """A daemon of two machines, sim1 (g2core) and sim2 (grbl), both idle, and a client."""
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
+        client = await d.client()
+        for machine in (G2, GRBL):
+            await d.idle(client, machine)
+        yield d, client
+        await client.close()
+
+
 @pytest_asyncio.fixture
 async def rpc(hostd: Running) -> AsyncIterator[Rpc]:
     client = await hostd.client()

@@ -10,30 +10,14 @@ tests/protocol/test_dialect_words.py.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from pathlib import Path
-
 import pytest
-import pytest_asyncio
 
 from hostd.protocol.grbl.codes import ERRORS
 from hostd.protocol.status import MESSAGES
-from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.conftest import G2, GRBL, Rpc, Running
 from tests.daemon.test_api import fails
 
 pytestmark = pytest.mark.asyncio
-
-G2, GRBL = "sim1", "sim2"
-
-
-@pytest_asyncio.fixture
-async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
-    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
-        client = await d.client()
-        for machine in (G2, GRBL):
-            await d.idle(client, machine)
-        yield d, client
-        await client.close()
 
 
 @pytest.mark.parametrize(

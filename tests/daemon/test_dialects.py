@@ -6,28 +6,14 @@ socket; every call below is the same for both, but the lines on the wire.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from pathlib import Path
-
 import pytest
-import pytest_asyncio
 
-from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.conftest import G2, GRBL, Rpc, Running
 from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
 
-MACHINES = ("sim1", "sim2")  # sim1 speaks g2core, sim2 grbl
-
-
-@pytest_asyncio.fixture
-async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
-    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
-        client = await d.client()
-        for machine in MACHINES:
-            await d.idle(client, machine)
-        yield d, client
-        await client.close()
+MACHINES = (G2, GRBL)  # sim1 speaks g2core, sim2 grbl (`both`, tests/daemon/conftest.py)
 
 
 async def test_each_machine_says_its_dialect(both: tuple[Running, Rpc]) -> None:

@@ -7,28 +7,14 @@ refusal is checked to have left nothing on the board's wire (`sim.received`).
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
-import pytest_asyncio
 
-from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.conftest import G2, GRBL, Rpc, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
-
-G2, GRBL = "sim1", "sim2"
-
-
-@pytest_asyncio.fixture
-async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
-    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
-        client = await d.client()
-        for machine in (G2, GRBL):
-            await d.idle(client, machine)
-        yield d, client
-        await client.close()
 
 
 def reached(hostd: Running, machine: str, text: str) -> bool:
