@@ -7,7 +7,15 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
 .PHONY: demo test lint typecheck unit clean system-deps service-test
 
+# Debian's own python3 makes no venv without python3-venv (ensurepip): installed as root,
+# else the command to run.
 $(BIN)/python:
+	@$(PY) -c 'import ensurepip' 2>/dev/null || { \
+	    if [ "$$(id -u)" != 0 ]; then \
+	        echo "$(PY) cannot make a virtual environment: run  sudo apt-get install python3-venv"; \
+	        exit 1; fi; \
+	    echo "installing python3-venv: $(PY) needs it to make .venv"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv >/dev/null; }
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 
