@@ -319,10 +319,12 @@ class Subscriptions:
         self._changed()
         return sub_id
 
-    def remove(self, sub_id: int) -> bool:
-        sub = self._subs.pop(sub_id, None)
-        if sub is None:
+    def remove(self, sub_id: int, owner: object | None = None) -> bool:
+        """Ends a subscription; with `owner`, only one of that owner's (another's is not found)."""
+        sub = self._subs.get(sub_id)
+        if sub is None or (owner is not None and sub.owner is not owner):
             return False
+        del self._subs[sub_id]
         self._owned[id(sub.owner)] -= 1
         if self._owned[id(sub.owner)] <= 0:
             del self._owned[id(sub.owner)]
@@ -753,7 +755,8 @@ class Api:
         return {"subscription": sub_id}
 
     async def unsubscribe(self, p: UnsubscribeParams) -> dict[str, Any]:
-        if not self.subscriptions.remove(p.subscription):
+        # A client ends its own subscriptions only: another's id is as unknown as a bad one.
+        if not self.subscriptions.remove(p.subscription, owner=current_client()):
             raise RpcError(-32602, f"no subscription {p.subscription}")
         return {}
 

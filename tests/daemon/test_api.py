@@ -304,6 +304,19 @@ async def test_subscriptions_deliver_topics_and_stop_after_unsubscribe(rpc: Rpc)
     await fails(1001, rpc.call("subscribe", topics=["status"], machine="nope"))
 
 
+async def test_a_client_cannot_end_another_clients_subscription(hostd: Running, rpc: Rpc) -> None:
+    sub = await rpc.call("subscribe", topics=["console"], machine="sim1")
+    other = await hostd.client()
+    try:
+        # Ids are small integers: a client that guesses one must not silence another's watch.
+        await fails(-32602, other.call("unsubscribe", subscription=sub["subscription"]))
+    finally:
+        await other.close()
+    await rpc.call("machine.send", machine="sim1", line="G0 X2")
+    await rpc.notification(lambda n: n["method"] == "console" and n["params"]["text"] == "G0 X2")
+    assert await rpc.call("unsubscribe", subscription=sub["subscription"]) == {}
+
+
 async def test_faults_are_listed(rpc: Rpc) -> None:
     faults = await rpc.call("fault.list", machine="sim1")
     assert len(faults) == 10 and not any(f["active"] for f in faults)
