@@ -201,3 +201,22 @@ async def timed_host(timed_sim: SimController) -> AsyncIterator[Host]:
     h = await Host.open(timed_sim.data_path)
     yield h
     await h.close()
+
+
+@contextlib.asynccontextmanager
+async def dual(
+    tmp_path: Path, config: SimConfig
+) -> AsyncIterator[tuple[SimController, Host, RawHost]]:
+    """A board on two ports: control opened first (it gets all output), then data."""
+    async with SimController(
+        str(tmp_path / "data"), control_path=str(tmp_path / "ctrl"), config=config
+    ) as sim:
+        assert sim.control_path is not None
+        control = await Host.open(sim.control_path)
+        data = RawHost(sim.data_path)
+        try:
+            await sim.wait_attached(port="data")
+            yield sim, control, data
+        finally:
+            data.close()
+            await control.close()

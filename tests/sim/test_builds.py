@@ -17,7 +17,7 @@ import pytest
 from hostd.protocol.states import MachineState
 from hostd.sim import SimConfig, SimController
 
-from .conftest import INSTANT, TIMED, Host, Message, RawHost, has_stat
+from .conftest import INSTANT, TIMED, Host, Message, dual, has_stat
 
 pytestmark = pytest.mark.asyncio
 
@@ -33,25 +33,6 @@ async def single(tmp_path: Path, config: SimConfig) -> AsyncIterator[tuple[SimCo
             yield sim, host
         finally:
             await host.close()
-
-
-@contextlib.asynccontextmanager
-async def dual(
-    tmp_path: Path, config: SimConfig
-) -> AsyncIterator[tuple[SimController, Host, RawHost]]:
-    """Control port opened first (it gets all output), then the data port."""
-    async with SimController(
-        str(tmp_path / "data"), control_path=str(tmp_path / "ctrl"), config=config
-    ) as sim:
-        assert sim.control_path is not None
-        control = await Host.open(sim.control_path)
-        data = RawHost(sim.data_path)
-        try:
-            await sim.wait_attached(port="data")
-            yield sim, control, data
-        finally:
-            data.close()
-            await control.close()
 
 
 def kills(messages: list[Message]) -> int:

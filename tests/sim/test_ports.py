@@ -14,7 +14,7 @@ import pytest
 from hostd.protocol.states import MachineState
 from hostd.sim import Received, SimConfig, SimController
 
-from .conftest import INSTANT, Host, RawHost, is_link
+from .conftest import INSTANT, Host, RawHost, dual, is_link
 
 pytestmark = pytest.mark.asyncio
 
@@ -69,29 +69,19 @@ async def test_a_tinyg_build_number_gives_a_tinyg_banner(tmp_path: Path) -> None
 
 
 async def test_dual_port_output_goes_only_to_the_port_opened_first(tmp_path: Path) -> None:
-    async with SimController(
-        str(tmp_path / "data"), control_path=str(tmp_path / "ctrl"), config=INSTANT
-    ) as sim:
-        assert sim.control_path is not None
-        control = await Host.open(sim.control_path)
-        data = RawHost(sim.data_path)
-        try:
-            await sim.wait_attached(port="data")
-            data.write(b"G0 X1\n{yvm:n}\n")
-            first = await control.response()
-            second = await control.response()
-            assert {first["f"][2], second["f"][2]} == {6, 9}  # both answered on control
-            assert (await control.ask(b"{xvm:n}\n"))["r"] == {"xvm": 6000}
-            assert data.pending() == b""  # the data port never receives anything
-            assert {s.port for s in sim.sent} == {"control"}
-            assert {(r.port, r.data) for r in sim.received} == {
-                ("data", b"G0 X1"),
-                ("data", b"{yvm:n}"),
-                ("control", b"{xvm:n}"),
-            }
-        finally:
-            data.close()
-            await control.close()
+    async with dual(tmp_path, INSTANT) as (sim, control, data):
+        data.write(b"G0 X1\n{yvm:n}\n")
+        first = await control.response()
+        second = await control.response()
+        assert {first["f"][2], second["f"][2]} == {6, 9}  # both answered on control
+        assert (await control.ask(b"{xvm:n}\n"))["r"] == {"xvm": 6000}
+        assert data.pending() == b""  # the data port never receives anything
+        assert {s.port for s in sim.sent} == {"control"}
+        assert {(r.port, r.data) for r in sim.received} == {
+            ("data", b"G0 X1"),
+            ("data", b"{yvm:n}"),
+            ("control", b"{xvm:n}"),
+        }
 
 
 async def test_roles_follow_open_order_not_port_names(tmp_path: Path) -> None:
