@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from tests.daemon.conftest import Rpc
-from tests.mqtt.conftest import Broker, bridged, decoded, program, watching
+from tests.mqtt.conftest import Bridged, Broker, bridged, decoded, program, watching
 
 pytestmark = pytest.mark.asyncio
 
@@ -34,6 +34,15 @@ async def acked(rpc: Rpc, job_id: int, at_least: int) -> dict[str, Any]:
     return job
 
 
+async def streaming(b: Bridged, at_least: int = 20) -> tuple[Rpc, int]:
+    """A client of the bridged daemon, and a long job it started that is under way."""
+    rpc = await b.running.client()
+    await b.running.idle(rpc)
+    job_id = await start_job(rpc, 20_000)
+    await acked(rpc, job_id, at_least)
+    return rpc, job_id
+
+
 async def ended(rpc: Rpc, job_id: int) -> dict[str, Any]:
     note = await rpc.notification(
         lambda n: (
@@ -53,10 +62,7 @@ async def test_status_and_job_are_retained_while_a_job_runs_and_at_its_end(
     tmp_path: Path, broker: Broker
 ) -> None:
     async with bridged(tmp_path, broker) as b:
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        job_id = await start_job(rpc, 20_000)
-        await acked(rpc, job_id, 50)
+        rpc, job_id = await streaming(b, 50)
         # A subscriber arriving mid-job is told the state at once, by retained messages.
         async with watching(broker, "test/h1/#") as late:
             kept = await late.retained(*(f"test/h1/{t}" for t in RETAINED))
@@ -116,10 +122,7 @@ async def test_a_broker_restart_mid_job_leaves_the_job_alone_and_state_is_republ
 
 async def test_commands_are_refused_when_off(tmp_path: Path, broker: Broker) -> None:
     async with bridged(tmp_path, broker) as b:
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        job_id = await start_job(rpc, 20_000)
-        await acked(rpc, job_id, 20)
+        rpc, job_id = await streaming(b)
         async with watching(broker, "test/h1/online") as caller:
             answer = await caller.request("test/h1/sim1/cmd/job.cancel", {})
         assert answer["error"]["code"] == -32601
@@ -134,10 +137,7 @@ async def test_allowed_commands_run_when_on_and_others_are_refused(
     tmp_path: Path, broker: Broker
 ) -> None:
     async with bridged(tmp_path, broker, commands=True) as b:
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        job_id = await start_job(rpc, 20_000)
-        await acked(rpc, job_id, 20)
+        rpc, job_id = await streaming(b)
         async with watching(broker, "test/h1/online") as caller:
             refused = await caller.request("test/h1/sim1/cmd/machine.reset", {}, b"r1")
             assert refused["error"]["code"] == -32601

@@ -16,7 +16,7 @@ from structlog.testing import capture_logs
 
 from tests.daemon.conftest import Rpc
 from tests.mqtt.conftest import WAIT, Broker, Watcher, bridged, decoded, watching
-from tests.mqtt.test_bridge import acked, start_job
+from tests.mqtt.test_bridge import acked, start_job, streaming
 
 pytestmark = pytest.mark.asyncio
 
@@ -119,10 +119,7 @@ async def test_a_bad_response_topic_is_refused_on_the_errors_topic_and_the_bridg
     tmp_path: Path, broker: Broker, commands: bool
 ) -> None:
     async with bridged(tmp_path, broker, commands=commands) as b:
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        job_id = await start_job(rpc, 20_000)
-        await acked(rpc, job_id, 20)
+        rpc, job_id = await streaming(b)
         async with watching(broker, "test/h1/#") as caller:
             cancel = "test/h1/sim1/cmd/job.cancel"
             for reply_to in (
@@ -158,10 +155,7 @@ async def test_an_oversized_payload_is_refused_unread_or_never_sent_by_the_broke
 ) -> None:
     with logs() as captured:
         async with bridged(tmp_path, broker, commands=True, max_payload=4096) as b:
-            rpc = await b.running.client()
-            await b.running.idle(rpc)
-            job_id = await start_job(rpc, 20_000)
-            await acked(rpc, job_id, 20)
+            rpc, job_id = await streaming(b)
             async with watching(broker, "test/h1/online") as caller:
                 cancel = "test/h1/sim1/cmd/job.cancel"
                 over = b'{"x": "' + b"a" * 5000 + b'"}'
@@ -220,10 +214,7 @@ async def replies_to(caller: Watcher, topic: str, n: int) -> dict[bytes, Any]:
 
 async def test_the_bridge_survives_any_message(tmp_path: Path, broker: Broker) -> None:
     async with bridged(tmp_path, broker, commands=True) as b:
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        job_id = await start_job(rpc, 20_000)
-        await acked(rpc, job_id, 20)
+        rpc, job_id = await streaming(b)
         async with watching(broker, "test/h1/online") as caller:
             cancel = "test/h1/sim1/cmd/job.cancel"
             for n, payload in enumerate(
