@@ -5,4 +5,6 @@ from __future__ import annotations
 
 import os
 
+from tests.mqtt.conftest import broker  # noqa: F401  (the MQTT tests' real mosquitto)
+
 collect_ignore_glob = [] if os.environ.get("HOSTD_SERVICE_TEST") == "1" else ["test_*.py"]

@@ -16,12 +16,11 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import aiohttp
 import pytest
-import pytest_asyncio
 
 from tests.mqtt.conftest import Broker, free_port, watching
 
@@ -166,18 +165,6 @@ def booted(tmp_path: Path) -> Iterator[Container]:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-
-
-@pytest_asyncio.fixture
-async def broker(tmp_path: Path) -> AsyncIterator[Broker]:
-    directory = tmp_path / "broker"
-    directory.mkdir()
-    running = Broker(directory)
-    await running.start()
-    try:
-        yield running
-    finally:
-        await running.stop()
 
 
 async def test_the_unit_runs_hostd_with_web_and_mqtt_under_systemd(
