@@ -102,11 +102,7 @@ ACTIONS: Final = {
 
 async def action(c: Client, args: argparse.Namespace, out: Output) -> int:
     method, done = ACTIONS[args.command]
-    result = await c.call(method, machine=args.machine)
-    if out.json:
-        out.print_json(result)
-    else:
-        out.out.print(f"{args.machine}: {done}", markup=False, highlight=False)
+    out.result(await c.call(method, machine=args.machine), f"{args.machine}: {done}")
     return OK
 
 
@@ -390,11 +386,7 @@ async def home(c: Client, args: argparse.Namespace, out: Output) -> int:
     if args.axes is not None:
         params["axes"] = axis_letters(args.axes)
     out.message(f"{args.machine}: homing ...")
-    result = await c.call("machine.home", **params)
-    if out.json:
-        out.print_json(result)
-    else:
-        out.out.print(f"{args.machine}: homed", markup=False, highlight=False)
+    out.result(await c.call("machine.home", **params), f"{args.machine}: homed")
     return OK
 
 
@@ -441,9 +433,6 @@ async def spindle(c: Client, args: argparse.Namespace, out: Output) -> int:
     if args.speed is not None:
         params["speed"] = args.speed
     result = await c.call("machine.spindle", **params)
-    if out.json:
-        out.print_json(result)
-    else:
-        speed = "" if args.speed is None else f" at {args.speed:g}"
-        out.out.print(f"{args.machine}: spindle {state}{speed}", markup=False, highlight=False)
+    speed = "" if args.speed is None else f" at {args.speed:g}"
+    out.result(result, f"{args.machine}: spindle {state}{speed}")
     return OK

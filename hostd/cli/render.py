@@ -36,6 +36,13 @@ class Output:
         """One compact JSON document per line: what scripts parse."""
         self.out.print(json_line(value), markup=False, highlight=False, soft_wrap=True)
 
+    def result(self, value: Any, text: str) -> None:
+        """A command's result: the JSON with `--json`, else one line saying what happened."""
+        if self.json:
+            self.print_json(value)
+        else:
+            self.out.print(text, markup=False, highlight=False)
+
     def message(self, text: str) -> None:
         """A line for the user that is not the result (progress notes, confirmations)."""
         self.err.print(text, markup=False, highlight=False, soft_wrap=True)
