@@ -53,6 +53,7 @@ from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
+from hostd.protocol.messages import Response
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.vocabulary import StreamEnd
@@ -452,6 +453,41 @@ class Machine:
             self._log.warning("could not restore G90 after a jog: the board stayed in a hold")
         except MachineError as exc:
             self._log.warning("could not restore G90 after a jog", error=exc.message)
+
+    # -- commands the API gives: the machine is the only way down ------------
+
+    @property
+    def console(self) -> bool:
+        """Whether the engine publishes every line sent and received (someone listens)."""
+        return self.engine.console
+
+    @console.setter
+    def console(self, listening: bool) -> None:
+        self.engine.console = listening
+
+    async def send(self, line: str, timeout: float = 10.0) -> Response:
+        """One line, through the same admission as any other; its answer."""
+        return await self.engine.send(line, timeout=timeout)
+
+    def realtime(self, command: Realtime) -> None:
+        """A realtime command: written ahead of every queued line."""
+        self.engine.realtime(command)
+
+    async def clear(self) -> None:
+        """End a lockout the way the controller allows (the dialect's clear)."""
+        await self.engine.clear()
+
+    async def alarm(self) -> None:
+        """Raise the controller's alarm (refused where the dialect has none)."""
+        await self.engine.alarm()
+
+    async def shutdown(self) -> None:
+        """The controller's shutdown (refused where the dialect has none)."""
+        await self.engine.shutdown()
+
+    def safety_door(self) -> None:
+        """The safety-door realtime command, where the dialect has one."""
+        self.engine.safety_door()
 
     # -- pause, resume, cancel ---------------------------------------------
 

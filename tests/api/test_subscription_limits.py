@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from hostd.api import methods
+from hostd.api.methods import subscriptions
 from hostd.api.rpc import encode_notification
 from tests.daemon.conftest import RpcFailure
 from tests.web.conftest import running_web
@@ -83,7 +84,7 @@ async def test_a_notification_is_encoded_once_and_every_subscriber_gets_the_same
             encoded.append(line)
         return line
 
-    monkeypatch.setattr(methods, "encode_notification", counting)
+    monkeypatch.setattr(subscriptions, "encode_notification", counting)
     async with running_web(tmp_path) as web:
         rpc = await web.hostd.client()
         await web.hostd.idle(rpc)

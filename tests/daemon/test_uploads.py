@@ -331,11 +331,12 @@ async def test_an_abandoned_upload_expires_and_its_id_is_then_unknown(
 
 async def test_api_md_chunks_without_a_connection_are_refused(hostd: Running) -> None:
     """A request no connection made (an MQTT command) has no upload of its own to continue."""
-    api = hostd.api
-    await api.file_upload(UploadParams(name="m.gcode", data="G0 X1\n"))
+    assert hostd.api.methods is not None
+    upload = hostd.api.methods["file.upload"].handler  # called as MQTT calls it: no client
+    await upload(UploadParams(name="m.gcode", data="G0 X1\n"))
 
     with pytest.raises(RpcError) as refused:
-        await api.file_upload(UploadParams(name="m.gcode", data="G0 X2\n", append=True))
+        await upload(UploadParams(name="m.gcode", data="G0 X2\n", append=True))
 
     assert refused.value.code == -32602 and "without a connection" in refused.value.message
     assert (hostd.jobs / "m.gcode").read_bytes() == b"G0 X1\n"

@@ -1,0 +1,216 @@
+"""Who gets which notification: topics per client, fanned out without blocking.
+
+`publish` turns a machine's events into api.md's notifications; a
+`Subscriptions` table says which clients want them. `subscribe` and
+`unsubscribe` are the methods that change it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import Field
+
+from hostd.api.methods.params import Id, MachineId, Params
+from hostd.api.rpc import Methods, RpcError, encode_notification
+from hostd.api.server import current_client
+from hostd.machine.events import (
+    Console,
+    Event,
+    ExceptionRaised,
+    FaultChanged,
+    JobChanged,
+    ProbeReported,
+    StatusChanged,
+    SupervisorChanged,
+)
+from hostd.machine.machine import Machine
+
+if TYPE_CHECKING:
+    from hostd.api.methods.base import Api
+
+TOPICS = ("status", "exception", "supervisor", "fault", "job", "console", "probe")
+Topic = Literal["status", "exception", "supervisor", "fault", "job", "console", "probe"]
+
+
+class SubscribeParams(Params):
+    topics: Annotated[list[Topic], Field(min_length=1)]
+    machine: MachineId | None = None
+
+
+class UnsubscribeParams(Params):
+    subscription: Id
+
+
+Send = Callable[[bytes], object]
+
+
+@dataclass(frozen=True, slots=True)
+class _Subscription:
+    owner: object  # the client: one notification per client, however many subscriptions match
+    send: Send  # the client's send_line: takes an encoded message
+    topics: frozenset[str]
+    machine: str | None
+
+
+# Subscriptions one client may hold, and all clients together (docs/api.md): a tab that
+# subscribes in a loop must not make every notification cost a walk over thousands.
+MAX_SUBSCRIPTIONS_PER_CLIENT = 32
+MAX_SUBSCRIPTIONS = 4096
+
+
+SUBSCRIPTIONS_FULL = -32000  # the server's range: as a daemon full of clients
+
+
+class Subscriptions:
+    """Which client wants which topics of which machine; fan-out never blocks.
+
+    A notification is encoded once, however many clients get it, and not at
+    all when nobody wants it; the same bytes go to every subscriber's queue.
+    `wants` is a dictionary look-up, since it is asked for every status report
+    of every machine. Bounded: `max_per_client` per owner, `max_total` in all.
+    """
+
+    def __init__(
+        self,
+        on_change: Callable[[], None] | None = None,
+        *,
+        max_per_client: int = MAX_SUBSCRIPTIONS_PER_CLIENT,
+        max_total: int = MAX_SUBSCRIPTIONS,
+    ) -> None:
+        self._next = 1
+        self._subs: dict[int, _Subscription] = {}
+        self._interest: Counter[tuple[str, str | None]] = Counter()
+        self._owned: Counter[int] = Counter()  # id(owner) -> subscriptions it holds
+        self._on_change = on_change
+        self.max_per_client = max_per_client
+        self.max_total = max_total
+
+    def __len__(self) -> int:
+        return len(self._subs)
+
+    def add(self, owner: object, send: Send, topics: list[str], machine: str | None) -> int:
+        """A new subscription's id. Raises RpcError(-32000) past either bound."""
+        if self._owned[id(owner)] >= self.max_per_client:
+            why = f"subscription limit: {self.max_per_client} per client; unsubscribe first"
+            raise RpcError(SUBSCRIPTIONS_FULL, why)
+        if len(self._subs) >= self.max_total:
+            raise RpcError(SUBSCRIPTIONS_FULL, f"subscription limit: {self.max_total} in all")
+        self._owned[id(owner)] += 1
+        sub_id = self._next
+        self._next += 1
+        sub = _Subscription(owner, send, frozenset(topics), machine)
+        self._subs[sub_id] = sub
+        self._interest.update((topic, machine) for topic in sub.topics)
+        self._changed()
+        return sub_id
+
+    def remove(self, sub_id: int, owner: object | None = None) -> bool:
+        """Ends a subscription; with `owner`, only one of that owner's (another's is not found)."""
+        sub = self._subs.get(sub_id)
+        if sub is None or (owner is not None and sub.owner is not owner):
+            return False
+        del self._subs[sub_id]
+        self._owned[id(sub.owner)] -= 1
+        if self._owned[id(sub.owner)] <= 0:
+            del self._owned[id(sub.owner)]
+        self._interest.subtract((topic, sub.machine) for topic in sub.topics)
+        self._changed()
+        return True
+
+    def remove_all(self, owner: object) -> None:
+        for sub_id in [k for k, sub in self._subs.items() if sub.owner is owner]:
+            self.remove(sub_id)
+
+    def has(self, owner: object) -> bool:
+        return any(sub.owner is owner for sub in self._subs.values())
+
+    def wants(self, topic: str, machine: str) -> bool:
+        return self._interest[(topic, None)] > 0 or self._interest[(topic, machine)] > 0
+
+    def deliver(self, topic: str, machine: str, params: dict[str, Any]) -> None:
+        if not self.wants(topic, machine):
+            return
+        line = encode_notification(topic, params)
+        done: set[int] = set()
+        for sub in list(self._subs.values()):
+            if _matches(sub, topic, machine) and id(sub.owner) not in done:
+                done.add(id(sub.owner))
+                sub.send(line)
+
+    def _changed(self) -> None:
+        if self._on_change is not None:
+            self._on_change()
+
+
+def _matches(sub: _Subscription, topic: str, machine: str) -> bool:
+    return topic in sub.topics and sub.machine in (None, machine)
+
+
+def publish(subs: Subscriptions, machine: Machine, event: Event) -> None:
+    """One machine event as the notification of its topic, to whoever wants it."""
+    mid = machine.id
+    if isinstance(event, StatusChanged):
+        if subs.wants("status", mid):
+            snapshot = machine.snapshot()
+            subs.deliver(
+                "status", mid, {"machine": mid, "report": event.report, "snapshot": snapshot}
+            )
+    elif isinstance(event, ExceptionRaised):
+        subs.deliver("exception", mid, {"machine": mid, "report": event.report})
+    elif isinstance(event, ProbeReported):
+        subs.deliver("probe", mid, {"machine": mid, "report": event.report, "probe": event.probe})
+    elif isinstance(event, SupervisorChanged):
+        subs.deliver(
+            "supervisor",
+            mid,
+            {"machine": mid, "from": event.source, "to": event.target, "event": event.event},
+        )
+    elif isinstance(event, JobChanged):
+        subs.deliver("job", mid, {"machine": mid, "job": event.job})
+    elif isinstance(event, FaultChanged):
+        subs.deliver("fault", mid, {"machine": mid, "fault": event.fault})
+    elif isinstance(event, Console):
+        subs.deliver(
+            "console",
+            mid,
+            {
+                "machine": mid,
+                "direction": event.direction,
+                "channel": event.channel,
+                "text": event.text,
+            },
+        )
+
+
+class SubscriptionMethods:
+    def __init__(self, api: Api) -> None:
+        self.api = api
+
+    async def subscribe_client(self, p: SubscribeParams) -> dict[str, Any]:
+        """Topics for the calling client, delivered through its bounded queue until it leaves."""
+        if p.machine is not None:
+            self.api.machine(p.machine)
+        client = current_client()
+        if not self.api.subscriptions.has(client):
+            client.on_disconnect.append(partial(self.api.subscriptions.remove_all, client))
+        sub_id = self.api.subscriptions.add(client, client.send_line, list(p.topics), p.machine)
+        if client.closed:  # it left while this request ran: its hooks may have run already
+            self.api.subscriptions.remove_all(client)
+        return {"subscription": sub_id}
+
+    async def unsubscribe(self, p: UnsubscribeParams) -> dict[str, Any]:
+        # A client ends its own subscriptions only: another's id is as unknown as a bad one.
+        if not self.api.subscriptions.remove(p.subscription, owner=current_client()):
+            raise RpcError(-32602, f"no subscription {p.subscription}")
+        return {}
+
+
+def register(m: Methods, api: Api) -> None:
+    h = SubscriptionMethods(api)
+    m.register("subscribe", SubscribeParams, h.subscribe_client)
+    m.register("unsubscribe", UnsubscribeParams, h.unsubscribe)
