@@ -1,6 +1,6 @@
 """One machine's engine: the I/O shell around its dialect's session.
 
-The engine holds no protocol rule; the session (`hostd.protocol.g2core`)
+The engine holds no protocol rule; the session of the machine's dialect
 holds them all. The engine opens the link, feeds the session every line the
 board prints and every request a client makes, writes what the session says
 to write, runs the one timer the session asks for, and delivers the
