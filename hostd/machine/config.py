@@ -98,7 +98,10 @@ def _with_options(data: dict[str, Any]) -> type[MachineConfig] | None:
     if model is None:
         bases: tuple[type[MachineConfig], ...] = (MachineConfig, options)  # type: ignore[assignment]
         model = create_model(
-            f"MachineConfig_{options.__name__}", __base__=bases, __module__=__name__
+            f"MachineConfig_{options.__module__.replace('.', '_')}_{options.__name__}",
+            __base__=bases,
+            __module__=__name__,
         )
         _classes[options] = model
+        globals()[model.__name__] = model  # found by name, as pickle looks a class up
     return model

@@ -47,6 +47,7 @@ def test_the_dialects_own_config_keys_reach_its_session() -> None:
     session = grbl.spec.session(grbl)
     assert isinstance(session, GrblSession)
     assert (session.link_silence, session.startup_motion) == (3.0, True)
+    assert pickle.loads(pickle.dumps(grbl)) == grbl  # its class is found by name
 
 
 def test_a_name_no_dialect_registered_is_refused_naming_those_there_are() -> None:
