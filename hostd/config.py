@@ -65,6 +65,28 @@ class DaemonConfig(_Strict):
     analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
 
 
+class ToolSensor(_Strict):
+    """Where the fixed tool-length sensor is, in machine coordinates (mm)."""
+
+    x: Annotated[float, Field(allow_inf_nan=False)]
+    y: Annotated[float, Field(allow_inf_nan=False)]
+
+
+class ProbeConfig(_Strict):
+    """running.md's `[machines.probe]`: the touch plate, and the tool-length sensor.
+
+    The plate, feed, travel and retract are `machine.probe`'s defaults (a client's
+    params win); `tool_sensor` is where the `probe` tool-change policy measures a
+    new tool. All in mm and mm/min, whatever units the board is in.
+    """
+
+    plate: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] | None = None
+    feed: Annotated[float, Field(gt=0, le=5000, allow_inf_nan=False)] = 100.0
+    max_travel: Annotated[float, Field(gt=0, le=500, allow_inf_nan=False)] = 25.0
+    retract: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 2.0
+    tool_sensor: ToolSensor | None = None
+
+
 class MachineConfig(_Strict):
     id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
     dialect: Literal["g2core", "grbl"] = "g2core"
@@ -110,6 +132,8 @@ class MachineConfig(_Strict):
     # The tool is a laser: a resume moves with the beam off and turns it on, without a
     # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
     laser: bool = False
+    # The touch plate and the tool-length sensor (running.md `[machines.probe]`).
+    probe: ProbeConfig = ProbeConfig()
 
     @field_validator("baudrate")
     @classmethod
