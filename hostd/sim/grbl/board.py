@@ -424,6 +424,8 @@ class GrblBoard:
             return result
         if result.offsets_changed:
             self._report_flags.add("wco")
+            if not self.hal:  # classic: system_flag_wco_change (system.c): WCO next report
+                self._wco_counter = 0
         if self.state == "Check":
             return Error.OK  # parsed, nothing moves (the parser's position moved on)
         for move in result.moves:
