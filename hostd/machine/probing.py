@@ -9,7 +9,8 @@ so the session's command-class admission judges it), waiting for each answer:
    the plate to the bit) and then open again, within `wait` seconds. Where the
    board cannot show its input the operator's `confirmed` stands in for it.
    A short pause follows, for their hands to leave the plate.
-3. `G21 G91`, then `G38.2 Z-<max_travel> F<feed>`. The board's probe report
+3. `G21 G90`, then `G38.2 Z<max_travel below> F<feed>` (absolute targets, from the
+   position the board reports at rest before each move). The board's probe report
    (`{prb:..}`, `[PRB:..]`) says where it touched, in machine coordinates; the
    work position is then set with the session's `G10 L20` so that the touch
    point reads the plate's thickness (plus how far the board coasted past it).
@@ -19,7 +20,7 @@ so the session's command-class admission judges it), waiting for each answer:
    plate: the bit started too far in), into the wall with G38.2, zeroed for the
    wall, the plate's thickness and the bit's radius, back out and up, and over
    the plate again (`G53 G0` to where it started).
-5. The distance and units modes back as they were.
+5. G20 or G91 back, if either was in force.
 
 A probe that does not touch is the board's alarm (G38.2: g2core er 250, grbl
 ALARM:5): it stops where its travel ended. Nothing more is sent; the error
@@ -91,23 +92,27 @@ async def probe(
         start = dict(model.machine_position)
         position: dict[str, float] = {}
         zeroed: list[str] = []
-        await _send(machine, "G21 G91")
+        # Absolute targets, from the work position the board reports at rest before
+        # each move: a G91 left in force by a probe that ends in an alarm (nothing
+        # can be sent then to undo it) would turn the next G0 X0 into a move by 0.
+        await _send(machine, "G21 G90")
         # Z: onto the plate's top.
         position["z"] = await _touch(machine, "z", -max_travel, feed)
         await _zero(machine, "z", touch_value("z", plate, tool_diameter), position["z"])
         zeroed.append("z")
-        await _send(machine, f"G0 Z{number(retract)}")
+        await _move(machine, "z", retract)
         if kind == "xyz":
             for axis in ("x", "y"):
                 position[axis] = await _wall(machine, axis, plate, feed, max_travel, retract)
                 await _zero(machine, axis, touch_value(axis, plate, tool_diameter), position[axis])
                 zeroed.append(axis)
-                await _send(machine, f"G0 {axis.upper()}-{number(retract)}")
-                await _send(machine, f"G0 Z{number(retract + plate / 2)}")
-                if axis in start:  # G53: machine coordinates, whatever the distance mode
-                    await _send(machine, f"G90 G53 G0 {axis.upper()}{number(start[axis])}")
-                    await _send(machine, "G91")
-        await _send(machine, f"{'G20' if units == 'in' else 'G21'} {distance or 'G90'}")
+                await _move(machine, axis, -retract)
+                await _move(machine, "z", retract + plate / 2)
+                if axis in start:  # G53: machine coordinates
+                    await _send(machine, f"G53 G0 {axis.upper()}{number(start[axis])}")
+        restore = ("G20" if units == "in" else "") + (" G91" if distance == "G91" else "")
+        if restore:
+            await _send(machine, restore.strip())
         await _at_rest(machine)
         plog.info("probed", position=position, zeroed=zeroed)
         return {"position": position, "zeroed": zeroed}
@@ -188,13 +193,28 @@ async def _send(machine: Machine, line: str) -> None:
     await machine.engine.send(line, timeout=ANSWER_WAIT)
 
 
+async def _target(machine: Machine, axis: str, delta: float) -> float:
+    """The work position `delta` from where the tool rests now (mm: G21 is in force)."""
+    await _at_rest(machine)
+    now = machine.engine.model.position.get(axis)
+    if now is None:
+        raise ControllerError(0, f"{machine.id} did not report its {axis.upper()} position")
+    return now + delta
+
+
+async def _move(machine: Machine, axis: str, delta: float) -> None:
+    target = await _target(machine, axis, delta)
+    await _send(machine, f"G0 {axis.upper()}{number(target)}")
+
+
 async def _touch(machine: Machine, axis: str, distance: float, feed: float) -> float:
     """A G38.2 move; the machine position where it touched, once the board is at rest.
 
     ControllerError naming what happened when it did not touch (the board is in
     ALARM then, where its travel ended, and nothing more is sent).
     """
-    report = await _probe_move(machine, probe_line(axis, distance, feed), abs(distance), feed)
+    line = probe_line(axis, await _target(machine, axis, distance), feed)
+    report = await _probe_move(machine, line, abs(distance), feed)
     where = report["position"].get(axis)
     if not report["ok"] or where is None:
         raise _missed(machine, axis, distance, report)
@@ -207,9 +227,9 @@ async def _wall(
 ) -> float:
     """Off the plate, down beside it, into its wall: where the bit's side met it."""
     a = axis.upper()
-    await _send(machine, f"G0 {a}-{number(max_travel * CLEARANCE)}")
+    await _move(machine, axis, -max_travel * CLEARANCE)
     down = retract + plate / 2
-    line = probe_line("z", -down, feed, must_touch=False)
+    line = probe_line("z", await _target(machine, "z", -down), feed, must_touch=False)
     report = await _probe_move(machine, line, down, feed)
     if report["ok"]:
         raise ProbeRefused(

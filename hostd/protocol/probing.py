@@ -42,10 +42,10 @@ def number(value: float) -> str:
     return "0" if text in ("", "-0") else text
 
 
-def probe_line(axis: str, distance: float, feed: float, *, must_touch: bool = True) -> str:
-    """G38.2 (an alarm when it misses: the board's own stop) or G38.3 (no alarm), relative."""
+def probe_line(axis: str, target: float, feed: float, *, must_touch: bool = True) -> str:
+    """G38.2 (an alarm when it misses: the board's own stop) or G38.3 (no alarm)."""
     code = "G38.2" if must_touch else "G38.3"
-    return f"{code} {axis.upper()}{number(distance)} F{number(feed)}"
+    return f"{code} {axis.upper()}{number(target)} F{number(feed)}"
 
 
 def touch_value(axis: str, plate: float, tool_diameter: float) -> float:

@@ -89,9 +89,21 @@ async def test_a_z_probe_sets_work_z_to_the_plate_thickness_at_the_touch(
     assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
     assert snap["probe"]["ok"] is True
     assert b"G38.2 Z-10 F600" in lines_sent(hostd, machine)
-    # The distance mode is absolute again, as it was: a job's G0 X0 goes to zero.
-    gcode = [line for line in lines_sent(hostd, machine) if line[:1] == b"G"]
-    assert gcode[-1] == b"G21 G90"
+    # Absolute moves only: no G91 is ever left in force (a job's G0 X0 goes to zero).
+    assert b"G21 G90" in lines_sent(hostd, machine)
+    assert not any(b"G91" in line for line in lines_sent(hostd, machine))
+
+
+async def test_a_board_in_g91_is_back_in_g91_after_the_probe(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
+    await rpc.call("machine.send", machine=G2, line="G91")
+    touch(hostd, G2)
+    await rpc.call("machine.probe", machine=G2, kind="z", plate=PLATE, **FAST)
+    assert [line for line in lines_sent(hostd, G2) if line[:1] == b"G"][-1] == b"G91"
+    snap = await rpc.call("machine.status", machine=G2)
+    assert snap["distance"] == "G91"
+    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
 
 
 @pytest.mark.parametrize("machine", MACHINES)
