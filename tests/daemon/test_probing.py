@@ -146,6 +146,23 @@ async def test_a_probe_is_refused_when_the_input_was_never_seen_working(
 
 
 @pytest.mark.parametrize("machine", MACHINES)
+async def test_a_probe_input_that_stays_closed_is_refused(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    hostd, rpc = both
+    sim = sim_of(hostd, machine)
+    if isinstance(sim, GrblSimController):
+        sim.probe(True)  # the clip on the plate, or a shorted wire
+    else:
+        sim.set_input(5, 1)  # prbin's input
+    err = await fails(
+        1003, rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, wait=0.5, **FAST)
+    )
+    assert "never opened again" in err.message
+    assert moves_sent(hostd, machine) == []
+
+
+@pytest.mark.parametrize("machine", MACHINES)
 async def test_a_probe_that_does_not_touch_fails_clearly_and_stays_where_the_board_stopped(
     both: tuple[Running, Rpc], machine: str
 ) -> None:
