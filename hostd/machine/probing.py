@@ -88,6 +88,7 @@ async def probe(
         await asyncio.sleep(SETTLE)
         if machine.supervisor.state is not SupState.IDLE or session.locked():
             raise Busy(f"{machine.id} is busy now: nothing was moved")
+        await _at_rest(machine)  # a fresh report: the modes and where the tool is now
         units, distance = model.units, model.modal.get("distance")
         start = dict(model.machine_position)
         position: dict[str, float] = {}
