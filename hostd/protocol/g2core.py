@@ -52,7 +52,9 @@ import structlog
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
+    InvalidCommand,
     Realtime,
+    Refusal,
     encode_clear,
     encode_get,
     encode_in_hold,
@@ -91,6 +93,7 @@ from hostd.protocol.messages import (
     Unparseable,
 )
 from hostd.protocol.parser import parse_line, plain_ok_count
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import SessionBase
@@ -979,6 +982,40 @@ class G2Session(SessionBase):
 
     def shutdown_line(self) -> str:
         return "{shutd:n}"
+
+    def probe_input_reads(self) -> list[str]:
+        """`{"prbin":null}`: the digital input G38.x reads (canonical_machine.cpp
+        `prb_config_items_1`, cm_get_probe_input)."""
+        return [json.dumps({"prbin": None})]
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`in<prbin>` (config_app.cpp's `in1`..: din_get_input), read by a GET.
+
+        prbin 0 is no input: gpio_read_input(0) reads false (gpio.cpp), so a G38.2
+        could never trip and ends in an alarm at the end of its travel.
+        """
+        n = next((b["prbin"] for b in bodies if "prbin" in b), None)
+        if not isinstance(n, int | float) or isinstance(n, bool) or int(n) < 1:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"{self.id} has no probe input configured (prbin is {n}): set prbin to the"
+                " digital input the plate is wired to",
+            )
+        key = f"in{int(n)}"
+        return ProbeInput(key, json.dumps({key: None}))
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """P1..P6 for G54..G59: cm_set_g10_data refuses P0 (STAT_P_WORD_IS_INVALID,
+        canonical_machine.cpp), so the active WCS must be known from `coor`."""
+        wcs = self.model.modal.get("wcs")
+        p = _OFFSET_GROUPS.index(wcs.lower()) + 1 if wcs and wcs.lower() in _OFFSET_GROUPS else 0
+        if not p:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P{p} {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         return [json.dumps({key: None}) for key in keys]

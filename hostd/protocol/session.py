@@ -25,6 +25,7 @@ from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
+from hostd.protocol.probing import ProbeInput
 from hostd.protocol.states import MachineState
 from hostd.protocol.vocabulary import (
     Closing,
@@ -320,6 +321,24 @@ class SessionBase:
 
     def board_offsets(self, bodies: list[JsonObject]) -> Board:
         """What the answers to `offset_reads` say, in mm (a resume plans from it)."""
+        raise NotImplementedError
+
+    def probe_input_reads(self) -> list[str]:
+        """The queries that say which input the probe is ([] where the reports show it)."""
+        raise NotImplementedError
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """How the probe input is seen, from the answers to `probe_input_reads`.
+
+        InvalidCommand where the board has no probe input a G38 could trip on.
+        """
+        raise NotImplementedError
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P<n>`: the current position reads `values` in the active WCS.
+
+        InvalidCommand where the active WCS cannot be named to the board.
+        """
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------

@@ -82,6 +82,7 @@ from hostd.protocol.linemode import InFlight
 from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
 from hostd.protocol.session import SessionBase
 from hostd.protocol.states import MachineState
@@ -291,6 +292,21 @@ class GrblSession(SessionBase):
     # No alarm_line or shutdown_line: neither grbl 1.1 (system.c system_execute_line)
     # nor grblHAL (system.c sys_commands) has a command that raises an alarm, and
     # `$SLP` is a maintenance command (maintenance.py), so SessionBase refuses both.
+
+    def probe_input_reads(self) -> list[str]:
+        return []  # every status report shows it
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`Pn:P` in every status report while the probe pin reads closed (gnea/grbl
+        report.c report_realtime_status: probe_get_state(); grblHAL report.c the same),
+        read into the report's `pin_p` (report.py)."""
+        return ProbeInput("pin_p")
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P0`: P0 is the active coordinate system (gnea/grbl gcode.c, "Index P0
+        as the active coordinate system"), so no report of it is needed."""
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P0 {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
