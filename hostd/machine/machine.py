@@ -33,7 +33,7 @@ import structlog
 from hostd.config import MachineConfig
 from hostd.machine.engine import Engine
 from hostd.machine.events import (
-    Event,
+    EngineEvent,
     FaultChanged,
     FaultDetected,
     Hub,
@@ -89,7 +89,7 @@ class Machine:
         self.store = store
         self.jobs_dir = jobs_dir
         self.hub = hub or Hub()
-        self.engine = Engine(config, self.hub)
+        self.engine = Engine(config, self._on_engine)
         self.supervisor = Supervisor(self._on_transition)
         self.job: Job | None = None  # the current or last operation's row
         self._stream: JobStream | None = None
@@ -100,7 +100,6 @@ class Machine:
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
         self._jog_restore: str | None = None
-        self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
 
     # -- lifecycle ---------------------------------------------------------
@@ -126,7 +125,17 @@ class Machine:
 
     # -- the supervisor follows the engine --------------------------------
 
-    def _on_event(self, event: Event) -> None:
+    def _on_engine(self, event: EngineEvent) -> None:
+        """The engine's one way up. A fact is published before what it causes: a status
+        report before the supervisor change and the faults it brings (clients read them
+        in that order). A fault the engine detected is the fault table's to decide."""
+        if isinstance(event, FaultDetected):
+            now_ = time.time()
+            self._fault_changed(
+                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
+            )
+            return
+        self.hub.publish(event)
         if isinstance(event, LinkChanged):
             if event.up and self.supervisor.can(SupEvent.CONNECT):
                 self.supervisor.fire(SupEvent.CONNECT)
@@ -137,11 +146,6 @@ class Machine:
         elif isinstance(event, StatusChanged):
             self._on_signals(event.report)
             self._settle()
-        elif isinstance(event, FaultDetected):
-            now_ = time.time()
-            self._fault_changed(
-                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
-            )
 
     def _settle(self) -> None:
         """Busy against idle, from what the board says and what the host has queued."""
@@ -320,8 +324,7 @@ class Machine:
         preamble: list[str] | None = None,
     ) -> Job:
         job = await self._begin(kind, file, total, start_line=start_line, preamble=preamble)
-        encode = self.engine.session.encode_job_line
-        stream = JobStream(lines, job.id, encode, numbered=kind == "make")
+        stream = JobStream(lines, job.id, numbered=kind == "make")
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:

@@ -14,7 +14,7 @@ import pytest
 
 from hostd.link import Channel, Link
 from hostd.machine.engine import Engine, LinkState
-from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
+from hostd.machine.events import Console, ExceptionRaised, FaultDetected, LinkChanged
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
@@ -377,9 +377,8 @@ async def test_unplug_mid_job_interrupts_it_with_exact_counts(rig: Rig) -> None:
 async def test_a_silent_board_is_declared_lost(tmp_path: Path) -> None:
     path = str(tmp_path / "ttyG2")
     async with SimController(path, config=FAST) as sim:
-        hub, recorder = Hub(), Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path, heartbeat=0.2), hub)
+        recorder = Recorder()
+        engine = Engine(machine_config(path, heartbeat=0.2), recorder)
         async with running(engine):
             await engine.connect()
             sim.go_silent(True)
@@ -547,10 +546,8 @@ async def test_startup_messages_are_no_answers(tmp_path: Path) -> None:
     # report.cpp `_startup_helper`: status 15, printed on a UART link at boot.
     path = str(tmp_path / "ttyS")
     async with SimController(path, config=dataclasses.replace(FAST, uart=True)) as sim:
-        hub = Hub()
         recorder = Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path), hub)
+        engine = Engine(machine_config(path), recorder)
         async with running(engine):
             await engine.connect()
             await engine.reset()  # it boots, and prints them where the host reads
