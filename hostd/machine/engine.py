@@ -177,6 +177,7 @@ class Engine:
             await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
         finally:
             ready.cancel()
+            await asyncio.wait({ready})  # it ends here, not after its asker (never re-raises)
         if not self.ready:
             reason = failed.result() if failed.done() else "not connected"
             raise NotConnected(f"{self.id}: {reason}")
