@@ -27,6 +27,7 @@ from hostd.protocol.vocabulary import (
     Ready,
     Reported,
     StreamEnd,
+    StreamEnded,
 )
 from tests.protocol.g2wire import BANNER, BUILDS, JOB_KILLERS, Wire
 
@@ -499,6 +500,45 @@ def test_a_long_job_streams_in_plain_calls(fb: float) -> None:
         if not wire.answer_all():
             wire.report(stat=4)
     assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
+
+
+def test_a_job_fed_a_few_lines_at_a_time_writes_only_what_it_was_fed(fb: float) -> None:
+    """The caller owns the file: the session writes the lines it was given, says when it
+    has room and nothing ahead (`starved`), and tells the end once, as an event."""
+    wire = ready(fb=fb, window=4)
+    stream = Stream(job_id=7)
+    stream.feed(1, "G1 X1 F100")
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert wire.lines(Lane.DATA) == [b"G1 X1 F100\n"]
+    assert stream.starved and stream.wanted() > 0  # room for three more, none fed
+    for number in (2, 3, 4, 5, 6):
+        stream.feed(number, f"G1 X{number}")
+    wire.pump()
+    assert len(wire.lines(Lane.DATA)) == 4 and not stream.starved  # the window, no more
+    wire.answer_all()  # each answer frees a slot: lines 5 and 6 follow, and are answered
+    wire.report(stat=4)
+    assert (stream.sent, stream.acked) == (6, 6)
+    assert not wire.of(StreamEnded)  # all answered, the board at rest, but the file goes on
+    stream.end_of_input()
+    wire.pump()
+    wire.answer_all()  # the status query that finds the board at rest
+    assert wire.of(StreamEnded) == [StreamEnded(7, stream.result)]
+    assert stream.result is not None and stream.result.end is StreamEnd.COMPLETED
+    wire.report(stat=4)
+    assert len(wire.of(StreamEnded)) == 1  # told once
+
+
+def test_a_line_never_to_send_fails_the_job_when_its_turn_comes(fb: float) -> None:
+    wire = ready(fb=fb, window=4)
+    stream = job("G1 X1 F100", "G1 X2 " + "X" * 600, "G1 X3")
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert wire.lines(Lane.DATA) == [b"G1 X1 F100\n"]  # the line before it still goes
+    (ended,) = wire.of(StreamEnded)
+    assert ended.result.end is StreamEnd.FAILED and ended.result.code == -32602
+    assert ended.result.message is not None and ended.result.message.startswith("line 2:")
+    assert stream.sent == 1
 
 
 @pytest.mark.parametrize("fb", BUILDS)
