@@ -301,8 +301,9 @@ class Engine:
     def _deliver(self) -> None:
         """Write what the session says, then hand out its events, until it has nothing more.
 
-        A subscriber's call back into the engine (a fault stopping a job) only
-        adds to the session's output; this loop writes it.
+        A command the Machine gives while it hears the events (a fault stopping
+        a job) waits until they are all handed out; this loop then runs it and
+        writes what it adds. After each pass the running job is fed from its file.
         """
         if self._delivering:
             return

@@ -14,10 +14,17 @@ import pytest
 
 from hostd.link import Channel, Link
 from hostd.machine.engine import Engine, LinkState
-from hostd.machine.events import Console, ExceptionRaised, FaultDetected, LinkChanged
+from hostd.machine.events import (
+    Console,
+    ExceptionRaised,
+    FaultDetected,
+    LinkChanged,
+    StatusChanged,
+)
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim import SimConfig, SimController
@@ -554,3 +561,34 @@ async def test_startup_messages_are_no_answers(tmp_path: Path) -> None:
             assert any(b"Loading configs from EEPROM" in s.data for s in sim.sent)
             assert (await engine.send("{xvm:n}")).body == {"xvm": 6000}
     assert not [e for e in recorder.events if isinstance(e, FaultDetected)]
+
+
+async def test_a_stop_given_while_an_event_is_told_runs_once_the_step_is_delivered(
+    tmp_path: Path,
+) -> None:
+    """The Machine stops a job from inside the engine's callback (a fault): the call does
+    not reach into the session there, it runs once the step's events are handed out,
+    in the same delivery, and what it writes goes out then."""
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=FAST) as sim:
+        live_when_asked: list[bool] = []
+        engine: Engine
+
+        def on_event(event: object) -> None:
+            stream = engine.session.stream
+            running = isinstance(event, StatusChanged) and event.report.get("stat") == S.RUN
+            if running and stream is not None and not live_when_asked:
+                engine.stop_stream(1007, "fault active: lid_open")
+                live_when_asked.append(not stream.done)
+
+        engine = Engine(machine_config(path), on_event)
+        async with running(engine):
+            await engine.connect()
+            stream = JobStream(program_lines(moves(200)))
+            engine.start_stream(stream)
+            async with asyncio.timeout(10):
+                result = await stream.result
+            # The stop was not run inside the callback: the job was still live there.
+            assert live_when_asked == [True]
+            assert (result.end, result.code) == (StreamEnd.FAILED, 1007)
+            await sim.wait_for(lambda: any(r.data == b"!" for r in sim.received))
