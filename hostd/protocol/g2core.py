@@ -100,11 +100,11 @@ from hostd.protocol.session import SessionBase
 from hostd.protocol.settings import set_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Probed,
@@ -359,22 +359,23 @@ class G2Session(SessionBase):
             # cycle_homing.cpp answers the G28.2 itself with 0 and reports its failure
             # apart; the board would run the moves after it from an unknown position.
             what = f"controller reported {response.status}: {msg or message(response.status)}"
-            stream.finish(StreamEnd.FAILED, ControllerError.code, what)
+            self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
             self._write_realtime(Realtime.JOB_KILL)
         self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
 
-    def _fail_job_line(self, stream: LineSource, entry: InFlight, what: str) -> None:
+    def _fail_job_line(self, stream: Stream, entry: InFlight, what: str) -> None:
         """A job line went wrong on the board: the job fails, and what follows it must not run."""
         if stream.done:
             return
-        stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
+        what = f"line {entry.file_line}: {what}"
+        self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
         self._write_realtime(Realtime.JOB_KILL)
 
-    def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
+    def _job_line_ok(self, stream: Stream, entry: InFlight) -> None:
         stream.acknowledged(entry.file_line)
         self._check_stream_complete()
 
-    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+    def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:
             self._job_line_ok(stream, entry)
             return
@@ -389,9 +390,10 @@ class G2Session(SessionBase):
             return  # already ended (an alarm, a cancel): this answer is accounted, no more
         text = message(status)
         if status in _LOCKOUT_REJECTIONS:
-            stream.finish(StreamEnd.FAILED, status, text)
+            self._end_stream(stream, StreamEnd.FAILED, status, text)
         else:
-            stream.finish(
+            self._end_stream(
+                stream,
                 StreamEnd.FAILED,
                 ControllerError.code,
                 f"line {entry.file_line}: controller answered {status}: {text}",
@@ -586,8 +588,7 @@ class G2Session(SessionBase):
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
             and not self.model.hold  # a hold at rest (101.05+) is no starving either
-            and (waiting := stream.peek()) is not None  # lines still on the host
-            and not waiting.control  # a `{`-line waits for the lines before it, on purpose
+            and stream.lines_on_host()  # but a `{`-line, which waits on purpose
         ):
             # The board ran out of moves while the job still had lines on the host:
             # reported with the file line it stopped after (behaviour.md, faults).
@@ -779,8 +780,8 @@ class G2Session(SessionBase):
             # Before 101.02 ^D is an ALARM and flushes nothing: every line in flight is
             # read and answered 204, and those answers settle it (g2builds.py).
             self._kill_alarm = True
-            if self.stream is not None and not self.stream.done:
-                self.stream.finish(StreamEnd.CANCELLED, None, "job killed")
+            if self.stream is not None:
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, "job killed")
             return
         if command is Realtime.JOB_KILL:
             self._kills_unseen += 1
@@ -812,7 +813,7 @@ class G2Session(SessionBase):
         self._flush_deadline = self.clock() + FLUSH_CONFIRM_TIMEOUT
         if self.stream is not None and not self.stream.done:
             reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
-            self.stream.finish(StreamEnd.CANCELLED, None, reason)
+            self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
 
     def _confirm_flush(self, *, kill_seen: bool = False) -> None:
         """The board shows the flush happened: the data lines it held are dropped from the books.
