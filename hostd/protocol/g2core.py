@@ -52,7 +52,9 @@ import structlog
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
+    InvalidCommand,
     Realtime,
+    Refusal,
     encode_clear,
     encode_get,
     encode_in_hold,
@@ -68,7 +70,7 @@ from hostd.protocol.errors import (
     NotConnected,
     Rejected,
 )
-from hostd.protocol.g2builds import NEWEST, Build
+from hostd.protocol.g2builds import NEWEST, OVERRIDE_RANGES, Build
 from hostd.protocol.g2handshake import (
     BANNER_WAIT,
     OLDEST_BUILD,
@@ -159,6 +161,7 @@ class _Own(OwnLine, Enum):
     QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
     REAPPLY = auto()  # a setting sent again once a lockout ended
     CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
+    OVERRIDES = auto()  # the override factors, read or written (g2builds.py override_keys)
 
 
 class G2Session(SessionBase):
@@ -571,6 +574,10 @@ class G2Session(SessionBase):
         self._job_log().info("controller state", state=state.name)
         if before is MachineState.HOMING:
             self._ask_own(encode_get("home"), _Own.HOMED)  # a homing cycle ended, done or failed
+        if state is MachineState.PROGRAM_END and self.phase is Phase.READY:
+            # M2/M30 put the feed and traverse overrides back to 1.0 (_exec_program_finalize
+            # calls cm_reset_overrides, edge-preview canonical_machine.cpp:1632): read them.
+            self._read_overrides()
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -666,7 +673,10 @@ class G2Session(SessionBase):
         elif own is _Own.FIRST_REPORT and self.phase is Phase.HANDSHAKE:
             self.phase = Phase.READY
             self._handshake_deadline = None
+            self._read_overrides()
             self._events.append(Ready())
+        elif own is _Own.OVERRIDES:
+            self._overrides_answered(response)
         elif own is _Own.HEARTBEAT:
             self._heartbeat_deadline = None
         elif own is _Own.CLEAR and not response.ok:
@@ -899,6 +909,58 @@ class G2Session(SessionBase):
 
     def _realtime(self, command: Realtime) -> None:
         self._write_realtime(command)
+
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The override factors as settings (`{"fro":1.2}`), in any state but a lockout.
+
+        A `{`-line of the session's own on the control lane: the board runs it on
+        arrival, ahead of queued G-code, so it acts mid-job; the factor applies to the
+        blocks planned after it (edge-preview plan_zoid.cpp:145-148). Where the build
+        has a writable enable, it is written on with the factor (100.26's are off at
+        start). The answer's values become the model's overrides.
+        """
+        self._require_ready()
+        if self.locked():
+            raise Rejected(self._lockout_status(), self._locked_message())
+        asked = {"feed": feed, "rapid": rapid, "spindle": spindle}
+        keys, enables = self.build.override_keys, self.build.override_enables
+        values: dict[str, Any] = {}
+        for what, percent in asked.items():
+            if percent is None:
+                continue
+            low, high = OVERRIDE_RANGES[what]
+            if not low <= percent <= high:
+                raise InvalidCommand(
+                    Refusal.BAD_NUMBER,
+                    f"a g2core {what} override is {low} to {high} percent, not {percent}",
+                )
+            if what in enables:
+                values[enables[what]] = 1
+            values[keys[what]] = round(percent / 100.0, 3)
+        self._ask_own(encode_set(values), _Own.OVERRIDES)
+
+    def _read_overrides(self) -> None:
+        self._ask_own(encode_get(*self.build.override_keys.values()), _Own.OVERRIDES)
+
+    def _overrides_answered(self, response: Response) -> None:
+        """The factors the board answered with (what it stored), as percentages."""
+        if not response.ok:
+            self._log.warning("override settings refused", status=response.status)
+        now = dict(self.model.overrides or {})
+        for what, key in self.build.override_keys.items():
+            value = response.body.get(key)
+            if isinstance(value, int | float) and not isinstance(value, bool):
+                now[what] = round(float(value) * 100.0, 1)
+        if now:
+            self.model.overrides = now
+        self.model.override_reports += 1
+
+    def _lockout_status(self) -> int:
+        """The code an action gets in the lockout now in force (204/205/206)."""
+        verdict = admit(CommandClass.ACTION, self.model.state)
+        return int(verdict) if verdict is not None else int(Status.COMMAND_REJECTED_BY_ALARM)
 
     def reset(self) -> None:
         """0x18: the board reboots; so do the session's books when it comes back."""

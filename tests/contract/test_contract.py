@@ -308,6 +308,7 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     # The operator's day: spindle, home, zero, go to zero.
     await s.ok("machine.spindle", machine=M, state="cw", speed=1000)
     await s.ok("machine.spindle", machine=M, state="off")
+    await s.ok("machine.override", machine=M, feed=120, spindle=90, rapid=50)
     jog = await s.ok("machine.jog", machine=M, axes={"x": 2}, feed=600)
     if jog:
         await s.job_end(jog["job"])
