@@ -1013,6 +1013,12 @@ class G2Session(SessionBase):
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         return encode_line(text if number is None else number_line(text, number))
 
+    def spindle_max_setting(self) -> str | None:
+        """`spsm` from 101.02 (101.03 config_app.cpp:713, edge-preview spindle.cpp:482);
+        100.26 has none (`laser_test` is refused on g2core anyway: laser_toolhead.h
+        fires by distance moved, so a board standing still cannot test-fire)."""
+        return "spsm" if self.build.fb >= 101.02 else None
+
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]

@@ -33,10 +33,6 @@ LATER: Final[frozenset[str]] = frozenset(CONTRACT["stages"]["turn3"])
 NOT_BUILT: Final = frozenset(
     {
         "machine.probe",
-        "machine.laser_test",
-        "machine.frame",
-        "macro.list",
-        "macro.run",
         "job.tool_change_done",
     }
 )

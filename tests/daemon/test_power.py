@@ -9,7 +9,8 @@ no parameter can smuggle another line in.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import asyncio
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,9 @@ import pytest
 import pytest_asyncio
 
 from hostd.sim import SimController
-from tests.daemon.conftest import Rpc, Running, running_daemon
+from hostd.sim.grbl.controller import GrblSimController
+from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
+from tests.daemon.test_operations import lines_sent
 from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
@@ -116,3 +119,131 @@ def traced(hostd: Running, machine: str) -> list[Any]:
     sim = hostd.daemon.sims[machine]
     record = sim._board.traversed if isinstance(sim, SimController) else sim.board.traversed
     return list(record)
+
+
+# -- laser test-fire -------------------------------------------------------------
+
+
+def grbl_board(hostd: Running) -> Any:
+    sim = hostd.daemon.sims[GRBL]
+    assert isinstance(sim, GrblSimController)
+    return sim.board
+
+
+async def until(check: Callable[[], bool], what: str) -> None:
+    """Until the simulated board shows `check` (it has no event to wait on): bounded."""
+    async with asyncio.timeout(10):
+        while not check():
+            await asyncio.sleep(0.01)
+
+
+async def test_a_laser_test_fires_then_always_ends_off(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    board = grbl_board(hostd)
+    assert await rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=0.3) == {}
+    powers = [power for _, power in board.beam]
+    full = board.settings[30]
+    assert 0.05 * full in powers  # it fired, at 5 % of $30
+    assert max(powers) == 0.05 * full  # and never more
+    assert powers[-1] == 0.0 and board.beam_power() == 0.0
+    assert [ln for ln in lines_sent(hostd, GRBL) if ln.startswith((b"G1 M3", b"G4", b"M5"))][
+        -3:
+    ] == [b"G1 M3 S50", b"G4 P0.3", b"M5"]
+
+
+async def test_a_laser_test_ends_off_when_the_link_drops_mid_test(
+    both: tuple[Running, Rpc],
+) -> None:
+    hostd, rpc = both
+    board = grbl_board(hostd)
+    firing = asyncio.create_task(
+        rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=1.0)
+    )
+    await until(lambda: board.beam_power() > 0, "the beam on")
+    await rpc.call("machine.disconnect", machine=GRBL)  # the host lets go of the port
+    with pytest.raises(RpcFailure):
+        await firing
+    # The board had its M5 with the rest: the beam goes off when its own dwell ends.
+    await until(lambda: board.beam_power() == 0.0, "the beam off")
+    assert board.beam[-1][1] == 0.0
+
+
+async def test_a_feedhold_during_a_laser_test_ends_the_beam(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    board = grbl_board(hostd)
+    firing = asyncio.create_task(
+        rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=1.0)
+    )
+    await until(lambda: board.beam_power() > 0, "the beam on")
+    await rpc.call("machine.feedhold", machine=GRBL)
+    await until(lambda: board.beam_power() == 0.0, "the beam off")
+    await rpc.call("machine.cycle_start", machine=GRBL)
+    await firing
+    assert board.beam_power() == 0.0
+
+
+async def test_laser_tests_refused_say_why_and_fire_nothing(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    board = grbl_board(hostd)
+    err = await fails(-32602, rpc.call("machine.laser_test", machine=GRBL, power=50, duration_s=1))
+    assert "laser_test_max" in err.message
+    await fails(-32602, rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=3))
+    await fails(-32602, rpc.call("machine.laser_test", machine=GRBL, power=0, duration_s=1))
+    err = await fails(-32602, rpc.call("machine.laser_test", machine=G2, power=5, duration_s=1))
+    assert "not a laser" in err.message
+    assert [p for _, p in board.beam] == [0.0]
+    job = await rpc.call("machine.jog", machine=GRBL, axes={"x": 50}, feed=100)
+    await fails(1003, rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=1))
+    await rpc.call("machine.jog_stop", machine=GRBL)
+    await job_end(rpc, job["job"])
+
+
+# -- frame -------------------------------------------------------------------
+
+BOXED = "G21 G90\nG0 X12 Y7\nG1 X30 Y7 F800 S600 M4\nG1 X30 Y25\nG2 X20 Y15 I-5 J-5\nM5\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_frame_traces_the_bounding_box_with_the_beam_off(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    hostd, rpc = both
+    (hostd.jobs / "boxed.gcode").write_text(BOXED)
+    before = len(traced(hostd, machine))
+    job = await rpc.call("machine.frame", machine=machine, file="boxed.gcode")
+    ended = await job_end(rpc, job["job"])
+    assert ended["state"] == "completed", ended
+    moves = traced(hostd, machine)[before:]
+    corners = [(round(m.move.target["x"], 3), round(m.move.target["y"], 3)) for m in moves]
+    # The arc from (30, 25) around (25, 20) bulges to X 25 + 50**0.5 (CW, it never reaches 90 degrees): the box has it.
+    box = [(12, 7), (32.071, 7), (32.071, 25), (12, 25), (12, 7)]
+    assert corners[-5:] == box
+    assert not any(m.cutting for m in moves)  # the beam (or spindle) never on
+    z = {round(m.move.target["z"], 3) for m in moves[-5:]}
+    assert len(z) == 1  # at one height, never plunging
+
+
+async def test_frame_at_low_power_burns_only_along_the_box(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    (hostd.jobs / "boxed.gcode").write_text(BOXED)
+    board = grbl_board(hostd)
+    before = len(traced(hostd, GRBL))
+    job = await rpc.call("machine.frame", machine=GRBL, file="boxed.gcode", power=2, feed=2000)
+    await job_end(rpc, job["job"])
+    moves = traced(hostd, GRBL)[before:]
+    cutting = [m for m in moves if m.cutting]
+    assert len(cutting) == 4 and all(m.move.speed == 0.02 * board.settings[30] for m in cutting)
+    assert all(m.move.spindle == "M4" for m in cutting)  # dynamic power: none at rest
+    assert board.beam_power() == 0.0
+
+
+async def test_frame_refusals(both: tuple[Running, Rpc]) -> None:
+    hostd, rpc = both
+    (hostd.jobs / "boxed.gcode").write_text(BOXED)
+    (hostd.jobs / "flat.gcode").write_text("G21\nM5\n")
+    err = await fails(-32602, rpc.call("machine.frame", machine=G2, file="boxed.gcode", power=5))
+    assert "not a laser" in err.message
+    err = await fails(-32602, rpc.call("machine.frame", machine=GRBL, file="flat.gcode"))
+    assert "no X and Y" in err.message
+    await fails(1004, rpc.call("machine.frame", machine=GRBL, file="missing.gcode"))
+    await fails(-32602, rpc.call("machine.frame", machine=GRBL, file="../boxed.gcode"))
