@@ -7,10 +7,10 @@ break, a comment, a `$` or `{` command or another word. Unknown, missing,
 non-numeric or out-of-bounds values are refused (-32602) before anything is sent.
 
 The lines that result are then admitted as a job's lines are (`admit_program`):
-every line must pass the host's line rules (`validate_line`), must not be a
-maintenance command (guard.py: those only go through `machine.maintenance`),
-and must pass the job check (jobcheck.py) for the machine's dialect and line
-length. The frame (operations.py) is admitted the same way. Then it runs as a
+no line may be a maintenance command (guard.py: those only go through
+`machine.maintenance`), and every line must pass the job check (jobcheck.py):
+the dialect's own line rules and length, numbers a board reads, no code the
+dialect lacks, no M6 without a tool-change policy. The frame (operations.py) is admitted the same way. Then it runs as a
 `make` job with no file, through the supervisor's admission like any job
 (1003 unless idle, 204/205/206 in a lockout, 1007 with a fault active).
 """
@@ -25,7 +25,7 @@ from hostd.config import PLACEHOLDER, MacroConfig, MacroParam
 from hostd.machine.guard import classify, line_limit, tool_change_policy
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
-from hostd.protocol.commands import InvalidCommand, validate_line
+from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import MachineError
 from hostd.protocol.jobcheck import check_program
 from hostd.protocol.program import program_lines
@@ -115,10 +115,6 @@ def _value(macro: str, name: str, param: MacroParam, value: Any) -> str:
 def admit_program(machine: Machine, lines: list[str], what: str) -> None:
     """Every line as a job's line would be judged, before any is sent (see the docstring)."""
     for number, line in enumerate(lines, start=1):
-        try:
-            validate_line(line)
-        except InvalidCommand as exc:
-            raise InvalidCommand(exc.refusal, f"{what}, line {number}: {exc.message}") from None
         found = classify(machine, line)
         if found is not None:
             raise MacroRefused(

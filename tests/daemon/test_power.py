@@ -10,7 +10,7 @@ no parameter can smuggle another line in.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +20,8 @@ import pytest_asyncio
 from hostd.sim import SimController
 from hostd.sim.grbl.controller import GrblSimController
 from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
-from tests.daemon.test_operations import lines_sent
 from tests.daemon.test_api import fails, job_end
+from tests.daemon.test_operations import lines_sent
 
 pytestmark = pytest.mark.asyncio
 
@@ -33,10 +33,26 @@ LONG_JOB = "G21 G90\nG1 X0 Y0 F600\n" + "".join(
 )
 
 
+MACROS = [
+    {
+        "name": "corner",
+        "text": "G21 G90 (to a corner)\nG0 X{x} Y{y}\n\nG4 P{wait}",
+        "params": {
+            "x": {"min": 0, "max": 40},
+            "y": {"min": 0, "max": 40, "default": 3},
+            "wait": {"min": 0, "max": 1, "default": 0},
+        },
+    },
+    {"name": "wipe", "text": "$RST=*"},  # a maintenance command: never through a macro
+]
+
+
 @pytest_asyncio.fixture
 async def both(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
     async with running_daemon(
-        tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl", "laser": True}]
+        tmp_path,
+        machines=2,
+        per_machine=[{"macros": MACROS}, {"dialect": "grbl", "laser": True, "macros": MACROS}],
     ) as d:
         client = await d.client()
         await client.call("subscribe", topics=["job", "status"])
@@ -124,17 +140,14 @@ def traced(hostd: Running, machine: str) -> list[Any]:
 # -- laser test-fire -------------------------------------------------------------
 
 
-def grbl_board(hostd: Running) -> Any:
+def grbl_sim(hostd: Running) -> GrblSimController:
     sim = hostd.daemon.sims[GRBL]
     assert isinstance(sim, GrblSimController)
-    return sim.board
+    return sim
 
 
-async def until(check: Callable[[], bool], what: str) -> None:
-    """Until the simulated board shows `check` (it has no event to wait on): bounded."""
-    async with asyncio.timeout(10):
-        while not check():
-            await asyncio.sleep(0.01)
+def grbl_board(hostd: Running) -> Any:
+    return grbl_sim(hostd).board
 
 
 async def test_a_laser_test_fires_then_always_ends_off(both: tuple[Running, Rpc]) -> None:
@@ -159,12 +172,12 @@ async def test_a_laser_test_ends_off_when_the_link_drops_mid_test(
     firing = asyncio.create_task(
         rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=1.0)
     )
-    await until(lambda: board.beam_power() > 0, "the beam on")
+    await grbl_sim(hostd).wait_for(lambda: board.beam_power() > 0)
     await rpc.call("machine.disconnect", machine=GRBL)  # the host lets go of the port
     with pytest.raises(RpcFailure):
         await firing
     # The board had its M5 with the rest: the beam goes off when its own dwell ends.
-    await until(lambda: board.beam_power() == 0.0, "the beam off")
+    await grbl_sim(hostd).wait_for(lambda: board.beam_power() == 0.0)
     assert board.beam[-1][1] == 0.0
 
 
@@ -174,9 +187,9 @@ async def test_a_feedhold_during_a_laser_test_ends_the_beam(both: tuple[Running,
     firing = asyncio.create_task(
         rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=1.0)
     )
-    await until(lambda: board.beam_power() > 0, "the beam on")
+    await grbl_sim(hostd).wait_for(lambda: board.beam_power() > 0)
     await rpc.call("machine.feedhold", machine=GRBL)
-    await until(lambda: board.beam_power() == 0.0, "the beam off")
+    await grbl_sim(hostd).wait_for(lambda: board.beam_power() == 0.0)
     await rpc.call("machine.cycle_start", machine=GRBL)
     await firing
     assert board.beam_power() == 0.0
@@ -215,7 +228,8 @@ async def test_frame_traces_the_bounding_box_with_the_beam_off(
     assert ended["state"] == "completed", ended
     moves = traced(hostd, machine)[before:]
     corners = [(round(m.move.target["x"], 3), round(m.move.target["y"], 3)) for m in moves]
-    # The arc from (30, 25) around (25, 20) bulges to X 25 + 50**0.5 (CW, it never reaches 90 degrees): the box has it.
+    # The arc from (30, 25) around (25, 20) bulges to X 25 + 50**0.5 (clockwise, it
+    # never passes 90 degrees, so Y stays 25): the box has it.
     box = [(12, 7), (32.071, 7), (32.071, 25), (12, 25), (12, 7)]
     assert corners[-5:] == box
     assert not any(m.cutting for m in moves)  # the beam (or spindle) never on
@@ -247,3 +261,67 @@ async def test_frame_refusals(both: tuple[Running, Rpc]) -> None:
     assert "no X and Y" in err.message
     await fails(1004, rpc.call("machine.frame", machine=GRBL, file="missing.gcode"))
     await fails(-32602, rpc.call("machine.frame", machine=GRBL, file="../boxed.gcode"))
+
+
+# -- macros --------------------------------------------------------------------
+
+
+async def test_macro_list_names_each_macro_with_its_params(both: tuple[Running, Rpc]) -> None:
+    _, rpc = both
+    listed = await rpc.call("macro.list", machine=GRBL)
+    assert [m["name"] for m in listed] == ["corner", "wipe"]
+    assert listed[0]["params"]["y"] == {"min": 0, "max": 40, "default": 3, "integer": False}
+    assert "G0 X{x} Y{y}" in listed[0]["text"]
+    every = await rpc.call("macro.list")
+    assert {m["machine"] for m in every} == {G2, GRBL}
+    await fails(1001, rpc.call("macro.list", machine="nope"))
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_macro_runs_with_its_params_as_a_job(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    hostd, rpc = both
+    job = await rpc.call("macro.run", machine=machine, name="corner", params={"x": 12.5})
+    ended = await job_end(rpc, job["job"])
+    assert ended["state"] == "completed" and ended["kind"] == "make", ended
+    last = traced(hostd, machine)[-1].move.target
+    assert (round(last["x"], 3), round(last["y"], 3)) == (12.5, 3)
+    sent = lines_sent(hostd, machine)
+    assert any(line.endswith(b"G0 X12.5 Y3") for line in sent)
+    assert not any(b"to a corner" in line for line in sent)  # comments are not sent
+
+
+@pytest.mark.parametrize(
+    ("params", "why"),
+    [
+        ({"x": "5\nM3 S1000"}, "number"),
+        ({"x": "5"}, "number"),
+        ({"x": True}, "number"),
+        ({"x": 5, "y": "1 M3 S1000"}, "number"),
+        ({"x": 1e300}, "0 to 40"),
+        ({"x": -1}, "0 to 40"),
+        ({"x": 5, "feed": 100}, "no param"),
+        ({}, "needs param"),
+    ],
+)
+async def test_macro_params_cannot_smuggle_anything_in(
+    both: tuple[Running, Rpc], params: dict[str, Any], why: str
+) -> None:
+    hostd, rpc = both
+    err = await fails(-32602, rpc.call("macro.run", machine=GRBL, name="corner", params=params))
+    assert why in err.message
+    sent = lines_sent(hostd, GRBL)
+    assert not any(b"M3" in line or line.startswith(b"G0 X") for line in sent)
+
+
+async def test_an_unknown_macro_and_a_maintenance_macro_are_refused(
+    both: tuple[Running, Rpc],
+) -> None:
+    hostd, rpc = both
+    err = await fails(1004, rpc.call("macro.run", machine=GRBL, name="nope"))
+    assert "corner" in err.message  # names the ones it has
+    err = await fails(1008, rpc.call("macro.run", machine=GRBL, name="wipe"))
+    assert "machine.maintenance" in err.message
+    assert not any(line.startswith(b"$RST") for line in lines_sent(hostd, GRBL))
+    await fails(1001, rpc.call("macro.run", machine="nope", name="corner"))
