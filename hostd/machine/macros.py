@@ -10,9 +10,10 @@ The lines that result are then admitted as a job's lines are (`admit_program`):
 no line may be a maintenance command (guard.py: those only go through
 `machine.maintenance`), and every line must pass the job check (jobcheck.py):
 the dialect's own line rules and length, numbers a board reads, no code the
-dialect lacks, no M6 without a tool-change policy. The frame (operations.py) is admitted the same way. Then it runs as a
-`make` job with no file, through the supervisor's admission like any job
-(1003 unless idle, 204/205/206 in a lockout, 1007 with a fault active).
+dialect lacks, no M6 without a tool-change policy. The frame (operations.py) is
+admitted the same way. Then it runs as a `make` job with no file, through the
+supervisor's admission like any job (1003 unless idle, 204/205/206 in a lockout,
+1007 with a fault active).
 """
 
 from __future__ import annotations
