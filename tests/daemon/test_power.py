@@ -123,6 +123,25 @@ async def test_g2core_refuses_an_override_its_firmware_would_refuse(
     assert got["rapid"] == 25
 
 
+async def test_an_override_in_a_lockout_is_its_code_and_sends_nothing(
+    both: tuple[Running, Rpc],
+) -> None:
+    hostd, rpc = both
+    await rpc.call("machine.alarm", machine=G2)
+    await rpc.notification(
+        lambda n: (
+            n["method"] == "status"
+            and n["params"]["machine"] == G2
+            and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+        )
+    )
+    await fails(204, rpc.call("machine.override", machine=G2, feed=120))
+    assert not any(b'"fro":1.2' in r.data for r in g2_sim(hostd).received)
+    await rpc.call("machine.clear", machine=G2)
+    got = await rpc.call("machine.override", machine=G2, feed=120)
+    assert got["feed"] == 120
+
+
 async def test_a_program_end_puts_g2cores_feed_override_back(both: tuple[Running, Rpc]) -> None:
     _, rpc = both
     await rpc.call("machine.override", machine=G2, feed=120)
