@@ -259,7 +259,7 @@ BEAM_OFF_WAIT: Final = 5.0  # seconds past the dwell for the board to answer its
 
 
 async def full_power(machine: Machine) -> float:
-    """The S word of 100 % (grbl `$30`, g2core `spsm`), read from the board now."""
+    """The S word of 100 % (grbl `$30`, g2core `th2mxs`), read from the board now."""
     key = machine.engine.session.spindle_max_setting()
     if key is None:
         raise InvalidCommand(

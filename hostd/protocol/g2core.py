@@ -1008,10 +1008,12 @@ class G2Session(SessionBase):
         return encode_line(text if number is None else number_line(text, number))
 
     def spindle_max_setting(self) -> str | None:
-        """`spsm` from 101.02 (101.03 config_app.cpp:713, edge-preview spindle.cpp:482);
-        100.26 has none (`laser_test` is refused on g2core anyway: laser_toolhead.h
-        fires by distance moved, so a board standing still cannot test-fire)."""
-        return "spsm" if self.build.fb >= 101.02 else None
+        """`th2mxs`, the S of the laser toolhead's full power (edge-preview
+        board/ArduinoDue/0_hardware.cpp:296; laser_toolhead.h:255 scales S between
+        `th2mns` and it); absent before 101.05 and on builds without a laser toolhead,
+        which then refuse it. `laser_test` is refused on g2core anyway: the toolhead
+        fires by distance moved (laser_toolhead.h:491-515), never standing still."""
+        return "th2mxs" if self.build.fb >= 101.05 else None
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
