@@ -574,10 +574,11 @@ class G2Session(SessionBase):
         self._job_log().info("controller state", state=state.name)
         if before is MachineState.HOMING:
             self._ask_own(encode_get("home"), _Own.HOMED)  # a homing cycle ended, done or failed
-        if state is MachineState.PROGRAM_END and self.phase is Phase.READY:
-            # M2/M30 put the feed and traverse overrides back to 1.0 (_exec_program_finalize
-            # calls cm_reset_overrides, edge-preview canonical_machine.cpp:1632): read them.
-            self._read_overrides()
+        if state is MachineState.PROGRAM_END and self.model.overrides is not None:
+            # A program end puts the feed and traverse factors back to 1.0, the spindle's
+            # untouched (_exec_program_finalize calls cm_reset_overrides: edge-preview
+            # canonical_machine.cpp:1436-1442, 1632; 100.26 :1617-1624).
+            self.model.overrides = {**self.model.overrides, "feed": 100.0, "rapid": 100.0}
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -652,6 +653,7 @@ class G2Session(SessionBase):
         if self._to_set:
             self._ask_own(encode_set(self._to_set[0]), _Own.SETTING)
         else:
+            self._read_overrides()  # answered before the report that makes the session ready
             self._ask_own(encode_get("home"), _Own.HOMED)
             self._ask_own(encode_get("sr"), _Own.FIRST_REPORT)
 
@@ -673,7 +675,6 @@ class G2Session(SessionBase):
         elif own is _Own.FIRST_REPORT and self.phase is Phase.HANDSHAKE:
             self.phase = Phase.READY
             self._handshake_deadline = None
-            self._read_overrides()
             self._events.append(Ready())
         elif own is _Own.OVERRIDES:
             self._overrides_answered(response)

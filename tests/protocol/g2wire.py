@@ -80,18 +80,13 @@ class Wire:
             done += 1
 
     def connect(self, report: dict[str, Any] | None = None) -> None:
-        """Banner, settings, `{home:n}` and the first report: the session is ready; then
-        the overrides it asks once ready are answered (all 1.0) too."""
+        """Banner, settings, the overrides, `{home:n}` and the first report: ready."""
         self.session.open()
         self.pump()
         self.feed(banner(self.fb))
         while not self.session.ready:
             line = self.unanswered[0]
             self.answer(line, _echo(line, report))
-        overrides = set(self.session.build.override_keys.values())
-        for line in [x for x in self.unanswered if x.startswith(b"{")]:
-            if set(json.loads(line)) == overrides:
-                self.answer(line)
         self.clear()
 
     def report(self, **fields: Any) -> None:

@@ -388,11 +388,11 @@ async def test_overrides_are_read_and_written_as_the_build_names_them(fb: float)
     wire.session.open()
     wire.pump()
     wire.feed(banner(fb))
+    while read not in wire.unanswered:
+        wire.answer(wire.unanswered[0])
+    wire.answer(read, dict.fromkeys(json.loads(read), 1.0))  # asked in the handshake
     while not wire.session.ready:
         wire.answer(wire.unanswered[0])
-    assert read in wire.unanswered  # asked once the handshake is done
-    keys = json.loads(read)
-    wire.answer(read, dict.fromkeys(keys, 1.0))
     assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 100.0}
     seen = wire.session.model.override_reports
     wire.session.override(feed=150, spindle=80)
@@ -413,12 +413,17 @@ async def test_an_override_out_of_the_firmwares_bounds_writes_nothing(fb: float)
     assert not any(b"150" in line or b"2.01" in line for line in wire.lines())
 
 
-async def test_a_program_end_reads_the_overrides_again() -> None:
+async def test_a_program_end_puts_feed_and_rapid_back_as_the_board_does() -> None:
     wire = ready(101.06)
+    wire.session.override(feed=150, rapid=50, spindle=80)
+    wire.pump()
+    wire.answer_all()
+    assert wire.session.model.overrides == {"feed": 150.0, "rapid": 50.0, "spindle": 80.0}
     wire.report(stat=5)  # running
     wire.clear()
-    wire.report(stat=4)  # M2/M30: the board reset its feed and traverse overrides
-    assert b'{"fro":null,"tro":null,"spo":null}\n' in wire.lines(Lane.CONTROL)
+    wire.report(stat=4)  # M2/M30: cm_reset_overrides
+    assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 80.0}
+    assert wire.lines() == []  # known from the firmware's rule: nothing asked
 
 
 async def test_an_override_in_an_alarm_is_refused_with_its_code() -> None:
