@@ -32,6 +32,7 @@ from hostd.machine.workers import WorkerPool
 from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
 from hostd.protocol.gcodestate.analysis import beyond_travel
+from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
 
@@ -349,8 +350,8 @@ def frame_lines(
     """The job's box traced in work coordinates, at `feed`, beam off (or at S `speed`).
 
     Z is never moved down: a laser traces at its current Z (no Z word); a mill first
-    goes up to its safe height in machine coordinates. The board's units and distance
-    mode are put back at the end.
+    goes up to its safe height in machine coordinates (`safe_z` None: already there).
+    The board's units and distance mode are put back at the end.
     """
     (x0, x1), (y0, y1) = box["x"], box["y"]
     lines = ["M5", "G21 G90 G94"]
@@ -405,6 +406,11 @@ async def frame(
             Refusal.UNREADABLE,
             f"{machine.id} is not a laser and its safe height is unknown: set safe_z",
         )
+    z_now = machine.engine.model.machine_position.get("z")
+    if safe_z is not None and z_now is not None:
+        scale = MM_PER_INCH if machine.engine.model.units == "in" else 1.0
+        if z_now * scale >= safe_z:
+            safe_z = None  # already at or above it: Z never goes down
     speed = await full_power(machine) * power / 100.0 if power > 0 else None
     model = machine.engine.model
     lines = frame_lines(
