@@ -296,6 +296,8 @@ class Subscriptions:
         self._subs: dict[int, _Subscription] = {}
         self._interest: Counter[tuple[str, str | None]] = Counter()
         self._owned: Counter[int] = Counter()  # id(owner) -> subscriptions it holds
+        # (topic, machine) -> each matching owner's send, once: rebuilt after any change.
+        self._sends: dict[tuple[str, str], list[Send]] = {}
         self._on_change = on_change
         self.max_per_client = max_per_client
         self.max_total = max_total
@@ -346,13 +348,23 @@ class Subscriptions:
         if not self.wants(topic, machine):
             return
         line = encode_notification(topic, params)
+        sends = self._sends.get((topic, machine))
+        if sends is None:
+            sends = self._sends[(topic, machine)] = self._recipients(topic, machine)
+        for send in sends:  # (a send may end a subscription: this list stays as it was)
+            send(line)
+
+    def _recipients(self, topic: str, machine: str) -> list[Send]:
         done: set[int] = set()
-        for sub in list(self._subs.values()):
+        sends: list[Send] = []
+        for sub in self._subs.values():
             if _matches(sub, topic, machine) and id(sub.owner) not in done:
                 done.add(id(sub.owner))
-                sub.send(line)
+                sends.append(sub.send)
+        return sends
 
     def _changed(self) -> None:
+        self._sends = {}
         if self._on_change is not None:
             self._on_change()
 

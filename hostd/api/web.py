@@ -150,15 +150,26 @@ class WebClient(Client):
             self._transport.abort()
 
     async def _write_loop(self) -> None:
-        """The only writer of the WebSocket: one frame a message, each send bounded in time."""
+        """The only writer of the WebSocket: one frame a message, each batch bounded in time.
+
+        Everything queued when the task wakes is sent under one timeout scope:
+        with the console topic on, a read of the board's answers queues a
+        message a line, and a wake-up and a scope each cost more than the
+        frame (docs/performance.md, issue 30).
+        """
+        queue = self._queue
         try:
             while True:
-                item = await self._queue.get()
-                if not isinstance(item, bytes):
-                    return
+                item = await queue.get()
                 async with asyncio.timeout(self._write_timeout):
-                    # The bytes every subscriber gets, as encoded once: no decode, no encode.
-                    await self._ws.send_frame(item, WSMsgType.TEXT)
+                    while True:
+                        if not isinstance(item, bytes):
+                            return
+                        # The bytes every subscriber gets, as encoded once: no decode, no encode.
+                        await self._ws.send_frame(item, WSMsgType.TEXT)
+                        if queue.empty():
+                            break
+                        item = queue.get_nowait()
         except TimeoutError:
             self.close(f"write did not drain within {self._write_timeout} s")
         except (OSError, ConnectionError) as e:
