@@ -214,13 +214,22 @@ class Client:
 
     def _keeps_up(self) -> bool:
         """Nothing waits for the writer task and the socket holds nothing unsent."""
-        writer = self._writer
+        transport = self._direct_transport()
         return (
-            writer is not None
+            transport is not None
             and self._queue.empty()
-            and not writer.transport.is_closing()
-            and writer.transport.get_write_buffer_size() == 0
+            and not transport.is_closing()
+            and transport.get_write_buffer_size() == 0
         )
+
+    def _direct_transport(self) -> asyncio.WriteTransport | None:
+        """Where staged messages may be written straight, or None (always through the task)."""
+        return self._writer.transport if self._writer is not None else None
+
+    def _write_staged(self, transport: asyncio.WriteTransport, messages: list[bytes]) -> None:
+        """Messages as this connection frames them, in one write: a newline after each."""
+        messages.append(b"")  # the last message's newline
+        transport.write(b"\n".join(messages))
 
     def _flush(self) -> None:
         """This pass's staged messages: in one write while the socket keeps up, else queued."""
@@ -232,10 +241,10 @@ class Client:
                 if not self._enqueue(line):
                     return
             return
-        assert self._writer is not None
-        staged.append(b"")  # the last message's newline
+        transport = self._direct_transport()
+        assert transport is not None
         try:
-            self._writer.write(b"\n".join(staged))
+            self._write_staged(transport, staged)
         except OSError as e:
             self.close(f"write failed: {e}")
 

@@ -149,6 +149,23 @@ class WebClient(Client):
         if self._transport is not None:
             self._transport.abort()
 
+    def _direct_transport(self) -> asyncio.WriteTransport | None:
+        """The connection's transport while messages may be framed here, in one write.
+
+        Only without permessage-deflate (a compressed frame is aiohttp's to
+        make) and before the WebSocket starts closing (no data after a close
+        frame). aiohttp writes its own frames (pings, the close) to the same
+        transport, each whole, so frames never interleave.
+        """
+        ws = self._ws
+        if ws.compress or ws.closed:
+            return None
+        return self._transport
+
+    def _write_staged(self, transport: asyncio.WriteTransport, messages: list[bytes]) -> None:
+        """One unmasked text frame a message (RFC 6455 5.2), all in one write."""
+        transport.write(b"".join(part for m in messages for part in (_text_header(len(m)), m)))
+
     async def _write_loop(self) -> None:
         """The only writer of the WebSocket: one frame a message, each batch bounded in time.
 
@@ -174,6 +191,15 @@ class WebClient(Client):
             self.close(f"write did not drain within {self._write_timeout} s")
         except (OSError, ConnectionError) as e:
             self.close(f"write failed: {e}")
+
+
+def _text_header(length: int) -> bytes:
+    """A server's text frame header: FIN and opcode 1, no mask, then the length (RFC 6455 5.2)."""
+    if length < 126:
+        return bytes((0x81, length))
+    if length < 1 << 16:
+        return bytes((0x81, 126)) + length.to_bytes(2, "big")
+    return bytes((0x81, 127)) + length.to_bytes(8, "big")
 
 
 class LoginLimiter:
