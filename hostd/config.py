@@ -63,6 +63,9 @@ class DaemonConfig(_Strict):
     # seconds, and bytes of address space per worker (docs/gcode.md). Past one: 1013.
     analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 600.0
     analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
+    # Start one worker as the daemon starts, so that the first job.start or file.analyze
+    # does not wait a second or more for a new interpreter (docs/performance.md).
+    prewarm_workers: bool = True
 
 
 class MachineConfig(_Strict):

@@ -16,6 +16,7 @@ from pathlib import Path
 import structlog
 
 from hostd.config import Config, MachineConfig
+from hostd.machine import preflight
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
@@ -67,6 +68,10 @@ class Daemon:
                     tg.create_task(m.serve(), name=f"machine-{m.id}")
                     for m in self.machines.values()
                 ]
+                if self.config.daemon.prewarm_workers:
+                    # The first analysis then finds its worker started (it never raises).
+                    warm = self.workers.prewarm(preflight.__name__)
+                    tasks.append(tg.create_task(warm, name="prewarm"))
                 if ready is not None:
                     await ready()
                 await self._stop.wait()

@@ -403,7 +403,18 @@ class Api:
     def _on_event(self, machine: Machine, event: Event) -> None:
         subs = self.subscriptions
         mid = machine.id
-        if isinstance(event, StatusChanged):
+        if isinstance(event, Console):  # first: two a line while someone listens
+            subs.deliver(
+                "console",
+                mid,
+                {
+                    "machine": mid,
+                    "direction": event.direction,
+                    "channel": event.channel,
+                    "text": event.text,
+                },
+            )
+        elif isinstance(event, StatusChanged):
             if subs.wants("status", mid):
                 snapshot = machine.snapshot()
                 subs.deliver(
@@ -425,17 +436,6 @@ class Api:
             subs.deliver("job", mid, {"machine": mid, "job": event.job})
         elif isinstance(event, FaultChanged):
             subs.deliver("fault", mid, {"machine": mid, "fault": event.fault})
-        elif isinstance(event, Console):
-            subs.deliver(
-                "console",
-                mid,
-                {
-                    "machine": mid,
-                    "direction": event.direction,
-                    "channel": event.channel,
-                    "text": event.text,
-                },
-            )
 
     # -- helpers -----------------------------------------------------------
 
