@@ -152,15 +152,11 @@ class Link:
     def write_lines(self, lines: list[bytes], *, control: bool = False) -> bool:
         """Whole encoded lines in one write: on the data channel, or with `control` on
         the control channel (the only one, on a one-port link)."""
-        if len(lines) == 1:  # the most frequent (a grbl `ok` frees one line's bytes)
-            data = lines[0]
-            _check_line(data)
-        else:
-            data = b"".join(lines)
-            # Each ends in its LF and holds no other: as many LFs as lines, each at an end.
-            if data.count(b"\n") != len(lines) or any(line[-1:] != b"\n" for line in lines):
-                for line in lines:
-                    _check_line(line)  # raises, saying which
+        data = b"".join(lines)
+        # Each ends in its LF and holds no other: as many LFs as lines, each at an end.
+        if data.count(b"\n") != len(lines) or any(line[-1:] != b"\n" for line in lines):
+            for line in lines:
+                _check_line(line)  # raises, saying which
         channel = Channel.CONTROL if control and self.dual else Channel.DATA
         return self._channel(channel).write(data)
 
