@@ -104,7 +104,11 @@ class _Flusher:
     def _run(self) -> None:
         clients, self._clients = self._clients, []
         for client in clients:
-            client._flush()
+            try:
+                client._flush()
+            except Exception as exc:  # one client's failure is not the others'
+                client.log.exception("api client write failed")
+                client.close(f"write failed: {exc!r}")
 
 
 _FLUSHERS: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _Flusher] = (
