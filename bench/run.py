@@ -96,6 +96,10 @@ SECOND = "other"  # P2f's second machine
 FLEET = 8  # P6's machines in one daemon
 
 
+CLIENT_TIMEOUT = 30.0  # bench/client.py's default: a call not answered by then is a failure
+JOB_CHECK_TIMEOUT = 300.0
+
+
 @dataclass
 class Settings:
     stream_lines: int = 50_000
@@ -482,7 +486,13 @@ class Bench:
         daemon.wait_idle(machine=machine)
         controller.expect(self.s.long_job)
         controller.dump()
-        job_id: int = client.call("job.start", machine=machine, file=file)["job"]
+        # job.start checks the million-line file on a worker niced by 10 first: on a busy
+        # machine that alone passed the client's 30 s (a full run ended there on 2026-11-27).
+        client.sock.settimeout(JOB_CHECK_TIMEOUT)
+        try:
+            job_id: int = client.call("job.start", machine=machine, file=file)["job"]
+        finally:
+            client.sock.settimeout(CLIENT_TIMEOUT)
         time.sleep(0.3)  # streaming at full rate
         yield job_id
         if client.call("job.get", job=job_id)["state"] in ("running", "paused"):
