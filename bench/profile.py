@@ -1,7 +1,8 @@
 """Sample the daemon with py-spy (attached by pid, the daemon is not changed) and summarise.
 
-py-spy is not a project dependency: `pip install py-spy` (into any venv)
-and put it on PATH, or pass its path with `python -m bench --profile PATH`.
+py-spy comes with the `bench` extra (`pip install -e '.[bench]'`, which
+`make bench` installs): it is found beside the interpreter, else on PATH, or
+pass its path with `python -m bench --profile PATH`.
 The raw output (collapsed stacks) is summarised as the functions that hold
 the most samples themselves (self) and including what they call (total).
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 import shutil
 import signal
 import subprocess
+import sys
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +43,9 @@ class Profile:
 def find_py_spy(hint: str | None) -> str | None:
     if hint and hint != "auto":
         return hint
-    return shutil.which("py-spy")
+    # The `bench` extra installs it beside the interpreter (.venv/bin), which need not be on PATH.
+    beside = Path(sys.executable).with_name("py-spy")
+    return str(beside) if beside.exists() else shutil.which("py-spy")
 
 
 def start(py_spy: str, pid: int, out: Path, rate: int = 500) -> subprocess.Popen[bytes]:

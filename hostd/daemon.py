@@ -21,6 +21,7 @@ from typing import Annotated, Any, Literal, Protocol, cast
 import structlog
 from pydantic import BaseModel, ConfigDict, Field
 
+from hostd.machine import preflight
 from hostd.machine.config import MachineConfig
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
@@ -63,6 +64,9 @@ class DaemonConfig(BaseModel):
     # seconds, and bytes of address space per worker (docs/gcode.md). Past one: 1013.
     analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 600.0
     analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
+    # Start one worker as the daemon starts, so that the first job.start or file.analyze
+    # does not wait a second or more for a new interpreter (docs/performance.md).
+    prewarm_workers: bool = True
 
 
 class Settings(Protocol):
@@ -117,6 +121,10 @@ class Daemon:
                     tg.create_task(m.serve(), name=f"machine-{m.id}")
                     for m in self.machines.values()
                 ]
+                if self.config.daemon.prewarm_workers:
+                    # The first analysis then finds its worker started (it never raises).
+                    warm = self.workers.prewarm(preflight.__name__)
+                    tasks.append(tg.create_task(warm, name="prewarm"))
                 if ready is not None:
                     await ready()
                 await self._stop.wait()

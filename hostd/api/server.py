@@ -18,10 +18,18 @@ Per client (a `Client`, which is also the `context` handlers can ask for with
   reader stops reading and the socket pushes back on the client. A batch of
   more than `max_inflight` requests could never fit: it is one -32600 and
   none of it runs. So at most one parsed line per client waits on the host.
-- Everything sent to the client (answers and notifications) goes through one
-  bounded queue emptied by the writer task. A full queue, or a write that
-  cannot drain within `write_timeout`, disconnects the client: one that stops
-  reading must never slow the daemon or anyone else.
+- Everything sent to the client (answers and notifications) goes out in the
+  order it was sent, one of two ways. While the socket keeps up (nothing
+  queued, nothing left in the transport's buffer), a message is staged and
+  everything staged in a loop pass is written at the pass's end in one
+  `send`, by one callback for every client (`_Flusher`): a status report
+  for 50 subscribers is 50 list appends and 50 syscalls, not 50 writer-task
+  wake-ups, timeout scopes and drains (docs/performance.md, issue 30). Once
+  the socket lags (its buffer holds bytes), messages go to one bounded
+  queue emptied by the writer task, which drains each batch within
+  `write_timeout`. A full queue, or a write that cannot drain within
+  `write_timeout`, disconnects the client: one that stops reading must never
+  slow the daemon or anyone else.
 - When the client goes away, requests it already started run to completion
   (their answers are dropped): cancelling a machine operation half-way because
   a CLI was closed would be worse. Closing the server cancels them.
@@ -48,6 +56,7 @@ import contextlib
 import enum
 import itertools
 import os
+import weakref
 from collections.abc import Callable, Mapping
 from types import TracebackType
 from typing import Any, Final, Self, cast
@@ -78,6 +87,41 @@ class _End(enum.Enum):
 
     HALF_CLOSE = "half-close"  # send EOF, keep reading (so unread input does not reset us)
     CLOSE = "close"
+
+
+class _Flusher:
+    """Writes every client's staged messages at the end of the loop pass: one callback for all."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._clients: list[Client] = []
+
+    def add(self, client: Client) -> None:
+        if not self._clients:
+            self._loop.call_soon(self._run)
+        self._clients.append(client)
+
+    def _run(self) -> None:
+        clients, self._clients = self._clients, []
+        for client in clients:
+            try:
+                client._flush()
+            except Exception as exc:  # one client's failure is not the others'
+                client.log.exception("api client write failed")
+                client.close(f"write failed: {exc!r}")
+
+
+_FLUSHERS: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _Flusher] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _flusher() -> _Flusher:
+    loop = asyncio.get_running_loop()
+    flusher = _FLUSHERS.get(loop)
+    if flusher is None:
+        flusher = _FLUSHERS[loop] = _Flusher(loop)
+    return flusher
 
 
 class Client:
@@ -117,6 +161,8 @@ class Client:
         self._ending = False  # an _End is queued: nothing more goes in
         self._end_reason = "client ended the connection"
         self._writer_task: asyncio.Task[None] | None = None
+        # Messages to write at the end of this loop pass, while the socket keeps up.
+        self._staged: list[bytes] = []
 
     @property
     def pid(self) -> int:
@@ -158,8 +204,56 @@ class Client:
         """
         if self._closed or self._ending:
             return False
-        try:
+        if self._staged or self._keeps_up():
             # The line itself: a notification's one encoding is shared by every subscriber.
+            self._staged.append(line)
+            if len(self._staged) == 1:
+                _flusher().add(self)
+            elif len(self._staged) > self._queue_size:
+                self.log.warning("api client not reading; disconnected", bound=self._queue_size)
+                self.close(f"outbound queue over {self._queue_size} messages")
+                return False
+            return True
+        return self._enqueue(line)
+
+    def _keeps_up(self) -> bool:
+        """Nothing waits for the writer task and the socket holds nothing unsent."""
+        transport = self._direct_transport()
+        return (
+            transport is not None
+            and self._queue.empty()
+            and not transport.is_closing()
+            and transport.get_write_buffer_size() == 0
+        )
+
+    def _direct_transport(self) -> asyncio.WriteTransport | None:
+        """Where staged messages may be written straight, or None (always through the task)."""
+        return self._writer.transport if self._writer is not None else None
+
+    def _write_staged(self, transport: asyncio.WriteTransport, messages: list[bytes]) -> None:
+        """Messages as this connection frames them, in one write: a newline after each."""
+        messages.append(b"")  # the last message's newline
+        transport.write(b"\n".join(messages))
+
+    def _flush(self) -> None:
+        """This pass's staged messages: in one write while the socket keeps up, else queued."""
+        staged, self._staged = self._staged, []
+        if self._closed or not staged:
+            return
+        if not self._keeps_up():
+            for line in staged:
+                if not self._enqueue(line):
+                    return
+            return
+        transport = self._direct_transport()
+        assert transport is not None
+        try:
+            self._write_staged(transport, staged)
+        except OSError as e:
+            self.close(f"write failed: {e}")
+
+    def _enqueue(self, line: bytes) -> bool:
+        try:
             self._queue.put_nowait(line)
         except asyncio.QueueFull:
             self.log.warning("api client not reading; disconnected", bound=self._queue_size)
@@ -191,6 +285,10 @@ class Client:
         if self._closed or self._ending:
             return
         self._end_reason = reason
+        staged, self._staged = self._staged, []  # they go first, through the writer task
+        for line in staged:
+            if not self._enqueue(line):
+                return
         try:
             self._queue.put_nowait(end)
         except asyncio.QueueFull:

@@ -150,20 +150,57 @@ class WebClient(Client):
         if self._transport is not None:
             self._transport.abort()
 
+    def _direct_transport(self) -> asyncio.WriteTransport | None:
+        """The connection's transport while messages may be framed here, in one write.
+
+        Only without permessage-deflate (a compressed frame is aiohttp's to
+        make) and before the WebSocket starts closing (no data after a close
+        frame). aiohttp writes its own frames (pings, the close) to the same
+        transport, each whole, so frames never interleave.
+        """
+        ws = self._ws
+        if ws.compress or ws.closed:
+            return None
+        return self._transport
+
+    def _write_staged(self, transport: asyncio.WriteTransport, messages: list[bytes]) -> None:
+        """One unmasked text frame a message (RFC 6455 5.2), all in one write."""
+        transport.write(b"".join(part for m in messages for part in (_text_header(len(m)), m)))
+
     async def _write_loop(self) -> None:
-        """The only writer of the WebSocket: one frame a message, each send bounded in time."""
+        """The only writer of the WebSocket: one frame a message, each batch bounded in time.
+
+        Everything queued when the task wakes is sent under one timeout scope:
+        with the console topic on, a read of the board's answers queues a
+        message a line, and a wake-up and a scope each cost more than the
+        frame (docs/performance.md, issue 30).
+        """
+        queue = self._queue
         try:
             while True:
-                item = await self._queue.get()
-                if not isinstance(item, bytes):
-                    return
+                item = await queue.get()
                 async with asyncio.timeout(self._write_timeout):
-                    # The bytes every subscriber gets, as encoded once: no decode, no encode.
-                    await self._ws.send_frame(item, WSMsgType.TEXT)
+                    while True:
+                        if not isinstance(item, bytes):
+                            return
+                        # The bytes every subscriber gets, as encoded once: no decode, no encode.
+                        await self._ws.send_frame(item, WSMsgType.TEXT)
+                        if queue.empty():
+                            break
+                        item = queue.get_nowait()
         except TimeoutError:
             self.close(f"write did not drain within {self._write_timeout} s")
         except (OSError, ConnectionError) as e:
             self.close(f"write failed: {e}")
+
+
+def _text_header(length: int) -> bytes:
+    """A server's text frame header: FIN and opcode 1, no mask, then the length (RFC 6455 5.2)."""
+    if length < 126:
+        return bytes((0x81, length))
+    if length < 1 << 16:
+        return bytes((0x81, 126)) + length.to_bytes(2, "big")
+    return bytes((0x81, 127)) + length.to_bytes(8, "big")
 
 
 class LoginLimiter:

@@ -17,8 +17,12 @@ swollen worker can be killed without failing the others' work:
 - the workers run at a lower priority (`nice` 10): on a two-core machine the
   daemon's own loop goes first.
 
-Workers start on first use (the forkserver method: never a fork of the
-daemon's threads and loop) and are killed when the daemon stops (`close`).
+Workers start with the forkserver method (never a fork of the daemon's
+threads and loop) and are killed when the daemon stops (`close`). A new
+worker costs about a second and a half of CPU on a small machine (a fresh
+interpreter importing the G-code readers): the daemon starts one as soon as
+it serves (`prewarm`), so that the first `job.start` or `file.analyze` does
+not wait for it (docs/performance.md, issue 30); later ones start on use.
 """
 
 from __future__ import annotations
@@ -85,6 +89,35 @@ class WorkerPool:
         self._all: set[ProcessPoolExecutor] = set()
         self._slots: asyncio.Semaphore | None = None
         self._closed = False
+        self._warming: asyncio.Task[None] | None = None
+
+    async def prewarm(self, module: str) -> None:
+        """Start one worker (importing `module`) now, for the first request to take.
+
+        Never raises: a worker that cannot start now is started on first use
+        instead, as without this.
+        """
+        if self._closed or self._idle or self._warming is not None:
+            return
+        self._warming = asyncio.current_task()
+        try:
+            executor = await self._start(module)
+        except Exception as exc:
+            log.warning("worker not started ahead of use", error=str(exc))
+            return
+        finally:
+            self._warming = None
+        if self._closed:
+            self._kill(executor)
+        else:
+            self._idle.append(executor)
+            log.debug("worker started ahead of use")
+
+    async def warmed(self) -> None:
+        """Until the worker `prewarm` is starting, if any, is ready (or failed to start)."""
+        warming = self._warming
+        if warming is not None:
+            await asyncio.wait({warming})
 
     async def run(self, what: str, fn: Callable[..., T], *args: Any) -> T:
         """`fn(*args)` on a worker; AnalysisLimit past the limits. `what` names it to the user.
@@ -95,6 +128,8 @@ class WorkerPool:
         if self._slots is None:
             self._slots = asyncio.Semaphore(self.workers)
         async with self._slots:
+            if not self._idle:
+                await self.warmed()  # the worker on its way, if one is, not a second one
             if self._closed:
                 raise AnalysisLimit(f"{what}: the daemon is stopping")
             executor = self._idle.pop() if self._idle else await self._start(fn.__module__)

@@ -75,6 +75,25 @@ async def test_notifications_sent_while_handling_go_out_before_the_answer(conn: 
     assert await conn.recv() == {"jsonrpc": "2.0", "result": 3, "id": 1}
 
 
+async def test_a_flood_that_fills_the_socket_arrives_whole_and_in_order(
+    harness: Harness, tmp_path: Path
+) -> None:
+    """Written at the end of each loop pass while the socket keeps up, queued once it lags:
+    either way, every message once, in the order sent, the answer last."""
+    async with serving(harness, tmp_path / "s", queue_size=100_000) as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            count = 20_000  # 4 MB: far more than the socket's buffers hold
+            params = {"count": count, "size": 200}
+            await conn.send({"jsonrpc": "2.0", "method": "flood", "params": params, "id": 9})
+            seen = [(await conn.recv())["params"]["i"] for _ in range(count)]
+            assert seen == list(range(count))
+            assert await conn.recv() == {"jsonrpc": "2.0", "result": count, "id": 9}
+        finally:
+            await conn.close()
+
+
 # --- error codes --------------------------------------------------------------
 
 

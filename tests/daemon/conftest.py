@@ -111,6 +111,9 @@ def config_data(
         "daemon": {
             "socket": str(tmp_path / "hostd.sock"),
             "state_dir": str(tmp_path / "state"),
+            # A worker process for every test's daemon would cost the suite minutes of CPU:
+            # tests/machine/test_workers.py and the daemon test of prewarming turn it on.
+            "prewarm_workers": False,
             **(daemon or {}),
         },
         "machines": [

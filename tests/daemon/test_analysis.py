@@ -98,3 +98,19 @@ async def test_a_four_hundred_digit_number_in_a_line_is_no_internal_error(
         with pytest.raises(RpcFailure) as refused:
             await rpc.call("file.analyze", file="n.gcode")
         assert refused.value.code == 1012 and refused.value.data["line"] == 2
+
+
+async def test_the_first_analysis_finds_its_worker_already_started(tmp_path: Path) -> None:
+    """`[daemon] prewarm_workers` (the default): a worker starts with the daemon."""
+    async with running_daemon(tmp_path, daemon={"prewarm_workers": True}) as hostd:
+        pool = hostd.daemon.workers
+        async with asyncio.timeout(60):
+            await pool.warmed()
+        [warm] = pool._idle  # nothing asked for it: it was started with the daemon
+        rpc = await hostd.client()
+        try:
+            (hostd.jobs / "small.gcode").write_text("G0 X1\nG1 X2 F100\n")
+            assert (await rpc.call("file.analyze", file="small.gcode"))["lines"] == 2
+        finally:
+            await rpc.close()
+        assert pool._idle == [warm] and pool._all == {warm}  # that one served it

@@ -231,6 +231,8 @@ async def test_a_batch_of_lines_goes_out_in_order_as_one_write(peers: Iterator[P
             [b"G1 X4\n", b"G1 X5"],  # one line unterminated
             [b"G1 X4\nG1 X5\n", b"G1 X6\n"],  # two lines in one
             [b"G1 X4", b"\nG1 X5\n"],  # as many LFs as lines, in the wrong places
+            [b"G1 X4"],  # alone, unterminated
+            [b"G1 X4\nG1 X5\n"],  # alone, two lines in one
         ):
             with pytest.raises(ValueError):
                 link.write_lines(bad)

@@ -74,3 +74,28 @@ async def test_a_cancelled_request_kills_its_worker_and_close_refuses_the_rest()
         pool.close()
     with pytest.raises(AnalysisLimit, match="stopping"):
         await pool.run("a test", _pid)
+
+
+async def test_a_prewarmed_worker_serves_the_first_request_and_no_other_starts() -> None:
+    pool = WorkerPool()
+    try:
+        warming = asyncio.create_task(pool.prewarm(__name__))
+        await asyncio.sleep(0)  # on its way: a request now waits for it, not for a second one
+        first = await pool.run("a test", _pid)
+        await warming
+        [executor] = pool._all  # one process started in all
+        assert first in {p.pid for p in executor._processes.values()}
+        assert await pool.run("a test", _pid) == first
+    finally:
+        pool.close()
+
+
+async def test_a_pool_closed_while_it_prewarms_keeps_no_worker() -> None:
+    pool = WorkerPool()
+    warming = asyncio.create_task(pool.prewarm(__name__))
+    await asyncio.sleep(0)
+    pool.close()
+    await warming
+    assert not pool._all and not pool._idle
+    with pytest.raises(AnalysisLimit, match="stopping"):
+        await pool.run("a test", _pid)

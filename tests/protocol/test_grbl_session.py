@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from hostd.protocol.commands import InvalidCommand, Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.session import (
@@ -808,3 +808,29 @@ def test_a_reset_reads_the_startup_blocks_again() -> None:
     assert grbl.session.ready and grbl.session.model.startup_blocks == []
     cancelled_at_rest(grbl)
     assert grbl.realtime()[-1] == codec.RESET
+
+
+@pytest.mark.parametrize("byte", range(256))
+def test_a_job_line_reaches_grbl_only_with_bytes_it_reads_as_part_of_a_line(
+    byte: int,
+) -> None:
+    """Every character, in a job line: written as it is, or refused saying why (codec.encode)."""
+    line = f"G1 X1{chr(byte)}2 S4"
+    if 0x20 <= byte <= 0x7E and chr(byte) not in "?!~(;":
+        assert codec.encode(line) == line.encode() + b"\n"
+        return
+    if chr(byte) in "(;":
+        assert codec.encode(line) == b"G1 X1\n"  # a comment to the end of the line, dropped
+        return
+    with pytest.raises(InvalidCommand) as caught:
+        codec.encode(line)
+    printable = 0x20 <= byte <= 0x7E
+    assert caught.value.refusal is (Refusal.REALTIME if printable else Refusal.NOT_TEXT)
+
+
+def test_a_line_one_byte_over_the_receive_buffer_is_refused() -> None:
+    fits = "G1 X" + "1" * 122  # 126 bytes and its LF: 127, the most grbl's 128 holds
+    assert codec.encode(fits) == fits.encode() + b"\n"
+    with pytest.raises(InvalidCommand) as caught:
+        codec.encode(fits + "1")
+    assert caught.value.refusal is Refusal.TOO_LONG

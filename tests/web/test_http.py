@@ -269,3 +269,27 @@ async def test_a_request_naming_an_unknown_host_is_refused_against_dns_rebinding
         assert await status(f"127.0.0.1:{port}") == 200
         assert await status(f"cnc.shop.lan:{port}") == 200  # [web] hosts
         assert await status(f"CNC.Shop.LAN:{port}") == 200
+
+
+@pytest.mark.parametrize("compress", [0, 15], ids=["plain", "deflate"])
+async def test_messages_of_every_size_arrive_whole_as_sent(web: Web, compress: int) -> None:
+    """Frames the daemon makes itself (plain) and aiohttp's (deflate) read back the same:
+    short (7-bit length), medium (16-bit, rpc.discover) and over 64 KiB (64-bit: an
+    unknown method's long name, which its error repeats)."""
+    long_name = "x" * 70_000
+    methods = ["daemon.info", "rpc.discover", long_name]
+    async with web.session.ws_connect(
+        f"{web.url}/api", headers=web.auth(), compress=compress
+    ) as ws:
+        for i in range(30):
+            request = {"jsonrpc": "2.0", "id": i, "method": methods[i % 3]}
+            await ws.send_str(json.dumps(request))
+        frames = [(await ws.receive(timeout=10)).data for _ in range(30)]
+    answers = {msg["id"]: msg.get("result", msg.get("error")) for msg in map(json.loads, frames)}
+    assert sorted(answers) == list(range(30))
+    bands = {(n >= 126) + (n >= 1 << 16) for n in (len(frame.encode()) for frame in frames)}
+    assert bands == {0, 1, 2}
+    for i, result in answers.items():
+        assert result == answers[i % 3]  # the same method, the same answer, every time
+    assert answers[0]["machines"] == ["sim1"] and answers[1]["openrpc"]
+    assert answers[2] == {"code": -32601, "message": f"method not found: {long_name}"}

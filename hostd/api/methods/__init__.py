@@ -30,6 +30,7 @@ from hostd.api.methods.subscriptions import (
     MAX_SUBSCRIPTIONS_PER_CLIENT,
     TOPICS,
     Subscriptions,
+    console_notification,
 )
 from hostd.api.rpc import Methods
 
@@ -43,6 +44,7 @@ __all__ = [
     "Subscriptions",
     "UploadParams",
     "build_methods",
+    "console_notification",
 ]
 
 TOPIC_MODULES = (daemon, machine, settings, files, jobs, faults, subscriptions, macros)

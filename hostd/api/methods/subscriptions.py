@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -65,6 +66,9 @@ MAX_SUBSCRIPTIONS = 4096
 
 SUBSCRIPTIONS_FULL = -32000  # the server's range: as a daemon full of clients
 
+# A str as a JSON string, non-ASCII kept (the C encoder rpc.encode's ensure_ascii=False uses).
+_json_string: Callable[[str], str] = json.encoder.encode_basestring
+
 
 class Subscriptions:
     """Which client wants which topics of which machine; fan-out never blocks.
@@ -86,6 +90,8 @@ class Subscriptions:
         self._subs: dict[int, _Subscription] = {}
         self._interest: Counter[tuple[str, str | None]] = Counter()
         self._owned: Counter[int] = Counter()  # id(owner) -> subscriptions it holds
+        # (topic, machine) -> each matching owner's send, once: rebuilt after any change.
+        self._sends: dict[tuple[str, str], list[Send]] = {}
         self._on_change = on_change
         self.max_per_client = max_per_client
         self.max_total = max_total
@@ -130,19 +136,32 @@ class Subscriptions:
         return any(sub.owner is owner for sub in self._subs.values())
 
     def wants(self, topic: str, machine: str) -> bool:
-        return self._interest[(topic, None)] > 0 or self._interest[(topic, machine)] > 0
+        interest = self._interest  # .get: a Counter's [] calls __missing__ for a zero
+        return interest.get((topic, None), 0) > 0 or interest.get((topic, machine), 0) > 0
 
     def deliver(self, topic: str, machine: str, params: dict[str, Any]) -> None:
-        if not self.wants(topic, machine):
-            return
-        line = encode_notification(topic, params)
+        if self.wants(topic, machine):
+            self.deliver_line(topic, machine, encode_notification(topic, params))
+
+    def deliver_line(self, topic: str, machine: str, line: bytes) -> None:
+        """A notification already encoded, to every client that wants it."""
+        sends = self._sends.get((topic, machine))
+        if sends is None:
+            sends = self._sends[(topic, machine)] = self._recipients(topic, machine)
+        for send in sends:  # (a send may end a subscription: this list stays as it was)
+            send(line)
+
+    def _recipients(self, topic: str, machine: str) -> list[Send]:
         done: set[int] = set()
-        for sub in list(self._subs.values()):
+        sends: list[Send] = []
+        for sub in self._subs.values():
             if _matches(sub, topic, machine) and id(sub.owner) not in done:
                 done.add(id(sub.owner))
-                sub.send(line)
+                sends.append(sub.send)
+        return sends
 
     def _changed(self) -> None:
+        self._sends = {}
         if self._on_change is not None:
             self._on_change()
 
@@ -151,10 +170,46 @@ def _matches(sub: _Subscription, topic: str, machine: str) -> bool:
     return topic in sub.topics and sub.machine in (None, machine)
 
 
+def console_notification(event: Console) -> bytes:
+    """The `console` notification, as `encode_notification` writes it, but made by hand.
+
+    Two a line streamed while the console topic has a listener: the general
+    encoder's walk over a dictionary cost more than the line's own path
+    (docs/performance.md, issue 30). Text that has no UTF-8 form (a lone
+    surrogate) goes the general way, which escapes it.
+    """
+    text = "".join(
+        (
+            '{"jsonrpc":"2.0","method":"console","params":{"machine":',
+            _json_string(event.machine),
+            ',"direction":',
+            _json_string(event.direction),
+            ',"channel":',
+            _json_string(event.channel),
+            ',"text":',
+            _json_string(event.text),
+            "}}",
+        )
+    )
+    try:
+        return text.encode()
+    except UnicodeEncodeError:
+        params = {
+            "machine": event.machine,
+            "direction": event.direction,
+            "channel": event.channel,
+            "text": event.text,
+        }
+        return encode_notification("console", params)
+
+
 def publish(subs: Subscriptions, machine: Machine, event: Event) -> None:
     """One machine event as the notification of its topic, to whoever wants it."""
     mid = machine.id
-    if isinstance(event, StatusChanged):
+    if isinstance(event, Console):  # first: two a line while someone listens
+        if subs.wants("console", mid):
+            subs.deliver_line("console", mid, console_notification(event))
+    elif isinstance(event, StatusChanged):
         if subs.wants("status", mid):
             snapshot = machine.snapshot()
             subs.deliver(
@@ -174,17 +229,6 @@ def publish(subs: Subscriptions, machine: Machine, event: Event) -> None:
         subs.deliver("job", mid, {"machine": mid, "job": event.job})
     elif isinstance(event, FaultChanged):
         subs.deliver("fault", mid, {"machine": mid, "fault": event.fault})
-    elif isinstance(event, Console):
-        subs.deliver(
-            "console",
-            mid,
-            {
-                "machine": mid,
-                "direction": event.direction,
-                "channel": event.channel,
-                "text": event.text,
-            },
-        )
 
 
 class SubscriptionMethods:

@@ -309,7 +309,10 @@ class MqttBridge:
 
     async def _publish_loop(self, client: aiomqtt.Client) -> None:
         outbox = self.outbox
-        while True:
+        # Not `while True`: on Python 3.11 asyncio.wait_for (aiomqtt's publish) returns its
+        # result and drops a cancel that comes as the broker's PUBACK does, and the loop would
+        # then wait on `ready` for good, holding up the stop and its `offline`.
+        while not self._stopping.is_set():
             item = outbox.take(self._clock())
             if isinstance(item, Outgoing):
                 try:

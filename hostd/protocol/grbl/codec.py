@@ -205,6 +205,9 @@ def numbers(text: str) -> list[float] | None:
 # -- what the host writes --------------------------------------------------------
 
 _PICKED_OUT = re.compile(r"[?!~]")
+# A line with nothing the checks below refuse: printable ASCII, none of grbl's realtime bytes.
+# 0x20-0x7E but for 0x21 `!`, 0x3F `?` and 0x7E `~`.
+_PRINTABLE_LINE = re.compile(r"[\x20\x22-\x3e\x40-\x7d]*")
 _VIEWS = frozenset({"$", "$$", "$#", "$G", "$I", "$N", "$HELP", "$ES", "$ESH", "$EA", "$EAH"})
 _CLEARS = frozenset({"$X", "$H"})
 
@@ -281,6 +284,8 @@ def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
     # Flat comments, as protocol.c drops them (an unclosed one to the end of the line),
     # read in linear time: `re.sub(r"\([^)]*\)|;.*")` took quadratic time on "((((".
     code = strip_comments(text, "")[0].strip()
+    if _PRINTABLE_LINE.fullmatch(code) is not None and len(code) + 1 <= max_bytes:
+        return code.encode() + b"\n"  # every job line: one regex, not a loop over its bytes
     if not code.isascii() or any(c < " " or c == "\x7f" for c in code):
         raise InvalidCommand(Refusal.NOT_TEXT, "only printable ASCII reaches a grbl board")
     if _PICKED_OUT.search(code):
