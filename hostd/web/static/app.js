@@ -120,6 +120,9 @@ function needs(snap) {
   const job = connected && snap.job && ["running", "paused"].includes(snap.job.state) ? snap.job : null;
   const blocking = connected ? (snap.faults || []).filter((f) => !f.overridden && f.severity !== "recoverable") : [];
   const held = connected && (snap.supervisor === "paused" || (snap.state && snap.state.name === "HOLD"));
+  // A job waiting at M6: paused; the daemon serves jogs (as the job's lines) and
+  // job.tool_change_done, and refuses resume and jog_stop (1003) until then.
+  const toolChange = connected && snap.tool_change ? snap.tool_change : null;
   const why = (ok, reason) => (ok ? null : reason);
   const notConnected = "the machine is not connected";
   const lockedText = lockout ? `refused in ${lockout.state}: ${lockoutExit(lockout)}` : "";
@@ -130,9 +133,12 @@ function needs(snap) {
     hold: why(connected, notConnected),
     reset: why(connected, notConnected),
     move,
-    jog: move || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    jog: (toolChange && !lockout ? null : move)
+      || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    "jog-stop": why(connected, notConnected) || why(!toolChange, "refused while a tool change waits: press Done"),
     job: move || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
     resume: !connected ? notConnected : locked ? lockedText
+      : toolChange ? "a tool change waits: press Done"
       : why(held || (lockout && lockout.state === "INTERLOCK"), "nothing is held"),
     cancel: why(Boolean(job), "no job is running"),
     clear: why(Boolean(lockout && lockout.clear.includes("machine.clear")), "no alarm or shutdown to clear"),
@@ -667,14 +673,15 @@ function showConsole(params) {
 
 // --- macros ------------------------------------------------------------------------------
 
-// macro.list's params, in any of the shapes a config may give: names, {name, default}, or
-// {name: default}.
+// macro.list's params: {name: {min, max, default, integer}} (docs/api.md); a list of names
+// is taken too.
 function macroParams(params) {
   if (!params) return [];
   if (Array.isArray(params)) {
-    return params.map((p) => (typeof p === "string" ? { name: p, value: "" } : { name: p.name, value: p.default ?? "" }));
+    return params.map((p) => (typeof p === "string" ? { name: p } : { ...p }));
   }
-  return Object.entries(params).map(([name, value]) => ({ name, value: value ?? "" }));
+  return Object.entries(params).map(([name, spec]) => (
+    spec && typeof spec === "object" ? { name, ...spec } : { name, default: spec }));
 }
 
 async function refreshMacros() {
@@ -699,8 +706,12 @@ async function refreshMacros() {
       label.textContent = `${param.name} `;
       const input = document.createElement("input");
       input.name = param.name;
-      input.value = param.value;
-      input.size = 6;
+      input.type = "number";
+      input.required = true;
+      if (param.default !== undefined && param.default !== null) input.value = param.default;
+      if (typeof param.min === "number") input.min = param.min;
+      if (typeof param.max === "number") input.max = param.max;
+      input.step = param.integer ? "1" : "any";
       label.append(input);
       form.append(label);
     }
@@ -712,10 +723,7 @@ async function refreshMacros() {
     form.addEventListener("submit", async (event) => {
       event.preventDefault();
       const params = {};
-      for (const input of form.querySelectorAll("input")) {
-        const number = Number(input.value);
-        params[input.name] = input.value.trim() !== "" && Number.isFinite(number) ? number : input.value;
-      }
+      for (const input of form.querySelectorAll("input")) params[input.name] = Number(input.value);
       const body = { machine: view.machine, name: macro.name };
       if (Object.keys(params).length) body.params = params;
       const started = await act("macro.run", body);
@@ -792,6 +800,9 @@ function wireKeys() {
     const [axis, dir] = key;
     const step = $("jog-step").value;
     if (step === "hold") {
+      // Its release sends machine.jog_stop, which a tool change's hold refuses: steps only.
+      const snap = view.snapshots.get(view.machine);
+      if (snap && snap.tool_change) { toast("during a tool change the keys jog by steps: pick a step", true); return; }
       view.keyJog = event.key;
       jog(axis, (dir * jogFeed() * HOLD_JOG_SECONDS) / 60);
     } else {
@@ -880,15 +891,32 @@ function wireOperations() {
     if (!(await confirmFirst("Go to work zero? Z rises to the safe height first, then X and Y, then Z comes down to 0."))) return;
     if (await act("machine.goto_zero", { machine: view.machine })) toast("at work zero");
   });
+  $("probe-kind").addEventListener("change", () => { $("probe-tool").hidden = $("probe-kind").value !== "xyz"; });
   $("probe").addEventListener("click", async () => {
-    const plate = parseFloat($("probe-plate").value);
-    if (!Number.isFinite(plate) || plate < 0) { toast("give the plate's thickness (mm) first", true); return; }
     const kind = $("probe-kind").value;
-    if (!(await confirmFirst(`Probe ${kind.toUpperCase()} on a ${plate} mm plate? The plate is under the tool and its clip is on.`))) return;
-    const result = await act("machine.probe", { machine: view.machine, kind, plate });
+    const params = { machine: view.machine, kind };
+    const plate = parseFloat($("probe-plate").value);
+    if (Number.isFinite(plate)) params.plate = plate; // else the machine's [machines.probe] plate
+    if (kind === "xyz") {
+      const diameter = parseFloat($("probe-diameter").value);
+      if (!Number.isFinite(diameter)) { toast("give the bit's diameter (mm) for an XYZ probe", true); return; }
+      params.tool_diameter = diameter;
+    }
+    if ($("probe-confirmed").checked) params.confirmed = true;
+    const what = kind === "xyz" ? "the XYZ corner" : "Z";
+    const on = Number.isFinite(plate) ? `a ${plate} mm plate` : "the configured plate";
+    if (!(await confirmFirst(`Probe ${what} on ${on}? The clip is on the bit and the plate under it.`))) return;
+    // The daemon first waits to see the probe input work: the operator touches the plate
+    // to the bit and lets go (docs/api.md, machine.probe).
+    const status = $("probe-status");
+    status.hidden = false;
+    status.textContent = "Touch the plate to the bit, then let go: hostd waits up to 30 s to see the probe input work, then probes.";
+    const result = await act("machine.probe", params);
     if (result) {
       const where = Object.entries(result.position || {}).map(([a, v]) => `${a.toUpperCase()} ${fmt(v)}`).join(" ");
-      toast(`probed at ${where}; zeroed ${(result.zeroed || []).join(", ").toUpperCase() || "nothing"}`);
+      status.textContent = `Touched at ${where} (machine); work zero set on ${(result.zeroed || []).join(", ").toUpperCase() || "nothing"}.`;
+    } else {
+      status.textContent = "The probe did not run or did not touch (the reason is above).";
     }
   });
   for (const row of document.querySelectorAll("[data-override]")) {
