@@ -93,6 +93,19 @@ async function act(method, params) {
   }
 }
 
+// A long request (homing, probing, a test fire) keeps its button disabled until answered:
+// a second click would only be refused (1003, an operation under way).
+async function pending(button, work) {
+  button.dataset.pending = "1";
+  updateEnabled();
+  try {
+    return await work();
+  } finally {
+    delete button.dataset.pending;
+    updateEnabled();
+  }
+}
+
 function confirmFirst(text) {
   const dialog = $("confirm");
   $("confirm-text").textContent = text;
@@ -158,6 +171,7 @@ function updateEnabled() {
       reason = "the program leaves the machine's travel";
     }
     if (!reason && ["start", "frame"].includes(el.id) && !$("files").value) reason = "upload or pick a file first";
+    if (!reason && el.dataset.pending) reason = "under way…";
     el.disabled = Boolean(reason);
     el.title = reason || el.dataset.hint || "";
   }
@@ -877,10 +891,10 @@ function overrideValue(key, button) {
 }
 
 function wireOperations() {
-  $("home").addEventListener("click", async () => {
+  $("home").addEventListener("click", () => pending($("home"), async () => {
     toast("homing…");
     if (await act("machine.home", { machine: view.machine })) toast("homed");
-  });
+  }));
   for (const button of document.querySelectorAll("[data-zero]")) {
     button.addEventListener("click", async () => {
       const axes = Object.fromEntries([...button.dataset.zero].map((a) => [a, 0]));
@@ -889,7 +903,9 @@ function wireOperations() {
   }
   $("goto-zero").addEventListener("click", async () => {
     if (!(await confirmFirst("Go to work zero? Z rises to the safe height first, then X and Y, then Z comes down to 0."))) return;
-    if (await act("machine.goto_zero", { machine: view.machine })) toast("at work zero");
+    await pending($("goto-zero"), async () => {
+      if (await act("machine.goto_zero", { machine: view.machine })) toast("at work zero");
+    });
   });
   $("probe-kind").addEventListener("change", () => { $("probe-tool").hidden = $("probe-kind").value !== "xyz"; });
   $("probe").addEventListener("click", async () => {
@@ -911,7 +927,7 @@ function wireOperations() {
     const status = $("probe-status");
     status.hidden = false;
     status.textContent = "Touch the plate to the bit, then let go: hostd waits up to 30 s to see the probe input work, then probes.";
-    const result = await act("machine.probe", params);
+    const result = await pending($("probe"), () => act("machine.probe", params));
     if (result) {
       const where = Object.entries(result.position || {}).map(([a, v]) => `${a.toUpperCase()} ${fmt(v)}`).join(" ");
       status.textContent = `Touched at ${where} (machine); work zero set on ${(result.zeroed || []).join(", ").toUpperCase() || "nothing"}.`;
@@ -940,7 +956,8 @@ function wireOperations() {
     const power = parseFloat($("laser-power").value);
     const seconds = Math.min(parseFloat($("laser-duration").value) || 0.5, 2);
     if (!(await confirmFirst(`Fire the laser at ${power}% for ${seconds} s? Eyewear on, the lid closed.`))) return;
-    if (await act("machine.laser_test", { machine: view.machine, power, duration_s: seconds })) toast("laser test done");
+    const fired = await pending($("laser-test"), () => act("machine.laser_test", { machine: view.machine, power, duration_s: seconds }));
+    if (fired) toast("laser test done");
   });
   $("frame").addEventListener("click", async () => {
     const file = $("files").value;
