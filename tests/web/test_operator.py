@@ -18,6 +18,8 @@ pytestmark = pytest.mark.asyncio
 expect = playwright.expect
 
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
+# Long too, and every line's position known from the file (Z set first): resumable anywhere.
+DEEP = "G21 G90\nG0 Z5\nG0 X0 Y0\nG1 Z-1 F300\n" + LONG + "G0 Z5\n"
 # A full circle (start = end, centre by I J), a half circle by R, and plunges in Z.
 ARCS = """G21 G90
 G0 X10 Y0 Z5
@@ -319,6 +321,27 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         job = (await rpc.call("job.list", machine="sim1"))[0]
         assert job["start_line"] == 5
         assert job["state"] == "completed"
+
+        # A cancelled job's row offers its own resume: job.recovery {job}, the same plan.
+        await upload(page, tmp_path, "deep.nc", DEEP)
+        await page.click("#start")
+        await page.wait_for_function(PROGRESS_OVER, arg=0.05)
+        await page.click("[data-action=cancel]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
+        cancelled = (await rpc.call("job.list", machine="sim1"))[0]
+        plan = await rpc.call("job.recovery", job=cancelled["id"])
+        await page.locator("#history tbody tr").first.get_by_role("button").click()
+        await expect(page.locator("#plan-title")).to_have_text(
+            f"Resume deep.nc from line {plan['line']}"
+        )
+        shown = await page.locator("#plan-preamble").inner_text()
+        assert shown.splitlines() == plan["preamble"] + plan.get("approach", [])
+        await page.evaluate("window.scrollTo(0, 0)")
+        await screenshot(page, tmp_path, "resume")
+        await page.click("#plan button[value=no]")  # Back: nothing starts
+        await expect(page.locator("#plan")).to_be_hidden()
+        assert (await rpc.call("job.list", machine="sim1"))[0]["id"] == cancelled["id"]
         await rpc.close()
 
 
