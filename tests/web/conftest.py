@@ -178,6 +178,7 @@ async def browser(tmp_path: Path, chromium: str) -> AsyncIterator[playwright.Bro
 
 async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:
     path = tmp_path / f"{name}.png"
+    await page.evaluate("document.getElementById('toast').hidden = true")  # a passing note
     await page.screenshot(path=path, full_page=True)
     if where := os.environ.get("HOSTD_SCREENSHOTS"):
         await asyncio.to_thread(_keep, path, Path(where))
