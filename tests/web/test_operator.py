@@ -396,3 +396,42 @@ async def test_the_position_fits_at_1280_and_the_panel_at_390(
         await page.evaluate("window.scrollTo(0, 0)")
         await screenshot(page, tmp_path, "phone")
         await rpc.close()
+
+
+async def test_grbls_door_and_hard_limit_are_shown_with_the_way_out_and_ended_from_the_page(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path, machine=GRBL) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        page = await browser.new_page()
+        await log_in(page, web)
+        sim.door(True)  # the door opens: INTERLOCK, moves refused, Resume is the way out
+        await expect(page.locator("#indicator-text")).to_have_text("INTERLOCK")
+        await expect(page.locator("#lockout-clear")).to_have_text(
+            "To end it: close the door, then Resume"
+        )
+        await expect(page.locator("#home")).to_be_disabled()
+        await expect(page.locator("[data-jog=X][data-dir='1']")).to_be_disabled()
+        sim.door(False)
+        await page.click("[data-action=resume]")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("#home")).to_be_enabled()
+
+        rpc = await web.hostd.client()
+        await rpc.call("settings.set", machine="sim1", values={"21": 1})  # hard limits on
+        await web.hostd.idle(rpc)
+        await rpc.close()
+        sim.limit_switch("x")  # a hard limit: grbl wants a reset before its unlock
+        await expect(page.locator("#indicator-text")).to_have_text("ALARM")
+        await expect(page.locator("#lockout-message")).not_to_be_empty()
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Reset, then Clear")
+        await expect(page.locator("[data-action=reset]")).to_have_class("danger needed")
+        await expect(page.locator("[data-action=clear]")).to_have_class("needed")
+        sim.limit_switch("x", active=False)
+        await page.click("[data-action=reset]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Clear")
+        await page.click("[data-action=clear]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("[data-action=clear]")).to_be_disabled()
