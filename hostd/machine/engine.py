@@ -1,6 +1,6 @@
 """One machine's engine: the I/O shell around its dialect's session.
 
-The engine holds no protocol rule; the session (`hostd.protocol.g2core`)
+The engine holds no protocol rule; the session of the machine's dialect
 holds them all. The engine opens the link, feeds the session every line the
 board prints and every request a client makes, writes what the session says
 to write, runs the one timer the session asks for, and delivers the
@@ -31,8 +31,8 @@ from typing import Any
 
 import structlog
 
-from hostd.config import MachineConfig
 from hostd.link import Channel, Link, LinkError
+from hostd.machine.config import MachineConfig
 from hostd.machine.events import (
     Console,
     ExceptionRaised,
@@ -49,9 +49,6 @@ from hostd.protocol.errors import (
     ControllerTimeout,
     NotConnected,
 )
-from hostd.protocol.g2core import G2Session
-from hostd.protocol.grbl.session import GrblSession
-from hostd.protocol.linemode import LineModeSender
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.session import SessionBase
@@ -109,12 +106,6 @@ class Engine:
     @property
     def model(self) -> MachineModel:
         return self.session.model
-
-    @property
-    def sender(self) -> LineModeSender:
-        """g2core's line-mode books (tests read them)."""
-        assert isinstance(self.session, G2Session)
-        return self.session.sender
 
     # -- lifecycle ---------------------------------------------------------
 
@@ -606,26 +597,8 @@ def _debug_enabled(logger: Any) -> bool:
 
 
 def session_for(config: MachineConfig) -> SessionBase:
-    """The session of the machine's dialect: every protocol rule is in it."""
-    if config.dialect == "grbl":
-        return GrblSession(
-            config.id,
-            status_interval=config.status_interval,
-            heartbeat=config.heartbeat,
-            link_silence=config.link_silence,
-            homing_timeout=config.homing_timeout,
-            handshake_timeout=config.handshake_timeout,
-            startup_motion=config.startup_motion,
-        )
-    return G2Session(
-        config.id,
-        window=config.window,
-        status_interval=config.status_interval,
-        heartbeat=config.heartbeat,
-        handshake_timeout=config.handshake_timeout,
-        signal_keys=config.signals.keys(),
-        dual=config.control_port is not None,
-    )
+    """The session of the machine's dialect (its registry entry's): every protocol rule is in it."""
+    return config.spec.session(config)
 
 
 def _seen(future: asyncio.Future[Response]) -> None:

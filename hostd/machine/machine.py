@@ -30,7 +30,7 @@ from typing import Any, TextIO
 
 import structlog
 
-from hostd.config import MachineConfig
+from hostd.machine.config import MachineConfig
 from hostd.machine.engine import Engine
 from hostd.machine.events import (
     Event,

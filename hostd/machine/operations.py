@@ -17,26 +17,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
-from typing import Any, Final
+from collections.abc import AsyncIterator, Callable, Mapping
+from typing import Final
 
 from hostd.machine.machine import Machine
 from hostd.machine.supervisor import State as SupState
-from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
-from hostd.protocol.refusals import Refusal
+from hostd.protocol.gcode import axes_words, short_number
 from hostd.protocol.states import MachineState
 
-HOME_AXES: Final = ("x", "y", "z")  # what "all axes" homes: the axes both sims and boards have
 # A homing cycle may take this long before the operation gives up waiting (the
 # board goes on: a feedhold or reset stops it). grbl's own bound is its session's.
 HOMING_WAIT: Final = 300.0
 MOVE_WAIT: Final = 600.0  # a go-to-zero's moves, from anywhere on the table at a slow rapid
 ANSWER_WAIT: Final = 10.0
 AT_ZERO: Final = 0.001  # mm (or in): the reports' resolution, three decimals
-# g2core's override factors (planner.h FEED_OVERRIDE_MIN/MAX, TRAVERSE_OVERRIDE_MAX;
-# settings_default.h SPINDLE_OVERRIDE_MIN/MAX), in percent.
-_WCS_P: Final = {"G54": 1, "G55": 2, "G56": 3, "G57": 4, "G58": 5, "G59": 6}
 
 _running: set[str] = set()  # machines with an operation of this module under way
 
@@ -58,42 +53,21 @@ async def _operation(machine: Machine) -> AsyncIterator[None]:
         _running.discard(machine.id)
 
 
-def _axes_words(axes: Iterable[str]) -> str:
-    return " ".join(f"{a.upper()}0" for a in axes)
-
-
-def home_lines(dialect: str, axes: list[str] | None) -> list[str]:
-    """g2core: `G28.2` with a word per axis (cycle_homing.cpp homes the axes named);
-    grbl: `$H`, every axis the board's `$23`.. homes (one-axis `$HX` needs grblHAL's
-    single-axis homing setting, system.c go_home: refused here, not guessed)."""
-    if dialect == "grbl":
-        if axes is not None and set(axes) != set(HOME_AXES):
-            raise InvalidCommand(
-                Refusal.UNREADABLE,
-                "grbl homes every axis at once with $H: leave axes out (or give x, y and z)",
-            )
-        return ["$H"]
-    return [f"G28.2 {_axes_words(axes or HOME_AXES)}"]
-
-
 async def home(machine: Machine, axes: list[str] | None) -> None:
     """Home; return once the board says the cycle is done (ControllerError if it failed)."""
-    lines = home_lines(machine.config.dialect, axes)
     engine = machine.engine
+    session = engine.session
+    lines = session.home_lines(axes)
     async with _operation(machine):
         before = engine.model.last_exception
-        if machine.config.dialect == "grbl":
-            # grbl answers `$H` only once the cycle has ended (system.c); the session
-            # sets `homed` from that answer (hostd/protocol/grbl/session.py).
+        if session.homing_answered_at_end:
             await engine.send(lines[0], timeout=HOMING_WAIT)
             await _at_rest(machine)  # a report after the answer: out of ALARM, say
             return
         await engine.send(lines[0], timeout=ANSWER_WAIT)
-        # g2core answers G28.2 as it starts the cycle (cm_homing_cycle_start sets
-        # MACHINE_CYCLE / CYCLE_HOMING at once: the combined state reads HOMING, 9).
-        # A status report asked after the answer shows the cycle; its end is the
-        # state leaving HOMING.
-        await engine.send("{sr:n}", timeout=ANSWER_WAIT)
+        # The answer came as the cycle started; a status report asked after it shows
+        # the cycle, and its end is the state leaving HOMING.
+        await _fresh_report(machine)
         model = engine.model
         try:
             async with asyncio.timeout(HOMING_WAIT):
@@ -101,42 +75,17 @@ async def home(machine: Machine, axes: list[str] | None) -> None:
         except TimeoutError:
             raise ControllerTimeout(f"{machine.id}: homing did not end") from None
         failed = model.last_exception
-        if failed is not before and failed is not None and _homing_status(failed):
+        if failed is not before and failed is not None and session.homing_failed(failed):
             raise ControllerError(int(failed["st"]), str(failed.get("msg") or "homing failed"))
         if model.state is not None and model.state.is_lockout:
             raise ControllerError(0, f"{machine.id}: homing ended in {model.state.name}")
-
-
-def _homing_status(report: Mapping[str, Any]) -> bool:
-    """g2core's homing failures are statuses 240-247 (error.h STAT_HOMING_*)."""
-    status = report.get("st")
-    return isinstance(status, int) and 240 <= status <= 247
-
-
-def zero_line(wcs: str | None, axes: Mapping[str, float], dialect: str) -> str:
-    """`G10 L20 P<active WCS>`: the current position reads as given, in that WCS."""
-    words = " ".join(f"{a.upper()}{_number(v)}" for a, v in axes.items())
-    p = _WCS_P.get(wcs or "")
-    if p is None:
-        if dialect != "grbl":
-            raise InvalidCommand(
-                Refusal.UNREADABLE,
-                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
-            )
-        p = 0  # gnea/grbl gcode.c: G10 P0 is the active coordinate system
-    return f"G10 L20 P{p} {words}"
-
-
-def _number(value: float) -> str:
-    text = f"{value:.4f}".rstrip("0").rstrip(".")
-    return "0" if text in ("", "-0") else text
 
 
 async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
     """Set work zero: each axis named reads the value given, now, in the active WCS."""
     engine = machine.engine
     async with _operation(machine):
-        line = zero_line(engine.model.modal.get("wcs"), axes, machine.config.dialect)
+        line = engine.session.zero_line(engine.model.modal.get("wcs"), axes)
         await engine.send(line, timeout=ANSWER_WAIT)
         # The position reports follow the offset; ask for one now so the answer's
         # snapshot already shows it.
@@ -144,10 +93,12 @@ async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
 
 
 async def _fresh_report(machine: Machine) -> None:
-    if machine.config.dialect == "grbl":
+    """Ask for a full status report: answered, where the dialect has such a line."""
+    line = machine.engine.session.report_line
+    if line is None:
         machine.engine.query_status()
         return
-    await machine.engine.send("{sr:n}", timeout=ANSWER_WAIT)
+    await machine.engine.send(line, timeout=ANSWER_WAIT)
 
 
 def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
@@ -158,9 +109,9 @@ def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
     lines: list[str] = []
     flat = [a for a in chosen if a != "z"]
     if flat and safe_z is not None:
-        lines.append(f"G53 G0 Z{_number(safe_z)}")
+        lines.append(f"G53 G0 Z{short_number(safe_z)}")
     if flat:
-        lines.append(f"G90 G0 {_axes_words(flat)}")
+        lines.append(f"G90 G0 {axes_words(flat)}")
     if "z" in chosen:
         lines.append("G90 G0 Z0")
     return lines
@@ -205,7 +156,7 @@ async def _at_rest(machine: Machine, there: Callable[[], bool] = lambda: True) -
 
 def spindle_line(state: str, speed: float | None) -> str:
     code = {"cw": "M3", "ccw": "M4", "off": "M5"}[state]
-    return code if speed is None else f"{code} S{_number(speed)}"
+    return code if speed is None else f"{code} S{short_number(speed)}"
 
 
 async def spindle(machine: Machine, state: str, speed: float | None) -> None:

@@ -44,7 +44,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from enum import Enum, auto
 from typing import Any
 
@@ -77,7 +77,7 @@ from hostd.protocol.g2handshake import (
     check_firmware,
     protocol_settings,
 )
-from hostd.protocol.gcode import jog_line
+from hostd.protocol.gcode import HOME_AXES, axes_words, jog_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
@@ -954,6 +954,22 @@ class G2Session(SessionBase):
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]
+
+    report_line = "{sr:n}"  # a GET: answered once the report has been printed
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """`G28.2` with a word per axis: cycle_homing.cpp homes the axes named.
+
+        g2core answers it as the cycle starts (cm_homing_cycle_start sets
+        MACHINE_CYCLE / CYCLE_HOMING at once: the combined state reads HOMING);
+        the cycle's end is the state leaving HOMING.
+        """
+        return [f"G28.2 {axes_words(axes or HOME_AXES)}"]
+
+    def homing_failed(self, report: Mapping[str, Any]) -> bool:
+        """g2core's homing failures are statuses 240-247 (error.h STAT_HOMING_*)."""
+        status = report.get("st")
+        return isinstance(status, int) and 240 <= status <= 247
 
     def status_text(self, code: int) -> str:
         return message(code)  # status.py: g2core's own table (error.h)

@@ -12,14 +12,15 @@ and the words for both, are in vocabulary.py.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import structlog
 
 from hostd.protocol.classes import CommandClass, classify_realtime
-from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
+from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
+from hostd.protocol.gcode import WCS_P, work_zero_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
@@ -211,6 +212,47 @@ class SessionBase:
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
+
+    # The board answers its homing line only once the cycle has ended (grbl's `$H`).
+    # False: it answers as the cycle starts, and the cycle ends when the state
+    # leaves HOMING (g2core's G28.2).
+    homing_answered_at_end = False
+    # A line that asks for a full status report and is answered (g2core's `{sr:n}`),
+    # so the answer comes once the report has: None where `query_status` asks for one
+    # realtime, with no answer (grbl's `?`).
+    report_line: str | None = None
+
+    def line_limit(self) -> int:
+        """The longest job line, its LF included, the board takes (g2core: 511 and the LF)."""
+        return MAX_LINE_BYTES + 1
+
+    def known_travel(self) -> dict[str, tuple[float, float]]:
+        """The machine's travel per axis (mm) the session already knows, without asking."""
+        return {}
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """The lines that home these axes (None: all of them), in the board's words."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no homing command"
+        )
+
+    def homing_failed(self, report: Mapping[str, Any]) -> bool:
+        """An exception report says the homing cycle failed (where the answer does not)."""
+        return False
+
+    def zero_line(self, wcs: str | None, axes: Mapping[str, float]) -> str:
+        """`G10 L20 P<active WCS>`: the current position reads as given, in that WCS.
+
+        The active WCS must be known and one of G54-G59 (RS274/NGC); a dialect
+        that can name "the active one" without knowing it says so (grbl's P0).
+        """
+        p = WCS_P.get(wcs or "")
+        if p is None:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        return work_zero_line(p, axes)
 
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None

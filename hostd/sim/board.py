@@ -72,6 +72,9 @@ class Board(Commands):
         self.rx_controls = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
+        # The next G-code line is answered with this status instead of run (a test's: a
+        # status the firmware gives only for a file, a build or a machine hostd lacks).
+        self.refuse_next: int | None = None
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.

@@ -74,7 +74,8 @@ class Commands(Planner):
         elif first == "$":
             self._text(stripped, linelen)
         else:
-            status, n = self._gcode(text)
+            refused, self.refuse_next = self.refuse_next, None
+            status, n = self._gcode(text) if refused is None else (Status(refused), 0)
             body: dict[str, Any] = {"gc": text} if self._jv >= 5 else {}
             self._respond(body, status, linelen, data=True, n=n)
             self._sr_requested = True

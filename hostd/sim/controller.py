@@ -260,6 +260,10 @@ class SimController(SimShell[Board, MachineState]):
             self._keep(self.sent, Received(time.monotonic(), port.name, data, "raw"))
             self._pulse()
 
+    def refuse_next(self, status: int) -> None:
+        """The next G-code line is answered with `status` (any of error.h's) and not run."""
+        self._board.refuse_next = int(Status(status))
+
     def set_ack_delay(self, seconds: float) -> None:
         """Each data line's response goes out this much later (the board reads on after it)."""
         self._board.ack_delay = max(seconds, 0.0)

@@ -78,6 +78,7 @@ class Output:
     build: Build  # the rules of the firmware build this board is (g2builds.py)
     output_blocked: bool
     ack_delay: float
+    refuse_next: int | None  # a test's: the next G-code line's status
     inputs: dict[str, float | int]
     probe_surface: tuple[str, float] | None
     homing_failure: tuple[str, Status] | None

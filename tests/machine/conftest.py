@@ -132,6 +132,8 @@ def machine_config(path: str, control: str | None = None, **overrides: object) -
         "status_interval": 0.1,
     }
     values.update(overrides)
+    if values.get("dialect", "g2core") != "g2core":
+        del values["window"]  # g2core's own key (its registry entry's options)
     return MachineConfig.model_validate(values)
 
 

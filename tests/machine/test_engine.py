@@ -236,7 +236,7 @@ async def test_alarm_mid_stream_stops_every_action_line_after_it_is_read(rig: Ri
     assert after == []
     # Every line written is accounted for: none lost, none re-sent.
     async with asyncio.timeout(2):
-        await rig.engine.wait_for(lambda: not len(rig.engine.sender))
+        await rig.engine.wait_for(lambda: not len(rig.engine.session.sender))
     assert stream.sent == stream.acked + stream.rejected + stream.discarded
     gcode = [line for line in rig.received_lines() if line.startswith(b"G")]
     assert len(gcode) == len(set(gcode)) or len(gcode) == stream.sent
@@ -263,7 +263,7 @@ async def test_feedhold_then_flush_cancels_and_frees_the_window(rig: Rig) -> Non
     await finished(stream)
     assert stream.result.result().end is StreamEnd.CANCELLED
     await state(rig, S.PROGRAM_STOP)
-    assert len(rig.engine.sender) == 0
+    assert len(rig.engine.session.sender) == 0
     assert stream.sent == stream.acked + stream.discarded
     assert (await rig.engine.send("G0 X1")).ok  # the window is free again
 
@@ -275,7 +275,7 @@ async def test_job_kill_cancels_and_frees_the_window(rig: Rig) -> None:
     await finished(stream)
     assert stream.result.result().end is StreamEnd.CANCELLED
     await state(rig, S.PROGRAM_END)
-    assert len(rig.engine.sender) == 0
+    assert len(rig.engine.session.sender) == 0
     assert (await rig.engine.send("G0 X1")).ok
 
 
@@ -415,7 +415,7 @@ async def test_a_board_already_in_alarm_connects_and_gets_its_settings_after_cle
             assert (await engine.send("{jv:n}")).body["jv"] != 4  # refused while alarmed
             await engine.clear()
             async with asyncio.timeout(2):
-                await engine.wait_for(lambda: len(engine.sender) == 0)
+                await engine.wait_for(lambda: len(engine.session.sender) == 0)
             assert (await engine.send("{jv:n}")).body["jv"] == 4
 
 

@@ -52,14 +52,14 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from enum import Enum, auto
 from typing import Any
 
 from hostd.protocol.classes import FORWARD, CommandClass, Table, admit
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
-from hostd.protocol.gcode import jog_words
+from hostd.protocol.gcode import HOME_AXES, WCS_P, jog_words, work_zero_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import (
@@ -251,6 +251,39 @@ class GrblSession(SessionBase):
         """0x84 (protocol.c CMD_SAFETY_DOOR): the board enters Door as if its switch opened."""
         self._require_open()
         self._out.append((Lane.REALTIME, codec.SAFETY_DOOR))
+
+    # grbl answers `$H` only once the cycle has ended (system.c); the session sets
+    # `homed` from that answer.
+    homing_answered_at_end = True
+
+    def line_limit(self) -> int:
+        """The receive buffer less one (`[OPT:]`'s, or classic grbl's 128)."""
+        return self.rx_size - 1
+
+    def known_travel(self) -> dict[str, tuple[float, float]]:
+        """The travel of `$130`.. as the handshake's `$$` read them."""
+        found: dict[str, Any] = {}
+        for key in self.limit_settings():
+            try:
+                found[key] = float(self.settings[key])
+            except (KeyError, ValueError):
+                continue
+        return dict(self.machine_limits(found).travel)
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """`$H`: every axis the board's `$23`.. homes. One-axis `$HX` needs grblHAL's
+        single-axis homing setting (system.c go_home): refused here, not guessed."""
+        if axes is not None and set(axes) != set(HOME_AXES):
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                "grbl homes every axis at once with $H: leave axes out (or give x, y and z)",
+            )
+        return ["$H"]
+
+    def zero_line(self, wcs: str | None, axes: Mapping[str, float]) -> str:
+        """As every dialect's, but an unknown WCS is `P0`: gnea/grbl gcode.c reads G10 P0
+        as the active coordinate system."""
+        return work_zero_line(WCS_P.get(wcs or "", 0), axes)
 
     def status_text(self, code: int) -> str:
         return error_text(code)  # codes.py: grblHAL errors.c (classic grbl: 1-38)

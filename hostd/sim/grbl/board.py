@@ -97,6 +97,9 @@ class GrblBoard:
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
         self.status_ignored = False  # `?` is not answered (reports stop), lines still are
+        # The next G-code line is answered `error:N` with this code instead of run (a
+        # test's: a code of a build, a setting or a machine the simulator lacks).
+        self.refuse_next: int | None = None
         self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
         # `$N0`, `$N1` (N_STARTUP_LINE 2): kept in EEPROM, run after every reset (system.c).
         self.startup_lines = ["", ""]
@@ -392,6 +395,10 @@ class GrblBoard:
             status = Error.SYSTEM_GC_LOCK
         elif self.hal and self.last_error != Error.OK:
             status = self.last_error  # the error latch
+        elif self.refuse_next is not None:
+            code, self.refuse_next = self.refuse_next, None
+            self._emit(f"error:{code}")  # nothing latched, nothing run: the test's code only
+            return
         else:
             result = self._gcode(line)
             if result is None:

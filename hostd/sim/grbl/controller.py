@@ -144,6 +144,11 @@ class GrblSimController(SimShell[GrblBoard, str]):
         """`?` gets no report while lines still get their `ok` (reports stop, answers go on)."""
         self._board.status_ignored = ignored
 
+    def refuse_next(self, code: int) -> None:
+        """The next G-code line is answered `error:<code>` and not run: any of grblHAL's
+        errors.h, including those this simulator's firmware model never gives."""
+        self._board.refuse_next = code
+
     def hang(self, hung: bool = True) -> None:
         """The firmware hangs with its USB device still there: it reads and prints nothing."""
         self._hung = hung

@@ -1,0 +1,107 @@
+"""A machine's table in the config file (`[[machines]]`), assembled from each layer's keys.
+
+The protocol's (`SessionConfig`: the dialect and the session's timings), the
+link's (`PortConfig`: ports and baud rate) and the machine layer's own (its
+signals, a resume's heights and feeds, maintenance, laser) sit flat in one
+table, as running.md fixes them. The dialect adds its own keys (its
+registry entry's `options`, hostd/protocol/dialects.py): a machine's config
+is an instance of `MachineConfig` and of its dialect's options at once, so
+a key of another dialect is refused by name like any unknown key.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Final, Self, cast
+
+from pydantic import ConfigDict, Field, create_model, model_validator
+from pydantic_core.core_schema import ValidatorFunctionWrapHandler
+
+from hostd.link.config import PortConfig
+from hostd.machine.signals import SignalsConfig
+from hostd.protocol.dialects import DEFAULT, DialectOptions, SessionConfig, UnknownDialect, lookup
+
+SIM_PORT: Final = "sim"
+
+
+class MachineConfig(SessionConfig, PortConfig):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
+    auto_connect: bool = True
+    # Where lid, laser selection, coolant flow and temperature come from
+    # (hostd/machine/signals.py); none configured, none of those faults.
+    signals: SignalsConfig = SignalsConfig()
+    # Resuming a job (job.start with start_line > 1): the height the tool goes up to
+    # before it crosses to the resume point, in machine coordinates (mm); unset, the top
+    # of the Z travel the board's settings give. And the seconds the spindle is given to
+    # reach its speed before the tool goes down.
+    safe_z: Annotated[float, Field(allow_inf_nan=False)] | None = None
+    spindle_dwell: Annotated[float, Field(ge=0, le=60)] = 2.0
+    # Maintenance commands (grbl `$RST=`, `$N0=`, `$I=`, `$SLP`; docs/operations.md):
+    # machine.send always refuses them; machine.maintenance sends them only when true.
+    maintenance: bool = False
+    # The slowest the tool goes back down to the resume depth, mm/min: the resume plunges
+    # at the file's own plunge feed (its last feed move along Z alone) or this, whichever
+    # is slower. Unset: the file's.
+    plunge_feed: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # The tool is a laser: a resume moves with the beam off and turns it on, without a
+    # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
+    laser: bool = False
+
+    def __new__(cls, *args: Any, **data: Any) -> Self:
+        """`MachineConfig(dialect=..., ...)` is the dialect's class, as validation gives."""
+        if cls is MachineConfig and data:
+            return cast(Self, super().__new__(_with_options(data) or cls))
+        return super().__new__(cls)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _with_the_dialects_keys(cls, data: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        """Validate a table as its dialect's class: the dialect's keys are known there."""
+        if cls is MachineConfig and isinstance(data, dict):
+            model = _with_options(data)
+            if model is not None:
+                return model.model_validate(data)
+        return handler(data)  # an unknown dialect: the `dialect` field names the known ones
+
+    @model_validator(mode="after")
+    def _ports_the_board_has(self) -> Self:
+        spec = lookup(self.dialect)
+        if self.control_port is not None and spec.ports < 2:
+            raise ValueError(f"a {spec.name} board has one port: no control_port")
+        return self
+
+    @model_validator(mode="after")
+    def _sim_is_single_port(self) -> Self:
+        if self.control_port == SIM_PORT and self.data_port != SIM_PORT:
+            raise ValueError('control_port = "sim" needs data_port = "sim"')
+        return self
+
+    @property
+    def simulated(self) -> bool:
+        return self.data_port == SIM_PORT
+
+
+_classes: dict[type[DialectOptions], type[MachineConfig]] = {}
+
+
+def _with_options(data: dict[str, Any]) -> type[MachineConfig] | None:
+    """The config class of the dialect `data` names: MachineConfig and its options."""
+    name = data.get("dialect", DEFAULT)
+    try:
+        options = lookup(name).options if isinstance(name, str) else None
+    except UnknownDialect:
+        return None
+    if options is None:
+        return None
+    model = _classes.get(options)
+    if model is None:
+        bases: tuple[type[MachineConfig], ...] = (MachineConfig, options)  # type: ignore[assignment]
+        model = create_model(
+            f"MachineConfig_{options.__module__.replace('.', '_')}_{options.__name__}",
+            __base__=bases,
+            __module__=__name__,
+        )
+        _classes[options] = model
+        globals()[model.__name__] = model  # found by name, as pickle looks a class up
+    return model
