@@ -45,10 +45,6 @@ async def upload(page: playwright.Page, tmp_path: Path, name: str, text: str) ->
     await expect(page.locator("#analysis")).to_contain_text(f"{name}:")
 
 
-async def number(page: playwright.Page, selector: str) -> float:
-    return float(await page.locator(selector).inner_text())
-
-
 async def refused(rpc: Rpc, method: str, **params: Any) -> int:
     """The daemon's error code for a request the page shows as disabled."""
     with pytest.raises(RpcFailure) as failure:
@@ -281,9 +277,10 @@ async def test_keyboard_jogging_moves_the_machine_and_stops(
         )
         await page.keyboard.up("ArrowUp")
         await expect(page.locator("#supervisor")).to_have_text("idle")
-        stopped = await number(page, "#wy")
+        await web.hostd.idle(rpc)
+        stopped = (await rpc.call("machine.status", machine="sim1"))["work_position"]["y"]
         assert 2 < stopped < 80
-        assert (await rpc.call("machine.status", machine="sim1"))["work_position"]["y"] == stopped
+        await expect(page.locator("#wy")).to_have_text(f"{stopped:.3f}")  # and it stays there
 
         # The window losing the focus stops it too, whatever the key does.
         await page.keyboard.down("ArrowRight")
@@ -292,7 +289,10 @@ async def test_keyboard_jogging_moves_the_machine_and_stops(
         )
         await page.evaluate("window.dispatchEvent(new Event('blur'))")
         await expect(page.locator("#supervisor")).to_have_text("idle")
-        assert 3 < await number(page, "#wx") < 80
+        await web.hostd.idle(rpc)
+        stopped = (await rpc.call("machine.status", machine="sim1"))["work_position"]["x"]
+        assert 3 < stopped < 80
+        await expect(page.locator("#wx")).to_have_text(f"{stopped:.3f}")
         await page.keyboard.up("ArrowRight")
         await rpc.close()
 
