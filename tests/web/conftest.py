@@ -178,7 +178,9 @@ async def browser(tmp_path: Path, chromium: str) -> AsyncIterator[playwright.Bro
 
 async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:
     path = tmp_path / f"{name}.png"
-    await page.evaluate("document.getElementById('toast').hidden = true")  # a passing note
+    # No passing note over the page; from the top (a sticky header scrolled with the page
+    # would sit half-way down a full-page shot).
+    await page.evaluate("document.getElementById('toast').hidden = true; window.scrollTo(0, 0)")
     await page.screenshot(path=path, full_page=True)
     if where := os.environ.get("HOSTD_SCREENSHOTS"):
         await asyncio.to_thread(_keep, path, Path(where))

@@ -337,7 +337,6 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         )
         shown = await page.locator("#plan-preamble").inner_text()
         assert shown.splitlines() == plan["preamble"] + plan.get("approach", [])
-        await page.evaluate("window.scrollTo(0, 0)")
         await screenshot(page, tmp_path, "resume")
         await page.click("#plan button[value=no]")  # Back: nothing starts
         await expect(page.locator("#plan")).to_be_hidden()
@@ -393,7 +392,6 @@ async def test_the_position_fits_at_1280_and_the_panel_at_390(
         assert outside == []
         await page.click("[data-jog=X][data-dir='1']")  # the pad works on a phone
         await expect(page.locator("#mx")).to_have_text("1.000")
-        await page.evaluate("window.scrollTo(0, 0)")
         await screenshot(page, tmp_path, "phone")
         await rpc.close()
 
