@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.webconfig import WebConfig, split_listen
 from hostd.daemon import DaemonConfig
-from hostd.machine.config import SIM_PORT, MachineConfig
+from hostd.machine.config import SIM_PORT, MachineConfig, ProbeConfig, ToolSensor
 
 __all__ = [
     "SIM_PORT",
@@ -34,6 +34,8 @@ __all__ = [
     "DaemonConfig",
     "MachineConfig",
     "MqttConfig",
+    "ProbeConfig",
+    "ToolSensor",
     "WebConfig",
     "load_config",
     "parse_config",

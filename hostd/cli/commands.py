@@ -365,7 +365,7 @@ async def watch(c: Client, args: argparse.Namespace, out: Output) -> int:
     return await live_view(c, args.machine, out)
 
 
-# -- the operator's day: home, zero, override, spindle -------------------------------
+# -- the operator's day: home, zero, probe, override, spindle -------------------------------
 
 AXIS_LETTERS: Final = "xyzabc"
 
@@ -404,6 +404,41 @@ async def zero(c: Client, args: argparse.Namespace, out: Output) -> int:
             markup=False,
             highlight=False,
         )
+    return OK
+
+
+async def probe(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """machine.probe: the operator touches the plate to the bit first, then it probes."""
+    kind = "xyz" if args.xyz else "z"
+    params: dict[str, Any] = {"machine": args.machine, "kind": kind, "wait": args.wait}
+    for name in ("plate", "feed", "max_travel", "retract", "tool_diameter"):
+        if getattr(args, name) is not None:
+            params[name] = getattr(args, name)
+    if args.confirmed:
+        params["confirmed"] = True
+    if kind == "xyz" and args.tool_diameter is None:
+        raise CliError(
+            "a corner probe (--xyz) needs --tool-diameter MM: the bit's side meets the walls"
+        )
+    out.message(
+        f"{args.machine}: touch the plate to the bit to show the probe works, then lay it on"
+        f" the work under the bit (waiting up to {args.wait:g} s); probing starts a second"
+        " after the plate leaves the bit"
+    )
+    result = await c.call("machine.probe", **params)
+    if out.json:
+        out.print_json(result)
+        return OK
+    snap = await c.call("machine.status", machine=args.machine)
+    touched = " ".join(f"{a.upper()}{v:.3f}" for a, v in result.get("position", {}).items())
+    zeroed = "".join(result.get("zeroed", [])).upper()
+    where = render.position(snap.get("work_position"), snap.get("units"))
+    out.out.print(
+        f"{args.machine}: probed {kind.upper()}, touched at {touched} (machine);"
+        f" {zeroed} zeroed in {snap.get('wcs') or 'the active WCS'}; work position {where}",
+        markup=False,
+        highlight=False,
+    )
     return OK
 
 

@@ -133,6 +133,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("machine", metavar="MACHINE")
     p.add_argument("axes", metavar="AXES")
 
+    p = client("probe", "probe", "probe work zero with the touch plate: Z, or an XYZ corner")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("--xyz", action="store_true", help="the corner: Z, then X and Y")
+    p.add_argument("--plate", type=_non_negative, metavar="MM", help="the plate's thickness")
+    p.add_argument("--feed", type=_positive, metavar="F", help="probe feed, mm/min")
+    p.add_argument("--max-travel", type=_positive, metavar="MM", help="the farthest it probes")
+    p.add_argument("--retract", type=_non_negative, metavar="MM", help="lift after each touch")
+    p.add_argument("--tool-diameter", type=_non_negative, metavar="MM", help="the bit (--xyz)")
+    p.add_argument("--wait", type=_positive, default=30.0, metavar="S", help="for the touch")
+    p.add_argument(
+        "--confirmed",
+        action="store_true",
+        help="you saw the probe work (only where the board cannot show its input)",
+    )
+
     p = client("override", "override", "set feed, spindle and rapid overrides (percent)")
     p.add_argument("machine", metavar="MACHINE")
     for name in ("feed", "spindle", "rapid"):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Final, Self, cast
 
-from pydantic import ConfigDict, Field, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 from pydantic_core.core_schema import ValidatorFunctionWrapHandler
 
 from hostd.link.config import PortConfig
@@ -21,6 +21,32 @@ from hostd.machine.signals import SignalsConfig
 from hostd.protocol.dialects import DEFAULT, DialectOptions, SessionConfig, UnknownDialect, lookup
 
 SIM_PORT: Final = "sim"
+
+
+class ToolSensor(BaseModel):
+    """Where the fixed tool-length sensor is, in machine coordinates (mm)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    x: Annotated[float, Field(allow_inf_nan=False)]
+    y: Annotated[float, Field(allow_inf_nan=False)]
+
+
+class ProbeConfig(BaseModel):
+    """running.md's `[machines.probe]`: the touch plate, and the tool-length sensor.
+
+    The plate, feed, travel and retract are `machine.probe`'s defaults (a client's
+    params win); `tool_sensor` is where the `probe` tool-change policy measures a
+    new tool. All in mm and mm/min, whatever units the board is in.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    plate: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] | None = None
+    feed: Annotated[float, Field(gt=0, le=5000, allow_inf_nan=False)] = 100.0
+    max_travel: Annotated[float, Field(gt=0, le=500, allow_inf_nan=False)] = 25.0
+    retract: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 2.0
+    tool_sensor: ToolSensor | None = None
 
 
 class MachineConfig(SessionConfig, PortConfig):
@@ -47,6 +73,8 @@ class MachineConfig(SessionConfig, PortConfig):
     # The tool is a laser: a resume moves with the beam off and turns it on, without a
     # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
     laser: bool = False
+    # The touch plate and the tool-length sensor (running.md `[machines.probe]`).
+    probe: ProbeConfig = ProbeConfig()
 
     def __new__(cls, *args: Any, **data: Any) -> Self:
         """`MachineConfig(dialect=..., ...)` is the dialect's class, as validation gives."""

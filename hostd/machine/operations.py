@@ -160,10 +160,13 @@ def spindle_line(state: str, speed: float | None) -> str:
 
 
 async def spindle(machine: Machine, state: str, speed: float | None) -> None:
-    """M3/M4/M5 (with S): answered once the board took the line."""
+    """M3/M4/M5 (with S): answered once a report read after the line says the board
+    rests again, so the next operation finds the machine idle (grbl syncs the
+    spindle with the planner: the line runs as a block, and the board is busy
+    until it has)."""
     async with _operation(machine):
         await machine.engine.send(spindle_line(state, speed), timeout=ANSWER_WAIT)
-        await _fresh_report(machine)
+        await _at_rest(machine)
 
 
 async def override(

@@ -52,7 +52,9 @@ import structlog
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
+    InvalidCommand,
     Realtime,
+    Refusal,
     encode_clear,
     encode_get,
     encode_in_hold,
@@ -91,17 +93,18 @@ from hostd.protocol.messages import (
     Unparseable,
 )
 from hostd.protocol.parser import parse_line, plain_ok_count
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import SessionBase
 from hostd.protocol.settings import set_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Probed,
@@ -356,22 +359,23 @@ class G2Session(SessionBase):
             # cycle_homing.cpp answers the G28.2 itself with 0 and reports its failure
             # apart; the board would run the moves after it from an unknown position.
             what = f"controller reported {response.status}: {msg or message(response.status)}"
-            stream.finish(StreamEnd.FAILED, ControllerError.code, what)
+            self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
             self._write_realtime(Realtime.JOB_KILL)
         self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
 
-    def _fail_job_line(self, stream: LineSource, entry: InFlight, what: str) -> None:
+    def _fail_job_line(self, stream: Stream, entry: InFlight, what: str) -> None:
         """A job line went wrong on the board: the job fails, and what follows it must not run."""
         if stream.done:
             return
-        stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
+        what = f"line {entry.file_line}: {what}"
+        self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
         self._write_realtime(Realtime.JOB_KILL)
 
-    def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
+    def _job_line_ok(self, stream: Stream, entry: InFlight) -> None:
         stream.acknowledged(entry.file_line)
         self._check_stream_complete()
 
-    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+    def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:
             self._job_line_ok(stream, entry)
             return
@@ -386,9 +390,10 @@ class G2Session(SessionBase):
             return  # already ended (an alarm, a cancel): this answer is accounted, no more
         text = message(status)
         if status in _LOCKOUT_REJECTIONS:
-            stream.finish(StreamEnd.FAILED, status, text)
+            self._end_stream(stream, StreamEnd.FAILED, status, text)
         else:
-            stream.finish(
+            self._end_stream(
+                stream,
                 StreamEnd.FAILED,
                 ControllerError.code,
                 f"line {entry.file_line}: controller answered {status}: {text}",
@@ -583,8 +588,7 @@ class G2Session(SessionBase):
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
             and not self.model.hold  # a hold at rest (101.05+) is no starving either
-            and (waiting := stream.peek()) is not None  # lines still on the host
-            and not waiting.control  # a `{`-line waits for the lines before it, on purpose
+            and stream.lines_on_host()  # but a `{`-line, which waits on purpose
         ):
             # The board ran out of moves while the job still had lines on the host:
             # reported with the file line it stopped after (behaviour.md, faults).
@@ -776,8 +780,8 @@ class G2Session(SessionBase):
             # Before 101.02 ^D is an ALARM and flushes nothing: every line in flight is
             # read and answered 204, and those answers settle it (g2builds.py).
             self._kill_alarm = True
-            if self.stream is not None and not self.stream.done:
-                self.stream.finish(StreamEnd.CANCELLED, None, "job killed")
+            if self.stream is not None:
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, "job killed")
             return
         if command is Realtime.JOB_KILL:
             self._kills_unseen += 1
@@ -809,7 +813,7 @@ class G2Session(SessionBase):
         self._flush_deadline = self.clock() + FLUSH_CONFIRM_TIMEOUT
         if self.stream is not None and not self.stream.done:
             reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
-            self.stream.finish(StreamEnd.CANCELLED, None, reason)
+            self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
 
     def _confirm_flush(self, *, kill_seen: bool = False) -> None:
         """The board shows the flush happened: the data lines it held are dropped from the books.
@@ -979,6 +983,40 @@ class G2Session(SessionBase):
 
     def shutdown_line(self) -> str:
         return "{shutd:n}"
+
+    def probe_input_reads(self) -> list[str]:
+        """`{"prbin":null}`: the digital input G38.x reads (canonical_machine.cpp
+        `prb_config_items_1`, cm_get_probe_input)."""
+        return [json.dumps({"prbin": None})]
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`in<prbin>` (config_app.cpp's `in1`..: din_get_input), read by a GET.
+
+        prbin 0 is no input: gpio_read_input(0) reads false (gpio.cpp), so a G38.2
+        could never trip and ends in an alarm at the end of its travel.
+        """
+        n = next((b["prbin"] for b in bodies if "prbin" in b), None)
+        if not isinstance(n, int | float) or isinstance(n, bool) or int(n) < 1:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"{self.id} has no probe input configured (prbin is {n}): set prbin to the"
+                " digital input the plate is wired to",
+            )
+        key = f"in{int(n)}"
+        return ProbeInput(key, json.dumps({key: None}))
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """P1..P6 for G54..G59: cm_set_g10_data refuses P0 (STAT_P_WORD_IS_INVALID,
+        canonical_machine.cpp), so the active WCS must be known from `coor`."""
+        wcs = self.model.modal.get("wcs")
+        p = _OFFSET_GROUPS.index(wcs.lower()) + 1 if wcs and wcs.lower() in _OFFSET_GROUPS else 0
+        if not p:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P{p} {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         return [json.dumps({key: None}) for key in keys]

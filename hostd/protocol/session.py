@@ -25,19 +25,21 @@ from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
+from hostd.protocol.probing import ProbeInput
 from hostd.protocol.states import MachineState
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
     Context,
     Detected,
     Event,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Queued,
     Settled,
     StreamEnd,
+    StreamEnded,
 )
 
 log = structlog.get_logger(__name__)
@@ -61,7 +63,7 @@ class SessionBase:
         self.clock = clock
         self.model = MachineModel(machine_id)
         self.phase = Phase.CLOSED
-        self.stream: LineSource | None = None
+        self.stream: Stream | None = None  # the job's read position: the session's own
         self.halted = False  # an internal fault: nothing but halts and reset is written
         self._out: list[tuple[Lane, bytes]] = []
         self._events: list[Event] = []
@@ -322,6 +324,24 @@ class SessionBase:
         """What the answers to `offset_reads` say, in mm (a resume plans from it)."""
         raise NotImplementedError
 
+    def probe_input_reads(self) -> list[str]:
+        """The queries that say which input the probe is ([] where the reports show it)."""
+        raise NotImplementedError
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """How the probe input is seen, from the answers to `probe_input_reads`.
+
+        InvalidCommand where the board has no probe input a G38 could trip on.
+        """
+        raise NotImplementedError
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P<n>`: the current position reads `values` in the active WCS.
+
+        InvalidCommand where the active WCS cannot be named to the board.
+        """
+        raise NotImplementedError
+
     # -- outputs ---------------------------------------------------------------
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:
@@ -393,9 +413,13 @@ class SessionBase:
         the state known before may be from before the job's moves began.
         """
         stream = self.stream
-        if stream is None or stream.done or not stream.exhausted:
+        if stream is None or stream.done:
             return
-        if stream.acked < stream.sent:
+        if stream.refused is not None:  # a line the board must never receive: its turn came
+            number, why = stream.refused
+            self._end_stream(stream, StreamEnd.FAILED, -32602, f"line {number}: {why}")
+            return
+        if not stream.exhausted or stream.acked < stream.sent:
             return
         if not self._awaiting_rest:
             self._awaiting_rest = True
@@ -404,7 +428,15 @@ class SessionBase:
         # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
         if reported and self._at_rest():
             self._awaiting_rest = False
-            stream.finish(StreamEnd.COMPLETED)
+            self._end_stream(stream, StreamEnd.COMPLETED)
+
+    def _end_stream(
+        self, stream: Stream, end: StreamEnd, code: int | None = None, message: str | None = None
+    ) -> None:
+        """The job ends, once: its outcome is set, and told as `StreamEnded`."""
+        if stream.finish(end, code, message):
+            assert stream.result is not None
+            self._events.append(StreamEnded(stream.job_id, stream.result))
 
     def _require_ready(self) -> None:
         if self.phase is not Phase.READY:
@@ -417,11 +449,12 @@ class SessionBase:
 
     def _end_stream_on_close(self, reason: str, restarted: bool) -> None:
         """The link is gone: a live job ends failed if the board was reset, else interrupted."""
-        if self.stream is not None and not self.stream.done:
+        stream = self.stream
+        if stream is not None:
             if restarted:
-                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+                self._end_stream(stream, StreamEnd.FAILED, 1005, "the controller was reset")
             else:
-                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+                self._end_stream(stream, StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
 
     def _drain_for_lockout(self, state: MachineState, describe: Callable[[int], str]) -> None:
         """A lockout: the running job ends failed with the lockout's code, and its remaining
@@ -430,7 +463,7 @@ class SessionBase:
         refusal = self._admit(CommandClass.ACTION, state)
         if refusal is not None and self.stream is not None and not self.stream.done:
             text = self.model.last_exception_message() or describe(refusal)
-            self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+            self._end_stream(self.stream, StreamEnd.FAILED, int(refusal), text)
 
     def cancel(self, token: Any) -> None:
         """The asker gave up: a line not yet written is not written."""
@@ -443,7 +476,8 @@ class SessionBase:
         if verdict is not None:
             raise Rejected(verdict, self._locked_message())
 
-    def start_stream(self, stream: LineSource) -> None:
+    def start_stream(self, stream: Stream) -> None:
+        """Stream this job: its lines go as the flow control has room, as they are fed."""
         self._require_ready()
         if self._job_running():
             raise Busy(f"{self.id} is running a job")
@@ -470,7 +504,7 @@ class SessionBase:
         """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
         if self.stream is None or self.stream.done:
             return
-        self.stream.finish(StreamEnd.FAILED, code, text)
+        self._end_stream(self.stream, StreamEnd.FAILED, code, text)
         if self.phase is not Phase.CLOSED:
             self._stop_board()
 
@@ -478,10 +512,12 @@ class SessionBase:
         """The daemon broke one of its own invariants: write nothing more until reset."""
         self.halted = True
         if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
+            self._end_stream(
+                self.stream, StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}"
+            )
         self._detected("internal", None, text)
 
-    def _live_stream(self) -> LineSource:
+    def _live_stream(self) -> Stream:
         stream = self.stream
         if stream is None or stream.done:
             raise Busy(f"{self.id} has no job streaming")

@@ -79,6 +79,8 @@ class Board(Commands):
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.
         self.probe_surface = None  # axis, machine mm the probe touches
+        self.touch_plate = None  # the touch plate on the work (probing.TouchPlate)
+        self.touch_reads = 0
         self.homing_failure = None  # axis, why homing it fails
         self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
         self.overflow_reported = True  # as an `er` 113, or (False) not at all

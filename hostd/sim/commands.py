@@ -173,6 +173,8 @@ class Commands(Planner):
             body[key] = self.settings.get(key)
         elif key in reports.SR_KEYS:
             body[key] = self._values(self._clock())[key]
+            if key == f"in{int(self.settings['prbin'])}" and self.touch_reads:
+                self.touch_reads -= 1  # the operator saw it read and lets go
         else:
             return Status.UNRECOGNIZED_NAME
         return Status.OK

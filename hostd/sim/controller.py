@@ -31,6 +31,7 @@ from hostd.protocol.status import Status
 from hostd.sim.board import Board
 from hostd.sim.callsites import CallSite
 from hostd.sim.config import AXES, Kind, Received, SimConfig
+from hostd.sim.probing import TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
@@ -212,6 +213,23 @@ class SimController(SimShell[Board, MachineState]):
         if axis is not None and axis not in AXES:
             raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
         self._board.probe_surface = None if axis is None else (axis, float(at))
+        self._kick()
+
+    def touch_plate(self, plate: TouchPlate | None) -> None:
+        """A touch plate on the work, wired to the probe input (`prbin`); None takes it away.
+
+        The input reads closed wherever the bit touches it (probing.TouchPlate), in
+        the status reports and `{inN:n}` as in G38.x. Kept across resets.
+        """
+        self._board.touch_plate = plate
+        self._kick()
+
+    def touch(self, reads: int = 1) -> None:
+        """The operator holds the plate to the bit: the probe input reads closed for the
+        next `reads` reads of `in<prbin>` (`{in5:n}`), then opens as they let go."""
+        if reads < 0:
+            raise ValueError("reads is 0 or more")
+        self._board.touch_reads = reads
         self._kick()
 
     def set_output_buffer(self, size: int, *, reported: bool = True) -> None:

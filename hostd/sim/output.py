@@ -24,7 +24,7 @@ from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import ProbeCycle
+from hostd.sim.probing import ProbeCycle, TouchPlate, probe_input
 from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
@@ -81,6 +81,8 @@ class Output:
     refuse_next: int | None  # a test's: the next G-code line's status
     inputs: dict[str, float | int]
     probe_surface: tuple[str, float] | None
+    touch_plate: TouchPlate | None
+    touch_reads: int  # the operator holds the plate to the bit for this many reads of it
     homing_failure: tuple[str, Status] | None
     output_buffer: int
     overflow_reported: bool
@@ -260,6 +262,18 @@ class Output:
     def tool_position(self, now: float) -> dict[str, float]:
         return self.active.position(now) if self.active is not None else dict(self.position)
 
+    def probe_closed(self) -> bool:
+        """gpio_read_input(prbin): the digital input `prbin` names (gpio.cpp; input 0 reads
+        false), closed by its wire, the surface or plate under the tool, or a touch."""
+        n = int(self.settings["prbin"])
+        if n == 0:
+            return False
+        return (
+            bool(self.inputs[f"in{n}"])
+            or self.touch_reads > 0
+            or probe_input(self.probe_surface, self.touch_plate, self.position)
+        )
+
     def _values(self, now: float) -> dict[str, float | int]:
         """Every status report key's current value, rounded as reported."""
         interp = self.interp
@@ -300,6 +314,8 @@ class Output:
             "qr": self._free,
         }
         values |= self.inputs
+        if self.settings["prbin"]:
+            values[f"in{int(self.settings['prbin'])}"] = int(self.probe_closed())
         offset = interp.work_offset()
         for axis in AXES:
             values[f"pos{axis}"] = (machine[axis] - offset[axis]) / scale

@@ -24,8 +24,7 @@ from hostd.sim.probing import (
     MINIMUM_PROBE_TRAVEL,
     PROBE_AXES,
     ProbeCycle,
-    probe_touching,
-    probe_trip,
+    contact,
 )
 
 log = structlog.get_logger(__name__)
@@ -202,10 +201,18 @@ class Planner(Output):
         if travel < MINIMUM_PROBE_TRAVEL:
             self._probe_exception(Status.PROBE_TRAVEL_TOO_SMALL)
             return None
-        if probe_touching(self.probe_surface, self.position) == block.on_contact:
+        if self.probe_closed() == block.on_contact:  # gpio_read_input(pb.probe_input)
             self._probe_exception(Status.PROBE_IS_ALREADY_TRIPPED)
             return None
-        trip = probe_trip(self.probe_surface, self.position, block)
+        trip = None
+        if self.settings["prbin"]:  # input 0 is none: gpio_read_input(0) reads false
+            trip = contact(
+                self.probe_surface,
+                self.touch_plate,
+                self.position,
+                block.move.target,
+                block.on_contact,
+            )
         if trip is not None:  # the move ends where the input trips
             cycle.tripped = True
             block = Probe(Move(trip, block.move.feed, block.n), block.on_contact, block.alarm)

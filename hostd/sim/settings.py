@@ -22,6 +22,11 @@ MIN_SI_MS = 100.0  # STATUS_REPORT_MIN_MS
 JV_MAX = 6  # JV_EXCEPTIONS
 _RANGES = {"ej": (0, 2), "jv": (0, JV_MAX), "sv": (0, 2), "qv": (0, 2)}
 _RANGES |= {"sl": (0, 1), "lim": (0, 1), "saf": (0, 1)}
+# `prbin`: the digital input G38.x reads (canonical_machine.cpp cm_set_probe_input:
+# 0..D_IN_CHANNELS; 0 is none). This profile wires the probe to in5, as
+# settings_cheapo_laser.h does (PROBING_INPUT 5).
+_RANGES |= {"prbin": (0, reports.DIGITAL_INPUTS)}
+PROBING_INPUT = 5.0
 # What every open resets them to; `jv` and `si` are kept [10].
 _PER_OPEN = {"ej": 1.0, "sv": 1.0, "qv": 0.0}
 
@@ -41,6 +46,7 @@ class Settings:
             "sl": 1.0,
             "lim": 1.0,
             "saf": 1.0,
+            "prbin": PROBING_INPUT,
         }
         for axis in AXES:
             self._values[f"{axis}vm"] = config.rapid_rate

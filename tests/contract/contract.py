@@ -32,7 +32,6 @@ LATER: Final[frozenset[str]] = frozenset(CONTRACT["stages"]["turn3"])
 # Contract methods the daemon does not serve yet (all of the operator's-day additions).
 NOT_BUILT: Final = frozenset(
     {
-        "machine.probe",
         "machine.laser_test",
         "machine.frame",
         "macro.list",

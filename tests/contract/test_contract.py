@@ -22,7 +22,9 @@ import pytest
 import pytest_asyncio
 
 from hostd.api.openrpc import dumps
+from hostd.machine import probing
 from hostd.sim import SimController
+from hostd.sim.probing import TouchPlate
 from tests.contract.clients import ContractClient, SocketClient, WebSocketClient
 from tests.contract.contract import (
     ERRORS,
@@ -316,6 +318,15 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     await s.idle()
     await s.ok("machine.zero", machine=M, axes={"x": 0, "z": 0})
     await s.ok("machine.goto_zero", machine=M, axes=["x", "y"])
+    await s.idle()
+    # Probing: a plate 3 mm under the bit, touched to the bit first, then Z.
+    monkeypatch.setattr(probing, "SETTLE", 0.0)
+    sim.touch_plate(TouchPlate(top=sim.position["z"] - 3.0))
+    sim.touch(reads=2)
+    await s.ok(
+        "machine.probe", machine=M, kind="z", plate=10.0, feed=600.0, max_travel=10.0, retract=2.0
+    )
+    sim.touch_plate(None)
     await s.idle()
 
     # Beyond the travel: 1008 on a homed machine.

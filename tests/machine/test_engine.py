@@ -14,10 +14,17 @@ import pytest
 
 from hostd.link import Channel, Link
 from hostd.machine.engine import Engine, LinkState
-from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
+from hostd.machine.events import (
+    Console,
+    ExceptionRaised,
+    FaultDetected,
+    LinkChanged,
+    StatusChanged,
+)
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim import SimConfig, SimController
@@ -377,9 +384,8 @@ async def test_unplug_mid_job_interrupts_it_with_exact_counts(rig: Rig) -> None:
 async def test_a_silent_board_is_declared_lost(tmp_path: Path) -> None:
     path = str(tmp_path / "ttyG2")
     async with SimController(path, config=FAST) as sim:
-        hub, recorder = Hub(), Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path, heartbeat=0.2), hub)
+        recorder = Recorder()
+        engine = Engine(machine_config(path, heartbeat=0.2), recorder)
         async with running(engine):
             await engine.connect()
             sim.go_silent(True)
@@ -547,13 +553,42 @@ async def test_startup_messages_are_no_answers(tmp_path: Path) -> None:
     # report.cpp `_startup_helper`: status 15, printed on a UART link at boot.
     path = str(tmp_path / "ttyS")
     async with SimController(path, config=dataclasses.replace(FAST, uart=True)) as sim:
-        hub = Hub()
         recorder = Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path), hub)
+        engine = Engine(machine_config(path), recorder)
         async with running(engine):
             await engine.connect()
             await engine.reset()  # it boots, and prints them where the host reads
             assert any(b"Loading configs from EEPROM" in s.data for s in sim.sent)
             assert (await engine.send("{xvm:n}")).body == {"xvm": 6000}
     assert not [e for e in recorder.events if isinstance(e, FaultDetected)]
+
+
+async def test_a_stop_given_while_an_event_is_told_runs_once_the_step_is_delivered(
+    tmp_path: Path,
+) -> None:
+    """The Machine stops a job from inside the engine's callback (a fault): the call does
+    not reach into the session there, it runs once the step's events are handed out,
+    in the same delivery, and what it writes goes out then."""
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=FAST) as sim:
+        live_when_asked: list[bool] = []
+        engine: Engine
+
+        def on_event(event: object) -> None:
+            stream = engine.session.stream
+            running = isinstance(event, StatusChanged) and event.report.get("stat") == S.RUN
+            if running and stream is not None and not live_when_asked:
+                engine.stop_stream(1007, "fault active: lid_open")
+                live_when_asked.append(not stream.done)
+
+        engine = Engine(machine_config(path), on_event)
+        async with running(engine):
+            await engine.connect()
+            stream = JobStream(program_lines(moves(200)))
+            engine.start_stream(stream)
+            async with asyncio.timeout(10):
+                result = await stream.result
+            # The stop was not run inside the callback: the job was still live there.
+            assert live_when_asked == [True]
+            assert (result.end, result.code) == (StreamEnd.FAILED, 1007)
+            await sim.wait_for(lambda: any(r.data == b"!" for r in sim.received))

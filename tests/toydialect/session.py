@@ -23,11 +23,11 @@ from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.program import number_line
 from hostd.protocol.session import SessionBase
 from hostd.protocol.states import MachineState
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     Phase,
     Queued,
     Ready,
@@ -189,13 +189,14 @@ class ToySession(SessionBase):
         if entry.file_line is None:
             self._settle(entry.source, response)
             return
-        stream: LineSource = entry.source
+        stream: Stream = entry.source
         if response.ok:
             stream.acknowledged(entry.file_line)
             self._check_stream_complete()
             return
         stream.rejected += 1
-        stream.finish(
+        self._end_stream(
+            stream,
             StreamEnd.FAILED,
             ControllerError.code,
             f"line {entry.file_line}: controller answered err {status}: {error_text(status)}",
@@ -244,7 +245,7 @@ class ToySession(SessionBase):
         """A reset (ours, or the board's): it forgot every line; a report makes it ready."""
         self._resetting = False
         if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         self._forget(ControllerError(0, "discarded by the controller's reset"))
         self.model.state = None
         self.phase = Phase.HANDSHAKE
@@ -334,7 +335,7 @@ class ToySession(SessionBase):
             self.reset()
         else:  # no flush, no kill: the toy empties itself by a reset
             if self.stream is not None and not self.stream.done:
-                self.stream.finish(StreamEnd.CANCELLED, None, "job killed")
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, "job killed")
             self.reset()
 
     def reset(self) -> None:

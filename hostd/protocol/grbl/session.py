@@ -82,15 +82,16 @@ from hostd.protocol.linemode import InFlight
 from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
 from hostd.protocol.session import SessionBase
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Probed,
@@ -291,6 +292,21 @@ class GrblSession(SessionBase):
     # No alarm_line or shutdown_line: neither grbl 1.1 (system.c system_execute_line)
     # nor grblHAL (system.c sys_commands) has a command that raises an alarm, and
     # `$SLP` is a maintenance command (maintenance.py), so SessionBase refuses both.
+
+    def probe_input_reads(self) -> list[str]:
+        return []  # every status report shows it
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`Pn:P` in every status report while the probe pin reads closed (gnea/grbl
+        report.c report_realtime_status: probe_get_state(); grblHAL report.c the same),
+        read into the report's `pin_p` (report.py)."""
+        return ProbeInput("pin_p")
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P0`: P0 is the active coordinate system (gnea/grbl gcode.c, "Index P0
+        as the active coordinate system"), so no report of it is needed."""
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P0 {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
@@ -528,7 +544,7 @@ class GrblSession(SessionBase):
         else:
             self._settle(source, response)
 
-    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+    def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:
             stream.acknowledged(entry.file_line)
             self._check_stream_complete()
@@ -539,9 +555,10 @@ class GrblSession(SessionBase):
         status = response.status
         if status in LOCKOUT_ERRORS and self.locked():
             code = self._admit(CommandClass.ACTION, self.model.state) or _REFUSED_BY_ALARM
-            stream.finish(StreamEnd.FAILED, code, error_text(status))
+            self._end_stream(stream, StreamEnd.FAILED, code, error_text(status))
             return
-        stream.finish(
+        self._end_stream(
+            stream,
             StreamEnd.FAILED,
             ControllerError.code,
             f"line {entry.file_line}: controller answered error:{status}: {error_text(status)}",
@@ -637,7 +654,7 @@ class GrblSession(SessionBase):
         self._stopping = None
         self._held = None
         if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
         self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
@@ -929,7 +946,7 @@ class GrblSession(SessionBase):
         else:  # QUEUE_FLUSH, JOB_KILL: grbl has neither; it empties itself by a reset
             if self.stream is not None and not self.stream.done:
                 reason = "job killed" if command is Realtime.JOB_KILL else "queue flushed"
-                self.stream.finish(StreamEnd.CANCELLED, None, reason)
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
             self._begin_stop()
 
     def reset(self) -> None:

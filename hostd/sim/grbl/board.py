@@ -74,6 +74,7 @@ from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active, Traversed
+from hostd.sim.probing import TouchPlate, probe_input
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -93,6 +94,8 @@ class GrblBoard:
         self.estop = False
         self.door_open = False
         self.probe = False
+        self.touch_plate: TouchPlate | None = None  # on the work, wired to the probe pin
+        self.touch_reads = 0  # the operator holds the plate to the bit for this many `?`
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
@@ -276,6 +279,14 @@ class GrblBoard:
         elif not active and self.state == "Door" and self.door == 1:
             self.door = 0  # EXEC_DOOR_CLOSED: ready to resume
 
+    def probe_closed(self) -> bool:
+        """probe_get_state(): the pin (a test's `probe`), a touch, or the plate at the bit."""
+        return (
+            self.probe
+            or self.touch_reads > 0
+            or probe_input(None, self.touch_plate, self.tool_position())
+        )
+
     def set_probe(self, active: bool) -> None:
         self.probe = active
         wait = self._wait
@@ -420,6 +431,8 @@ class GrblBoard:
             return result
         if result.offsets_changed:
             self._report_flags.add("wco")
+            if not self.hal:  # classic: system_flag_wco_change (system.c): WCO next report
+                self._wco_counter = 0
         if self.state == "Check":
             return Error.OK  # parsed, nothing moves (the parser's position moved on)
         for move in result.moves:

@@ -21,6 +21,7 @@ import structlog
 from hostd.sim.config import Received
 from hostd.sim.grbl.board import GrblBoard
 from hostd.sim.grbl.config import GrblConfig
+from hostd.sim.probing import TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.shell import SimShell
 
@@ -134,6 +135,23 @@ class GrblSimController(SimShell[GrblBoard, str]):
     def probe(self, active: bool) -> None:
         """The probe input: contact (True) ends a G38.2 cycle with [PRB:...:1]."""
         self._board.set_probe(active)
+        self._kick()
+
+    def touch_plate(self, plate: TouchPlate | None) -> None:
+        """A touch plate on the work, wired to the probe pin; None takes it away.
+
+        The pin reads closed (`Pn:P`) wherever the bit touches it
+        (probing.TouchPlate), and a G38.x move ends where it meets it. Kept across resets.
+        """
+        self._board.touch_plate = plate
+        self._kick()
+
+    def touch(self, reads: int = 1) -> None:
+        """The operator holds the plate to the bit: `Pn:P` in the next `reads` status
+        reports, then the pin opens as they let go."""
+        if reads < 0:
+            raise ValueError("reads is 0 or more")
+        self._board.touch_reads = reads
         self._kick()
 
     def lose_status_requests(self, count: int = 1) -> None:

@@ -28,6 +28,7 @@ from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
 from hostd.sim.grbl.settings import HOMING_PULLOFF
 from hostd.sim.motion import Active, Traversed, start_block
+from hostd.sim.probing import contact
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -41,6 +42,7 @@ class Wait:
     line: str
     result: Executed | None = None
     until: float = 0.0
+    tripped: bool = False  # a probe move that ends where the touch plate trips it
 
 
 def advance(board: GrblBoard, now: float) -> bool:
@@ -92,7 +94,7 @@ def _finish(board: GrblBoard, active: Active) -> None:
     if board.planner:
         board.planner.popleft()
     if board._wait is not None and board._wait.kind == "probe":
-        _probe_end(board, contact=False)
+        _probe_end(board, contact=board._wait.tripped)
 
 
 def _stopped(board: GrblBoard, now: float) -> None:
@@ -204,12 +206,17 @@ def flush_planner(board: GrblBoard) -> None:
 
 
 def _probe_start(board: GrblBoard, probe: Probe, now: float) -> bool:
-    if board.probe == probe.toward:
+    # mc_probe_cycle: "check if probe is already triggered" (probe_get_state) after
+    # the sync, ALARM:4 (EXEC_ALARM_PROBE_FAIL_INITIAL) and GC_PROBE_FAIL_INIT.
+    if board.probe_closed() == probe.toward:
         board._raise(Alarm.PROBE_FAIL_INITIAL)
         board._done()
         return True
-    board.planner.append(probe.move)
-    board._wait = Wait("probe", "", _probe_result(probe))
+    # The touch plate: the move ends where the bit meets it (the stepper ISR's
+    # probe_state_monitor copies sys_position into sys_probe_position and stops).
+    trip = contact(None, board.touch_plate, board.position, probe.move.target, probe.toward)
+    board.planner.append(probe.move if trip is None else replace(probe.move, target=trip))
+    board._wait = Wait("probe", "", _probe_result(probe), tripped=trip is not None)
     _start(board, now)
     return True
 
