@@ -11,6 +11,7 @@ from typing import Any
 import playwright.async_api as playwright
 import pytest
 
+from hostd import daemon
 from tests.daemon.conftest import Rpc, RpcFailure
 from tests.web.conftest import log_in, running_web, screenshot
 
@@ -249,8 +250,11 @@ async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(
 
 
 async def test_keyboard_jogging_moves_the_machine_and_stops(
-    browser: playwright.BrowserContext, tmp_path: Path
+    browser: playwright.BrowserContext, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # A board at real speed (the tests' run ten times faster): a held key's jog takes its
+    # full 5 s to end by itself, so one that ends sooner was stopped by the page.
+    monkeypatch.setattr(daemon, "SIM_SPEED", 1.0)
     async with running_web(tmp_path) as web:
         page = await browser.new_page()
         await log_in(page, web)
