@@ -25,7 +25,14 @@ from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.webconfig import WebConfig, split_listen
 from hostd.daemon import DaemonConfig
-from hostd.machine.config import SIM_PORT, MachineConfig, ProbeConfig, ToolSensor
+from hostd.machine.config import (
+    SIM_PORT,
+    MachineConfig,
+    MacroConfig,
+    MacroParam,
+    ProbeConfig,
+    ToolSensor,
+)
 
 __all__ = [
     "SIM_PORT",
@@ -33,6 +40,8 @@ __all__ = [
     "ConfigError",
     "DaemonConfig",
     "MachineConfig",
+    "MacroConfig",
+    "MacroParam",
     "MqttConfig",
     "ProbeConfig",
     "ToolSensor",

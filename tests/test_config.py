@@ -106,3 +106,48 @@ def test_every_example_in_config_loads() -> None:
     for path in examples:
         config = load_config(path)
         assert config.machines, path
+
+
+MACRO = (
+    GOOD
+    + """
+[[machines.macros]]
+name = "park"
+text = "G53 G0 Z{z}\\nG0 X{x}"
+params = { z = { min = -10, max = 0, default = 0 }, x = { min = 0, max = 300 } }
+"""
+)
+
+
+def test_a_macro_loads_with_its_params(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, MACRO))
+    macro = config.machines[1].macros[0]
+    assert macro.name == "park" and macro.params["x"].max == 300
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (("X{x}", "X{x} Y{y}"), "no param y"),  # a placeholder with no param
+        (("X{x}", "X10"), "param x is not in its text"),
+        (("min = 0, max = 300", "min = 300, max = 0"), "above max"),
+        (("default = 0", "default = 5"), "outside"),
+        (('name = "park"', 'name = "park me"'), "machines[1].macros[0].name"),
+        (("x = {", "X = {"), "params"),
+        (("max = 300", "max = inf"), "params.x.max"),
+    ],
+)
+def test_bad_macros_are_refused_at_start(
+    tmp_path: Path, change: tuple[str, str], expected: str
+) -> None:
+    path = write(tmp_path, MACRO.replace(*change))
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert expected in str(err.value)
+
+
+def test_a_macro_name_twice_is_refused(tmp_path: Path) -> None:
+    twice = MACRO + MACRO[MACRO.index("[[machines.macros]]") :]
+    with pytest.raises(ConfigError) as err:
+        load_config(write(tmp_path, twice))
+    assert "park is named twice" in str(err.value)

@@ -92,6 +92,7 @@ WATCH_METHODS: Final = frozenset(
         "job.get",
         "job.list",
         "fault.list",
+        "macro.list",
         "subscribe",
         "unsubscribe",
     }

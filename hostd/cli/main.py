@@ -159,6 +159,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=_non_negative, metavar="S", help="spindle speed (S word)")
     p.add_argument("--ccw", action="store_true", help="counter-clockwise (M4)")
 
+    p = client("frame", "frame", "trace a G-code file's bounding box (beam off, or --power)")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--power", type=_non_negative, default=0.0, metavar="P", help="laser percent")
+    p.add_argument("--feed", type=_positive, metavar="F", help="mm/min (default 1000)")
+    p.add_argument("--name", help="file name in the daemon's jobs directory (default: FILE's)")
+
+    p = client("laser-test", "laser_test", "fire the laser standing still, then off")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("power", type=_positive, metavar="PERCENT")
+    p.add_argument("--seconds", type=_positive, default=0.5, metavar="S", help="at most 2")
+
+    p = client("macro", "macro", "list the config's macros, or run one (NAME key=value ...)")
+    p.add_argument("action", choices=("list", "run"))
+    p.add_argument("machine", nargs="?", metavar="MACHINE")
+    p.add_argument("name", nargs="?", metavar="NAME")
+    p.add_argument("params", nargs="*", metavar="KEY=VALUE")
+
     p = client("jobs", "jobs", "recent jobs, newest first")
     p.add_argument("--machine", "-m", metavar="M")
     p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")

@@ -11,9 +11,10 @@ a key of another dialect is refused by name like any unknown key.
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any, Final, Self, cast
 
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 from pydantic_core.core_schema import ValidatorFunctionWrapHandler
 
 from hostd.link.config import PortConfig
@@ -21,6 +22,52 @@ from hostd.machine.signals import SignalsConfig
 from hostd.protocol.dialects import DEFAULT, DialectOptions, SessionConfig, UnknownDialect, lookup
 
 SIM_PORT: Final = "sim"
+
+
+# A macro's placeholder: `{name}`, a lower-case name (docs/operations.md, "Macros").
+PLACEHOLDER = re.compile(r"\{([a-z_][a-z0-9_]{0,31})\}")
+_Bound = Annotated[float, Field(allow_inf_nan=False, ge=-1_000_000, le=1_000_000)]
+
+
+class MacroParam(BaseModel):
+    """One parameter of a macro: a number within [min, max], never text (a value can
+    then only ever be digits, a sign and a point: it cannot start a line or a command)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min: _Bound
+    max: _Bound
+    default: _Bound | None = None
+    integer: bool = False
+
+    @model_validator(mode="after")
+    def _ordered(self) -> MacroParam:
+        if self.min > self.max:
+            raise ValueError(f"min {self.min:g} is above max {self.max:g}")
+        if self.default is not None and not self.min <= self.default <= self.max:
+            raise ValueError(f"default {self.default:g} is outside {self.min:g}..{self.max:g}")
+        return self
+
+
+class MacroConfig(BaseModel):
+    """`[[machines.macros]]`: a named G-code snippet, its lines run as one job."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+    text: Annotated[str, Field(min_length=1, max_length=8192)]
+    params: dict[Annotated[str, Field(pattern=r"^[a-z_][a-z0-9_]{0,31}$")], MacroParam] = {}
+
+    @model_validator(mode="after")
+    def _placeholders_named(self) -> MacroConfig:
+        used = set(PLACEHOLDER.findall(self.text))
+        unknown = sorted(used - set(self.params))
+        if unknown:
+            raise ValueError(f"macro {self.name!r}: no param {', '.join(unknown)} for its text")
+        unused = sorted(set(self.params) - used)
+        if unused:
+            raise ValueError(f"macro {self.name!r}: param {', '.join(unused)} is not in its text")
+        return self
 
 
 class ToolSensor(BaseModel):
@@ -75,6 +122,19 @@ class MachineConfig(SessionConfig, PortConfig):
     laser: bool = False
     # The touch plate and the tool-length sensor (running.md `[machines.probe]`).
     probe: ProbeConfig = ProbeConfig()
+    # The most a laser test-fire (machine.laser_test) may ask, percent of full power.
+    laser_test_max: Annotated[float, Field(gt=0, le=100)] = 10.0
+    # Named G-code snippets with parameters (macro.list, macro.run).
+    macros: list[MacroConfig] = Field(default_factory=list)
+
+    @field_validator("macros")
+    @classmethod
+    def _macro_names_once(cls, macros: list[MacroConfig]) -> list[MacroConfig]:
+        names = [m.name for m in macros]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"macro {', '.join(twice)} is named twice")
+        return macros
 
     def __new__(cls, *args: Any, **data: Any) -> Self:
         """`MachineConfig(dialect=..., ...)` is the dialect's class, as validation gives."""

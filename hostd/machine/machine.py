@@ -239,6 +239,12 @@ class Machine:
             handle.close()
             raise
 
+    async def start_program(self, lines: list[str]) -> Job:
+        """Lines the daemon made (a macro's, a frame's), run as a make job with no file:
+        admitted, numbered, paused, resumed and cancelled as any make job. The caller has
+        checked the lines as a file's are checked (hostd/machine/macros.py)."""
+        return await self.jobs.start("make", None, len(lines), enumerate(lines, start=1), None)
+
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
         lines = self.engine.session.jog_lines(axes, feed)
         # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
@@ -434,8 +440,16 @@ class Machine:
     def current_job(self) -> Job | None:
         return self.jobs.current()
 
+    def is_laser(self) -> bool:
+        """The tool is a laser: the config says so, or the board is in laser mode."""
+        return self.config.laser or self.engine.model.laser_mode is True
+
     def snapshot(self) -> dict[str, Any]:
         snap = self.engine.model.snapshot()
+        if snap["laser_mode"] is None and self.config.laser:
+            # A board that cannot say (g2core: its laser toolhead is chosen when the
+            # firmware is built, HAS_LASER): the config's word.
+            snap["laser_mode"] = True
         job = self.current_job()
         snap.update(
             dialect=self.config.dialect,

@@ -18,13 +18,26 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Callable, Mapping
-from typing import Final
+from pathlib import Path
+from typing import Any, Final
 
+import structlog
+
+from hostd.machine import macros
+from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
+from hostd.machine.preflight import OutOfTravel, analyze_for, work_offset
 from hostd.machine.supervisor import State as SupState
+from hostd.machine.workers import WorkerPool
+from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
 from hostd.protocol.gcode import axes_words, short_number
+from hostd.protocol.gcodestate.analysis import beyond_travel
+from hostd.protocol.gcodestate.state import MM_PER_INCH
+from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
+
+log = structlog.get_logger(__name__)
 
 # A homing cycle may take this long before the operation gives up waiting (the
 # board goes on: a feedhold or reset stops it). grbl's own bound is its session's.
@@ -194,3 +207,176 @@ def in_force(machine: Machine) -> dict[str, float | None]:
     """The overrides the board last reported, or nulls where it never said."""
     now = machine.engine.model.overrides or {}
     return {key: now.get(key) for key in ("feed", "spindle", "rapid")}
+
+
+# -- laser test-fire -----------------------------------------------------------
+
+LASER_TEST_MAX_S: Final = 2.0  # seconds: api.md's bound on duration_s
+BEAM_OFF_WAIT: Final = 5.0  # seconds past the dwell for the board to answer its M5
+
+
+async def full_power(machine: Machine) -> float:
+    """The S word of 100 % (grbl `$30`, g2core `th2mxs`), read from the board now."""
+    key = machine.engine.session.spindle_max_setting()
+    if key is None:
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id}: its firmware has no spindle maximum to scale a laser's power by",
+        )
+    found = await machine.read_settings([key])
+    value = found.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+        raise ControllerError(0, f"{machine.id}: the board did not say its spindle maximum")
+    return float(value)
+
+
+def _check_laser(machine: Machine, power: float) -> None:
+    if not machine.is_laser():
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id} is not a laser (set laser = true in its [[machines]] table,"
+            " or laser mode on the board)",
+        )
+    most = machine.config.laser_test_max
+    if power > most:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER,
+            f"{machine.id}: at most {most:g} % (laser_test_max in its config), not {power:g}",
+        )
+
+
+async def laser_test(machine: Machine, power: float, seconds: float) -> None:
+    """Fire the beam standing still at `power` % for `seconds`, then always off.
+
+    The lines (the session's `laser_test_lines`: on, dwell, off) are handed to the
+    board together, so its own dwell bounds the burn and its `M5` follows even if the
+    link drops or the host is gone. If the `M5` is not answered in time, or the call is
+    cancelled or fails before it is, the board is reset (every firmware's reset stops
+    the spindle: gnea/grbl mc_reset, g2core reboots). A feedhold during the dwell
+    stops the beam too on grbl (DISABLE_LASER_DURING_HOLD, protocol.c:536).
+    """
+    _check_laser(machine, power)
+    if not 0 < seconds <= LASER_TEST_MAX_S:
+        raise InvalidCommand(Refusal.BAD_NUMBER, f"duration_s is 0 to {LASER_TEST_MAX_S:g} s")
+    engine = machine.engine
+    async with _operation(machine):
+        engine.admit_action()  # in a lockout: its code (204/205/206), nothing sent
+        speed = await full_power(machine) * power / 100.0
+        lines = engine.session.laser_test_lines(speed, seconds)
+        wait = seconds + BEAM_OFF_WAIT
+        sends = [asyncio.ensure_future(engine.send(line, timeout=wait)) for line in lines]
+        off = sends[-1]
+        try:
+            await asyncio.gather(*(asyncio.shield(s) for s in sends))
+        except BaseException:
+            # Whatever went wrong before the board answered its M5: let the M5 answer
+            # (it was written with the rest), and if it does not come, reset the board.
+            if not await _answered(off, wait):
+                log.error("laser test: beam-off not answered: resetting", machine=machine.id)
+                with contextlib.suppress(Exception):
+                    await machine.reset()
+            raise
+        finally:
+            for task in sends:
+                if not task.done():
+                    task.cancel()
+
+
+async def _answered(task: asyncio.Future[Any], wait: float) -> bool:
+    """Whether the board answered this line OK within `wait` seconds."""
+    done, _ = await asyncio.wait({task}, timeout=wait)
+    return bool(done) and not task.cancelled() and task.exception() is None
+
+
+# -- frame -----------------------------------------------------------------
+
+FRAME_FEED: Final = 1000.0  # mm/min, when none is asked: a walk the eye can follow
+
+
+def frame_lines(
+    machine: Machine,
+    box: Mapping[str, tuple[float, float]],
+    *,
+    speed: float | None,
+    feed: float,
+    safe_z: float | None,
+    inches: bool,
+    relative: bool,
+) -> list[str]:
+    """The job's box traced in work coordinates, at `feed`, beam off (or at S `speed`).
+
+    Z is never moved down: a laser traces at its current Z (no Z word); a mill first
+    goes up to its safe height in machine coordinates (`safe_z` None: already there).
+    The board's units and distance mode are put back at the end.
+    """
+    (x0, x1), (y0, y1) = box["x"], box["y"]
+    lines = ["M5", "G21 G90 G94"]
+    if safe_z is not None:
+        lines.append(f"G53 G0 Z{short_number(safe_z)}")
+    lines.append(f"G0 X{short_number(x0)} Y{short_number(y0)}")
+    if speed is not None:
+        lines.append(machine.engine.session.beam_on_line(speed))
+    f = f" F{short_number(feed)}"
+    for x, y in ((x1, y0), (x1, y1), (x0, y1), (x0, y0)):
+        lines.append(f"G1 X{short_number(x)} Y{short_number(y)}{f}")
+        f = ""
+    lines.append("M5")
+    if inches:
+        lines.append("G20")
+    if relative:
+        lines.append("G91")
+    return lines
+
+
+async def frame(
+    machine: Machine, path: Path, power: float, feed: float | None, *, pool: WorkerPool
+) -> Job:
+    """Trace `path`'s XY bounding box (its analysis, work coordinates) as a make job.
+
+    Refused (1008, as job.start) when the box leaves the travel, where the travel
+    check can run (travel known, machine homed); power above 0 only on a laser, within
+    `laser_test_max`; a mill needs a safe height (`safe_z`, or the Z travel's top).
+    """
+    if power > 0:
+        _check_laser(machine, power)
+    check = await analyze_for(machine, path, pool=pool)
+    bounds = check.analysis.bounds
+    if "x" not in bounds or "y" not in bounds:
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{path.name} moves in no X and Y: no box to frame"
+        )
+    box = {"x": bounds["x"], "y": bounds["y"]}
+    limits = check.limits
+    offset = work_offset(machine.snapshot())
+    if limits is not None and limits.travel and offset:
+        beyond = beyond_travel(box, offset, limits.travel)
+        if beyond:
+            raise OutOfTravel(
+                f"the frame of {path.name} leaves {machine.id}'s travel: " + "; ".join(beyond),
+                {"beyond_travel": beyond},
+            )
+    laser = machine.is_laser()
+    safe_z = None if laser else machine.safe_height(limits)
+    if not laser and safe_z is None:
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id} is not a laser and its safe height is unknown: set safe_z",
+        )
+    z_now = machine.engine.model.machine_position.get("z")
+    if safe_z is not None and z_now is not None:
+        scale = MM_PER_INCH if machine.engine.model.units == "in" else 1.0
+        if z_now * scale >= safe_z:
+            safe_z = None  # already at or above it: Z never goes down
+    speed = await full_power(machine) * power / 100.0 if power > 0 else None
+    model = machine.engine.model
+    lines = frame_lines(
+        machine,
+        box,
+        speed=speed,
+        feed=feed or FRAME_FEED,
+        safe_z=safe_z,
+        inches=model.units == "in",
+        relative=model.modal.get("distance") == "G91",
+    )
+    macros.admit_program(machine, lines, f"the frame of {path.name}")
+    return await machine.start_program(lines)

@@ -70,7 +70,7 @@ from hostd.protocol.errors import (
     NotConnected,
     Rejected,
 )
-from hostd.protocol.g2builds import NEWEST, Build
+from hostd.protocol.g2builds import NEWEST, OVERRIDE_RANGES, Build
 from hostd.protocol.g2handshake import (
     BANNER_WAIT,
     OLDEST_BUILD,
@@ -162,6 +162,7 @@ class _Own(OwnLine, Enum):
     QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
     REAPPLY = auto()  # a setting sent again once a lockout ended
     CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
+    OVERRIDES = auto()  # the override factors, read or written (g2builds.py override_keys)
 
 
 class G2Session(SessionBase):
@@ -576,6 +577,11 @@ class G2Session(SessionBase):
         self._job_log().info("controller state", state=state.name)
         if before is MachineState.HOMING:
             self._ask_own(encode_get("home"), _Own.HOMED)  # a homing cycle ended, done or failed
+        if state is MachineState.PROGRAM_END and self.model.overrides is not None:
+            # A program end puts the feed and traverse factors back to 1.0, the spindle's
+            # untouched (_exec_program_finalize calls cm_reset_overrides: edge-preview
+            # canonical_machine.cpp:1436-1442, 1632; 100.26 :1617-1624).
+            self.model.overrides = {**self.model.overrides, "feed": 100.0, "rapid": 100.0}
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -649,6 +655,7 @@ class G2Session(SessionBase):
         if self._to_set:
             self._ask_own(encode_set(self._to_set[0]), _Own.SETTING)
         else:
+            self._read_overrides()  # answered before the report that makes the session ready
             self._ask_own(encode_get("home"), _Own.HOMED)
             self._ask_own(encode_get("sr"), _Own.FIRST_REPORT)
 
@@ -671,6 +678,8 @@ class G2Session(SessionBase):
             self.phase = Phase.READY
             self._handshake_deadline = None
             self._events.append(Ready())
+        elif own is _Own.OVERRIDES:
+            self._overrides_answered(response)
         elif own is _Own.HEARTBEAT:
             self._heartbeat_deadline = None
         elif own is _Own.CLEAR and not response.ok:
@@ -904,6 +913,52 @@ class G2Session(SessionBase):
     def _realtime(self, command: Realtime) -> None:
         self._write_realtime(command)
 
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The override factors as settings (`{"fro":1.2}`), in any state but a lockout.
+
+        A `{`-line of the session's own on the control lane: the board runs it on
+        arrival, ahead of queued G-code, so it acts mid-job; the factor applies to the
+        blocks planned after it (edge-preview plan_zoid.cpp:145-148). Where the build
+        has a writable enable, it is written on with the factor (100.26's are off at
+        start). The answer's values become the model's overrides.
+        """
+        self._require_ready()
+        self.admit_action()  # a board in a lockout refuses every SET: 204/205/206 here
+        asked = {"feed": feed, "rapid": rapid, "spindle": spindle}
+        keys, enables = self.build.override_keys, self.build.override_enables
+        values: dict[str, Any] = {}
+        for what, percent in asked.items():
+            if percent is None:
+                continue
+            low, high = OVERRIDE_RANGES[what]
+            if not low <= percent <= high:
+                raise InvalidCommand(
+                    Refusal.BAD_NUMBER,
+                    f"a g2core {what} override is {low} to {high} percent, not {percent}",
+                )
+            if what in enables:
+                values[enables[what]] = 1
+            values[keys[what]] = round(percent / 100.0, 3)
+        self._ask_own(encode_set(values), _Own.OVERRIDES)
+
+    def _read_overrides(self) -> None:
+        self._ask_own(encode_get(*self.build.override_keys.values()), _Own.OVERRIDES)
+
+    def _overrides_answered(self, response: Response) -> None:
+        """The factors the board answered with (what it stored), as percentages."""
+        if not response.ok:
+            self._log.warning("override settings refused", status=response.status)
+        now = dict(self.model.overrides or {})
+        for what, key in self.build.override_keys.items():
+            value = response.body.get(key)
+            if isinstance(value, int | float) and not isinstance(value, bool):
+                now[what] = round(float(value) * 100.0, 1)
+        if now:
+            self.model.overrides = now
+        self.model.override_reports += 1
+
     def reset(self) -> None:
         """0x18: the board reboots; so do the session's books when it comes back."""
         self._require_open()
@@ -954,6 +1009,14 @@ class G2Session(SessionBase):
 
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         return encode_line(text if number is None else number_line(text, number))
+
+    def spindle_max_setting(self) -> str | None:
+        """`th2mxs`, the S of the laser toolhead's full power (edge-preview
+        board/ArduinoDue/0_hardware.cpp:296; laser_toolhead.h:255 scales S between
+        `th2mns` and it); absent before 101.05 and on builds without a laser toolhead,
+        which then refuse it. `laser_test` is refused on g2core anyway: the toolhead
+        fires by distance moved (laser_toolhead.h:491-515), never standing still."""
+        return "th2mxs" if self.build.fb >= 101.05 else None
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""

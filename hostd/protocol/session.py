@@ -264,6 +264,24 @@ class SessionBase:
             Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no realtime overrides"
         )
 
+    def spindle_max_setting(self) -> str | None:
+        """The setting that holds the S word of full power (a laser's 100 %), or None
+        where the board has none a host can read."""
+        return None
+
+    def beam_on_line(self, speed: float) -> str:
+        """The line that lets a laser burn at S `speed` in the feed moves after it
+        (a frame at low power); the moves end with `M5`."""
+        return f"M3 S{gcode_number(speed)}"
+
+    def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
+        """The lines of a test-fire at S `speed` for `seconds`, standing still; the last
+        one turns the beam off. They go to the board together, so that its own dwell
+        bounds the burn even if the host is gone before the last is answered."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no laser test-fire"
+        )
+
     def safety_door(self) -> None:
         """The host opens the safety door: the board holds, and parks if it is set to."""
         raise InvalidCommand(
@@ -580,3 +598,9 @@ def _context_changed(machine: str, admitted: Context, now: Context) -> str:
     if admitted is Context.HOLD and now is not Context.HOLD:
         what = "the hold ended"
     return f"{machine}: {what} before the line was written; it was not sent"
+
+
+def gcode_number(value: float) -> str:
+    """A number as G-code takes it: plain decimal, at most four places, no exponent."""
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text

@@ -10,6 +10,7 @@ cycle, the realtime controls, feedhold, resume, queue flush and job kill
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import structlog
@@ -103,6 +104,7 @@ class Planner(Output):
         block = self.planner[0]
         if isinstance(block, ProgramEnd):
             self._pop()
+            self.settings.reset_overrides()  # _exec_program_finalize: cm_reset_overrides
             self._set_state(MachineState.PROGRAM_END)
             return
         if isinstance(block, SetPosition):
@@ -123,12 +125,15 @@ class Planner(Output):
         if isinstance(block, Move | Probe):
             move = block if isinstance(block, Move) else block.move
             self.traversed.append(Traversed(dict(self.position), move))
+        if isinstance(block, Move) and not block.rapid:
+            # The feed override scales the feed moves planned after it (plan_zoid.cpp:148).
+            block = replace(block, feed=block.feed * self.settings.override("feed"))
         self.active = start_block(
             block,
             self.position,
             now,
             speed_factor=cfg.speed_factor,
-            rapid_rate=cfg.rapid_rate,
+            rapid_rate=cfg.rapid_rate * self.settings.override("rapid"),
             instant=cfg.instant,
         )
         if isinstance(block, Home):

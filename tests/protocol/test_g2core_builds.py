@@ -11,13 +11,13 @@ import json
 
 import pytest
 
-from hostd.protocol.commands import Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.g2core import FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Detected, Excepted, Lane, StreamEnd
-from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire
+from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire, banner
 
 KILL = b"\x04\n"
 CLEAR = b'{"clear":null}\n'
@@ -366,3 +366,65 @@ def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> 
     assert wire.session.flushing()  # the data port's kill is still to come
     wire.feed(kill_report(fb))
     assert stream.discarded == len(rest) and faults(wire) == []
+
+
+# -- overrides: the build's settings (g2builds.py override_keys) ------------------------
+
+OVERRIDE_LINES = {
+    100.26: (b'{"mfo":null,"mto":null,"sso":null}\n', b'{"mfoe":1,"mfo":1.5,"ssoe":1,"sso":0.8}\n'),
+    101.03: (b'{"fro":null,"tro":null,"spo":null}\n', b'{"fro":1.5,"spoe":1,"spo":0.8}\n'),
+    101.06: (b'{"fro":null,"tro":null,"spo":null}\n', b'{"fro":1.5,"spoe":1,"spo":0.8}\n'),
+}
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_overrides_are_read_and_written_as_the_build_names_them(fb: float) -> None:
+    read, write = OVERRIDE_LINES[fb]
+    wire = Wire(fb)
+    wire.session.open()
+    wire.pump()
+    wire.feed(banner(fb))
+    while read not in wire.unanswered:
+        wire.answer(wire.unanswered[0])
+    wire.answer(read, dict.fromkeys(json.loads(read), 1.0))  # asked in the handshake
+    while not wire.session.ready:
+        wire.answer(wire.unanswered[0])
+    assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 100.0}
+    seen = wire.session.model.override_reports
+    wire.session.override(feed=150, spindle=80)
+    wire.pump()
+    assert (Lane.CONTROL, write) in wire.written
+    wire.answer(write, {k: v for k, v in json.loads(write).items()})
+    assert wire.session.model.overrides == {"feed": 150.0, "rapid": 100.0, "spindle": 80.0}
+    assert wire.session.model.override_reports == seen + 1
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_an_override_out_of_the_firmwares_bounds_writes_nothing(fb: float) -> None:
+    wire = ready(fb)
+    for asked in ({"rapid": 150}, {"feed": 201}, {"spindle": 4}):
+        with pytest.raises(InvalidCommand):
+            wire.session.override(**asked)
+    wire.session.override(rapid=5)
+    assert not any(b"150" in line or b"2.01" in line for line in wire.lines())
+
+
+def test_a_program_end_puts_feed_and_rapid_back_as_the_board_does() -> None:
+    wire = ready(101.06)
+    wire.session.override(feed=150, rapid=50, spindle=80)
+    wire.pump()
+    wire.answer_all()
+    assert wire.session.model.overrides == {"feed": 150.0, "rapid": 50.0, "spindle": 80.0}
+    wire.report(stat=5)  # running
+    wire.clear()
+    wire.report(stat=4)  # M2/M30: cm_reset_overrides
+    assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 80.0}
+    assert wire.lines() == []  # known from the firmware's rule: nothing asked
+
+
+def test_an_override_in_an_alarm_is_refused_with_its_code() -> None:
+    wire = ready(101.06)
+    wire.report(stat=2)  # ALARM
+    with pytest.raises(Rejected) as err:
+        wire.session.override(feed=110)
+    assert err.value.code == 204

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from hostd.api.methods.base import refused
-from hostd.api.methods.params import Distance, Feed, MachineParams
+from hostd.api.methods.params import Distance, Feed, JobFile, MachineParams
 from hostd.api.rpc import Methods, RpcError
 from hostd.machine import operations, probing
 from hostd.machine.guard import check_jog, check_send, send_maintenance
@@ -86,6 +86,25 @@ class ProbeParams(MachineParams):
     tool_diameter: Length | None = None
     confirmed: Annotated[bool, Field(strict=True)] = False
     wait: Seconds = 30.0
+
+
+PowerPercent = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=100)]
+
+
+class LaserTestParams(MachineParams):
+    """`power`: percent of full power (above 0, at most the config's laser_test_max);
+    `duration_s`: at most 2."""
+
+    power: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)]
+    duration_s: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=2)]
+
+
+class FrameParams(MachineParams):
+    """`file`: a file of the jobs directory; `power` percent (0: beam off); `feed` mm/min."""
+
+    file: JobFile
+    power: PowerPercent = 0
+    feed: Feed | None = None
 
 
 class SendParams(MachineParams):
@@ -255,6 +274,22 @@ class MachineMethods:
                 wait=p.wait,
             )
 
+    async def machine_laser_test(self, p: LaserTestParams) -> dict[str, Any]:
+        """Fire standing still for at most 2 s, then always off (operations.laser_test)."""
+        with refused():
+            await operations.laser_test(self.api.machine(p.machine), p.power, p.duration_s)
+        return {}
+
+    async def machine_frame(self, p: FrameParams) -> dict[str, Any]:
+        """Trace the file's bounding box, as a job (operations.frame)."""
+        machine = self.api.machine(p.machine)
+        path = await self.api.resolve(p.file)
+        with refused():
+            job = await operations.frame(
+                machine, path, p.power, p.feed, pool=self.api.daemon.workers
+            )
+        return {"job": job.id}
+
     async def machine_safety_door(self, p: MachineParams) -> dict[str, Any]:
         self.api.machine(p.machine).safety_door()
         return {}
@@ -290,3 +325,5 @@ def register(m: Methods, api: Api) -> None:
     m.register("machine.spindle", SpindleParams, h.machine_spindle)
     m.register("machine.probe", ProbeParams, h.machine_probe)
     m.register("machine.safety_door", MachineParams, h.machine_safety_door, immediate=True)
+    m.register("machine.laser_test", LaserTestParams, h.machine_laser_test)
+    m.register("machine.frame", FrameParams, h.machine_frame)

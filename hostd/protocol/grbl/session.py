@@ -84,7 +84,7 @@ from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
-from hostd.protocol.session import SessionBase
+from hostd.protocol.session import SessionBase, gcode_number
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
 from hostd.protocol.stream import Stream
@@ -228,6 +228,25 @@ class GrblSession(SessionBase):
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """`$J=G91 X1.5000 F600.000`: grbl allows no G1 in a jog (gcode.c), and 0x85 cancels it."""
         return [f"$J=G91 {jog_words(axes, feed)}"]
+
+    def spindle_max_setting(self) -> str | None:
+        """`$30`, the S of full power (gnea/grbl settings.c; laser PWM is S / $30)."""
+        return "30"
+
+    def beam_on_line(self, speed: float) -> str:
+        """`M4`: in laser mode, dynamic power, and none at rest (gnea/grbl
+        spindle_control.c:252-253 gives M4 zero power whenever it is synced standing
+        still), so the beam burns only along the frame's moves."""
+        return f"M4 S{gcode_number(speed)}"
+
+    def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
+        """`G1 M3 S..`, `G4 P..`, `M5`: in laser mode grbl lights M3 standing still only
+        when the motion mode is G1/G2/G3 (gnea/grbl gcode.c:868-893: any other motion
+        mode sets GC_PARSER_LASER_DISABLE and the sync passes zero power, :917-938;
+        a G1 with no axis word moves nothing, :875-879), and keeps it through the dwell
+        (mc_dwell only waits); `M5` turns it off (spindle_sync, :945). The motion mode
+        is left at G1."""
+        return [f"G1 M3 S{gcode_number(speed)}", f"G4 P{gcode_number(seconds)}", "M5"]
 
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None

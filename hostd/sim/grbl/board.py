@@ -112,6 +112,8 @@ class GrblBoard:
         self.state = "Idle"
         # Every move the machine made, in order (motion.Traversed), kept across resets.
         self.traversed: deque[Traversed] = deque(maxlen=config.history)
+        # The spindle/laser output over time: (clock, S after overrides), one entry a change.
+        self.beam: deque[tuple[float, float]] = deque([(0.0, 0.0)], maxlen=config.history)
         self.power_on()
 
     # --- power, reset
@@ -299,6 +301,42 @@ class GrblBoard:
 
     def tick(self) -> bool:
         """Do one thing that is due; False when nothing is."""
+        did = self._tick()
+        self._note_beam()
+        return did
+
+    def beam_power(self) -> float:
+        """The spindle output (a laser's power, S units) as the firmware drives it now.
+
+        In laser mode ($32=1): off in a hold or at the door (config.h
+        DISABLE_LASER_DURING_HOLD, protocol.c:536), and in a rapid; in a feed move the
+        move's own S; standing still, M3 burns only while the motion mode is G1/G2/G3
+        (gcode.c:868-893, 917-938) and M4 never does (spindle_control.c:252-253). Any
+        alarm went through mc_reset, which stops the spindle. M5 is off.
+        """
+        laser = self.settings[32] == 1
+        if self.state == "Alarm" or (laser and self.state in ("Hold", "Door")):
+            return 0.0
+        scale = self.spindle_ovr / 100.0
+        active = self.active
+        if active is not None and active.move is not None:
+            move = active.move
+            if move.spindle == "M5" or (laser and move.rapid):
+                return 0.0
+            return move.speed * scale
+        modal = self.modal
+        if modal.spindle == "M5":
+            return 0.0
+        if laser and (modal.spindle == "M4" or modal.motion not in (1.0, 2.0, 3.0)):
+            return 0.0
+        return modal.speed * scale
+
+    def _note_beam(self) -> None:
+        power = self.beam_power()
+        if power != self.beam[-1][1]:
+            self.beam.append((self._clock(), power))
+
+    def _tick(self) -> bool:
         now = self._clock()
         if self._deaf_until is not None:
             if now < self._deaf_until:
