@@ -107,3 +107,6 @@ def test_home_assistant_shows_a_controller_lockout_as_a_problem(
     env = jinja2.Environment(undefined=jinja2.StrictUndefined)
     assert env.from_string(entities["fault"]["value_template"]).render(seen) == problem
     assert env.from_string(entities["lockout"]["value_template"]).render(seen) == lockout
+    # Its attributes: the lockout as the snapshot has it, with what ends it; none outside one.
+    attributes = env.from_string(entities["lockout"]["json_attributes_template"]).render(seen)
+    assert json.loads(attributes) == (snapshot["lockout"] or {})

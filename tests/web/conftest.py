@@ -1,4 +1,8 @@
-"""A whole daemon (a simulated machine) with the web server on a loopback port, and a token."""
+"""A whole daemon (a simulated machine) with the web server on a loopback port, and a token;
+and Debian's chromium driven by Playwright for the browser tests (it never downloads one).
+
+HOSTD_SCREENSHOTS=DIR keeps the browser tests' screenshots there too (docs/screenshots is
+where the README's come from)."""
 
 from __future__ import annotations
 
@@ -6,12 +10,16 @@ import asyncio
 import contextlib
 import itertools
 import json
+import os
+import shutil
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import aiohttp
+import playwright.async_api as playwright
+import pytest
 import pytest_asyncio
 
 from hostd.api.methods import build_methods
@@ -124,3 +132,68 @@ async def web(tmp_path: Path) -> AsyncIterator[Web]:
         await running.hostd.idle(rpc)
         await rpc.close()
         yield running
+
+
+CHROMIUM = "/usr/bin/chromium"
+FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+TIMEOUT = 10_000  # ms: the longest any step waits for the page
+playwright.expect.set_options(timeout=TIMEOUT)
+
+
+@pytest.fixture
+def chromium() -> str:
+    """The page is tested in a real browser or not at all: a missing one is a failure."""
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(
+            f"{CHROMIUM} is missing: apt-get install chromium chromium-driver (.ci/run does)"
+        )
+    return CHROMIUM
+
+
+@pytest_asyncio.fixture
+async def browser(tmp_path: Path, chromium: str) -> AsyncIterator[playwright.BrowserContext]:
+    async with playwright.async_playwright() as p:
+        context = await p.chromium.launch_persistent_context(
+            tmp_path / "chromium-profile",
+            executable_path=chromium,
+            headless=True,
+            args=FLAGS,
+            viewport={"width": 1280, "height": 900},
+        )
+        context.set_default_timeout(TIMEOUT)
+        try:
+            yield context
+        finally:
+            await context.close()
+
+
+async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:
+    path = tmp_path / f"{name}.png"
+    # No passing note over the page; from the top (a sticky header scrolled with the page
+    # would sit half-way down a full-page shot).
+    await page.evaluate("document.getElementById('toast').hidden = true; window.scrollTo(0, 0)")
+    await page.screenshot(path=path, full_page=True)
+    if where := os.environ.get("HOSTD_SCREENSHOTS"):
+        await asyncio.to_thread(_keep, path, Path(where))
+
+
+def _keep(path: Path, where: Path) -> None:
+    where.mkdir(parents=True, exist_ok=True)
+    shutil.copy(path, where / path.name)
+
+
+async def log_in(page: playwright.Page, web: Web) -> None:
+    await page.goto(f"{web.url}/login#token={web.token}")
+    await page.wait_for_url(f"{web.url}/")
+    expect = playwright.expect
+    await expect(page.locator("#link")).to_have_text("live")
+    await expect(page.locator("#supervisor")).to_have_text("idle")

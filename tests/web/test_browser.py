@@ -1,89 +1,26 @@
 """The dashboard in a real headless Chromium (Debian's), driven by Playwright.
 
 Playwright never downloads a browser here: it launches /usr/bin/chromium
-with a fresh profile. Skipped when that binary is missing (`.ci/run`
-installs it). HOSTD_SCREENSHOTS=DIR saves the screenshots there too
-(docs/screenshots is where the README's come from).
+with a fresh profile (tests/web/conftest.py); a missing binary fails the
+test (`.ci/run` installs it). HOSTD_SCREENSHOTS=DIR saves the screenshots
+there too (docs/screenshots is where the README's come from).
 """
 
 from __future__ import annotations
 
-import asyncio
-import os
-import shutil
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import playwright.async_api as playwright
 import pytest
-import pytest_asyncio
 
 from hostd.api.tokens import TokenStore
-from tests.web.conftest import Web, running_web
+from tests.web.conftest import log_in, running_web, screenshot
 
-CHROMIUM = "/usr/bin/chromium"
-FLAGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 SIGNALS = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
-TIMEOUT = 10_000  # ms: the longest any step waits for the page
-playwright.expect.set_options(timeout=TIMEOUT)
 PROGRESS_OVER = "(least) => document.getElementById('job-progress').value > least"
 
 pytestmark = pytest.mark.asyncio
-
-
-@pytest.fixture(autouse=True)
-def _chromium_installed() -> None:
-    """The page is tested in a real browser or not at all: a missing one is a failure."""
-    if not os.path.exists(CHROMIUM):
-        pytest.fail(
-            f"{CHROMIUM} is missing: apt-get install chromium chromium-driver (.ci/run does)"
-        )
-
-
-@pytest_asyncio.fixture
-async def browser(tmp_path: Path) -> AsyncIterator[playwright.BrowserContext]:
-    async with playwright.async_playwright() as p:
-        context = await p.chromium.launch_persistent_context(
-            tmp_path / "chromium-profile",
-            executable_path=CHROMIUM,
-            headless=True,
-            args=FLAGS,
-            viewport={"width": 1280, "height": 900},
-        )
-        context.set_default_timeout(TIMEOUT)
-        try:
-            yield context
-        finally:
-            await context.close()
-
-
-async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:
-    path = tmp_path / f"{name}.png"
-    await page.screenshot(path=path, full_page=True)
-    if where := os.environ.get("HOSTD_SCREENSHOTS"):
-        await asyncio.to_thread(_keep, path, Path(where))
-
-
-def _keep(path: Path, where: Path) -> None:
-    where.mkdir(parents=True, exist_ok=True)
-    shutil.copy(path, where / path.name)
-
-
-async def log_in(page: playwright.Page, web: Web) -> None:
-    await page.goto(f"{web.url}/login#token={web.token}")
-    await page.wait_for_url(f"{web.url}/")
-    expect = playwright.expect
-    await expect(page.locator("#link")).to_have_text("live")
-    await expect(page.locator("#supervisor")).to_have_text("idle")
 
 
 async def test_log_in_upload_start_hold_resume_and_see_a_fault(

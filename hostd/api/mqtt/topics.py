@@ -107,7 +107,7 @@ def discovery(
     """Retained discovery messages for one machine: (topic, payload).
 
     The machine is one device with its state, supervisor, job state, job
-    progress and lockout (ALARM, SHUTDOWN, PANIC, INTERLOCK and why) as sensors,
+    progress and lockout (ALARM, SHUTDOWN, PANIC, INTERLOCK, why, and what ends it) as sensors,
     and its fault indicator or a lockout as a `problem` binary sensor;
     all of them unavailable while the daemon's `online` topic says `offline`.
     """
@@ -195,6 +195,9 @@ def discovery(
                     "{% set l = value_json.snapshot.lockout %}"
                     "{{ l.state ~ ': ' ~ l.message if l else 'none' }}"
                 ),
+                # Its state, reason and what ends it (`clear`), as the dashboard shows them.
+                "json_attributes_topic": status,
+                "json_attributes_template": "{{ (value_json.snapshot.lockout or {}) | tojson }}",
             },
         ),
     ]

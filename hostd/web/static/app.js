@@ -69,6 +69,10 @@ const view = {
   analyzed: null, // what it was asked for: "file|machine|homed"
   rate: null, // {acked, at, perSecond}
   console: [],
+  consoleHidden: 0, // status polls and reports left out of the console
+  macros: [],
+  preview: { mode: "top", zoom: 1, panX: 0, panY: 0, toCanvas: null },
+  keyJog: null, // the key whose continuous jog runs ("hold key" step)
 };
 
 function toast(text, bad = false) {
@@ -89,6 +93,19 @@ async function act(method, params) {
   }
 }
 
+// A long request (homing, probing, a test fire) keeps its button disabled until answered:
+// a second click would only be refused (1003, an operation under way).
+async function pending(button, work) {
+  button.dataset.pending = "1";
+  updateEnabled();
+  try {
+    return await work();
+  } finally {
+    delete button.dataset.pending;
+    updateEnabled();
+  }
+}
+
 function confirmFirst(text) {
   const dialog = $("confirm");
   $("confirm-text").textContent = text;
@@ -99,16 +116,90 @@ function confirmFirst(text) {
   });
 }
 
+// --- which button the daemon accepts now ------------------------------------------------
+//
+// Each control names what it needs (data-need); the page derives it from the snapshot
+// (supervisor state, lockout, job, faults) by the daemon's own rules, and disables the
+// control, with the reason as its title, where the daemon would refuse it. The table is
+// in docs/web.md ("Which control is enabled when").
+
+const LOCKOUTS = ["ALARM", "SHUTDOWN", "PANIC"];
+
+function needs(snap) {
+  const connected = Boolean(snap) && snap.supervisor !== "disconnected";
+  const lockout = connected ? snap.lockout : null;
+  const locked = Boolean(lockout && LOCKOUTS.includes(lockout.state));
+  const idle = connected && snap.supervisor === "idle" && !lockout;
+  const job = connected && snap.job && ["running", "paused"].includes(snap.job.state) ? snap.job : null;
+  const blocking = connected ? (snap.faults || []).filter((f) => !f.overridden && f.severity !== "recoverable") : [];
+  const held = connected && (snap.supervisor === "paused" || (snap.state && snap.state.name === "HOLD"));
+  // A job waiting at M6: paused; the daemon serves jogs (as the job's lines) and
+  // job.tool_change_done, and refuses resume and jog_stop (1003) until then.
+  const toolChange = connected && snap.tool_change ? snap.tool_change : null;
+  const why = (ok, reason) => (ok ? null : reason);
+  const notConnected = "the machine is not connected";
+  const lockedText = lockout ? `refused in ${lockout.state}: ${lockoutExit(lockout)}` : "";
+  const busy = connected ? `refused while the machine is ${snap.supervisor}` : notConnected;
+  const move = !connected ? notConnected : lockout ? lockedText : why(idle, busy);
+  return {
+    connected: why(connected, notConnected),
+    hold: why(connected, notConnected),
+    reset: why(connected, notConnected),
+    move,
+    jog: (toolChange && !lockout ? null : move)
+      || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    "jog-stop": why(connected, notConnected) || why(!toolChange, "refused while a tool change waits: press Done"),
+    job: move || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    resume: !connected ? notConnected : locked ? lockedText
+      : toolChange ? "a tool change waits: press Done"
+      : why(held || (lockout && lockout.state === "INTERLOCK"), "nothing is held"),
+    cancel: why(Boolean(job), "no job is running"),
+    clear: why(Boolean(lockout && lockout.clear.includes("machine.clear")), "no alarm or shutdown to clear"),
+    override: !connected ? notConnected : locked ? lockedText
+      : why(Boolean(snap.overrides), "the board reports no overrides"),
+    "tool-change": why(Boolean(connected && snap.tool_change), "no tool change is waiting"),
+  };
+}
+
+function updateEnabled() {
+  const snap = view.snapshots.get(view.machine);
+  const reasons = needs(snap);
+  for (const el of document.querySelectorAll("[data-need]")) {
+    if (el.dataset.hint === undefined) el.dataset.hint = el.title; // its own title, when enabled
+    let reason = reasons[el.dataset.need] ?? null;
+    if (!reason && el.id === "start" && view.analysis && (view.analysis.beyond_travel || []).length) {
+      reason = "the program leaves the machine's travel";
+    }
+    if (!reason && ["start", "frame"].includes(el.id) && !$("files").value) reason = "upload or pick a file first";
+    if (!reason && el.dataset.pending) reason = "under way…";
+    el.disabled = Boolean(reason);
+    el.title = reason || el.dataset.hint || "";
+  }
+}
+
 // --- drawing the machine ------------------------------------------------------------
+
+const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume" };
+
+function lockoutExit(lockout) {
+  return lockout.clear.replace(/machine\.(\w+)/g, (_, m) => EXITS[m] || m);
+}
 
 function showSnapshot(snap) {
   view.snapshots.set(snap.id, snap);
   if (snap.id !== view.machine) return;
   $("supervisor").textContent = snap.supervisor;
   $("controller").textContent = snap.state ? snap.state.name : "–";
+  $("homed").textContent = snap.homed === true ? "yes" : snap.homed === false ? "no" : "–";
+  $("tool").textContent = typeof snap.tool === "number" ? `T${snap.tool}` : "–";
+  const spindle = snap.spindle;
+  $("spindle").textContent = spindle
+    ? `${spindle.state}${typeof spindle.speed === "number" ? ` · S${fmt(spindle.speed, 0)}` : ""}`
+    : "–";
   $("feed").textContent = fmt(snap.feed, 0);
   $("velocity").textContent = fmt(snap.velocity, 0);
   $("units").textContent = snap.units || "";
+  $("wcs").textContent = snap.wcs || "";
   const work = snap.work_position || snap.position || {};
   const mach = snap.machine_position || {};
   for (const axis of ["x", "y", "z"]) {
@@ -123,10 +214,7 @@ function showSnapshot(snap) {
   $("indicator-text").textContent = lockout ? lockout.state : level;
   $("lockout").hidden = !lockout;
   $("lockout-message").textContent = lockout ? lockout.message : "";
-  const buttons = { clear: "Clear", reset: "Reset", cycle_start: "Resume" };
-  $("lockout-clear").textContent = lockout
-    ? `To end it: ${lockout.clear.replace(/machine\.(\w+)/g, (_, m) => buttons[m] || m)}`
-    : "";
+  $("lockout-clear").textContent = lockout ? `To end it: ${lockoutExit(lockout)}` : "";
   for (const action of ["clear", "reset"]) {
     const button = document.querySelector(`[data-action=${action}]`);
     if (button) button.classList.toggle("needed", Boolean(lockout && lockout.clear.includes(`machine.${action}`)));
@@ -138,10 +226,27 @@ function showSnapshot(snap) {
     li.textContent = `${fault.id}: ${fault.message || fault.severity}${fault.overridden ? " (overridden)" : ""}`;
     return li;
   }));
+  const overrides = snap.overrides || {};
+  for (const key of ["feed", "spindle", "rapid"]) {
+    $(`ov-${key}`).textContent = typeof overrides[key] === "number" ? `${Math.round(overrides[key])}%` : "–";
+  }
+  $("laser-set").hidden = !(snap.laser_mode || snap.laser);
+  showToolChange(snap);
   document.body.dataset.supervisor = snap.supervisor;
   if (view.program && analysisKey(view.program.name) !== view.analyzed) analyzeProgram(view.program.name);
   showJob(snap.job);
+  updateEnabled();
   drawPreview();
+}
+
+// A job waiting at M6 (snapshot.tool_change): a banner, not a modal, so the jog pad and
+// the position stay usable while the operator changes the tool.
+function showToolChange(snap) {
+  const wait = snap.tool_change;
+  $("toolchange").hidden = !wait;
+  if (!wait) return;
+  const line = typeof wait.line === "number" ? ` (line ${wait.line})` : "";
+  $("toolchange-text").textContent = `Change to tool ${wait.tool}${line}`;
 }
 
 function showJob(job) {
@@ -173,7 +278,8 @@ function showJob(job) {
   const left = total - job.lines_acked;
   $("job-eta").textContent =
     job.state !== "running" ? "–" : perSecond > 0 ? duration(left / perSecond) : "…";
-  if (job.file && (!view.program || view.program.name !== job.file)) loadProgram(job.file);
+  // The preview shows the file picked in the list, never the job's behind its back
+  // (that once made the preview and Start disagree).
   if (["completed", "failed", "cancelled", "interrupted"].includes(job.state)) refreshHistory();
 }
 
@@ -187,53 +293,117 @@ function duration(seconds) {
 
 // --- programs: parse, analyse, preview --------------------------------------------------
 
-// Enough G-code for a picture: G0/G1 (and G2/G3 drawn as chords), G90/G91, G20/G21.
+// The arc's plane: its two axes (indices into [x, y, z]) and the third, moved linearly (a
+// helix), as grbl's gcode.c and g2core's canonical machine take G17, G18 and G19.
+const PLANES = { 17: [0, 1, 2], 18: [2, 0, 1], 19: [1, 2, 0] };
+const ARC_EPSILON = 5e-7; // rad: grbl's ARC_ANGULAR_TRAVEL_EPSILON, start = end is a full circle
+const ARC_STEP = 0.05; // rad between the points an arc is drawn with
+// G-codes whose axis words are not a move in work coordinates: drawn as nothing.
+const NOT_MOVES = [4, 10, 28, 28.1, 30, 30.1, 43.1, 53, 92, 92.1];
+
+// Enough G-code for a picture: G0/G1, G2/G3 (I J K or R, any plane, helical), G38.x,
+// G90/G91, G90.1/G91.1, G20/G21. Each move is a polyline in work coordinates (mm).
 function parseProgram(name, text) {
   const moves = [];
-  let x = 0, y = 0, absolute = true, scale = 1, feed = null, motion = 0, sendable = 0, seconds = 0;
-  let minX = Infinity, minY = Infinity, maxX = -Infinity, maxY = -Infinity;
+  const at = [0, 0, 0];
+  let absolute = true, arcAbsolute = false, scale = 1, feed = null, motion = 0, plane = 17;
+  let sendable = 0, seconds = 0;
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
   for (const raw of text.split("\n")) {
     const line = raw.replace(/\([^)]*\)/g, "").replace(/;.*/, "").trim().toUpperCase();
     if (!line || line.startsWith("%")) continue;
     sendable += 1;
-    const words = line.match(/[A-Z][-+]?[0-9]*\.?[0-9]+/g) || [];
-    let nx = null, ny = null;
+    const words = line.match(/[A-Z]\s*[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)/g) || [];
+    const axis = [null, null, null], offset = [null, null, null];
+    let radius = null, skip = false;
     for (const word of words) {
       const letter = word[0], value = parseFloat(word.slice(1));
       if (letter === "G") {
-        if ([0, 1, 2, 3].includes(value)) motion = value;
+        if ([0, 1, 2, 3, 38.2, 38.3, 38.4, 38.5].includes(value)) motion = value;
+        else if (value === 80) motion = null;
+        else if (PLANES[value]) plane = value;
         else if (value === 90) absolute = true;
         else if (value === 91) absolute = false;
+        else if (value === 90.1) arcAbsolute = true;
+        else if (value === 91.1) arcAbsolute = false;
         else if (value === 20) scale = 25.4;
         else if (value === 21) scale = 1;
-      } else if (letter === "X") nx = value * scale;
-      else if (letter === "Y") ny = value * scale;
+        else if (NOT_MOVES.includes(value)) skip = true;
+      } else if ("XYZ".includes(letter)) axis["XYZ".indexOf(letter)] = value;
+      else if ("IJK".includes(letter)) offset["IJK".indexOf(letter)] = value;
+      else if (letter === "R") radius = value;
       else if (letter === "F") feed = value * scale;
     }
-    if (nx === null && ny === null) continue;
-    const tx = nx === null ? x : absolute ? nx : x + nx;
-    const ty = ny === null ? y : absolute ? ny : y + ny;
-    moves.push({ x0: x, y0: y, x1: tx, y1: ty, rapid: motion === 0, at: sendable });
-    if (motion !== 0 && feed) seconds += (Math.hypot(tx - x, ty - y) / feed) * 60;
-    for (const [px, py] of [[x, y], [tx, ty]]) {
-      minX = Math.min(minX, px); maxX = Math.max(maxX, px);
-      minY = Math.min(minY, py); maxY = Math.max(maxY, py);
+    const arc = motion === 2 || motion === 3;
+    const hasAxis = axis.some((v) => v !== null);
+    if (skip || motion === null || !(hasAxis || (arc && offset.some((v) => v !== null)))) continue;
+    const start = at.slice();
+    const end = axis.map((v, i) => (v === null ? start[i] : absolute ? v * scale : start[i] + v * scale));
+    let points = [start, end];
+    if (arc) {
+      const scaled = offset.map((v) => (v === null ? null : v * scale));
+      points = arcPoints(start, end, motion === 2, PLANES[plane], scaled, radius === null ? null : radius * scale, arcAbsolute);
     }
-    x = tx; y = ty;
+    moves.push({ points, rapid: motion === 0, at: sendable });
+    let length = 0;
+    for (let i = 0; i < points.length; i += 1) {
+      const p = points[i];
+      for (let a = 0; a < 3; a += 1) { lo[a] = Math.min(lo[a], p[a]); hi[a] = Math.max(hi[a], p[a]); }
+      if (i) length += Math.hypot(p[0] - points[i - 1][0], p[1] - points[i - 1][1], p[2] - points[i - 1][2]);
+    }
+    if (motion !== 0 && feed) seconds += (length / feed) * 60;
+    at.splice(0, 3, ...end);
   }
-  const bounds = moves.length ? { minX, minY, maxX, maxY } : null;
+  const bounds = moves.length ? { lo, hi } : null;
   return { name, moves, bounds, sendable, seconds };
+}
+
+// The points of one arc from `start` to `end`: the centre from the offsets (relative to the
+// start, or absolute under G90.1) or from R (negative: the long way round), the sweep
+// clockwise or not, a full circle where start and end meet.
+function arcPoints(start, end, clockwise, [a, b, lin], offset, radius, arcAbsolute) {
+  let ca, cb;
+  if (radius !== null && offset[a] === null && offset[b] === null) {
+    const da = end[a] - start[a], db = end[b] - start[b], d = Math.hypot(da, db);
+    if (d === 0) return [start, end]; // R cannot make a full circle: the board refuses it
+    const h = Math.sqrt(Math.max(radius * radius - (d * d) / 4, 0));
+    const side = (clockwise ? 1 : -1) * (radius < 0 ? -1 : 1);
+    ca = (start[a] + end[a]) / 2 + (side * h * db) / d;
+    cb = (start[b] + end[b]) / 2 - (side * h * da) / d;
+  } else {
+    ca = arcAbsolute ? offset[a] ?? start[a] : start[a] + (offset[a] ?? 0);
+    cb = arcAbsolute ? offset[b] ?? start[b] : start[b] + (offset[b] ?? 0);
+  }
+  const r = Math.hypot(start[a] - ca, start[b] - cb);
+  const from = Math.atan2(start[b] - cb, start[a] - ca);
+  let sweep = Math.atan2(end[b] - cb, end[a] - ca) - from;
+  if (clockwise) { if (sweep >= -ARC_EPSILON) sweep -= 2 * Math.PI; }
+  else if (sweep <= ARC_EPSILON) sweep += 2 * Math.PI;
+  const steps = Math.min(720, Math.max(2, Math.ceil(Math.abs(sweep) / ARC_STEP)));
+  const points = [start];
+  for (let i = 1; i < steps; i += 1) {
+    const angle = from + (sweep * i) / steps;
+    const p = start.slice();
+    p[a] = ca + r * Math.cos(angle);
+    p[b] = cb + r * Math.sin(angle);
+    p[lin] = start[lin] + ((end[lin] - start[lin]) * i) / steps;
+    points.push(p);
+  }
+  points.push(end);
+  return points;
 }
 
 async function loadProgram(name) {
   if (!name) return;
   view.program = { name, moves: [], bounds: null, sendable: 0, seconds: 0 };
+  view.analysis = null;
+  resetView();
   const response = await fetch(`/files/${encodeURIComponent(name)}`);
+  if (!view.program || view.program.name !== name) return; // another file was picked meanwhile
   if (!response.ok) { $("analysis").textContent = `${name}: cannot read (${response.status})`; return; }
   const program = parseProgram(name, await response.text());
   if (!view.program || view.program.name !== name) return;
   view.program = program;
-  view.analysis = null;
   showAnalysis(program, null);
   drawPreview();
   await analyzeProgram(name);
@@ -269,8 +439,8 @@ function showAnalysis(program, analysis) {
   const axes = ["x", "y", "z"].filter((axis) => Array.isArray(bounds[axis]));
   if (axes.length) parts.push(axes.map((a) => `${a.toUpperCase()} ${bounds[a][0].toFixed(1)}…${bounds[a][1].toFixed(1)}`).join(", ") + " mm");
   else if (program.bounds) {
-    const b = program.bounds;
-    parts.push(`X ${b.minX.toFixed(1)}…${b.maxX.toFixed(1)}, Y ${b.minY.toFixed(1)}…${b.maxY.toFixed(1)} mm`);
+    const { lo, hi } = program.bounds;
+    parts.push(`X ${lo[0].toFixed(1)}…${hi[0].toFixed(1)}, Y ${lo[1].toFixed(1)}…${hi[1].toFixed(1)} mm`);
   }
   if (ok && typeof analysis.duration_s === "number") parts.push(`about ${duration(analysis.duration_s)}`);
   else if (program.seconds) parts.push(`about ${duration(program.seconds)} of feed moves (estimated here)`);
@@ -283,21 +453,31 @@ function showAnalysis(program, analysis) {
   travel.textContent = beyond.length
     ? `Start is refused: the program leaves ${view.machine}'s travel. ${beyond.join("; ")}`
     : "";
-  $("start").disabled = beyond.length > 0;
-  $("start").title = beyond.length ? "the program leaves the machine's travel" : "";
   const warnings = ok ? (analysis.warnings || []).filter((text) => !beyond.includes(text)) : [];
   $("warnings").replaceChildren(...warnings.map((text) => {
     const li = document.createElement("li");
     li.textContent = text;
     return li;
   }));
+  updateEnabled();
+}
+
+function resetView() {
+  Object.assign(view.preview, { zoom: 1, panX: 0, panY: 0 });
+}
+
+// A grid step of 1, 2 or 5 times a power of ten, at least `pixels` apart on the screen.
+function gridStep(scale, pixels = 48) {
+  const raw = pixels / scale;
+  const power = 10 ** Math.floor(Math.log10(raw));
+  return [1, 2, 5, 10].map((m) => m * power).find((step) => step >= raw);
 }
 
 function drawPreview() {
   const canvas = $("preview");
   const ratio = window.devicePixelRatio || 1;
   const width = canvas.clientWidth, height = canvas.clientHeight;
-  if (canvas.width !== Math.round(width * ratio)) {
+  if (canvas.width !== Math.round(width * ratio) || canvas.height !== Math.round(height * ratio)) {
     canvas.width = Math.round(width * ratio);
     canvas.height = Math.round(height * ratio);
   }
@@ -305,24 +485,39 @@ function drawPreview() {
   g.setTransform(ratio, 0, 0, ratio, 0, 0);
   g.clearRect(0, 0, width, height);
   const program = view.program;
-  if (!program || !program.bounds) return;
-  const b = program.bounds, pad = 12;
-  const scale = Math.min((width - 2 * pad) / Math.max(b.maxX - b.minX, 1e-6),
-                         (height - 2 * pad) / Math.max(b.maxY - b.minY, 1e-6));
-  const px = (v) => pad + (v - b.minX) * scale;
-  const py = (v) => height - pad - (v - b.minY) * scale;
+  const pv = view.preview;
+  pv.toCanvas = null;
+  if (!program || !program.bounds || !width || !height) return;
+  // Top: X across, Y up. Side: X across, Z up.
+  const [h, v] = pv.mode === "top" ? [0, 1] : [0, 2];
+  const { lo, hi } = program.bounds, pad = 24;
+  const spanH = hi[h] - lo[h], spanV = hi[v] - lo[v];
+  const fit = Math.min(spanH > 1e-9 ? (width - 2 * pad) / spanH : Infinity,
+                       spanV > 1e-9 ? (height - 2 * pad) / spanV : Infinity);
+  const scale = (Number.isFinite(fit) ? fit : 10) * pv.zoom;
+  const midH = (lo[h] + hi[h]) / 2, midV = (lo[v] + hi[v]) / 2;
+  const px = (x) => width / 2 + (x - midH) * scale + pv.panX;
+  const py = (y) => height / 2 - (y - midV) * scale + pv.panY;
+  pv.toCanvas = (x, y) => [px(x), py(y)];
+  pv.toWorld = (cx, cy) => [midH + (cx - width / 2 - pv.panX) / scale, midV - (cy - height / 2 - pv.panY) / scale];
+  pv.scale = scale;
+  const style = getComputedStyle(document.body);
+  drawGrid(g, width, height, scale, pv, style, [h, v]);
   const snap = view.snapshots.get(view.machine);
   const job = snap && snap.job && snap.job.file === program.name ? snap.job : null;
   const done = job ? job.lines_acked : 0;
-  const style = getComputedStyle(document.body);
   const stroke = (moves, color, dash) => {
     g.beginPath();
     g.strokeStyle = color;
     g.setLineDash(dash);
-    for (const m of moves) { g.moveTo(px(m.x0), py(m.y0)); g.lineTo(px(m.x1), py(m.y1)); }
+    for (const m of moves) {
+      const [first, ...rest] = m.points;
+      g.moveTo(px(first[h]), py(first[v]));
+      for (const p of rest) g.lineTo(px(p[h]), py(p[v]));
+    }
     g.stroke();
   };
-  g.lineWidth = 1.5;
+  g.lineWidth = 2; // at least one whole pixel wide, wherever it falls
   const left = program.moves.filter((m) => m.at > done);
   const past = program.moves.filter((m) => m.at <= done);
   stroke(left.filter((m) => m.rapid), style.getPropertyValue("--rapid"), [3, 4]);
@@ -330,12 +525,96 @@ function drawPreview() {
   stroke(past, style.getPropertyValue("--done"), []);
   g.setLineDash([]);
   const work = snap && (snap.work_position || snap.position);
-  if (work && typeof work.x === "number" && typeof work.y === "number") {
+  const axisName = ["x", "y", "z"];
+  if (work && typeof work[axisName[h]] === "number" && typeof work[axisName[v]] === "number") {
     g.fillStyle = style.getPropertyValue("--tool");
     g.beginPath();
-    g.arc(px(work.x), py(work.y), 5, 0, 2 * Math.PI);
+    g.arc(px(work[axisName[h]]), py(work[axisName[v]]), 5, 0, 2 * Math.PI);
     g.fill();
   }
+}
+
+function drawGrid(g, width, height, scale, pv, style, [h, v]) {
+  const step = gridStep(scale);
+  const [x0, y1] = pv.toWorld(0, 0);
+  const [x1, y0] = pv.toWorld(width, height);
+  g.save();
+  g.lineWidth = 1;
+  g.font = "10px ui-monospace, monospace";
+  g.fillStyle = style.getPropertyValue("--muted");
+  const names = ["X", "Y", "Z"];
+  const line = (ax, ay, bx, by, axis) => {
+    g.strokeStyle = style.getPropertyValue(axis ? "--axis" : "--grid");
+    g.beginPath();
+    g.moveTo(ax, ay);
+    g.lineTo(bx, by);
+    g.stroke();
+  };
+  const digits = step < 1 ? Math.ceil(-Math.log10(step)) : 0;
+  for (let x = Math.ceil(x0 / step) * step; x <= x1; x += step) {
+    const [cx] = pv.toCanvas(x, 0);
+    line(cx + 0.5, 0, cx + 0.5, height, Math.abs(x) < step / 2);
+    g.fillText(x.toFixed(digits), cx + 2, height - 3);
+  }
+  for (let y = Math.ceil(y0 / step) * step; y <= y1; y += step) {
+    const [, cy] = pv.toCanvas(0, y);
+    line(0, cy + 0.5, width, cy + 0.5, Math.abs(y) < step / 2);
+    g.fillText(y.toFixed(digits), 2, cy - 2);
+  }
+  g.fillText(`${names[h]} →  ${names[v]} ↑  grid ${step} mm`, width - 150, 12);
+  g.restore();
+}
+
+function zoomPreview(factor, cx, cy) {
+  const pv = view.preview;
+  const canvas = $("preview");
+  const width = canvas.clientWidth, height = canvas.clientHeight;
+  const atX = cx ?? width / 2, atY = cy ?? height / 2;
+  const zoom = Math.min(Math.max(pv.zoom * factor, 0.1), 2000);
+  const applied = zoom / pv.zoom;
+  // Keep the point under the cursor where it is.
+  pv.panX = atX - width / 2 - (atX - width / 2 - pv.panX) * applied;
+  pv.panY = atY - height / 2 - (atY - height / 2 - pv.panY) * applied;
+  pv.zoom = zoom;
+  drawPreview();
+}
+
+function setViewMode(mode) {
+  view.preview.mode = mode;
+  resetView();
+  for (const [id, m] of [["view-top", "top"], ["view-side", "side"]]) {
+    $(id).classList.toggle("on", m === mode);
+    $(id).setAttribute("aria-pressed", String(m === mode));
+  }
+  drawPreview();
+}
+
+function wirePreview() {
+  const canvas = $("preview");
+  canvas.addEventListener("wheel", (event) => {
+    event.preventDefault();
+    const rect = canvas.getBoundingClientRect();
+    zoomPreview(event.deltaY < 0 ? 1.25 : 0.8, event.clientX - rect.left, event.clientY - rect.top);
+  }, { passive: false });
+  let drag = null;
+  canvas.addEventListener("pointerdown", (event) => {
+    drag = { x: event.clientX, y: event.clientY, panX: view.preview.panX, panY: view.preview.panY };
+    canvas.setPointerCapture(event.pointerId);
+  });
+  canvas.addEventListener("pointermove", (event) => {
+    if (!drag) return;
+    view.preview.panX = drag.panX + event.clientX - drag.x;
+    view.preview.panY = drag.panY + event.clientY - drag.y;
+    drawPreview();
+  });
+  const end = () => { drag = null; };
+  canvas.addEventListener("pointerup", end);
+  canvas.addEventListener("pointercancel", end);
+  $("zoom-in").addEventListener("click", () => zoomPreview(1.5));
+  $("zoom-out").addEventListener("click", () => zoomPreview(1 / 1.5));
+  $("zoom-fit").addEventListener("click", () => { resetView(); drawPreview(); });
+  $("view-top").addEventListener("click", () => setViewMode("top"));
+  $("view-side").addEventListener("click", () => setViewMode("side"));
 }
 
 // --- files, history, console --------------------------------------------------------------
@@ -344,10 +623,14 @@ async function refreshFiles(select) {
   const files = await act("file.list");
   if (!files) return;
   const list = $("files");
-  const current = select || list.value;
+  // At first, a running job's file; then whatever the operator picked.
+  const snap = view.snapshots.get(view.machine);
+  const running = snap && snap.job && snap.job.state === "running" ? snap.job.file : null;
+  const current = select || list.value || running;
   list.replaceChildren(...files.map((f) => new Option(`${f.name} (${f.size} B)`, f.name)));
   if (current && files.some((f) => f.name === current)) list.value = current;
   if (list.value && (!view.program || view.program.name !== list.value)) loadProgram(list.value);
+  updateEnabled();
 }
 
 async function refreshHistory() {
@@ -362,13 +645,38 @@ async function refreshHistory() {
       td.textContent = text;
       tr.append(td);
     }
+    const td = document.createElement("td");
+    td.className = "control";
+    if (job.kind === "make" && ["interrupted", "failed", "cancelled"].includes(job.state)) {
+      const button = document.createElement("button");
+      button.className = "small";
+      button.textContent = "Resume…";
+      button.dataset.need = "connected";
+      button.addEventListener("click", () => planResume({ job: job.id }));
+      td.append(button);
+    }
+    tr.append(td);
     tr.className = job.state;
     return tr;
   }));
+  updateEnabled();
+}
+
+// Status polls and reports (grbl's `?` and `<...>`, g2core's `{sr:n}` and `{"sr":...}`)
+// come several times a second: left out of the console unless asked for.
+function isStatusTraffic(params) {
+  const text = params.text.trim();
+  if (params.direction === "tx") return text === "?" || /^\{\s*"?sr"?\s*:\s*(n|null|"")\s*\}$/i.test(text);
+  return /^<[^<>]*>$/.test(text) || /^\{\s*"sr"\s*:/.test(text) || /^\{\s*"r"\s*:\s*\{\s*"sr"\s*:/.test(text);
 }
 
 function showConsole(params) {
   if (params.machine !== view.machine) return;
+  if (!$("console-polls").checked && isStatusTraffic(params)) {
+    view.consoleHidden += 1;
+    $("console-hidden").textContent = `(${view.consoleHidden} hidden)`;
+    return;
+  }
   view.console.push(`${params.direction === "tx" ? "→" : "←"} ${params.text}`);
   if (view.console.length > 300) view.console.splice(0, view.console.length - 300);
   const pre = $("console");
@@ -377,11 +685,157 @@ function showConsole(params) {
   if (atEnd) pre.scrollTop = pre.scrollHeight;
 }
 
+// --- macros ------------------------------------------------------------------------------
+
+// macro.list's params: {name: {min, max, default, integer}} (docs/api.md); a list of names
+// is taken too.
+function macroParams(params) {
+  if (!params) return [];
+  if (Array.isArray(params)) {
+    return params.map((p) => (typeof p === "string" ? { name: p } : { ...p }));
+  }
+  return Object.entries(params).map(([name, spec]) => (
+    spec && typeof spec === "object" ? { name, ...spec } : { name, default: spec }));
+}
+
+async function refreshMacros() {
+  let macros = [];
+  try {
+    macros = await rpc.call("macro.list", { machine: view.machine });
+  } catch (error) {
+    macros = []; // a daemon without macros (-32601) or none configured: no card
+  }
+  view.macros = macros || [];
+  $("macros-card").hidden = view.macros.length === 0;
+  $("macros").replaceChildren(...view.macros.map((macro) => {
+    const li = document.createElement("li");
+    const form = document.createElement("form");
+    form.className = "row macro";
+    const title = document.createElement("strong");
+    title.textContent = macro.name;
+    title.title = macro.text || "";
+    form.append(title);
+    for (const param of macroParams(macro.params)) {
+      const label = document.createElement("label");
+      label.textContent = `${param.name} `;
+      const input = document.createElement("input");
+      input.name = param.name;
+      input.type = "number";
+      input.required = true;
+      if (param.default !== undefined && param.default !== null) input.value = param.default;
+      if (typeof param.min === "number") input.min = param.min;
+      if (typeof param.max === "number") input.max = param.max;
+      input.step = param.integer ? "1" : "any";
+      label.append(input);
+      form.append(label);
+    }
+    const run = document.createElement("button");
+    run.type = "submit";
+    run.textContent = "Run";
+    run.dataset.need = "job";
+    form.append(run);
+    form.addEventListener("submit", async (event) => {
+      event.preventDefault();
+      const params = {};
+      for (const input of form.querySelectorAll("input")) params[input.name] = Number(input.value);
+      const body = { machine: view.machine, name: macro.name };
+      if (Object.keys(params).length) body.params = params;
+      const started = await act("macro.run", body);
+      if (started) toast(`macro ${macro.name}: job ${started.job}`);
+    });
+    li.append(form);
+    return li;
+  }));
+  updateEnabled();
+}
+
+// --- resume from a line: the CLI's plan (job.recovery), then job.start from there ----------
+
+async function planResume(params) {
+  const plan = await act("job.recovery", params);
+  if (!plan) return;
+  $("plan-title").textContent = `Resume ${plan.file} from line ${plan.line}`;
+  const position = Object.entries(plan.position || {}).map(([a, v]) => `${a.toUpperCase()} ${fmt(v)}`).join(" ");
+  $("plan-summary").textContent = `The tool goes to ${position || "the start"}${plan.units ? ` (${plan.units})` : ""}, then line ${plan.line} on.`;
+  $("plan-preamble").textContent = [...(plan.preamble || []), ...(plan.approach || [])].join("\n") || "nothing";
+  const uncertain = plan.uncertain || [];
+  $("plan-uncertain").replaceChildren(...(uncertain.length ? uncertain : ["nothing"]).map((text) => {
+    const li = document.createElement("li");
+    li.textContent = text;
+    return li;
+  }));
+  $("plan-start").textContent = `Start from line ${plan.line}`;
+  const dialog = $("plan");
+  dialog.returnValue = "";
+  dialog.showModal();
+  const answer = await new Promise((resolve) => {
+    dialog.addEventListener("close", () => resolve(dialog.returnValue), { once: true });
+  });
+  if (answer !== "yes") return;
+  const started = await act("job.start", { machine: plan.machine || view.machine, file: plan.file, start_line: plan.line });
+  if (started) toast(`job ${started.job} started from line ${plan.line}`);
+}
+
+// --- keyboard jogging ----------------------------------------------------------------------
+
+const JOG_KEYS = {
+  ArrowLeft: ["x", -1], ArrowRight: ["x", 1], ArrowUp: ["y", 1], ArrowDown: ["y", -1],
+  PageUp: ["z", 1], PageDown: ["z", -1],
+};
+const HOLD_JOG_SECONDS = 5; // a held key's jog runs at most this long if its keyup is lost
+
+function typing() {
+  const el = document.activeElement;
+  return Boolean(el && (el.isContentEditable || ["INPUT", "SELECT", "TEXTAREA"].includes(el.tagName)));
+}
+
+function jogFeed() {
+  return parseFloat($("jog-feed").value) || 1000;
+}
+
+async function jog(axis, distance) {
+  await act("machine.jog", { machine: view.machine, axes: { [axis]: distance }, feed: jogFeed() });
+}
+
+function stopKeyJog() {
+  if (!view.keyJog) return;
+  view.keyJog = null;
+  act("machine.jog_stop", { machine: view.machine });
+}
+
+function wireKeys() {
+  document.addEventListener("keydown", (event) => {
+    const key = JOG_KEYS[event.key];
+    if (!key || !view.control || typing() || !document.hasFocus() || document.querySelector("dialog[open]")) return;
+    if (event.altKey || event.ctrlKey || event.metaKey) return;
+    event.preventDefault();
+    if (event.repeat || view.keyJog) return; // one jog a press; auto-repeat queues nothing
+    if (needs(view.snapshots.get(view.machine)).jog) { toast("jog refused: the machine is not ready", true); return; }
+    const [axis, dir] = key;
+    const step = $("jog-step").value;
+    if (step === "hold") {
+      // Its release sends machine.jog_stop, which a tool change's hold refuses: steps only.
+      const snap = view.snapshots.get(view.machine);
+      if (snap && snap.tool_change) { toast("during a tool change the keys jog by steps: pick a step", true); return; }
+      view.keyJog = event.key;
+      jog(axis, (dir * jogFeed() * HOLD_JOG_SECONDS) / 60);
+    } else {
+      jog(axis, dir * parseFloat(step));
+    }
+  });
+  document.addEventListener("keyup", (event) => { if (event.key === view.keyJog) stopKeyJog(); });
+  // Never a jog left running: the tab or the window losing the focus stops it.
+  window.addEventListener("blur", stopKeyJog);
+  document.addEventListener("visibilitychange", () => { if (document.hidden) stopKeyJog(); });
+  // A step picked with the keyboard leaves the select, so the arrows jog again.
+  $("jog-step").addEventListener("change", () => $("jog-step").blur());
+}
+
 // --- wiring ----------------------------------------------------------------------------------
 
 function onNotify(method, params) {
   if (method === "status") showSnapshot(params.snapshot);
-  else if (method === "job" && params.machine === view.machine) { showJob(params.job); drawPreview(); }
+  else if (method === "job" && params.machine === view.machine) { showJob(params.job); updateEnabled(); drawPreview(); }
   else if (method === "console") showConsole(params);
   else if (["supervisor", "fault", "exception"].includes(method)) {
     if (params.machine === view.machine) refreshMachine();
@@ -397,7 +851,7 @@ async function refreshMachine() {
 async function onLink(up) {
   $("link").textContent = up ? "live" : "offline";
   $("link").className = up ? "link up" : "link down";
-  if (!up) return;
+  if (!up) { stopKeyJog(); view.snapshots.clear(); updateEnabled(); return; }
   const info = await act("daemon.info");
   if (!info) return;
   const select = $("machine");
@@ -405,7 +859,7 @@ async function onLink(up) {
   view.machine = info.machines.includes(view.machine) ? view.machine : info.machines[0] || null;
   select.value = view.machine || "";
   await act("subscribe", { topics: ["status", "supervisor", "fault", "job", "console", "exception"] });
-  if (view.machine) { await refreshMachine(); await refreshHistory(); }
+  if (view.machine) { await refreshMachine(); await refreshHistory(); await refreshMacros(); }
   await refreshFiles();
 }
 
@@ -429,6 +883,99 @@ const ACTIONS = {
   reset: "machine.reset",
 };
 
+function overrideValue(key, button) {
+  const snap = view.snapshots.get(view.machine);
+  const now = snap && snap.overrides && typeof snap.overrides[key] === "number" ? snap.overrides[key] : 100;
+  if (button.dataset.set) return parseInt(button.dataset.set, 10);
+  return Math.min(Math.max(Math.round(now + parseInt(button.dataset.step, 10)), 10), 200);
+}
+
+function wireOperations() {
+  $("home").addEventListener("click", () => pending($("home"), async () => {
+    toast("homing…");
+    if (await act("machine.home", { machine: view.machine })) toast("homed");
+  }));
+  for (const button of document.querySelectorAll("[data-zero]")) {
+    button.addEventListener("click", async () => {
+      const axes = Object.fromEntries([...button.dataset.zero].map((a) => [a, 0]));
+      if (await act("machine.zero", { machine: view.machine, axes })) toast(`work zero set: ${button.dataset.zero.toUpperCase()}`);
+    });
+  }
+  $("goto-zero").addEventListener("click", async () => {
+    if (!(await confirmFirst("Go to work zero? Z rises to the safe height first, then X and Y, then Z comes down to 0."))) return;
+    await pending($("goto-zero"), async () => {
+      if (await act("machine.goto_zero", { machine: view.machine })) toast("at work zero");
+    });
+  });
+  $("probe-kind").addEventListener("change", () => { $("probe-tool").hidden = $("probe-kind").value !== "xyz"; });
+  $("probe").addEventListener("click", async () => {
+    const kind = $("probe-kind").value;
+    const params = { machine: view.machine, kind };
+    const plate = parseFloat($("probe-plate").value);
+    if (Number.isFinite(plate)) params.plate = plate; // else the machine's [machines.probe] plate
+    if (kind === "xyz") {
+      const diameter = parseFloat($("probe-diameter").value);
+      if (!Number.isFinite(diameter)) { toast("give the bit's diameter (mm) for an XYZ probe", true); return; }
+      params.tool_diameter = diameter;
+    }
+    if ($("probe-confirmed").checked) params.confirmed = true;
+    const what = kind === "xyz" ? "the XYZ corner" : "Z";
+    const on = Number.isFinite(plate) ? `a ${plate} mm plate` : "the configured plate";
+    if (!(await confirmFirst(`Probe ${what} on ${on}? The clip is on the bit and the plate under it.`))) return;
+    // The daemon first waits to see the probe input work: the operator touches the plate
+    // to the bit and lets go (docs/api.md, machine.probe).
+    const status = $("probe-status");
+    status.hidden = false;
+    status.textContent = "Touch the plate to the bit, then let go: hostd waits up to 30 s to see the probe input work, then probes.";
+    const result = await pending($("probe"), () => act("machine.probe", params));
+    if (result) {
+      const where = Object.entries(result.position || {}).map(([a, v]) => `${a.toUpperCase()} ${fmt(v)}`).join(" ");
+      status.textContent = `Touched at ${where} (machine); work zero set on ${(result.zeroed || []).join(", ").toUpperCase() || "nothing"}.`;
+    } else {
+      status.textContent = "The probe did not run or did not touch (the reason is above).";
+    }
+  });
+  for (const row of document.querySelectorAll("[data-override]")) {
+    for (const button of row.querySelectorAll("button")) {
+      button.addEventListener("click", async () => {
+        const key = row.dataset.override;
+        const now = await act("machine.override", { machine: view.machine, [key]: overrideValue(key, button) });
+        if (now && typeof now[key] === "number") $(`ov-${key}`).textContent = `${Math.round(now[key])}%`;
+      });
+    }
+  }
+  for (const button of document.querySelectorAll("[data-spindle]")) {
+    button.addEventListener("click", async () => {
+      const params = { machine: view.machine, state: button.dataset.spindle };
+      const speed = parseFloat($("spindle-speed").value);
+      if (params.state !== "off" && Number.isFinite(speed)) params.speed = speed;
+      if (await act("machine.spindle", params)) toast(`spindle ${params.state}`);
+    });
+  }
+  $("laser-test").addEventListener("click", async () => {
+    const power = parseFloat($("laser-power").value);
+    const seconds = Math.min(parseFloat($("laser-duration").value) || 0.5, 2);
+    if (!(await confirmFirst(`Fire the laser at ${power}% for ${seconds} s? Eyewear on, the lid closed.`))) return;
+    const fired = await pending($("laser-test"), () => act("machine.laser_test", { machine: view.machine, power, duration_s: seconds }));
+    if (fired) toast("laser test done");
+  });
+  $("frame").addEventListener("click", async () => {
+    const file = $("files").value;
+    const started = await act("machine.frame", { machine: view.machine, file });
+    if (started) toast(`framing ${file}: job ${started.job}`);
+  });
+  $("toolchange-done").addEventListener("click", async () => {
+    if (await act("job.tool_change_done", { machine: view.machine })) toast("tool changed: the job goes on");
+  });
+  $("from-line").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const file = $("files").value;
+    const line = parseInt($("from-line-number").value, 10);
+    if (!file) { toast("upload or pick a file first", true); return; }
+    planResume({ machine: view.machine, file, line });
+  });
+}
+
 function wire() {
   for (const button of document.querySelectorAll("[data-action]")) {
     button.addEventListener("click", async () => {
@@ -439,19 +986,22 @@ function wire() {
   }
   for (const button of document.querySelectorAll("[data-jog]")) {
     button.addEventListener("click", () => {
-      const step = parseFloat($("jog-step").value) * parseInt(button.dataset.dir, 10);
-      const feed = parseFloat($("jog-feed").value) || 1000;
-      act("machine.jog", { machine: view.machine, axes: { [button.dataset.jog.toLowerCase()]: step }, feed });
+      const step = $("jog-step").value === "hold" ? 1 : parseFloat($("jog-step").value);
+      jog(button.dataset.jog.toLowerCase(), step * parseInt(button.dataset.dir, 10));
     });
   }
+  $("jog-stop").addEventListener("click", () => act("machine.jog_stop", { machine: view.machine }));
   $("machine").addEventListener("change", () => {
+    stopKeyJog();
     view.machine = $("machine").value;
     view.console = [];
+    view.consoleHidden = 0;
     view.analyzed = null;
     refreshMachine();
     refreshHistory();
+    refreshMacros();
   });
-  $("files").addEventListener("change", () => loadProgram($("files").value));
+  $("files").addEventListener("change", () => { loadProgram($("files").value); updateEnabled(); });
   $("upload").addEventListener("submit", upload);
   $("start").addEventListener("click", async () => {
     const file = $("files").value;
@@ -466,11 +1016,16 @@ function wire() {
     const answer = await act("machine.send", { machine: view.machine, line });
     if (answer) { $("send-line").value = ""; showConsole({ machine: view.machine, direction: "rx", text: JSON.stringify(answer) }); }
   });
+  $("console-polls").addEventListener("change", () => { view.consoleHidden = 0; $("console-hidden").textContent = ""; });
   $("logout").addEventListener("click", async () => {
     await fetch("/logout", { method: "POST" });
     location.replace("/login");
   });
   window.addEventListener("resize", drawPreview);
+  wireOperations();
+  wirePreview();
+  wireKeys();
+  updateEnabled();
 }
 
 let rpc;

@@ -1,0 +1,439 @@
+"""The dashboard as an operator's panel (issue 29), in real chromium, through a real daemon
+and the simulated boards: home and zero, buttons that follow the state, an override during
+a job, arcs, zoom and the side view, keyboard jogging, resume from a line, the console
+without status polls, and the page at 1280 and 390 px."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import playwright.async_api as playwright
+import pytest
+
+from hostd import daemon
+from tests.daemon.conftest import Rpc, RpcFailure
+from tests.web.conftest import log_in, running_web, screenshot
+
+pytestmark = pytest.mark.asyncio
+expect = playwright.expect
+
+LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
+# Long too, and every line's position known from the file (Z set first): resumable anywhere.
+DEEP = "G21 G90\nG0 Z5\nG0 X0 Y0\nG1 Z-1 F300\n" + LONG + "G0 Z5\n"
+# A full circle (start = end, centre by I J), a half circle by R, and plunges in Z.
+ARCS = """G21 G90
+G0 X10 Y0 Z5
+G1 Z-1 F300
+G2 X10 Y0 I-10 J0 F600
+G0 Z5
+G0 X30 Y0
+G1 Z-2 F300
+G3 X50 Y0 R10 F600
+G0 Z5
+"""
+PROGRESS_OVER = "(least) => document.getElementById('job-progress').value > least"
+GRBL = {"dialect": "grbl"}
+
+
+async def upload(page: playwright.Page, tmp_path: Path, name: str, text: str) -> None:
+    """As an operator does: the file input, Upload; the list then shows it."""
+    path = tmp_path / name
+    path.write_text(text)
+    await page.set_input_files("#upload-file", path)
+    await page.click("#upload button")
+    await expect(page.locator("#files")).to_have_value(name)
+    await expect(page.locator("#analysis")).to_contain_text(f"{name}:")
+
+
+async def refused(rpc: Rpc, method: str, **params: Any) -> int:
+    """The daemon's error code for a request the page shows as disabled."""
+    with pytest.raises(RpcFailure) as failure:
+        await rpc.call(method, **params)
+    return failure.value.code
+
+
+async def test_home_zero_and_go_to_zero_from_the_page(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#homed")).to_have_text("no")
+        await page.click("#home")
+        await expect(page.locator("#homed")).to_have_text("yes")
+
+        rpc = await web.hostd.client()
+        await rpc.call("machine.jog", machine="sim1", axes={"x": 12.5, "y": 7.25}, feed=3000)
+        await web.hostd.idle(rpc)
+        await expect(page.locator("#wx")).to_have_text("12.500")
+        await page.click("[data-zero=x]")  # X reads 0 here; the machine did not move
+        await expect(page.locator("#wx")).to_have_text("0.000")
+        await expect(page.locator("#mx")).to_have_text("12.500")
+        await expect(page.locator("#wy")).to_have_text("7.250")
+        await page.click("[data-zero=xyz]")
+        await expect(page.locator("#wy")).to_have_text("0.000")
+        await expect(page.locator("#wz")).to_have_text("0.000")
+
+        await rpc.call("machine.jog", machine="sim1", axes={"x": -2, "y": 3}, feed=3000)
+        await web.hostd.idle(rpc)
+        await expect(page.locator("#wx")).to_have_text("-2.000")
+        await page.click("#goto-zero")  # it moves the machine: asks first
+        await page.click("#confirm-yes")
+        await expect(page.locator("#wx")).to_have_text("0.000")
+        await expect(page.locator("#wy")).to_have_text("0.000")
+        await expect(page.locator("#mx")).to_have_text("12.500")
+        await rpc.close()
+
+
+async def test_each_button_is_enabled_only_where_the_daemon_accepts_it(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    moves = ["#home", "[data-zero=x]", "#goto-zero", "#probe", "[data-spindle=cw]"]
+    jogs = ["[data-jog=X][data-dir='1']", "[data-jog=Z][data-dir='-1']"]
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await upload(page, tmp_path, "long.nc", LONG)
+        # Idle: moves, jogs and Start; nothing to cancel, clear or resume.
+        for selector in [*moves, *jogs, "#start", "#frame", "[data-action=hold]"]:
+            await expect(page.locator(selector)).to_be_enabled()
+        for action in ("cancel", "clear", "resume"):
+            await expect(page.locator(f"[data-action={action}]")).to_be_disabled()
+        await expect(page.locator("#toolchange")).to_be_hidden()
+
+        await page.click("#start")
+        await expect(page.locator("#supervisor")).to_have_text("operation")
+        for selector in [*moves, *jogs, "#start", "#frame"]:
+            await expect(page.locator(selector)).to_be_disabled()
+        await expect(page.locator("#home")).to_have_attribute(
+            "title", "refused while the machine is operation"
+        )
+        for action in ("hold", "cancel", "reset"):
+            await expect(page.locator(f"[data-action={action}]")).to_be_enabled()
+        # What the page disables, the daemon refuses: busy (1003).
+        assert await refused(rpc, "machine.home", machine="sim1") == 1003
+        assert await refused(rpc, "machine.jog", machine="sim1", axes={"x": 1}, feed=500) == 1003
+        await page.click("[data-action=hold]")
+        await expect(page.locator("[data-action=resume]")).to_be_enabled()
+        await page.click("[data-action=cancel]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await expect(page.locator("[data-action=cancel]")).to_be_disabled()
+
+        await rpc.call("machine.alarm", machine="sim1")
+        await expect(page.locator("#indicator-text")).to_have_text("ALARM")
+        for selector in [*moves, *jogs, "#start", "[data-action=resume]"]:
+            await expect(page.locator(selector)).to_be_disabled()
+        await expect(page.locator("#home")).to_have_attribute("title", "refused in ALARM: Clear")
+        await expect(page.locator("[data-action=clear]")).to_be_enabled()
+        # In ALARM the daemon refuses moves with the lockout's code (204).
+        assert await refused(rpc, "machine.jog", machine="sim1", axes={"x": 1}, feed=500) == 204
+        assert await refused(rpc, "machine.zero", machine="sim1", axes={"x": 0}) == 204
+        await page.click("[data-action=clear]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        for selector in [*moves, *jogs, "#start"]:
+            await expect(page.locator(selector)).to_be_enabled()
+        await expect(page.locator("[data-action=clear]")).to_be_disabled()
+        await rpc.close()
+
+
+async def test_an_override_changed_mid_job_shows_what_the_board_reports(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path, machine=GRBL) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "long.nc", LONG)
+        await page.click("#start")
+        await expect(page.locator("#supervisor")).to_have_text("operation")
+        await expect(page.locator("#ov-feed")).to_have_text("100%")
+        await page.click("[data-override=feed] [data-step='10']")
+        await expect(page.locator("#ov-feed")).to_have_text("110%")
+        await page.click("[data-override=spindle] [data-step='-10']")
+        await expect(page.locator("#ov-spindle")).to_have_text("90%")
+        await page.click("[data-override=rapid] [data-set='50']")
+        await expect(page.locator("#ov-rapid")).to_have_text("50%")
+        rpc = await web.hostd.client()
+        snap = await rpc.call("machine.status", machine="sim1")
+        assert snap["overrides"] == {"feed": 110, "spindle": 90, "rapid": 50}
+        assert snap["supervisor"] == "operation"  # the job went on
+        progress = await page.eval_on_selector("#job-progress", "p => p.value")
+        await page.wait_for_function(PROGRESS_OVER, arg=progress)
+        await page.click("[data-override=feed] [data-set='100']")
+        await expect(page.locator("#ov-feed")).to_have_text("100%")
+        await rpc.close()
+
+
+async def dark_near(page: playwright.Page, x: float, y: float) -> int:
+    """The darkest pixel (r + g + b, over white) drawn within 3 px of work point (x, y)."""
+    return int(
+        await page.evaluate(
+            """([x, y]) => {
+                const canvas = document.getElementById('preview');
+                const ratio = window.devicePixelRatio || 1;
+                const [cx, cy] = view.preview.toCanvas(x, y);
+                const g = canvas.getContext('2d');
+                const d = g.getImageData(Math.round((cx - 3) * ratio), Math.round((cy - 3) * ratio),
+                                         Math.round(7 * ratio), Math.round(7 * ratio)).data;
+                let darkest = 765;  // each pixel as seen over white
+                for (let i = 0; i < d.length; i += 4) {
+                    const a = d[i + 3] / 255;
+                    darkest = Math.min(darkest, (d[i] + d[i + 1] + d[i + 2]) * a + 765 * (1 - a));
+                }
+                return darkest;
+            }""",
+            [x, y],
+        )
+    )
+
+
+async def test_the_preview_draws_arcs_zooms_pans_and_shows_z_from_the_side(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "arcs.nc", ARCS)
+        await expect(page.locator("#analysis")).not_to_contain_text("analysing")
+        await expect(page.locator("#analysis")).to_contain_text("Y -10.0…10.0")  # the daemon's
+        bounds = await page.evaluate("view.program.bounds")
+        # The full circle is whole (as chords it was a point) and the R arc bulges to Y -10.
+        assert bounds["lo"] == pytest.approx([-10, -10, -2], abs=0.01)  # drawn in 3° steps
+        assert bounds["hi"] == pytest.approx([50, 10, 5], abs=0.01)
+        stroke = 450  # r+g+b: the path's grey is darker (289), the grid (560, 700) lighter
+        for x, y in ((0, 10), (-10, 0), (0, -10), (40, -10)):  # on the circle, the R arc
+            assert await dark_near(page, x, y) < stroke, (x, y)
+        assert await dark_near(page, 0, 5) > stroke  # inside the circle: nothing drawn
+
+        scale = await page.evaluate("view.preview.scale")
+        await page.click("#zoom-in")
+        assert await page.evaluate("view.preview.scale") == pytest.approx(scale * 1.5)
+        await page.locator("#preview").scroll_into_view_if_needed()
+        box = await page.locator("#preview").bounding_box()
+        assert box is not None
+        await page.mouse.move(box["x"] + 100, box["y"] + 100)
+        await page.mouse.wheel(0, 200)  # down: out, about the cursor
+        assert await page.evaluate("view.preview.scale") == pytest.approx(scale * 1.5 * 0.8)
+        await page.mouse.down()
+        await page.mouse.move(box["x"] + 160, box["y"] + 130)
+        await page.mouse.up()
+        assert await page.evaluate("[view.preview.panX, view.preview.panY]") != [0, 0]
+        assert await dark_near(page, 0, 10) < stroke  # the path moved with the view
+        await page.click("#zoom-fit")
+        assert await page.evaluate("view.preview.scale") == pytest.approx(scale)
+
+        await page.click("#view-side")  # X across, Z up: the plunges and the cutting depths
+        assert await dark_near(page, 0, -1) < stroke  # the circle, seen edge on at Z -1
+        assert await dark_near(page, 45, -2) < stroke  # the half circle at Z -2
+        assert await dark_near(page, 20, -1.5) > stroke  # between them, at no depth
+        await screenshot(page, tmp_path, "preview-side")
+
+
+async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "long.nc", LONG)
+        await page.click("#start")
+        await expect(page.locator("#supervisor")).to_have_text("operation")
+        await upload(page, tmp_path, "arcs.nc", ARCS)
+        progress = await page.eval_on_selector("#job-progress", "p => p.value")
+        await page.wait_for_function(PROGRESS_OVER, arg=progress)  # job news came meanwhile
+        assert await page.evaluate("view.program.name") == "arcs.nc"
+        await expect(page.locator("#analysis")).to_contain_text("arcs.nc:")
+        await expect(page.locator("#files")).to_have_value("arcs.nc")
+
+
+async def test_keyboard_jogging_moves_the_machine_and_stops(
+    browser: playwright.BrowserContext, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A board at real speed (the tests' run ten times faster): a held key's jog takes its
+    # full 5 s to end by itself, so one that ends sooner was stopped by the page.
+    monkeypatch.setattr(daemon, "SIM_SPEED", 1.0)
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await page.click("h1")  # the page has the focus, no field has it
+        await page.keyboard.press("ArrowRight")
+        await expect(page.locator("#wx")).to_have_text("1.000")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await page.focus("#send-line")  # typing: the arrows are the field's
+        await page.keyboard.press("ArrowLeft")
+        await page.click("h1")
+        await page.keyboard.press("PageUp")
+        await expect(page.locator("#wz")).to_have_text("1.000")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await expect(page.locator("#wx")).to_have_text("1.000")  # ArrowLeft in the field: no jog
+        assert [job["kind"] for job in await rpc.call("job.list", machine="sim1")] == ["jog"] * 2
+
+        # Held: it moves while the key is down and stops at its release, well short of the
+        # 5 s a held key's jog is bounded to (1000 mm/min: 83 mm).
+        await page.select_option("#jog-step", "hold")
+        await page.keyboard.down("ArrowUp")
+        await page.wait_for_function(
+            "() => parseFloat(document.getElementById('wy').textContent) > 2"
+        )
+        await page.keyboard.up("ArrowUp")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await web.hostd.idle(rpc)
+        stopped = (await rpc.call("machine.status", machine="sim1"))["work_position"]["y"]
+        assert 2 < stopped < 80
+        await expect(page.locator("#wy")).to_have_text(f"{stopped:.3f}")  # and it stays there
+
+        # The window losing the focus stops it too, whatever the key does.
+        await page.keyboard.down("ArrowRight")
+        await page.wait_for_function(
+            "() => parseFloat(document.getElementById('wx').textContent) > 3"
+        )
+        await page.evaluate("window.dispatchEvent(new Event('blur'))")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await web.hostd.idle(rpc)
+        stopped = (await rpc.call("machine.status", machine="sim1"))["work_position"]["x"]
+        assert 3 < stopped < 80
+        await expect(page.locator("#wx")).to_have_text(f"{stopped:.3f}")
+        await page.keyboard.up("ArrowRight")
+        await rpc.close()
+
+
+async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    program = "G21 G90\nG0 Z5\nG0 X10 Y10\nG1 Z-1 F300\nG1 X20 F600\nG1 Y20\nG0 Z5\n"
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await upload(page, tmp_path, "pocket.nc", program)
+        await page.fill("#from-line-number", "5")
+        await page.click("#from-line button")
+        await expect(page.locator("#plan")).to_be_visible()
+        plan = await rpc.call("job.recovery", machine="sim1", file="pocket.nc", line=5)
+        await expect(page.locator("#plan-title")).to_have_text("Resume pocket.nc from line 5")
+        shown = await page.locator("#plan-preamble").inner_text()
+        assert shown.splitlines() == plan["preamble"] + plan.get("approach", [])
+        uncertain = await page.locator("#plan-uncertain li").all_inner_texts()
+        assert uncertain == (plan["uncertain"] or ["nothing"])
+        await page.click("#plan-start")
+        await expect(page.locator("#job-title")).to_contain_text("pocket.nc")
+        await web.hostd.idle(rpc)
+        job = (await rpc.call("job.list", machine="sim1"))[0]
+        assert job["start_line"] == 5
+        assert job["state"] == "completed"
+
+        # A cancelled job's row offers its own resume: job.recovery {job}, the same plan.
+        await upload(page, tmp_path, "deep.nc", DEEP)
+        await page.click("#start")
+        await page.wait_for_function(PROGRESS_OVER, arg=0.05)
+        await page.click("[data-action=cancel]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
+        cancelled = (await rpc.call("job.list", machine="sim1"))[0]
+        plan = await rpc.call("job.recovery", job=cancelled["id"])
+        await page.locator("#history tbody tr").first.get_by_role("button").click()
+        await expect(page.locator("#plan-title")).to_have_text(
+            f"Resume deep.nc from line {plan['line']}"
+        )
+        shown = await page.locator("#plan-preamble").inner_text()
+        assert shown.splitlines() == plan["preamble"] + plan.get("approach", [])
+        await screenshot(page, tmp_path, "resume")
+        await page.click("#plan button[value=no]")  # Back: nothing starts
+        await expect(page.locator("#plan")).to_be_hidden()
+        assert (await rpc.call("job.list", machine="sim1"))[0]["id"] == cancelled["id"]
+        await rpc.close()
+
+
+async def test_the_laser_console_leaves_out_the_status_polls(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path, machine=GRBL) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#console-hidden")).to_contain_text("hidden")
+        await page.fill("#send-line", "$G")
+        await page.click("#send button")
+        await expect(page.locator("#console")).to_contain_text("→ $G")
+        text = await page.locator("#console").inner_text()
+        assert "<Idle" not in text
+        assert "→ ?" not in text.splitlines()
+        await page.check("#console-polls")  # asked for: shown
+        await expect(page.locator("#console")).to_contain_text("<Idle")
+
+
+async def test_the_position_fits_at_1280_and_the_panel_at_390(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    overflow = """() => [...document.querySelectorAll('.pos td')].filter(
+        (td) => td.scrollWidth > td.clientWidth
+            || td.getBoundingClientRect().right > td.closest('.card').getBoundingClientRect().right
+    ).map((td) => td.id)"""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        # The widest a work position reads: nine characters.
+        await rpc.call("machine.zero", machine="sim1", axes={"x": -1234.567, "z": -1234.567})
+        await expect(page.locator("#wz")).to_have_text("-1234.567")
+        assert await page.evaluate(overflow) == []
+
+        await upload(page, tmp_path, "arcs.nc", ARCS)
+        await expect(page.locator("#analysis")).not_to_contain_text("analysing")
+        await screenshot(page, tmp_path, "operator")
+        await page.set_viewport_size({"width": 390, "height": 844})
+        assert await page.evaluate("document.documentElement.scrollWidth") <= 390
+        assert await page.evaluate(overflow) == []
+        outside = await page.evaluate(
+            """() => [...document.querySelectorAll('button, input, select')].filter((el) => {
+                const r = el.getBoundingClientRect();
+                return r.width > 0 && (r.left < 0 || r.right > 390);
+            }).map((el) => el.id || el.textContent)"""
+        )
+        assert outside == []
+        await page.click("[data-jog=X][data-dir='1']")  # the pad works on a phone
+        await expect(page.locator("#mx")).to_have_text("1.000")
+        await screenshot(page, tmp_path, "phone")
+        await rpc.close()
+
+
+async def test_grbls_door_and_hard_limit_are_shown_with_the_way_out_and_ended_from_the_page(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path, machine=GRBL) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        page = await browser.new_page()
+        await log_in(page, web)
+        sim.door(True)  # the door opens: INTERLOCK, moves refused, Resume is the way out
+        await expect(page.locator("#indicator-text")).to_have_text("INTERLOCK")
+        await expect(page.locator("#lockout-clear")).to_have_text(
+            "To end it: close the door, then Resume"
+        )
+        await expect(page.locator("#home")).to_be_disabled()
+        await expect(page.locator("[data-jog=X][data-dir='1']")).to_be_disabled()
+        sim.door(False)
+        await page.click("[data-action=resume]")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("#home")).to_be_enabled()
+
+        rpc = await web.hostd.client()
+        await rpc.call("settings.set", machine="sim1", values={"21": 1})  # hard limits on
+        await web.hostd.idle(rpc)
+        await rpc.close()
+        sim.limit_switch("x")  # a hard limit: grbl wants a reset before its unlock
+        await expect(page.locator("#indicator-text")).to_have_text("ALARM")
+        await expect(page.locator("#lockout-message")).not_to_be_empty()
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Reset, then Clear")
+        await expect(page.locator("[data-action=reset]")).to_have_class("danger needed")
+        await expect(page.locator("[data-action=clear]")).to_have_class("needed")
+        sim.limit_switch("x", active=False)
+        await page.click("[data-action=reset]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Clear")
+        await page.click("[data-action=clear]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("[data-action=clear]")).to_be_disabled()
