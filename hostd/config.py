@@ -65,6 +65,27 @@ class DaemonConfig(_Strict):
     analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
 
 
+class SensorConfig(_Strict):
+    """Where the fixed tool-length sensor is: machine coordinates, mm."""
+
+    x: Annotated[float, Field(allow_inf_nan=False)]
+    y: Annotated[float, Field(allow_inf_nan=False)]
+
+
+class ProbeConfig(_Strict):
+    """running.md's `[machines.probe]`: the touch plate and the tool-length sensor.
+
+    Distances in mm, the feed in mm/min. `tool_sensor` is used by the "probe"
+    tool-change policy (docs/operations.md, "Tool changes").
+    """
+
+    plate: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.0
+    feed: Annotated[float, Field(gt=0, le=5000, allow_inf_nan=False)] = 100.0
+    max_travel: Annotated[float, Field(gt=0, le=500, allow_inf_nan=False)] = 25.0
+    retract: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 2.0
+    tool_sensor: SensorConfig | None = None
+
+
 class MachineConfig(_Strict):
     id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
     dialect: Literal["g2core", "grbl"] = "g2core"
@@ -110,6 +131,20 @@ class MachineConfig(_Strict):
     # The tool is a laser: a resume moves with the beam off and turns it on, without a
     # dwell, only in position. A grbl board in laser mode ($32=1) counts as one anyway.
     laser: bool = False
+    # What a job's M6 does (running.md; docs/operations.md, "Tool changes"): "pause" holds
+    # the job for the operator, "probe" holds and then measures the new tool on the
+    # `[machines.probe]` tool_sensor, "ignore" strips the M6 with a warning, "refuse"
+    # refuses the file at job.start. Unset is "refuse".
+    tool_change: Literal["pause", "probe", "ignore", "refuse"] | None = None
+    probe: ProbeConfig | None = None
+
+    @model_validator(mode="after")
+    def _probe_needs_a_sensor(self) -> MachineConfig:
+        if self.tool_change == "probe" and (self.probe is None or self.probe.tool_sensor is None):
+            raise ValueError(
+                'tool_change = "probe" needs [machines.probe] with tool_sensor = { x = .., y = .. }'
+            )
+        return self
 
     @field_validator("baudrate")
     @classmethod

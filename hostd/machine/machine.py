@@ -43,12 +43,13 @@ from hostd.machine.events import (
     SupervisorChanged,
 )
 from hostd.machine.faults import Fault, FaultTable
-from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, now
+from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, ToolChange, now
 from hostd.machine.signals import fault_conditions
 from hostd.machine.stream import JobStream, StreamResult
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
+from hostd.machine.toolchange import ToolChanger
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.gcodestate.resume import Board
@@ -101,6 +102,7 @@ class Machine:
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
         self._jog_restore: str | None = None
+        self.tools = ToolChanger(self)  # the job's M6s, by the tool_change policy
         self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
 
@@ -231,7 +233,7 @@ class Machine:
         before = [(0, line) for line in preamble or ()]
         handle = path.open(encoding="utf-8", errors="replace")
         try:
-            lines = itertools.chain(before, program_lines(handle, start_line))
+            lines = self.tools.lines(itertools.chain(before, program_lines(handle, start_line)))
             return await self._start(
                 "make",
                 file,
@@ -245,8 +247,18 @@ class Machine:
             handle.close()
             raise
 
+    def keep(self, task: asyncio.Task[None]) -> None:
+        """A task of the running job's (its tool changes): cancelled with the machine."""
+        self._runners.add(task)
+        task.add_done_callback(self._runners.discard)
+
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
         lines = self.engine.session.jog_lines(axes, feed)
+        if self.tools.holding() and self.job is not None:
+            # A job waits at a tool change: the jog is its own lines, no operation of its own.
+            for line in lines:
+                await self.engine.send(line, operation=True)
+            return self.job
         # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
         self._jog_restore = lines[-1] if len(lines) > 1 else None
         return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
@@ -322,7 +334,10 @@ class Machine:
     ) -> Job:
         job = await self._begin(kind, file, total, start_line=start_line, preamble=preamble)
         encode = self.engine.session.encode_job_line
-        stream = JobStream(lines, job.id, encode, numbered=kind == "make")
+        if kind == "make":
+            stream = self.tools.make_stream(lines, job.id, encode, numbered=True)
+        else:
+            stream = JobStream(lines, job.id, encode, numbered=False)
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:
@@ -466,8 +481,11 @@ class Machine:
         self.engine.console = listening
 
     async def send(self, line: str, timeout: float = 10.0) -> Response:
-        """One line, through the same admission as any other; its answer."""
-        return await self.engine.send(line, timeout=timeout)
+        """One line, through the same admission as any other; its answer.
+
+        While a job waits at a tool change the line goes as the job's own (the operator
+        works inside it), still through the command-class admission."""
+        return await self.engine.send(line, timeout=timeout, operation=self.tools.holding())
 
     def realtime(self, command: Realtime) -> None:
         """A realtime command: written ahead of every queued line."""
@@ -493,6 +511,12 @@ class Machine:
 
     def jog_stop(self) -> None:
         """Feedhold, then queue flush (seed 002's jog stop): the rest of the move is dropped."""
+        if self.tools.holding():
+            # The flush would end the waiting job too (it is the job's cancel on both dialects).
+            raise Busy(
+                f"{self.id} waits at a tool change: jog by distances, or machine.feedhold "
+                "to stop a jog (a queue flush would cancel the job)"
+            )
         self.engine.realtime(Realtime.FEEDHOLD)
         self.engine.realtime(Realtime.QUEUE_FLUSH)
 
@@ -523,6 +547,8 @@ class Machine:
         return self._set_job_state("paused")
 
     def resume(self) -> Job:
+        if self.tools.holding():
+            raise Busy(f"{self.id} waits at a tool change: answer it with job.tool_change_done")
         if not self._resumable():
             raise Busy(f"{self.id} has no paused job to resume")
         with self.engine.one_step():  # no job line goes out while the supervisor says paused
@@ -563,6 +589,40 @@ class Machine:
     def _resumable(self) -> bool:
         return self.supervisor.state is SupState.PAUSED and self._live_stream() is not None
 
+    # -- tool changes (hostd/machine/toolchange.py) --------------------------
+
+    async def tool_change_done(self) -> Job:
+        """The operator changed the tool: record it and go on (1003 if none is waited for)."""
+        await self.tools.done()
+        return self.current_job() or self._no_job()
+
+    def _no_job(self) -> Job:
+        raise Busy(f"{self.id} has no job")
+
+    def tool_change_held(self) -> None:
+        """The job holds at an M6, the board at rest: paused, until the operator answers."""
+        if self.supervisor.can(SupEvent.PAUSE_OPERATION):
+            self.supervisor.fire(SupEvent.PAUSE_OPERATION)
+        if self._live_stream() is not None:
+            self._set_job_state("paused")
+
+    def tool_change_answered(self, stream: JobStream, change: ToolChange) -> None:
+        """Record the change; the job goes on with the M6 line, in one step."""
+        assert self.job is not None
+        self._record(publish=False, tool_changes=[*self.job.tool_changes, change])
+        with self.engine.one_step():  # no job line goes out while the supervisor says paused
+            release = getattr(stream, "release", None)
+            if release is not None:
+                release()
+            if stream.paused:  # the user's `!` too: its `~`
+                self.engine.resume_stream()
+            if self.supervisor.can(SupEvent.UNPAUSE_OPERATION):
+                self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
+        if self._live_stream() is not None:
+            self._set_job_state("running")
+        else:
+            self._publish_job()
+
     def _set_job_state(self, state: str) -> Job:
         """Only ever called while the job streams: a job's end state is final."""
         assert self.job is not None and self._live_stream() is not None
@@ -586,6 +646,7 @@ class Machine:
             lockout=self.engine.session.lockout(),
             faults=[f.to_json() for f in self.faults.active()],
             job=None if job is None else job.model_dump(mode="json"),
+            tool_change=self.tools.snapshot(),
         )
         return snap
 

@@ -212,6 +212,18 @@ class SessionBase:
         """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
 
+    def tool_change_line(self, text: str, tool: int | None) -> str:
+        """A job's `M6` line as it goes to this board once the host has handled the change
+        (held for it, or ignores it): `tool` is the tool it changes to, if known.
+
+        Never empty: the job's line counts stay those of the file.
+        """
+        raise NotImplementedError
+
+    def tool_length_lines(self, tool: int, delta: float) -> list[str]:
+        """The lines that make `delta` (mm, along Z) the length offset of `tool`, in force."""
+        raise NotImplementedError
+
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:

@@ -37,7 +37,6 @@ NOT_BUILT: Final = frozenset(
         "machine.frame",
         "macro.list",
         "macro.run",
-        "job.tool_change_done",
     }
 )
 # Served, but not yet as the contract says: the reason, for the day it is.
@@ -48,7 +47,7 @@ NOT_YET_AS_NAMED: Final = {
     ),
 }
 # Object keys of the contract no object carries yet ("object.key").
-KEYS_NOT_BUILT: Final = frozenset({"snapshot.tool_change", "job.tool_changes"})
+KEYS_NOT_BUILT: Final[frozenset[str]] = frozenset()
 
 
 def object_problems(kind: str, value: Any, where: str) -> list[str]:

@@ -1,0 +1,46 @@
+"""A program's tool changes: where its `M6`s are, which tool each asks for, and the
+line without its `M6` (issue 29).
+
+Pure text work on lines as `program_lines` gives them (comments stripped), each
+in linear time: every pattern is a letter, optional blanks and digits, with no
+two parts that could match the same characters.
+
+- `has_m6(text)`: whether the line holds an `M6` (also `M06`, `m 6`; not
+  `M60`, `M61` or `M6.1`).
+- `tool_words(text)`: the T words on the line (the tool selected).
+- `without_m6(text)`: the line with its `M6` word removed ("" when nothing else
+  was on it but an N word).
+
+Which dialect sends what after the host handled a change is the session's
+(`SessionBase.tool_change_line`); what the machine does at one is
+hostd/machine/toolchange.py.
+"""
+
+from __future__ import annotations
+
+import re
+
+# M, blanks, leading zeros, 6, not followed by another digit or a decimal point.
+_M6 = re.compile(r"[mM][ \t]*+0*+6(?![0-9.])")
+_T = re.compile(r"[tT][ \t]*+([0-9]++)")
+_ONLY_N = re.compile(r"[nN][ \t]*+[0-9]*+[ \t]*+")
+POLICIES = ("pause", "probe", "ignore", "refuse")
+
+
+def has_m6(text: str) -> bool:
+    """The line holds an M6 (a tool change)."""
+    return ("M" in text or "m" in text) and _M6.search(text) is not None
+
+
+def tool_words(text: str) -> list[int]:
+    """The numbers of the line's T words, in order."""
+    if "T" not in text and "t" not in text:
+        return []
+    return [int(found) for found in _T.findall(text)]
+
+
+def without_m6(text: str) -> str:
+    """The line with its M6 words removed and blanks tidied; "" when nothing is left
+    but an N word (a line number alone is no block worth sending)."""
+    rest = " ".join(_M6.sub(" ", text).split())
+    return "" if not rest or _ONLY_N.fullmatch(rest) else rest

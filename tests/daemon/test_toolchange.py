@@ -1,0 +1,180 @@
+"""Tool changes (issue 29): a job's M6 under each `tool_change` policy, on both dialects.
+
+A real daemon with a simulated g2core (sim1) and a simulated grbl (sim2) on real
+ptys, reached through the real socket. grbl's simulator refuses M6 as grbl does
+(error:20), so a grbl job that completes is one whose M6 never reached the board.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import pytest_asyncio
+
+from tests.daemon.conftest import G2, GRBL, Rpc, Running, running_daemon
+from tests.daemon.test_api import fails, job_end
+
+pytestmark = pytest.mark.asyncio
+
+MACHINES = (G2, GRBL)
+# Tool 1 at line 3 (nothing moved yet), tool 2 at line 6, after two moves to X2.
+TWO_TOOLS = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X1\nG1 X2 F3000\nT2 M6 (second tool)\nG0 X3\nM2\n"
+LINES = 8
+
+
+@contextlib.asynccontextmanager
+async def _daemon(tmp_path: Path, policy: str) -> AsyncIterator[tuple[Running, Rpc]]:
+    per = [{"tool_change": policy}, {"dialect": "grbl", "tool_change": policy}]
+    async with running_daemon(tmp_path, machines=2, per_machine=per, plunge_feed=300) as d:
+        client = await d.client()
+        for machine in MACHINES:
+            await d.idle(client, machine)
+        yield d, client
+        await client.close()
+
+
+@pytest_asyncio.fixture
+async def paused(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
+    async with _daemon(tmp_path, "pause") as both:
+        yield both
+
+
+async def _waiting(rpc: Rpc, machine: str, job_id: int, line: int) -> dict[str, Any]:
+    """Until the job holds at the M6 of `line`; the snapshot then."""
+    await rpc.notification(
+        lambda n: (
+            n["method"] == "job"
+            and n["params"]["job"]["id"] == job_id
+            and n["params"]["job"]["state"] != "running"
+        )
+    )
+    snapshot: dict[str, Any] = await rpc.call("machine.status", machine=machine)
+    assert snapshot["tool_change"] is not None and snapshot["tool_change"]["line"] == line
+    return snapshot
+
+
+def _rests_at(note: dict[str, Any], **where: float) -> bool:
+    snapshot = note["params"]["snapshot"]
+    position = snapshot["machine_position"]
+    return snapshot["state"]["name"] in ("READY", "PROGRAM_STOP") and all(
+        abs(position[axis] - value) < 0.01 for axis, value in where.items()
+    )
+
+
+async def _start(rpc: Rpc, machine: str, name: str, data: str) -> int:
+    await rpc.call("file.upload", name=name, data=data)
+    await rpc.call("subscribe", topics=["job"], machine=machine)
+    started = await rpc.call("job.start", machine=machine, file=name)
+    return int(started["job"])
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_pause_holds_at_each_m6_and_goes_on_when_told(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    _, rpc = paused
+    job_id = await _start(rpc, machine, "two.nc", TWO_TOOLS)
+
+    first = await _waiting(rpc, machine, job_id, 3)
+    assert first["tool_change"] == {"tool": 1, "line": 3}
+    assert first["supervisor"] == "paused" and first["job"]["state"] == "paused"
+    # job.resume does not carry the job past the change; job.pause has nothing to pause.
+    await fails(1003, rpc.call("job.resume", machine=machine))
+    job = await rpc.call("job.tool_change_done", machine=machine)
+    assert job["id"] == job_id and [c["tool"] for c in job["tool_changes"]] == [1]
+
+    second = await _waiting(rpc, machine, job_id, 6)
+    assert second["tool_change"] == {"tool": 2, "line": 6}
+    # The board ran every line before the M6 before the job held: it stands at X2.
+    assert second["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+    assert second["state"]["name"] in ("READY", "PROGRAM_STOP")
+    # The operator may jog while the job waits: the jog moves the board, the job stays.
+    await rpc.call("subscribe", topics=["status"], machine=machine)
+    jogged = await rpc.call("machine.jog", machine=machine, axes={"z": 1.0}, feed=600)
+    assert jogged["job"] == job_id
+    await rpc.notification(lambda n: n["method"] == "status" and _rests_at(n, z=1.0))
+    await rpc.call("job.tool_change_done", machine=machine)
+
+    done = await job_end(rpc, job_id)
+    assert done["state"] == "completed", done
+    assert done["lines_acked"] == LINES and done["error"] is None
+    changes = (await rpc.call("job.get", job=job_id))["tool_changes"]
+    assert [(c["tool"], c["line"]) for c in changes] == [(1, 3), (2, 6)]
+    assert all(isinstance(c["at"], str) and c["at"].endswith("Z") for c in changes)
+    after = await rpc.call("machine.status", machine=machine)
+    assert after["tool_change"] is None
+    assert after["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_no_tool_change_to_answer(paused: tuple[Running, Rpc], machine: str) -> None:
+    _, rpc = paused
+    await fails(1003, rpc.call("job.tool_change_done", machine=machine))
+    await fails(1001, rpc.call("job.tool_change_done", machine="nope"))
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_cancel_while_waiting_ends_the_job(paused: tuple[Running, Rpc], machine: str) -> None:
+    running, rpc = paused
+    job_id = await _start(rpc, machine, "two.nc", TWO_TOOLS)
+    await _waiting(rpc, machine, job_id, 3)
+    cancelled = await rpc.call("job.cancel", machine=machine)
+    assert cancelled["state"] == "cancelled" and cancelled["tool_changes"] == []
+    await running.idle(rpc, machine)
+    status = await rpc.call("machine.status", machine=machine)
+    assert status["tool_change"] is None and status["supervisor"] == "idle"
+    await fails(1003, rpc.call("job.tool_change_done", machine=machine))
+    # The machine takes the next job as usual.
+    again = await _start(rpc, machine, "plain.nc", "G0 X1\nG0 X0\n")
+    assert (await job_end(rpc, again))["state"] == "completed"
+
+
+async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path: Path) -> None:
+    async with _daemon(tmp_path, "pause") as (_, rpc):
+        job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
+        await _waiting(rpc, GRBL, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=GRBL)
+        await _waiting(rpc, GRBL, job_id, 6)
+    async with _daemon(tmp_path, "pause") as (_, rpc):
+        job = await rpc.call("job.get", job=job_id)
+        assert job["state"] == "interrupted"
+        assert [(c["tool"], c["line"]) for c in job["tool_changes"]] == [(1, 3)]
+        plan = await rpc.call("job.recovery", job=job_id)
+        assert plan["file"] == "two.nc" and 1 <= plan["line"] <= 6
+        assert (await rpc.call("machine.status", machine=GRBL))["tool_change"] is None
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_ignore_strips_the_m6_with_a_warning(tmp_path: Path, machine: str) -> None:
+    async with _daemon(tmp_path, "ignore") as (_, rpc):
+        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
+        analysis = await rpc.call("file.analyze", file="two.nc", machine=machine)
+        assert any("line 6" in w and "ignored" in w for w in analysis["warnings"])
+        await rpc.call("subscribe", topics=["job"], machine=machine)
+        started = await rpc.call("job.start", machine=machine, file="two.nc")
+        assert [w.split(":")[0] for w in started["warnings"]] == ["line 3", "line 6"]
+        done = await job_end(rpc, started["job"])
+        assert done["state"] == "completed" and done["lines_acked"] == LINES
+        assert done["tool_changes"] == []
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_refuse_refuses_the_file_naming_its_m6_lines(tmp_path: Path, machine: str) -> None:
+    async with _daemon(tmp_path, "refuse") as (_, rpc):
+        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
+        err = await fails(1008, rpc.call("job.start", machine=machine, file="two.nc"))
+        assert [p["line"] for p in err.data["problems"]] == [3, 6]
+        assert "line 3" in err.message and "line 6" in err.message
+        status = await rpc.call("machine.status", machine=machine)
+        assert status["job"] is None and status["supervisor"] == "idle"
+
+
+async def test_pause_refuses_an_m6_whose_tool_is_unknown(paused: tuple[Running, Rpc]) -> None:
+    _, rpc = paused
+    await rpc.call("file.upload", name="which.nc", data="G0 X1\nM6\nG0 X0\n")
+    err = await fails(1008, rpc.call("job.start", machine=G2, file="which.nc"))
+    assert err.data["problems"][0]["line"] == 2 and "T word" in err.message
