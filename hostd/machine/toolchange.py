@@ -9,12 +9,13 @@
   `job.tool_change_done` records the change in the job's `tool_changes` and
   lets the job go on with the M6 line as its session sends it
   (`SessionBase.tool_change_line`: grbl without the M6, g2core as written).
-- "probe": the same, and before the job goes on the new tool is measured on the
-  fixed sensor (`[machines.probe] tool_sensor`): up to the safe height, over the
-  sensor, G38.2 down at the probe feed within `max_travel`, and the difference to
-  the job's first measurement becomes the tool length offset
-  (`SessionBase.tool_length_lines`); then back over where it was, at the safe
-  height. The first change of a job measures its reference.
+- "probe": NOT AVAILABLE YET. job.start refuses its M6s (jobcheck.py) and
+  `done` refuses to answer one. `_measure` is the sequence it is to run once the
+  simulators model a tool-length sensor and it is tested through them: up to
+  the safe height, over the sensor (`[machines.probe] tool_sensor`), G38.2 down
+  at the probe feed within `max_travel`, the difference to the job's first
+  measurement as the tool length offset (`SessionBase.tool_length_lines`), then
+  back over where it was, at the safe height.
 - "ignore": the M6 is stripped as the lines are read (a warning in the log, and in
   job.start's and file.analyze's warnings, hostd/protocol/jobcheck.py).
 - "refuse" (or no policy): job.start refuses the file (jobcheck.py).
@@ -255,7 +256,11 @@ class ToolChanger:
         self._answering = True
         try:
             if self.policy == "probe":
-                await self._measure(waiting)
+                # job.start refuses such a job (jobcheck.py); only `force` gets here.
+                raise Busy(
+                    f'{self.machine.id}: tool_change = "probe" is not available yet; '
+                    "cancel the job (job.cancel)"
+                )
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
             change = ToolChange(tool=waiting.tool, line=waiting.line, at=now())

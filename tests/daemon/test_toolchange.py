@@ -27,9 +27,9 @@ LINES = 8
 
 
 @contextlib.asynccontextmanager
-async def _daemon(tmp_path: Path, policy: str) -> AsyncIterator[tuple[Running, Rpc]]:
+async def _daemon(tmp_path: Path, policy: str, **extra: Any) -> AsyncIterator[tuple[Running, Rpc]]:
     per = [{"tool_change": policy}, {"dialect": "grbl", "tool_change": policy}]
-    async with running_daemon(tmp_path, machines=2, per_machine=per, plunge_feed=300) as d:
+    async with running_daemon(tmp_path, machines=2, per_machine=per, plunge_feed=300, **extra) as d:
         client = await d.client()
         for machine in MACHINES:
             await d.idle(client, machine)
@@ -178,3 +178,13 @@ async def test_pause_refuses_an_m6_whose_tool_is_unknown(paused: tuple[Running, 
     await rpc.call("file.upload", name="which.nc", data="G0 X1\nM6\nG0 X0\n")
     err = await fails(1008, rpc.call("job.start", machine=G2, file="which.nc"))
     assert err.data["problems"][0]["line"] == 2 and "T word" in err.message
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_probe_is_refused_until_it_is_available(tmp_path: Path, machine: str) -> None:
+    sensor = {"tool_sensor": {"x": -5.0, "y": -5.0}}
+    async with _daemon(tmp_path, "probe", probe=sensor) as (_, rpc):
+        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
+        err = await fails(1008, rpc.call("job.start", machine=machine, file="two.nc"))
+        assert [p["line"] for p in err.data["problems"]] == [3, 6]
+        assert "not available yet" in err.message
