@@ -9,13 +9,15 @@
   `job.tool_change_done` records the change in the job's `tool_changes` and
   lets the job go on with the M6 line as its session sends it
   (`SessionBase.tool_change_line`: grbl without the M6, g2core as written).
-- "probe": NOT AVAILABLE YET. job.start refuses its M6s (jobcheck.py) and
-  `done` refuses to answer one. `_measure` is the sequence it is to run once the
-  simulators model a tool-length sensor and it is tested through them: up to
-  the safe height, over the sensor (`[machines.probe] tool_sensor`), G38.2 down
-  at the probe feed within `max_travel`, the difference to the job's first
-  measurement as the tool length offset (`SessionBase.tool_length_lines`), then
-  back over where it was, at the safe height.
+- "probe": the same, and before the job goes on the new tool is measured on the
+  fixed sensor (`[machines.probe] tool_sensor`): in mm and absolute, up to the
+  safe height, over the sensor, no length offset (G49), G38.2 down at the probe
+  feed within `max_travel`; the difference to the job's first measurement (its
+  reference: the first tool change of a job measures it) becomes the tool length
+  offset (`SessionBase.tool_length_lines`); then back over where it was, at the
+  safe height, and the program's units, distance mode and feed as they were at
+  the M6 (`Modes`, read from its lines). A sensor not touched is 1005 and the job
+  keeps waiting (answer again, or cancel).
 - "ignore": the M6 is stripped as the lines are read (a warning in the log, and in
   job.start's and file.analyze's warnings, hostd/protocol/jobcheck.py).
 - "refuse" (or no policy): job.start refuses the file (jobcheck.py).
@@ -37,7 +39,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import structlog
@@ -47,7 +49,7 @@ from hostd.machine.stream import JobStream
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, MachineError
-from hostd.protocol.toolchange import has_m6, tool_words, without_m6
+from hostd.protocol.toolchange import Modes, has_m6, tool_words, without_m6
 
 if TYPE_CHECKING:
     from hostd.machine.machine import Machine
@@ -73,9 +75,11 @@ class ToolChangeLines:
         self._lines = lines
         self.policy = policy
         self._rewrite = rewrite
-        self.marks: dict[int, int | None] = {}  # file line -> the tool its M6 loads
+        # file line -> the tool its M6 loads, and the program's modes there
+        self.marks: dict[int, tuple[int | None, Modes]] = {}
         self.stripped = 0  # M6s the "ignore" policy took out
         self._tool: int | None = None  # the last T word read
+        self._modes = Modes()
         self._log = log.bind(machine=machine_id)
 
     def __iter__(self) -> ToolChangeLines:
@@ -86,11 +90,13 @@ class ToolChangeLines:
         selected = tool_words(text)
         if selected:
             self._tool = selected[-1]
+        modes = self._modes
+        self._modes = modes.after(text)
         if not has_m6(text):
             return number, text
         tool = self._tool
         if self.policy in HOLDS:
-            self.marks[number] = tool
+            self.marks[number] = (tool, modes)  # the modes before the line: it runs after
             return number, self._rewrite(text, tool)
         self.stripped += 1
         self._log.warning("M6 ignored (tool_change = ignore)", line=number, tool=tool)
@@ -104,7 +110,8 @@ class ToolChangeStream(JobStream):
         self._holding = False
         self._user_paused = False
         self.marks = lines.marks
-        self.at: tuple[int, int | None] | None = None  # (file line, tool) while it holds
+        # (file line, tool, the program's modes) while it holds
+        self.at: tuple[int, int | None, Modes] | None = None
         self.reached = asyncio.Event()
         super().__init__(lines, *args, **kwargs)
 
@@ -124,7 +131,8 @@ class ToolChangeStream(JobStream):
     def peek(self) -> Any:
         entry = super().peek()
         if entry is not None and not self._holding and entry.file_line in self.marks:
-            self.at = (entry.file_line, self.marks.pop(entry.file_line))
+            tool, modes = self.marks.pop(entry.file_line)
+            self.at = (entry.file_line, tool, modes)
             self._holding = True
             self.reached.set()
             return None
@@ -140,6 +148,8 @@ class ToolChangeStream(JobStream):
 class Waiting:
     line: int
     tool: int | None
+    # the program's units, distance mode and feed at the M6
+    modes: Modes = field(default_factory=Modes)
 
     def to_json(self) -> dict[str, Any]:
         return {"tool": self.tool, "line": self.line}
@@ -199,8 +209,8 @@ class ToolChanger:
                 await self._board_done(stream)
                 if stream.done or stream.at is None:
                     return
-                line, tool = stream.at
-                self.waiting = Waiting(line, tool)
+                line, tool, modes = stream.at
+                self.waiting = Waiting(line, tool, modes)
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
                 await _first(self._answered(stream), stream.result)
@@ -256,11 +266,7 @@ class ToolChanger:
         self._answering = True
         try:
             if self.policy == "probe":
-                # job.start refuses such a job (jobcheck.py); only `force` gets here.
-                raise Busy(
-                    f'{self.machine.id}: tool_change = "probe" is not available yet; '
-                    "cancel the job (job.cancel)"
-                )
+                await self._measure(waiting)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
             change = ToolChange(tool=waiting.tool, line=waiting.line, at=now())
@@ -285,18 +291,22 @@ class ToolChanger:
         safe = machine.safe_height(await _limits(machine))
         if safe is None:
             raise Busy(f"{machine.id}: no safe height known (set safe_z) to reach the tool sensor")
-        start = dict(engine.model.snapshot().get("machine_position") or {})
+        start = self._machine_position()
         sensor = config.tool_sensor
         await self._run(
             [
-                "G90",
+                "G21 G90",  # the moves below are in mm, absolute
                 f"G53 G0 Z{_n(safe)}",
                 f"G53 G0 X{_n(sensor.x)} Y{_n(sensor.y)}",
                 "G49",  # no length offset while measuring: each one is taken alike
-            ]
+            ],
+            lambda: self._at(x=sensor.x, y=sensor.y, z=safe),
         )
         before = engine.model.probe
-        await self._run([f"G91 G38.2 Z-{_n(config.max_travel)} F{_n(config.feed)}", "G90"])
+        await self._run(
+            [f"G91 G38.2 Z-{_n(config.max_travel)} F{_n(config.feed)}", "G90"],
+            lambda: engine.model.probe is not before,
+        )
         probe = engine.model.probe
         if probe is before or not probe or not probe.get("ok"):
             raise ControllerError(0, f"{machine.id}: the tool sensor was not touched")
@@ -306,12 +316,27 @@ class ToolChanger:
         delta = touched - self.reference
         self._log.info("tool measured", tool=waiting.tool, z=touched, offset=delta)
         back = [f"G53 G0 Z{_n(safe)}"]
+        there: dict[str, float] = {"z": safe}
         if "x" in start and "y" in start:
             back.append(f"G53 G0 X{_n(start['x'])} Y{_n(start['y'])}")
-        await self._run([*session.tool_length_lines(waiting.tool or 1, delta), *back])
+            there.update(x=start["x"], y=start["y"])
+        await self._run(
+            [*session.tool_length_lines(waiting.tool or 1, delta), *back, *waiting.modes.lines()],
+            lambda: self._at(**there),
+        )
 
-    async def _run(self, lines: list[str]) -> None:
-        """The job's own lines, each answered, then until the board rests again."""
+    def _machine_position(self) -> dict[str, float]:
+        return dict(self.machine.engine.model.snapshot().get("machine_position") or {})
+
+    def _at(self, **where: float) -> bool:
+        """The board stands there (machine mm, to the reports' 0.001)."""
+        here = self._machine_position()
+        return all(a in here and abs(here[a] - v) < 0.002 for a, v in where.items())
+
+    async def _run(self, lines: list[str], there: Callable[[], bool]) -> None:
+        """The job's own lines, each answered, then until a report after them says the
+        board rests and `there` holds (a board answers a move as it queues it, and may
+        report rest before its planner starts)."""
         engine = self.machine.engine
         for line in lines:
             await engine.send(line, timeout=ANSWER_WAIT, operation=True)
@@ -324,7 +349,7 @@ class ToolChanger:
                     lambda: (
                         model.reports > asked
                         and model.state is not None
-                        and (model.state.is_resting or model.state.is_lockout)
+                        and ((model.state.is_resting and there()) or model.state.is_lockout)
                         and engine.session.no_data_in_flight()
                     )
                 )

@@ -106,16 +106,7 @@ def check_program(
         selected = tool_words(text)
         tool = selected[-1] if selected else tool
         if finding is None and policy and has_m6(text):
-            if tool_change == "probe":
-                # Not yet: measuring on the sensor is not verified against the simulators
-                # (docs/operations.md, "Tool changes"). Refused rather than run untested.
-                finding = Finding(
-                    number,
-                    "tool-change",
-                    'M6 under tool_change = "probe", which is not available yet: '
-                    'use "pause" and set the tool length by hand',
-                )
-            elif tool_change in _HOLDS:
+            if tool_change in _HOLDS:
                 if tool is None:
                     finding = Finding(
                         number,

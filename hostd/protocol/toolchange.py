@@ -19,12 +19,17 @@ hostd/machine/toolchange.py.
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 # M, blanks, leading zeros, 6, not followed by another digit or a decimal point.
 _M6 = re.compile(r"[mM][ \t]*+0*+6(?![0-9.])")
 _T = re.compile(r"[tT][ \t]*+([0-9]++)")
 _ONLY_N = re.compile(r"[nN][ \t]*+[0-9]*+[ \t]*+")
 POLICIES = ("pause", "probe", "ignore", "refuse")
+# The modes a measurement between the program's lines changes, and must give back: units
+# (G20/G21), distance (G90/G91, not the arc modes G90.1/G91.1) and the feed (F).
+_MODE = re.compile(r"[gG][ \t]*+0*+(2[01]|9[01])(?![0-9.])")
+_F = re.compile(r"[fF][ \t]*+([0-9]*+\.?[0-9]*+)")
 
 
 def has_m6(text: str) -> bool:
@@ -44,3 +49,32 @@ def without_m6(text: str) -> str:
     but an N word (a line number alone is no block worth sending)."""
     rest = " ".join(_M6.sub(" ", text).split())
     return "" if not rest or _ONLY_N.fullmatch(rest) else rest
+
+
+@dataclass(frozen=True, slots=True)
+class Modes:
+    """The program's units, distance mode and feed where it stands (as its words say)."""
+
+    units: str = "G21"
+    distance: str = "G90"
+    feed: str | None = None  # the F word's number as written, in the program's units
+
+    def after(self, text: str) -> Modes:
+        """These modes once `text` has run."""
+        units, distance, feed = self.units, self.distance, self.feed
+        if "G" in text or "g" in text:
+            for code in _MODE.findall(text):
+                if code in ("20", "21"):
+                    units = "G" + code
+                else:
+                    distance = "G" + code
+        if "F" in text or "f" in text:
+            for number in _F.findall(text):
+                if number not in ("", "."):
+                    feed = number
+        return Modes(units, distance, feed)
+
+    def lines(self) -> list[str]:
+        """The lines that put these modes back on the board."""
+        words = f"{self.units} {self.distance}"
+        return [words + (f" F{self.feed}" if self.feed is not None else "")]

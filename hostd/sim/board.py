@@ -76,6 +76,8 @@ class Board(Commands):
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.
         self.probe_surface = None  # axis, machine mm the probe touches
+        self.tool_sensor = None  # a fixed tool-length sensor (probing.ToolSensor)
+        self.tool_length = 0.0  # the tool in the spindle: mm longer than the first
         self.homing_failure = None  # axis, why homing it fails
         self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
         self.overflow_reported = True  # as an `er` 113, or (False) not at all

@@ -24,7 +24,7 @@ from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import ProbeCycle
+from hostd.sim.probing import ProbeCycle, ToolSensor
 from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
@@ -80,6 +80,8 @@ class Output:
     ack_delay: float
     inputs: dict[str, float | int]
     probe_surface: tuple[str, float] | None
+    tool_sensor: ToolSensor | None  # a fixed tool-length sensor (issue 29)
+    tool_length: float  # how much longer the tool in the spindle is than the first, mm
     homing_failure: tuple[str, Status] | None
     output_buffer: int
     overflow_reported: bool

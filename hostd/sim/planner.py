@@ -26,6 +26,7 @@ from hostd.sim.probing import (
     ProbeCycle,
     probe_touching,
     probe_trip,
+    sensor_surface,
 )
 
 log = structlog.get_logger(__name__)
@@ -202,15 +203,22 @@ class Planner(Output):
         if travel < MINIMUM_PROBE_TRAVEL:
             self._probe_exception(Status.PROBE_TRAVEL_TOO_SMALL)
             return None
-        if probe_touching(self.probe_surface, self.position) == block.on_contact:
+        surface = self._probe_surface_here()
+        if probe_touching(surface, self.position) == block.on_contact:
             self._probe_exception(Status.PROBE_IS_ALREADY_TRIPPED)
             return None
-        trip = probe_trip(self.probe_surface, self.position, block)
+        trip = probe_trip(surface, self.position, block)
         if trip is not None:  # the move ends where the input trips
             cycle.tripped = True
             block = Probe(Move(trip, block.move.feed, block.n), block.on_contact, block.alarm)
             self.planner[0] = block
         return block
+
+    def _probe_surface_here(self) -> tuple[str, float] | None:
+        """The tool sensor where the probe starts over it, else the test's surface."""
+        return (
+            sensor_surface(self.tool_sensor, self.tool_length, self.position) or self.probe_surface
+        )
 
     def _probe_exception(self, status: Status) -> None:
         """`_probing_exception_exit`: settings restored, then cm_alarm(status, "probe error")."""

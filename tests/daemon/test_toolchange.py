@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 import pytest_asyncio
 
-from tests.daemon.conftest import G2, GRBL, Rpc, Running, running_daemon
+from tests.daemon.conftest import G2, GRBL, Rpc, RpcFailure, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
 
 pytestmark = pytest.mark.asyncio
@@ -43,13 +43,17 @@ async def paused(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
         yield both
 
 
-async def _waiting(rpc: Rpc, machine: str, job_id: int, line: int) -> dict[str, Any]:
-    """Until the job holds at the M6 of `line`; the snapshot then."""
+async def _waiting(
+    rpc: Rpc, machine: str, job_id: int, line: int, changes: int = 0
+) -> dict[str, Any]:
+    """Until the job holds at the M6 of `line`, with `changes` tool changes made before
+    (a paused job is published again while it waits); the snapshot then."""
     await rpc.notification(
         lambda n: (
             n["method"] == "job"
             and n["params"]["job"]["id"] == job_id
             and n["params"]["job"]["state"] != "running"
+            and len(n["params"]["job"]["tool_changes"]) == changes
         )
     )
     snapshot: dict[str, Any] = await rpc.call("machine.status", machine=machine)
@@ -87,7 +91,7 @@ async def test_pause_holds_at_each_m6_and_goes_on_when_told(
     job = await rpc.call("job.tool_change_done", machine=machine)
     assert job["id"] == job_id and [c["tool"] for c in job["tool_changes"]] == [1]
 
-    second = await _waiting(rpc, machine, job_id, 6)
+    second = await _waiting(rpc, machine, job_id, 6, changes=1)
     assert second["tool_change"] == {"tool": 2, "line": 6}
     # The board ran every line before the M6 before the job held: it stands at X2.
     assert second["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
@@ -138,7 +142,7 @@ async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path:
         job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
         await _waiting(rpc, GRBL, job_id, 3)
         await rpc.call("job.tool_change_done", machine=GRBL)
-        await _waiting(rpc, GRBL, job_id, 6)
+        await _waiting(rpc, GRBL, job_id, 6, changes=1)
     async with _daemon(tmp_path, "pause") as (_, rpc):
         job = await rpc.call("job.get", job=job_id)
         assert job["state"] == "interrupted"
@@ -180,11 +184,63 @@ async def test_pause_refuses_an_m6_whose_tool_is_unknown(paused: tuple[Running, 
     assert err.data["problems"][0]["line"] == 2 and "T word" in err.message
 
 
+# The sensor at machine X-5 Y-5; a tool of the first length closes it at machine Z-20.
+SENSOR = {"x": -5.0, "y": -5.0}
+SENSOR_Z = -20.0
+PROBED = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X1\nG1 X2 F3000\nT2 M6\nG0 Z-5\nG1 X3\nM2\n"
+
+
 @pytest.mark.parametrize("machine", MACHINES)
-async def test_probe_is_refused_until_it_is_available(tmp_path: Path, machine: str) -> None:
-    sensor = {"tool_sensor": {"x": -5.0, "y": -5.0}}
-    async with _daemon(tmp_path, "probe", probe=sensor) as (_, rpc):
-        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
-        err = await fails(1008, rpc.call("job.start", machine=machine, file="two.nc"))
-        assert [p["line"] for p in err.data["problems"]] == [3, 6]
-        assert "not available yet" in err.message
+async def test_probe_measures_each_tool_and_offsets_the_longer_one(
+    tmp_path: Path, machine: str
+) -> None:
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=0.0) as (running, rpc):
+        sim = running.daemon.sims[machine]
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "probed.nc", PROBED)
+
+        await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=machine)  # the reference: tool 1
+        after_first = await rpc.call("machine.status", machine=machine)
+        assert after_first["probe"]["ok"] is True
+        assert after_first["probe"]["position"]["z"] == pytest.approx(SENSOR_Z, abs=0.01)
+
+        waiting = await _waiting(rpc, machine, job_id, 6, changes=1)
+        assert waiting["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+        sim.tool_length(3.0)  # the operator put in a tool 3 mm longer
+        job = await rpc.call("job.tool_change_done", machine=machine)
+        assert [c["tool"] for c in job["tool_changes"]] == [1, 2]
+        measured = await rpc.call("machine.status", machine=machine)
+        assert measured["probe"]["position"]["z"] == pytest.approx(SENSOR_Z + 3.0, abs=0.01)
+
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        end = await rpc.call("machine.status", machine=machine)
+        # G0 Z-5 under the longer tool's offset: the spindle stays 3 mm higher, and the
+        # job's X and feed went on where they were (back over X2, then X3 at its F).
+        assert end["machine_position"]["z"] == pytest.approx(-2.0, abs=0.01)
+        assert end["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_probe_that_misses_the_sensor_stops_in_the_boards_alarm(
+    tmp_path: Path, machine: str
+) -> None:
+    """G38.2 that never touches is an ALARM on both firmwares (cycle_probing.cpp,
+    grbl's ALARM:5): the job ends failed there, resumable, the board where it stopped."""
+    probe = {"feed": 600.0, "max_travel": 5.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "probed.nc", PROBED)
+        await _waiting(rpc, machine, job_id, 3)
+        # 5 mm of travel from Z0 never reaches the sensor's Z-20.
+        with pytest.raises(RpcFailure) as err:
+            await rpc.call("job.tool_change_done", machine=machine)
+        assert err.value.code in (204, 1005), err.value
+        ended = await job_end(rpc, job_id)
+        assert ended["state"] == "failed" and ended["tool_changes"] == []
+        status = await rpc.call("machine.status", machine=machine)
+        assert status["state"]["name"] == "ALARM" and status["tool_change"] is None
+        assert status["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
+        assert status["machine_position"]["x"] == pytest.approx(SENSOR["x"], abs=0.01)

@@ -41,10 +41,8 @@ def test_a_held_tool_change_must_name_its_tool() -> None:
     assert [(f.line, f.kind) for f in found.found] == [(2, "tool-change")]
     assert "T word" in found.found[0].text
     assert not check("T3\nG0 X1\nM6\n", policy="pause")  # the T word before it counts
-    # "probe" is not available yet: refused, naming the line, rather than run unverified.
-    probe = check("T3\nG0 X1\nM6\n", policy="probe")
-    assert [(f.line, f.kind) for f in probe.found] == [(3, "tool-change")]
-    assert "not available yet" in probe.found[0].text
+    assert not check("T3\nG0 X1\nM6\n", policy="probe")
+    assert check("G0 X1\nM6\n", policy="probe")
 
 
 def test_ignore_notes_each_m6_it_strips() -> None:

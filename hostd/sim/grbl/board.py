@@ -74,6 +74,7 @@ from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active, Traversed
+from hostd.sim.probing import ToolSensor
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -93,6 +94,11 @@ class GrblBoard:
         self.estop = False
         self.door_open = False
         self.probe = False
+        # A fixed tool-length sensor (issue 29, probing.ToolSensor) and how much longer
+        # than the first the tool in the spindle is: a G38.2 over the sensor trips itself.
+        self.tool_sensor: ToolSensor | None = None
+        self.tool_length = 0.0
+        self.sensor_contact = False  # the probe move under way ends on the sensor
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets

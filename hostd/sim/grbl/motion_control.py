@@ -28,6 +28,7 @@ from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
 from hostd.sim.grbl.settings import HOMING_PULLOFF
 from hostd.sim.motion import Active, Traversed, start_block
+from hostd.sim.probing import sensor_surface
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -92,7 +93,8 @@ def _finish(board: GrblBoard, active: Active) -> None:
     if board.planner:
         board.planner.popleft()
     if board._wait is not None and board._wait.kind == "probe":
-        _probe_end(board, contact=False)
+        contact, board.sensor_contact = board.sensor_contact, False
+        _probe_end(board, contact=contact)  # the move's end: on the tool sensor, or nothing
 
 
 def _stopped(board: GrblBoard, now: float) -> None:
@@ -208,10 +210,29 @@ def _probe_start(board: GrblBoard, probe: Probe, now: float) -> bool:
         board._raise(Alarm.PROBE_FAIL_INITIAL)
         board._done()
         return True
-    board.planner.append(probe.move)
+    trip = _sensor_trip(board, probe)
+    board.sensor_contact = trip is not None
+    board.planner.append(probe.move if trip is None else replace(probe.move, target=trip))
     board._wait = Wait("probe", "", _probe_result(probe))
     _start(board, now)
     return True
+
+
+def _sensor_trip(board: GrblBoard, probe: Probe) -> dict[str, float] | None:
+    """Where a G38.2/G38.3 over the tool sensor closes the probe input, if it does."""
+    surface = sensor_surface(board.tool_sensor, board.tool_length, board.position)
+    if surface is None or not probe.toward:
+        return None
+    axis, at = surface
+    start, end = board.position[axis], probe.move.target[axis]
+    if start == end or not min(start, end) <= at <= max(start, end):
+        return None
+    fraction = (at - start) / (end - start)
+    point = {
+        a: board.position[a] + (probe.move.target[a] - board.position[a]) * fraction for a in AXES
+    }
+    point[axis] = at
+    return point
 
 
 def probe_contact(board: GrblBoard) -> None:
