@@ -214,6 +214,8 @@ class ToolChanger:
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
                 await _first(self._answered(stream), stream.result)
+        except MachineError as exc:  # the link went: the stream ends interrupted with it
+            self._log.info("tool changes no longer followed", reason=exc.message)
         finally:
             if self.stream is stream:
                 self.waiting = None

@@ -137,6 +137,23 @@ async def test_cancel_while_waiting_ends_the_job(paused: tuple[Running, Rpc], ma
     assert (await job_end(rpc, again))["state"] == "completed"
 
 
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_link_lost_while_waiting_leaves_an_interrupted_job(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    running, rpc = paused
+    job_id = await _start(rpc, machine, "two.nc", TWO_TOOLS)
+    await _waiting(rpc, machine, job_id, 3)
+    await running.daemon.sims[machine].unplug()
+    ended = await job_end(rpc, job_id)
+    assert ended["state"] == "interrupted" and ended["error"]["code"] == 1002
+    assert (await rpc.call("machine.status", machine=machine))["tool_change"] is None
+    await fails(1003, rpc.call("job.tool_change_done", machine=machine))
+    await running.daemon.sims[machine].replug()
+    await running.idle(rpc, machine)  # back, and free: nothing waits any more
+    assert (await rpc.call("job.get", job=job_id))["state"] == "interrupted"
+
+
 async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path: Path) -> None:
     async with _daemon(tmp_path, "pause") as (_, rpc):
         job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
