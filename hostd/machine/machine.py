@@ -255,6 +255,8 @@ class Machine:
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
         lines = self.engine.session.jog_lines(axes, feed)
         if self.tools.holding() and self.job is not None:
+            if not self.tools.operator_may_move():
+                raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
             # A job waits at a tool change: the jog is its own lines, no operation of its own.
             for line in lines:
                 await self.engine.send(line, operation=True)
@@ -485,6 +487,8 @@ class Machine:
 
         While a job waits at a tool change the line goes as the job's own (the operator
         works inside it), still through the command-class admission."""
+        if self.tools.holding() and not self.tools.operator_may_move():
+            raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
         return await self.engine.send(line, timeout=timeout, operation=self.tools.holding())
 
     def realtime(self, command: Realtime) -> None:

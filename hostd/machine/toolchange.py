@@ -370,7 +370,13 @@ class ToolChanger:
         return None if waiting is None else waiting.to_json()
 
     def holding(self) -> bool:
+        """A job waits at a tool change (while it is measured too)."""
         return self.waiting is not None and self.stream is not None and not self.stream.done
+
+    def operator_may_move(self) -> bool:
+        """The operator's jogs and lines fit: it holds, and no measuring is under way
+        (a line of theirs must not land between the probe's)."""
+        return self.holding() and not self._answering
 
     def supervisor_paused(self) -> bool:
         return self.machine.supervisor.state is SupState.PAUSED

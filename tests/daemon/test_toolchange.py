@@ -7,6 +7,7 @@ ptys, reached through the real socket. grbl's simulator refuses M6 as grbl does
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -15,6 +16,7 @@ from typing import Any
 import pytest
 import pytest_asyncio
 
+from hostd.sim import SimController
 from tests.daemon.conftest import G2, GRBL, Rpc, RpcFailure, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
 
@@ -261,3 +263,33 @@ async def test_probe_that_misses_the_sensor_stops_in_the_boards_alarm(
         assert status["state"]["name"] == "ALARM" and status["tool_change"] is None
         assert status["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
         assert status["machine_position"]["x"] == pytest.approx(SENSOR["x"], abs=0.01)
+
+
+async def test_the_operator_cannot_move_the_machine_while_a_tool_is_measured(
+    tmp_path: Path,
+) -> None:
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=0.0) as (running, rpc):
+        sim = running.daemon.sims[G2]
+        assert isinstance(sim, SimController)
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, G2, "probed.nc", PROBED)
+        await _waiting(rpc, G2, job_id, 3)
+        await rpc.call("subscribe", topics=["status"], machine=G2)
+        answering = asyncio.create_task(rpc.call("job.tool_change_done", machine=G2))
+        # On its way to the sensor: the board stops reading, so the measuring stays
+        # under way for as long as the test needs.
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status" and n["params"]["snapshot"]["machine_position"]["x"] < -1
+            )
+        )
+        sim.stop_reading()
+        try:
+            await fails(1003, rpc.call("machine.send", machine=G2, line="G0 X0"))
+            await fails(1003, rpc.call("machine.jog", machine=G2, axes={"x": 1.0}, feed=600))
+            await fails(1003, rpc.call("job.tool_change_done", machine=G2))
+        finally:
+            sim.resume_reading()
+        job = await answering
+        assert [c["tool"] for c in job["tool_changes"]] == [1]
