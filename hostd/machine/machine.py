@@ -532,8 +532,9 @@ class Machine:
             self.engine.realtime(Realtime.FEEDHOLD)
 
     def cycle_start(self) -> None:
-        """`~`; while paused it is the job's resume."""
-        if self._resumable():
+        """`~`; while paused it is the job's resume (but at a tool change, where it only
+        lets a jog the operator held go on: job.tool_change_done goes past the M6)."""
+        if self._resumable() and not self.tools.holding():
             self.resume()
         else:
             self.engine.realtime(Realtime.CYCLE_START)

@@ -103,6 +103,10 @@ async def test_pause_holds_at_each_m6_and_goes_on_when_told(
     jogged = await rpc.call("machine.jog", machine=machine, axes={"z": 1.0}, feed=600)
     assert jogged["job"] == job_id
     await rpc.notification(lambda n: n["method"] == "status" and _rests_at(n, z=1.0))
+    # `~` is a plain cycle start here (for a jog held with `!`): the job keeps waiting.
+    assert await rpc.call("machine.cycle_start", machine=machine) == {}
+    still = await rpc.call("machine.status", machine=machine)
+    assert still["tool_change"] == {"tool": 2, "line": 6} and still["supervisor"] == "paused"
     await rpc.call("job.tool_change_done", machine=machine)
 
     done = await job_end(rpc, job_id)
