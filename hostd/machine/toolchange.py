@@ -46,8 +46,6 @@ import structlog
 
 from hostd.machine.jobstore import ToolChange, now
 from hostd.machine.stream import JobStream
-from hostd.machine.supervisor import Event as SupEvent
-from hostd.machine.supervisor import State as SupState
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, MachineError
 from hostd.protocol.toolchange import Modes, has_m6, tool_words, without_m6
 
@@ -123,10 +121,6 @@ class ToolChangeStream(JobStream):
     @paused.setter
     def paused(self, value: bool) -> None:
         self._user_paused = value  # `!` and `~` are the user's; the hold is released apart
-
-    @property
-    def user_paused(self) -> bool:
-        return self._user_paused
 
     def peek(self) -> Any:
         entry = super().peek()
@@ -378,9 +372,6 @@ class ToolChanger:
         (a line of theirs must not land between the probe's)."""
         return self.holding() and not self._answering
 
-    def supervisor_paused(self) -> bool:
-        return self.machine.supervisor.state is SupState.PAUSED
-
 
 async def _first(*aws: Any) -> None:
     """Until the first of these is done; the others are cancelled (never a future we share)."""
@@ -405,6 +396,3 @@ async def _limits(machine: Machine) -> Any:
 def _n(value: float) -> str:
     text = f"{value:.4f}".rstrip("0").rstrip(".")
     return "0" if text in ("", "-0") else text
-
-
-__all__ = ["SupEvent", "ToolChangeLines", "ToolChangeStream", "ToolChanger", "Waiting"]
