@@ -3,43 +3,93 @@
 The composition root: it builds the layers and runs each machine as its own
 task, so that one machine's unplug, alarm or slow board never waits on
 another's. Machines with `data_port = "sim"` get a simulated board on a
-pseudo-terminal pair under `state_dir/sim/`, opened like any serial port.
+pseudo-terminal pair under `state_dir/sim/`, opened like any serial port: the
+board its dialect's registry entry names (`simulator`), imported only then.
+
+`[daemon]`, the section of the config file this module reads, is declared
+here (`DaemonConfig`); hostd/config.py assembles the whole file.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
+from typing import Annotated, Any, Literal, Protocol, cast
 
 import structlog
+from pydantic import BaseModel, ConfigDict, Field
 
-from hostd.config import Config, MachineConfig
+from hostd.machine.config import MachineConfig
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
-from hostd.sim import SimConfig, SimController
-from hostd.sim.grbl import GrblConfig, GrblSimController
+from hostd.protocol.dialects import load_simulator
 
 log = structlog.get_logger(__name__)
 
 DB_NAME = "hostd.db"
 SIM_SPEED = 10.0  # simulated boards move ten times faster than real ones
-SIM_PLANNER = 48  # g2core's planner buffers (PLANNER_QUEUE_SIZE)
 SIM_HISTORY = 1000  # lines a simulated board remembers: a daemon runs for days
 
 
+class DaemonConfig(BaseModel):
+    """`[daemon]`: the socket, the state directory, the limits of clients and workers."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    socket: str = "/run/hostd/hostd.sock"
+    state_dir: str = "/var/lib/hostd"
+    # Members of this group may use the socket (it is created 0660 with this
+    # group); root and the daemon's own user always may. None: nobody else.
+    group: str | None = None
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    # Clients connected at once; one more is told the daemon is full and closed.
+    max_clients: Annotated[int, Field(ge=1, le=10_000)] = 128
+    # Seconds a client may leave a request line half-sent before it is disconnected
+    # (a client quiet between lines stays connected however long).
+    line_timeout: Annotated[float, Field(gt=0, le=3600)] = 10.0
+    # Bytes the jobs directory may hold, published files and unfinished
+    # uploads together; an upload that would pass it is refused (1009). None: no limit.
+    jobs_quota: Annotated[int, Field(gt=0)] | None = None
+    # Seconds an unfinished upload may go without a chunk before it is removed.
+    upload_expiry: Annotated[float, Field(gt=0)] = 3600.0
+    # The event loop the daemon runs on: uvloop, or asyncio's own (docs/performance.md
+    # has the figures behind the default; the test suite runs on the default).
+    event_loop: Literal["asyncio", "uvloop"] = "uvloop"
+    # Reading a whole G-code file (file.analyze, job.recovery, job.start's checks) runs
+    # on worker processes (hostd/machine/workers.py), each file within these limits:
+    # seconds, and bytes of address space per worker (docs/gcode.md). Past one: 1013.
+    analysis_timeout: Annotated[float, Field(gt=0, le=3600)] = 600.0
+    analysis_memory: Annotated[int, Field(ge=64 << 20)] = 1 << 30
+
+
+class Settings(Protocol):
+    """What the daemon reads of the config (hostd/config.py's `Config` is one)."""
+
+    @property
+    def daemon(self) -> DaemonConfig: ...
+    @property
+    def machines(self) -> Sequence[MachineConfig]: ...
+
+
+class SimBoard(Protocol):
+    """A simulated board, as the daemon runs it (hostd/sim, by a dialect's factory)."""
+
+    async def start(self) -> None: ...
+    async def close(self) -> None: ...
+
+
 class Daemon:
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Settings) -> None:
         self.config = config
         self.state_dir = Path(config.daemon.state_dir)
         self.jobs_dir = self.state_dir / "jobs"
         self.machines: dict[str, Machine] = {}
         self.store: JobStore | None = None
-        self.sims: dict[
-            str, SimController | GrblSimController
-        ] = {}  # the simulated boards, by machine id
+        # The simulated boards, by machine id; each of its dialect's own class.
+        self.sims: dict[str, Any] = {}
         self._stop = asyncio.Event()
         # Whole-file reading, off this interpreter; its workers start on first use.
         self.workers = WorkerPool(
@@ -91,16 +141,8 @@ class Daemon:
         await asyncio.to_thread(sim_dir.mkdir, mode=0o750, exist_ok=True)
         data = str(sim_dir / f"{config.id}-data")
         control = str(sim_dir / f"{config.id}-control") if config.control_port else None
-        sim: SimController | GrblSimController
-        if config.dialect == "grbl":
-            # grbl 1.1h as most lasers run it, laser mode on ($32=1).
-            grbl = GrblConfig(speed_factor=SIM_SPEED, laser_mode=True, history=SIM_HISTORY)
-            sim = GrblSimController(data, grbl)
-        else:
-            board = SimConfig(
-                speed_factor=SIM_SPEED, planner_depth=SIM_PLANNER, history=SIM_HISTORY
-            )
-            sim = SimController(data, control_path=control, config=board)
+        factory = load_simulator(config.spec)
+        sim = cast(SimBoard, factory(data, control, SIM_SPEED, SIM_HISTORY))
         await sim.start()
         self.sims[config.id] = sim
         return config.model_copy(update={"data_port": data, "control_port": control})

@@ -189,22 +189,27 @@ async def serve(
         loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]
         log.info("hostd ready", socket=socket_path, machines=list(daemon.machines), loop=loop)
 
-    watchdog = asyncio.create_task(notifier.watchdog())
-    expiry = asyncio.create_task(api.expire_uploads(_sweep_interval(config)))
-    try:
-        await daemon.run(ready)
-    finally:
-        watchdog.cancel()
-        expiry.cancel()
-        if web is not None:
-            await web.close()
-        if bridge is not None and bridge_task is not None:
-            await bridge.close(bridge_task)
-        await server.close()
-        notifier.close()
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(signum)
-        log.info("hostd stopped")
+    # The watchdog's pings and the uploads' sweep live as long as the daemon, in a group
+    # that ends only once both have: nothing of the daemon's outlives `serve`.
+    async with asyncio.TaskGroup() as background:
+        watchdog = background.create_task(notifier.watchdog(), name="watchdog")
+        expiry = background.create_task(
+            api.expire_uploads(_sweep_interval(config)), name="upload-expiry"
+        )
+        try:
+            await daemon.run(ready)
+        finally:
+            watchdog.cancel()
+            expiry.cancel()
+            if web is not None:
+                await web.close()
+            if bridge is not None and bridge_task is not None:
+                await bridge.close(bridge_task)
+            await server.close()
+            notifier.close()
+            for signum in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(signum)
+    log.info("hostd stopped")
 
 
 def raise_descriptor_limit() -> int:

@@ -17,6 +17,7 @@ notifications, the error codes) is in docs/api.md; the contract test
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import sys
@@ -112,11 +113,17 @@ def served() -> dict[str, Any]:
     """The document a daemon serves: its method table, built without starting anything."""
     from hostd import __version__
     from hostd.api.methods import API_VERSION, Api, build_methods
-    from hostd.config import parse_config
-    from hostd.daemon import Daemon
+    from hostd.daemon import Daemon, DaemonConfig
+
+    @dataclasses.dataclass(frozen=True)
+    class Nothing:
+        """A daemon of no machines: only its method table is read."""
+
+        daemon: DaemonConfig
+        machines: tuple[()] = ()
 
     with tempfile.TemporaryDirectory() as state:
-        config = parse_config({"daemon": {"socket": f"{state}/s", "state_dir": state}})
+        config = Nothing(DaemonConfig(socket=f"{state}/s", state_dir=state))
         methods = build_methods(Api(Daemon(config)))
     return document(methods, version=__version__, api=API_VERSION)
 

@@ -57,7 +57,7 @@ from hostd.api.peer import PeerCred
 from hostd.api.server import MAX_INFLIGHT, MAX_LINE, QUEUE_SIZE, WRITE_TIMEOUT, Client
 from hostd.api.tokens import Sessions, TokenStore
 from hostd.api.uploads import NoSuchUpload, StorageError
-from hostd.config import WebConfig
+from hostd.api.webconfig import WebConfig
 
 log = structlog.get_logger(__name__)
 
@@ -92,6 +92,7 @@ WATCH_METHODS: Final = frozenset(
         "job.get",
         "job.list",
         "fault.list",
+        "macro.list",
         "subscribe",
         "unsubscribe",
     }

@@ -84,8 +84,9 @@ async def send(c: Client, args: argparse.Namespace, out: Output) -> int:
             raise
         if out.json:
             out.print_json(result)
-        else:
-            out.out.print(render.json_line(result.get("r")), markup=False, soft_wrap=True)
+            continue
+        for text in render.answer_lines(result):
+            out.out.print(text, markup=False, highlight=False, soft_wrap=True)
     return OK
 
 
@@ -377,7 +378,7 @@ async def watch(c: Client, args: argparse.Namespace, out: Output) -> int:
     return await live_view(c, args.machine, out)
 
 
-# -- the operator's day: home, zero, override, spindle -------------------------------
+# -- the operator's day: home, zero, probe, override, spindle -------------------------------
 
 AXIS_LETTERS: Final = "xyzabc"
 
@@ -419,6 +420,41 @@ async def zero(c: Client, args: argparse.Namespace, out: Output) -> int:
     return OK
 
 
+async def probe(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """machine.probe: the operator touches the plate to the bit first, then it probes."""
+    kind = "xyz" if args.xyz else "z"
+    params: dict[str, Any] = {"machine": args.machine, "kind": kind, "wait": args.wait}
+    for name in ("plate", "feed", "max_travel", "retract", "tool_diameter"):
+        if getattr(args, name) is not None:
+            params[name] = getattr(args, name)
+    if args.confirmed:
+        params["confirmed"] = True
+    if kind == "xyz" and args.tool_diameter is None:
+        raise CliError(
+            "a corner probe (--xyz) needs --tool-diameter MM: the bit's side meets the walls"
+        )
+    out.message(
+        f"{args.machine}: touch the plate to the bit to show the probe works, then lay it on"
+        f" the work under the bit (waiting up to {args.wait:g} s); probing starts a second"
+        " after the plate leaves the bit"
+    )
+    result = await c.call("machine.probe", **params)
+    if out.json:
+        out.print_json(result)
+        return OK
+    snap = await c.call("machine.status", machine=args.machine)
+    touched = " ".join(f"{a.upper()}{v:.3f}" for a, v in result.get("position", {}).items())
+    zeroed = "".join(result.get("zeroed", [])).upper()
+    where = render.position(snap.get("work_position"), snap.get("units"))
+    out.out.print(
+        f"{args.machine}: probed {kind.upper()}, touched at {touched} (machine);"
+        f" {zeroed} zeroed in {snap.get('wcs') or 'the active WCS'}; work position {where}",
+        markup=False,
+        highlight=False,
+    )
+    return OK
+
+
 async def override(c: Client, args: argparse.Namespace, out: Output) -> int:
     params = {k: getattr(args, k) for k in ("feed", "spindle", "rapid")}
     given = {k: v for k, v in params.items() if v is not None}
@@ -448,3 +484,94 @@ async def spindle(c: Client, args: argparse.Namespace, out: Output) -> int:
     speed = "" if args.speed is None else f" at {args.speed:g}"
     out.result(result, f"{args.machine}: spindle {state}{speed}")
     return OK
+
+
+# -- frame, laser test, macros (issue 29) --------------------------------------------
+
+
+async def _follow_job(c: Client, machine: str, job_id: int, out: Output) -> int:
+    """Follow a started job to its end (Ctrl-C asks, as in `run`); 0 if it completed."""
+    with CtrlC() as ctrl_c:
+        out.message(f"job #{job_id} started on {machine}")
+        follower = JobFollower(
+            c, machine, job_id, console=out.err, ctrl_c=ctrl_c, answers=StdinLines()
+        )
+        try:
+            job = await follower.follow()
+        except Detached:
+            out.message(f"stopped following job #{job_id}; it goes on (hostd cancel {machine})")
+            return INTERRUPTED
+    if out.json:
+        out.print_json(job)
+    else:
+        render.jobs(out.out, [job])
+    if job.get("state") == "completed":
+        return OK
+    error = job.get("error")
+    why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
+    out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
+    return FAILED
+
+
+async def frame(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """Upload FILE, then trace its bounding box (machine.frame) and follow that job."""
+    path = Path(args.file)
+    name = args.name or path.name
+    await c.call("subscribe", topics=["job", "status", "exception"], machine=args.machine)
+    await upload(c, path, name)
+    params: dict[str, Any] = {"machine": args.machine, "file": name, "power": args.power}
+    if args.feed is not None:
+        params["feed"] = args.feed
+    started = await c.call("machine.frame", **params)
+    return await _follow_job(c, args.machine, int(started["job"]), out)
+
+
+async def laser_test(c: Client, args: argparse.Namespace, out: Output) -> int:
+    result = await c.call(
+        "machine.laser_test", machine=args.machine, power=args.power, duration_s=args.seconds
+    )
+    out.result(result, f"{args.machine}: fired at {args.power:g}% for {args.seconds:g} s, beam off")
+    return OK
+
+
+async def macro(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """`macro list [MACHINE]` or `macro run MACHINE NAME [key=value ...]`."""
+    if args.action == "list":
+        params = {} if args.machine is None else {"machine": args.machine}
+        found = await c.call("macro.list", **params)
+        if out.json:
+            out.print_json(found)
+            return OK
+        rows = [
+            [m.get("machine", "-"), m["name"], _macro_params(m["params"]), _first_line(m["text"])]
+            for m in found
+        ]
+        render.table(out.out, ["MACHINE", "MACRO", "PARAMS", "TEXT"], rows)
+        return OK
+    if args.machine is None or args.name is None:
+        raise CliError("macro run needs MACHINE and NAME")
+    values = {}
+    for pair in args.params:
+        key, eq, text = pair.partition("=")
+        try:
+            values[key] = float(text) if eq else None
+        except ValueError:
+            raise CliError(f"{pair!r}: a parameter is NAME=NUMBER") from None
+        if values[key] is None:
+            raise CliError(f"{pair!r}: a parameter is NAME=NUMBER")
+    await c.call("subscribe", topics=["job", "status", "exception"], machine=args.machine)
+    started = await c.call("macro.run", machine=args.machine, name=args.name, params=values)
+    return await _follow_job(c, args.machine, int(started["job"]), out)
+
+
+def _macro_params(params: dict[str, Any]) -> str:
+    shown = []
+    for name, p in params.items():
+        default = "" if p.get("default") is None else f"={p['default']:g}"
+        shown.append(f"{name}{default} ({p['min']:g}..{p['max']:g})")
+    return ", ".join(shown) or "-"
+
+
+def _first_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[0] + (" ..." if len(lines) > 1 else "") if lines else ""

@@ -15,7 +15,6 @@ scripts) drive the prompt by writing `p\\n` to the CLI's stdin.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import signal
 from collections.abc import Awaitable
@@ -72,10 +71,10 @@ async def unless_interrupted(aw: Awaitable[T], ctrl_c: CtrlC, timeout: float | N
         await asyncio.wait({work, stop}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
     finally:
         stop.cancel()
+        await asyncio.wait({stop})  # ended here, not left to the loop
         if not work.done():
             work.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await work
+            await asyncio.wait({work})  # a cancel of our own caller still reaches it
     if work.done() and not work.cancelled():
         return work.result()
     if ctrl_c.pressed:

@@ -136,6 +136,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("machine", metavar="MACHINE")
     p.add_argument("axes", metavar="AXES")
 
+    p = client("probe", "probe", "probe work zero with the touch plate: Z, or an XYZ corner")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("--xyz", action="store_true", help="the corner: Z, then X and Y")
+    p.add_argument("--plate", type=_non_negative, metavar="MM", help="the plate's thickness")
+    p.add_argument("--feed", type=_positive, metavar="F", help="probe feed, mm/min")
+    p.add_argument("--max-travel", type=_positive, metavar="MM", help="the farthest it probes")
+    p.add_argument("--retract", type=_non_negative, metavar="MM", help="lift after each touch")
+    p.add_argument("--tool-diameter", type=_non_negative, metavar="MM", help="the bit (--xyz)")
+    p.add_argument("--wait", type=_positive, default=30.0, metavar="S", help="for the touch")
+    p.add_argument(
+        "--confirmed",
+        action="store_true",
+        help="you saw the probe work (only where the board cannot show its input)",
+    )
+
     p = client("override", "override", "set feed, spindle and rapid overrides (percent)")
     p.add_argument("machine", metavar="MACHINE")
     for name in ("feed", "spindle", "rapid"):
@@ -146,6 +161,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("state", choices=("on", "off"))
     p.add_argument("--speed", type=_non_negative, metavar="S", help="spindle speed (S word)")
     p.add_argument("--ccw", action="store_true", help="counter-clockwise (M4)")
+
+    p = client("frame", "frame", "trace a G-code file's bounding box (beam off, or --power)")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("file", metavar="FILE")
+    p.add_argument("--power", type=_non_negative, default=0.0, metavar="P", help="laser percent")
+    p.add_argument("--feed", type=_positive, metavar="F", help="mm/min (default 1000)")
+    p.add_argument("--name", help="file name in the daemon's jobs directory (default: FILE's)")
+
+    p = client("laser-test", "laser_test", "fire the laser standing still, then off")
+    p.add_argument("machine", metavar="MACHINE")
+    p.add_argument("power", type=_positive, metavar="PERCENT")
+    p.add_argument("--seconds", type=_positive, default=0.5, metavar="S", help="at most 2")
+
+    p = client("macro", "macro", "list the config's macros, or run one (NAME key=value ...)")
+    p.add_argument("action", choices=("list", "run"))
+    p.add_argument("machine", nargs="?", metavar="MACHINE")
+    p.add_argument("name", nargs="?", metavar="NAME")
+    p.add_argument("params", nargs="*", metavar="KEY=VALUE")
 
     p = client("jobs", "jobs", "recent jobs, newest first")
     p.add_argument("--machine", "-m", metavar="M")

@@ -271,3 +271,40 @@ def faults(console: Console, rows: Sequence[dict[str, Any]]) -> None:
             for f in rows
         ],
     )
+
+
+def answer_lines(result: dict[str, Any]) -> list[str]:
+    """machine.send's answer for a person: the status, then the body as `key: value` lines.
+
+    Nested objects read as dotted keys (`sys.fv: 0.99`); the text a grbl board printed
+    before its `ok` (`lines`) is shown as it printed it, one line each.
+    """
+    status = result.get("status")
+    out = ["ok" if status == 0 else f"status {status}"]
+    body = result.get("r")
+    if isinstance(body, dict):
+        out += [_pair(key, value) for key, value in _flat(body, "")]
+    elif body is not None:
+        out.append(_scalar(body))
+    return out
+
+
+def _flat(value: dict[str, Any], prefix: str) -> list[tuple[str, Any]]:
+    pairs: list[tuple[str, Any]] = []
+    for key, item in value.items():
+        name = f"{prefix}{key}"
+        if isinstance(item, dict) and item:
+            pairs += _flat(item, f"{name}.")
+        elif key == "lines" and not prefix and isinstance(item, list):
+            pairs += [("", text) for text in item]
+        else:
+            pairs.append((name, item))
+    return pairs
+
+
+def _pair(key: str, value: Any) -> str:
+    return _scalar(value) if key == "" else f"{key}: {_scalar(value)}"
+
+
+def _scalar(value: Any) -> str:
+    return value if isinstance(value, str) else json_line(value)

@@ -153,7 +153,12 @@ async def run(console: Console, *, once: bool = False) -> int:
             await hostd("status", env=env)
             console.print(f"\nrunning: hostd run {SAMPLE.name} --machine sim1")
             pauser = asyncio.create_task(hold_and_resume(sock, env, console))
-            await hostd("run", str(SAMPLE), "--machine", "sim1", env=env)
+            try:
+                await hostd("run", str(SAMPLE), "--machine", "sim1", env=env)
+            except BaseException:
+                pauser.cancel()  # owned here: ended before the error goes on
+                await asyncio.wait({pauser})
+                raise
             await pauser
             console.print("\nthe job's history row: hostd jobs --machine sim1 --limit 1")
             await hostd("jobs", "--machine", "sim1", "--limit", "1", env=env)

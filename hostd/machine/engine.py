@@ -1,17 +1,26 @@
 """One machine's engine: the I/O shell around its dialect's session.
 
-The engine holds no protocol rule; the session (`hostd.protocol.g2core`)
+The engine holds no protocol rule; the session of the machine's dialect
 holds them all. The engine opens the link, feeds the session every line the
 board prints and every request a client makes, writes what the session says
 to write, runs the one timer the session asks for, and delivers the
-session's events: answers to the futures that wait for them, reports and
-faults to the hub.
+session's events: answers to the futures that wait for them, a job's end
+to its JobStream, and everything else up to its Machine, through one typed
+callback (`on_event`, an `EngineEvent`). The Machine decides what becomes
+public (hostd/machine/machine.py); the engine never publishes.
 
 Events are delivered only after the step that raised them is over (a batch
-of lines read, or its first line alone; a request taken; a timer): a
-subscriber that acts on one (the machine stopping a job for a fault) calls
-the engine again, and its consequences are written in the same delivery
-loop. Nothing re-enters the session from inside its own receive step.
+of lines read, or its first line alone; a request taken; a timer). A
+command the Machine gives while an event is being handed to it (stopping a
+job for a fault, marking an operation) is not run there: it is queued, and
+the delivery loop runs it once the whole batch is handed out, then writes
+its consequences in the same step. Nothing re-enters the session from
+inside its own receive step, nor from inside the delivery of its events.
+
+A job's lines reach the session the same way: after every step the engine
+feeds the running job's session position from its file (`JobStream.fill`),
+at most LOOK_AHEAD lines ahead, and pumps again at once when the session
+had room and nothing to send.
 
 `serve()` owns the connection for the life of the daemon: it opens the link
 when asked (or at once with `auto_connect`), runs one connection until the
@@ -31,13 +40,13 @@ from typing import Any
 
 import structlog
 
-from hostd.config import MachineConfig
 from hostd.link import Channel, Link, LinkError
+from hostd.machine.config import MachineConfig
 from hostd.machine.events import (
     Console,
+    EngineEvent,
     ExceptionRaised,
     FaultDetected,
-    Hub,
     LinkChanged,
     ProbeReported,
     StatusChanged,
@@ -49,9 +58,6 @@ from hostd.protocol.errors import (
     ControllerTimeout,
     NotConnected,
 )
-from hostd.protocol.g2core import G2Session
-from hostd.protocol.grbl.session import GrblSession
-from hostd.protocol.linemode import LineModeSender
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.session import SessionBase
@@ -65,6 +71,7 @@ from hostd.protocol.vocabulary import (
     Ready,
     Reported,
     Settled,
+    StreamEnded,
 )
 
 log = structlog.get_logger(__name__)
@@ -80,16 +87,21 @@ class LinkState(StrEnum):
 
 
 class Engine:
-    def __init__(self, config: MachineConfig, hub: Hub | None = None) -> None:
+    def __init__(
+        self, config: MachineConfig, on_event: Callable[[EngineEvent], None] | None = None
+    ) -> None:
         self.config = config
         self.id = config.id
-        self.hub = hub or Hub()
+        self._on_up: Callable[[EngineEvent], None] = on_event or _ignore  # the way up: one
         self.session = session_for(config)
+        self._job: JobStream | None = None  # the job streaming: its file feeds the session
         self.link: Link | None = None
         self.link_state = LinkState.DOWN
         self.console = False  # publish every line sent and received (someone listens)
         self._restart_deadline: float | None = None  # a reset is under way until then
         self._delivering = False  # the delivery loop runs: a nested call leaves it the work
+        self._handing_out = False  # events go up now: a command given meanwhile is queued
+        self._deferred: list[Callable[[], None]] = []  # run once the events are handed out
         self._write_failed = False
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at: float | None = None
@@ -109,12 +121,6 @@ class Engine:
     @property
     def model(self) -> MachineModel:
         return self.session.model
-
-    @property
-    def sender(self) -> LineModeSender:
-        """g2core's line-mode books (tests read them)."""
-        assert isinstance(self.session, G2Session)
-        return self.session.sender
 
     # -- lifecycle ---------------------------------------------------------
 
@@ -162,6 +168,7 @@ class Engine:
             await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
         finally:
             ready.cancel()
+            await asyncio.wait({ready})  # it ends here, not after its asker (never re-raises)
         if not self.ready:
             reason = failed.result() if failed.done() else "not connected"
             raise NotConnected(f"{self.id}: {reason}")
@@ -285,8 +292,9 @@ class Engine:
     def _deliver(self) -> None:
         """Write what the session says, then hand out its events, until it has nothing more.
 
-        A subscriber's call back into the engine (a fault stopping a job) only
-        adds to the session's output; this loop writes it.
+        A command the Machine gives while it hears the events (a fault stopping
+        a job) waits until they are all handed out; this loop then runs it and
+        writes what it adds. After each pass the running job is fed from its file.
         """
         if self._delivering:
             return
@@ -296,19 +304,28 @@ class Engine:
             while True:
                 writes = session.data_to_send()
                 events = session.events()
-                if not writes and not events:
-                    break
                 if writes:
                     self._write(writes)
-                if not events:
+                if events:
+                    self._hand_out(events)
+                deferred = self._deferred
+                if deferred:  # the Machine's commands, given while it heard the events
+                    self._deferred = []
+                    for command in deferred:
+                        command()
+                job = self._job
+                # The board is at work on what was written: feed the lines after it. If the
+                # session had room and no line, or the file ended, it is pumped again now.
+                if job is not None and job.fill():
+                    continue
+                if not events and not deferred:
                     break  # writing changes nothing in the session: it has no more to say
-                for event in events:
-                    self._on_event(event)
-            stream = session.stream
-            if stream is not None:
-                stream.prefetch()  # the board is at work on what was written: get ahead
+            job = self._job
+            if job is not None:
+                job.stepped()
         finally:
             self._delivering = False
+            self._handing_out = False
         self._changed.set()
         self._arm_timer()
 
@@ -373,6 +390,28 @@ class Engine:
             for line in lines:
                 self._publish_console("tx", channel, line)
 
+    def _hand_out(self, events: list[Event]) -> None:
+        self._handing_out = True
+        for event in events:
+            self._on_event(event)
+        self._handing_out = False
+
+    def _up(self, event: EngineEvent) -> None:
+        """To the Machine; its failure is logged, never let into the delivery loop."""
+        try:
+            self._on_up(event)
+        except Exception:
+            self._log.exception("the machine failed on an engine event", kind=type(event).__name__)
+
+    def _command(self, command: Callable[[], None]) -> None:
+        """Run a command of the Machine's now, or, while events are being handed out,
+        once they all are (the delivery loop runs it and writes what it says)."""
+        if self._handing_out:
+            self._deferred.append(command)
+            return
+        command()
+        self._deliver()
+
     def _on_event(self, event: Event) -> None:
         if isinstance(event, Settled):
             future = event.token
@@ -382,16 +421,18 @@ class Engine:
                 else:
                     future.set_exception(event.outcome)
         elif isinstance(event, Reported):
-            if self.hub.active:
-                self.hub.publish(StatusChanged(self.id, event.fields, event.snapshot))
+            self._up(StatusChanged(self.id, event.fields, event.snapshot))
+        elif isinstance(event, StreamEnded):
+            job = self._job
+            if job is not None and job.position.done:
+                self._job = None
+                job.ended(event.result)
         elif isinstance(event, Excepted):
-            if self.hub.active:
-                self.hub.publish(ExceptionRaised(self.id, event.fields))
+            self._up(ExceptionRaised(self.id, event.fields))
         elif isinstance(event, Detected):
-            self.hub.publish(FaultDetected(self.id, event.fault, event.value, event.message))
+            self._up(FaultDetected(self.id, event.fault, event.value, event.message))
         elif isinstance(event, Probed):
-            if self.hub.active:
-                self.hub.publish(ProbeReported(self.id, event.report, event.probe))
+            self._up(ProbeReported(self.id, event.report, event.probe))
         elif isinstance(event, Ready):
             self._on_ready()
         elif isinstance(event, Closing):
@@ -544,12 +585,17 @@ class Engine:
         self.session.admit_action()
 
     def set_operation(self, running: bool) -> None:
-        """The machine started or ended an operation; waiting client actions are judged again."""
-        self.session.set_operation(running)
-        self._deliver()
+        """The machine started or ended an operation; waiting client actions are judged again.
+
+        Given while the Machine hears an event, it runs once the events are handed out.
+        """
+        self._command(lambda: self.session.set_operation(running))
 
     def start_stream(self, stream: JobStream) -> None:
-        self.session.start_stream(stream)
+        """Stream a job: the session takes its position, and the file feeds it from now on."""
+        self.session.start_stream(stream.start(self.session.encode_job_line))
+        self._job = stream
+        stream.fill()
         self._deliver()
 
     def pause_stream(self) -> None:
@@ -562,10 +608,17 @@ class Engine:
         self.session.resume_stream()
         self._deliver()
 
-    def stop_stream(self, code: int, text: str) -> None:
-        """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
-        self.session.stop_stream(code, text)
+    def release_stream(self) -> None:
+        """Pass the job's hold point (a tool change answered): its lines flow again."""
+        self.session.release_stream()
         self._deliver()
+
+    def stop_stream(self, code: int, text: str) -> None:
+        """Fail the running job and stop the board: feedhold, then flush (a fault's effect).
+
+        Given while the Machine hears an event, it runs once the events are handed out.
+        """
+        self._command(lambda: self.session.stop_stream(code, text))
 
     # -- views -------------------------------------------------------------
 
@@ -592,11 +645,10 @@ class Engine:
 
     def _publish_console(self, direction: str, channel: Channel, line: bytes) -> None:
         text = line.rstrip(b"\n").decode("utf-8", "backslashreplace")
-        self.hub.publish(Console(self.id, direction, str(channel), text))
+        self._up(Console(self.id, direction, str(channel), text))
 
     def _publish_link(self, up: bool, reason: str) -> None:
-        if self.hub.active:
-            self.hub.publish(LinkChanged(self.id, up, reason))
+        self._up(LinkChanged(self.id, up, reason))
 
 
 def _debug_enabled(logger: Any) -> bool:
@@ -606,26 +658,12 @@ def _debug_enabled(logger: Any) -> bool:
 
 
 def session_for(config: MachineConfig) -> SessionBase:
-    """The session of the machine's dialect: every protocol rule is in it."""
-    if config.dialect == "grbl":
-        return GrblSession(
-            config.id,
-            status_interval=config.status_interval,
-            heartbeat=config.heartbeat,
-            link_silence=config.link_silence,
-            homing_timeout=config.homing_timeout,
-            handshake_timeout=config.handshake_timeout,
-            startup_motion=config.startup_motion,
-        )
-    return G2Session(
-        config.id,
-        window=config.window,
-        status_interval=config.status_interval,
-        heartbeat=config.heartbeat,
-        handshake_timeout=config.handshake_timeout,
-        signal_keys=config.signals.keys(),
-        dual=config.control_port is not None,
-    )
+    """The session of the machine's dialect (its registry entry's): every protocol rule is in it."""
+    return config.spec.session(config)
+
+
+def _ignore(_: EngineEvent) -> None:
+    """An engine nobody follows (a test's): its events go nowhere."""
 
 
 def _seen(future: asyncio.Future[Response]) -> None:

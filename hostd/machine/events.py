@@ -1,4 +1,11 @@
-"""What a machine publishes, and the hub that hands it to subscribers.
+"""What an engine tells its Machine, what a Machine publishes, and the hub that hands it out.
+
+Two ways, each one-way. An engine reports to its Machine alone, through one
+typed callback (`EngineEvent`); the Machine publishes facts to the hub
+(`Event`), in causal order: a status report before the supervisor change
+and the faults it caused. `FaultDetected` is the engine's word to its
+Machine, never public: the Machine's fault table decides what it becomes
+(a `FaultChanged`).
 
 Publishing is synchronous and must stay cheap: a subscriber's callback only
 queues (the API's per-client queues are bounded; what happens at the bound
@@ -70,7 +77,10 @@ class JobChanged:
 
 @dataclass(frozen=True, slots=True)
 class FaultDetected:
-    """The engine saw a link or software fault; the machine's fault table decides."""
+    """The engine saw a link or software fault; the machine's fault table decides.
+
+    Told to the Machine only (an `EngineEvent`): it publishes the `FaultChanged`.
+    """
 
     machine: str
     fault: str
@@ -84,6 +94,11 @@ class FaultChanged:
     fault: dict[str, Any]
 
 
+# What an engine tells its Machine (hostd/machine/engine.py `on_event`).
+EngineEvent = (
+    StatusChanged | ExceptionRaised | ProbeReported | Console | LinkChanged | FaultDetected
+)
+# What a Machine publishes to the hub's subscribers (the API, MQTT, systemd's status).
 Event = (
     StatusChanged
     | ExceptionRaised
@@ -92,7 +107,6 @@ Event = (
     | LinkChanged
     | SupervisorChanged
     | JobChanged
-    | FaultDetected
     | FaultChanged
 )
 Listener = Callable[[Event], None]

@@ -16,14 +16,11 @@ dialect; this module is the policy, for one machine:
 
 from __future__ import annotations
 
-from typing import Any
-
 import structlog
 
 from hostd.machine.machine import Machine
-from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Refusal
-from hostd.protocol.grbl.session import GrblSession
-from hostd.protocol.maintenance import Kind, Maintenance, absurd_jog, maintenance_command
+from hostd.protocol.commands import InvalidCommand, Refusal
+from hostd.protocol.maintenance import Kind, Maintenance, absurd_jog
 from hostd.protocol.messages import Response
 
 log = structlog.get_logger(__name__)
@@ -43,22 +40,13 @@ class MaintenanceRefused(InvalidCommand):
 
 def _travel(machine: Machine) -> dict[str, tuple[float, float]]:
     """The travel the session already knows (grbl's `$130`.. from the handshake's `$$`)."""
-    session = machine.engine.session
-    if not isinstance(session, GrblSession):
-        return {}
-    found: dict[str, Any] = {}
-    for key in session.limit_settings():
-        try:
-            found[key] = float(session.settings[key])
-        except (KeyError, ValueError):
-            continue
-    return dict(session.machine_limits(found).travel)
+    return machine.engine.session.known_travel()
 
 
 def classify(machine: Machine, line: str) -> Maintenance | None:
-    """The maintenance command `line` is on `machine`'s board, or None."""
+    """The maintenance command `line` is on `machine`'s board, or None (its dialect's table)."""
     inches = machine.engine.model.units == "in"
-    return maintenance_command(machine.config.dialect, line, travel=_travel(machine), inches=inches)
+    return machine.config.spec.maintenance(line, _travel(machine), inches)
 
 
 def check_send(machine: Machine, line: str) -> None:
@@ -113,10 +101,7 @@ async def send_maintenance(machine: Machine, line: str, timeout: float) -> Respo
 def line_limit(machine: Machine) -> int:
     """The longest job line, its LF included, the board takes as its session knows it:
     grbl's receive buffer less one (`[OPT:]` or 128), g2core's 511 bytes and the LF."""
-    session = machine.engine.session
-    if isinstance(session, GrblSession):
-        return session.rx_size - 1
-    return int(getattr(session, "max_line_bytes", MAX_LINE_BYTES)) + 1
+    return machine.engine.session.line_limit()
 
 
 def tool_change_policy(machine: Machine) -> str | None:

@@ -1,26 +1,21 @@
-"""One configured machine: its engine, its supervisor, its operations and their job rows.
+"""One configured machine: its engine, its supervisor, its faults and its operations.
 
 The supervisor follows the engine: the link coming up is `connect`, going
 down `disconnected` (or `disconnect` when asked for), and every status
 report settles busy against idle. Operations (`make`, `jog`, `settings`)
-start only from idle, each recorded as a job row; `make` streams a file
-from the jobs directory and is the only pausable one.
+start only from idle, each recorded as a job row by the job runner
+(jobrunner.py); `make` streams a file from the jobs directory and is the
+only pausable one.
 
-Progress is persisted at most `PERSIST_EVERY` seconds or `PERSIST_LINES`
-answered lines apart (the stream wakes its runner when it crosses the
-mark), but not more often than every `PERSIST_GAP` seconds: a crash loses at
-most 100 lines or 1 s of a row's `lines_acked` at the rates a machine runs
-(a laser raster's 1,000 lines/s), and a burst of 40,000 lines/s costs ten
-writes a second, not four hundred. `lines_acked` is only ever copied from
-the engine's count of lines the controller answered, so it never claims more.
-`job` events are published on every state change and at most every
-`PUBLISH_EVERY` seconds while a job runs.
+The engine tells the Machine everything through one callback; the Machine
+publishes each fact to the hub before what it causes. The Machine's task
+(`serve`) owns a task group: the engine's connection runs in it, and so
+does the follower of every streaming job; it returns only once they all have.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import json
 import time
@@ -30,22 +25,22 @@ from typing import Any, TextIO
 
 import structlog
 
-from hostd.config import MachineConfig
+from hostd.machine.config import MachineConfig
 from hostd.machine.engine import Engine
 from hostd.machine.events import (
-    Event,
+    EngineEvent,
     FaultChanged,
     FaultDetected,
     Hub,
-    JobChanged,
     LinkChanged,
     StatusChanged,
     SupervisorChanged,
 )
 from hostd.machine.faults import Fault, FaultTable
-from hostd.machine.jobstore import Job, JobError, JobKind, JobStore, ToolChange, now
+from hostd.machine.jobrunner import JobRunner
+from hostd.machine.jobstore import Job, JobStore, ToolChange
 from hostd.machine.signals import fault_conditions
-from hostd.machine.stream import JobStream, StreamResult
+from hostd.machine.stream import JobStream
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
@@ -57,20 +52,9 @@ from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import Response
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
-from hostd.protocol.vocabulary import StreamEnd
+from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
 log = structlog.get_logger(__name__)
-
-PERSIST_EVERY = 1.0
-PERSIST_LINES = 100
-PERSIST_GAP = 0.1
-PUBLISH_EVERY = 0.1
-_JOB_STATE = {
-    StreamEnd.COMPLETED: "completed",
-    StreamEnd.FAILED: "failed",
-    StreamEnd.CANCELLED: "cancelled",
-    StreamEnd.INTERRUPTED: "interrupted",
-}
 
 
 class NoSuchFile(MachineError):
@@ -91,33 +75,39 @@ class Machine:
         self.store = store
         self.jobs_dir = jobs_dir
         self.hub = hub or Hub()
-        self.engine = Engine(config, self.hub)
+        self.engine = Engine(config, self._on_engine)
         self.supervisor = Supervisor(self._on_transition)
-        self.job: Job | None = None  # the current or last operation's row
-        self._stream: JobStream | None = None
-        self._runners: set[asyncio.Task[None]] = set()
-        self._last_write: asyncio.Task[None] | None = None  # row writes land in order
+        self.jobs = JobRunner(
+            self.id,
+            self.engine,
+            store,
+            self.hub,
+            begin_operation=self._begin_operation,
+            end_operation=self._operation_stopped,
+        )
         self.faults = FaultTable()
         self._signal_values: dict[str, Any] = {}  # the last value of every signal key
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
-        self._jog_restore: str | None = None
         self.tools = ToolChanger(self)  # the job's M6s, by the tool_change policy
-        self.hub.subscribe(self._on_event)
         self._log = log.bind(machine=self.id)
 
     # -- lifecycle ---------------------------------------------------------
 
     async def serve(self) -> None:
-        """Run the engine and every operation's runner until cancelled."""
-        try:
-            await self.engine.serve()
-        finally:
-            for task in list(self._runners):
-                task.cancel()
-            pending = [*self._runners, *([self._last_write] if self._last_write else [])]
-            if pending:
-                await asyncio.gather(*pending, return_exceptions=True)
+        """Run the engine and every streaming job's follower until cancelled.
+
+        They live in one task group: cancelled, it cancels the followers (each
+        writes its job's end) and returns only once every one has.
+        """
+        async with asyncio.TaskGroup() as group:
+            with self.jobs.serving(group):
+                await self.engine.serve()
+
+    @property
+    def job(self) -> Job | None:
+        """The current or last operation's row."""
+        return self.jobs.job
 
     async def connect(self) -> None:
         self._disconnect_asked = False
@@ -129,7 +119,17 @@ class Machine:
 
     # -- the supervisor follows the engine --------------------------------
 
-    def _on_event(self, event: Event) -> None:
+    def _on_engine(self, event: EngineEvent) -> None:
+        """The engine's one way up. A fact is published before what it causes: a status
+        report before the supervisor change and the faults it brings (clients read them
+        in that order). A fault the engine detected is the fault table's to decide."""
+        if isinstance(event, FaultDetected):
+            now_ = time.time()
+            self._fault_changed(
+                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
+            )
+            return
+        self.hub.publish(event)
         if isinstance(event, LinkChanged):
             if event.up and self.supervisor.can(SupEvent.CONNECT):
                 self.supervisor.fire(SupEvent.CONNECT)
@@ -140,11 +140,6 @@ class Machine:
         elif isinstance(event, StatusChanged):
             self._on_signals(event.report)
             self._settle()
-        elif isinstance(event, FaultDetected):
-            now_ = time.time()
-            self._fault_changed(
-                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
-            )
 
     def _settle(self) -> None:
         """Busy against idle, from what the board says and what the host has queued."""
@@ -187,7 +182,7 @@ class Machine:
         self._log.warning("fault", fault=fault.id, active=fault.active, value=fault.value)
         self.hub.publish(FaultChanged(self.id, fault.to_json()))
         blocking = self.faults.blocking()
-        if blocking and self._stream is not None and not self._stream.done:
+        if blocking and self.jobs.live() is not None:
             ids = ", ".join(f.id for f in blocking)
             self.engine.stop_stream(FaultActive.code, f"fault active: {ids}")
 
@@ -233,9 +228,8 @@ class Machine:
         before = [(0, line) for line in preamble or ()]
         handle = path.open(encoding="utf-8", errors="replace")
         try:
-            lines = self.tools.lines(itertools.chain(before, program_lines(handle, start_line)))
-            return await self._start(
-                "make",
+            lines = itertools.chain(before, program_lines(handle, start_line))
+            return await self._start_make(
                 file,
                 total + len(before),
                 lines,
@@ -247,10 +241,38 @@ class Machine:
             handle.close()
             raise
 
-    def keep(self, task: asyncio.Task[None]) -> None:
-        """A task of the running job's (its tool changes): cancelled with the machine."""
-        self._runners.add(task)
-        task.add_done_callback(self._runners.discard)
+    async def start_program(self, lines: list[str]) -> Job:
+        """Lines the daemon made (a macro's, a frame's), run as a make job with no file:
+        admitted, numbered, paused, resumed and cancelled as any make job. The caller has
+        checked the lines as a file's are checked (hostd/machine/macros.py)."""
+        return await self._start_make(None, len(lines), enumerate(lines, start=1), None)
+
+    async def _start_make(
+        self,
+        file: str | None,
+        total: int,
+        lines: Iterator[tuple[int, str]],
+        handle: TextIO | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
+    ) -> Job:
+        """A make job, its M6s read by the tool-change policy (toolchange.py)."""
+        lines = self.tools.lines(lines)
+        holds = self.tools.holds(lines)
+        job = await self.jobs.start(
+            "make",
+            file,
+            total,
+            lines,
+            handle,
+            start_line=start_line,
+            preamble=preamble,
+            holds=holds,
+        )
+        if holds is not None:
+            self.tools.follow(self.jobs.live(), holds)
+        return job
 
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
         lines = self.engine.session.jog_lines(axes, feed)
@@ -262,8 +284,10 @@ class Machine:
                 await self.engine.send(line, operation=True)
             return self.job
         # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
-        self._jog_restore = lines[-1] if len(lines) > 1 else None
-        return await self._start("jog", None, len(lines), enumerate(lines, start=1), None)
+        restore = lines[-1] if len(lines) > 1 else None
+        return await self.jobs.start(
+            "jog", None, len(lines), enumerate(lines, start=1), None, if_stopped=restore
+        )
 
     async def read_settings(self, keys: list[str]) -> dict[str, Any]:
         """Read settings: queries, so served in every state while the link is up; no job row."""
@@ -304,14 +328,14 @@ class Machine:
         The row says `completed` only when every line was answered with
         status 0; anything else, even the request being abandoned, is `failed`.
         """
-        job = await self._begin("settings", None, len(lines))
+        job = await self.jobs.begin("settings", None, len(lines))
         bodies: list[dict[str, Any]] = []
         result = StreamResult(StreamEnd.FAILED, 1005, "the settings operation was abandoned")
         try:
             for line in lines:
                 response = await self.engine.send(line, operation=True)
                 bodies.append(response.body)
-                self._record(lines_sent=len(bodies), lines_acked=len(bodies))
+                await self.jobs.save(lines_sent=len(bodies), lines_acked=len(bodies))
             result = StreamResult(StreamEnd.COMPLETED)
         except MachineError as exc:
             result = StreamResult(StreamEnd.FAILED, exc.code, exc.message)
@@ -320,156 +344,20 @@ class Machine:
             result = StreamResult(StreamEnd.FAILED, -32602, exc.message)
             raise
         finally:
-            await asyncio.shield(self._end(result))
+            await asyncio.shield(self.jobs.end(result))
         return job, bodies
 
-    async def _start(
-        self,
-        kind: JobKind,
-        file: str | None,
-        total: int | None,
-        lines: Iterator[tuple[int, str]],
-        handle: TextIO | None,
-        *,
-        start_line: int | None = None,
-        preamble: list[str] | None = None,
-    ) -> Job:
-        job = await self._begin(kind, file, total, start_line=start_line, preamble=preamble)
-        encode = self.engine.session.encode_job_line
-        if kind == "make":
-            stream = self.tools.make_stream(lines, job.id, encode, numbered=True)
-        else:
-            stream = JobStream(lines, job.id, encode, numbered=False)
-        try:
-            self.engine.start_stream(stream)
-        except MachineError as exc:
-            await self._end(StreamResult(StreamEnd.FAILED, exc.code, exc.message))
-            raise
-        self._stream = stream
-        runner = asyncio.create_task(self._run(stream, handle), name=f"job-{job.id}")
-        self._runners.add(runner)
-        runner.add_done_callback(self._runners.discard)
-        return job
-
-    async def _begin(
-        self,
-        kind: JobKind,
-        file: str | None,
-        total: int | None,
-        *,
-        start_line: int | None = None,
-        preamble: list[str] | None = None,
-    ) -> Job:
-        """Take the supervisor to `operation` first, then write the row: never half-applied.
-
-        A locked-out board is the first thing to say (204/205/206), before "busy".
-        """
+    def _begin_operation(self) -> None:
+        """An operation may begin: a locked-out board is the first thing to say
+        (204/205/206), then a fault (1007), then "busy" (1003, unless idle)."""
         self.engine.admit_action()
-        self._refuse_if_faulted()  # 1007
-        self.supervisor.fire(SupEvent.START_OPERATION)  # Refused (1003) unless idle
-        try:
-            job = await self.store.create(
-                self.id, kind, file, total, start_line=start_line, preamble=preamble
-            )
-        except BaseException:
-            self._operation_stopped()
-            raise
-        self.job = job
-        self._last_write = None
-        self._publish_job()
-        return job
-
-    async def _run(self, stream: JobStream, handle: TextIO | None) -> None:
-        """Follow a streaming operation to its end, persisting and publishing progress."""
-        persisted_at = time.monotonic()
-        persisted_acked = 0
-        last: tuple[int, int, int | None] = (0, 0, None)
-        try:
-            while not stream.done:
-                gap_over = time.monotonic() - persisted_at >= PERSIST_GAP
-                # Within the gap the mark would wake the runner at every answer: wait it out.
-                stream.wake_at = persisted_acked + PERSIST_LINES if gap_over else None
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(PUBLISH_EVERY):
-                        await stream.wake.wait()
-                stream.wake.clear()
-                counts = (stream.sent, stream.acked, stream.line_executed)
-                if counts == last:
-                    continue
-                last = counts
-                clock = time.monotonic()
-                since = clock - persisted_at
-                if since >= PERSIST_EVERY or (
-                    counts[1] - persisted_acked >= PERSIST_LINES and since >= PERSIST_GAP
-                ):
-                    self._record(
-                        lines_sent=counts[0], lines_acked=counts[1], line_executed=counts[2]
-                    )
-                    persisted_at, persisted_acked = clock, counts[1]
-                else:
-                    self._publish_job()
-            kind = self.job.kind if self.job else None
-            stopped = stream.result.result().end is not StreamEnd.COMPLETED
-            if kind == "jog" and stopped and self._jog_restore is not None:
-                await self._restore_absolute_mode(self._jog_restore)
-        finally:
-            if handle is not None:
-                handle.close()
-            result = stream.result.result() if stream.done else _interrupted()
-            await asyncio.shield(self._end(result, stream))
-
-    def _record(self, *, publish: bool = True, **fields: Any) -> asyncio.Task[None]:
-        """Change the job: in memory at once (the truth), on disk after every earlier write."""
-        assert self.job is not None
-        self.job = self.job.model_copy(update=fields)
-        self._last_write = asyncio.create_task(self._write(self._last_write, self.job.id, fields))
-        if publish:
-            self._publish_job()
-        return self._last_write
-
-    async def _write(self, previous: asyncio.Task[None] | None, job_id: int, fields: Any) -> None:
-        if previous is not None:
-            await asyncio.wait({previous})
-        try:
-            await self.store.write(job_id, **fields)
-        except Exception:
-            self._log.exception("could not write the job row", job=job_id)
-
-    async def _end(self, result: StreamResult, stream: JobStream | None = None) -> None:
-        error = None
-        if result.code is not None or result.end is StreamEnd.FAILED:
-            error = JobError(code=result.code or 1005, message=result.message or result.end.value)
-        assert self.job is not None
-        counts: dict[str, Any] = {}
-        if stream is not None:
-            counts = self._counts(stream)
-            if result.end is StreamEnd.COMPLETED and stream.last_acked_line:
-                counts["line_executed"] = stream.last_acked_line  # the board ran it all
-        self._stream = None
-        state = _JOB_STATE[result.end]
-        # The end is told only once it is on disk: no client hears "completed"
-        # of a job a crash would then show "interrupted".
-        await self._record(publish=False, state=state, ended_at=now(), error=error, **counts)
-        self._publish_job()
-        self._operation_stopped()  # in the same step: a client told "ended" finds the machine free
-        job = self.job
-        self._log.info("job ended", job=job.id, state=job.state, acked=job.lines_acked)
+        self._refuse_if_faulted()
+        self.supervisor.fire(SupEvent.START_OPERATION)
 
     def _operation_stopped(self) -> None:
         if self.supervisor.can(SupEvent.OPERATION_STOPPED):
             self.supervisor.fire(SupEvent.OPERATION_STOPPED)
         self._settle()
-
-    async def _restore_absolute_mode(self, line: str) -> None:
-        """A jog stopped mid-way may have left the board in G91: put G90 back."""
-        try:
-            async with asyncio.timeout(5):  # a stop by `!` and `%` passes through a hold
-                await self.engine.wait_for(self.engine.out_of_hold)
-            await self.engine.send(line, operation=True)
-        except TimeoutError:
-            self._log.warning("could not restore G90 after a jog: the board stayed in a hold")
-        except MachineError as exc:
-            self._log.warning("could not restore G90 after a jog", error=exc.message)
 
     # -- commands the API gives: the machine is the only way down ------------
 
@@ -570,8 +458,7 @@ class Machine:
         self.engine.realtime(Realtime.JOB_KILL)
         async with asyncio.timeout(5):
             await asyncio.shield(stream.result)
-        for runner in list(self._runners):  # let the row reach its end state
-            await asyncio.wait({runner}, timeout=5)
+        await self.jobs.followed(timeout=5)  # let the row reach its end state
         if self.job.id == cancelled:
             return self.job
         # Another client started a job once this one ended: answer for the one cancelled
@@ -580,8 +467,7 @@ class Machine:
 
     def _live_stream(self) -> JobStream | None:
         """The stream of the running operation, while it streams; None once it ended."""
-        stream = self._stream
-        return stream if stream is not None and not stream.done else None
+        return self.jobs.live()
 
     def _pausable(self) -> bool:
         return (
@@ -614,35 +500,36 @@ class Machine:
     def tool_change_answered(self, stream: JobStream, change: ToolChange) -> None:
         """Record the change; the job goes on with the M6 line, in one step."""
         assert self.job is not None
-        self._record(publish=False, tool_changes=[*self.job.tool_changes, change])
+        changes = [*self.job.tool_changes, change]
         with self.engine.one_step():  # no job line goes out while the supervisor says paused
-            release = getattr(stream, "release", None)
-            if release is not None:
-                release()
+            self.engine.release_stream()
             if stream.paused:  # the user's `!` too: its `~`
                 self.engine.resume_stream()
             if self.supervisor.can(SupEvent.UNPAUSE_OPERATION):
                 self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
         if self._live_stream() is not None:
-            self._set_job_state("running")
-        else:
-            self._publish_job()
+            self.jobs.change(state="running", tool_changes=changes)
 
     def _set_job_state(self, state: str) -> Job:
         """Only ever called while the job streams: a job's end state is final."""
         assert self.job is not None and self._live_stream() is not None
-        self._record(state=state)
-        return self.current_job() or self.job
+        return self.jobs.change(state=state)
 
     # -- views -------------------------------------------------------------
 
     def current_job(self) -> Job | None:
-        if self.job is None or self._stream is None:
-            return self.job
-        return self._with_counts(self.job, self._stream)
+        return self.jobs.current()
+
+    def is_laser(self) -> bool:
+        """The tool is a laser: the config says so, or the board is in laser mode."""
+        return self.config.laser or self.engine.model.laser_mode is True
 
     def snapshot(self) -> dict[str, Any]:
         snap = self.engine.model.snapshot()
+        if snap["laser_mode"] is None and self.config.laser:
+            # A board that cannot say (g2core: its laser toolhead is chosen when the
+            # firmware is built, HAS_LASER): the config's word.
+            snap["laser_mode"] = True
         job = self.current_job()
         snap.update(
             dialect=self.config.dialect,
@@ -655,29 +542,10 @@ class Machine:
         )
         return snap
 
-    def _with_counts(self, job: Job, stream: JobStream) -> Job:
-        return job.model_copy(update=self._counts(stream))
-
-    @staticmethod
-    def _counts(stream: JobStream) -> dict[str, Any]:
-        counts: dict[str, Any] = {"lines_sent": stream.sent, "lines_acked": stream.acked}
-        if stream.numbered:
-            counts["line_executed"] = stream.line_executed
-        return counts
-
-    def _publish_job(self) -> None:
-        job = self.current_job()
-        if job is not None and self.hub.active:
-            self.hub.publish(JobChanged(self.id, job.model_dump(mode="json")))
-
 
 def _count_lines(path: Path, start_line: int) -> int:
     with path.open(encoding="utf-8", errors="replace") as f:
         return sum(1 for _ in program_lines(f, start_line))
-
-
-def _interrupted() -> StreamResult:
-    return StreamResult(StreamEnd.INTERRUPTED, 1002, "the daemon stopped during the job")
 
 
 def setting_lines(values: dict[str, Any]) -> list[str]:

@@ -17,26 +17,34 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
+from pathlib import Path
 from typing import Any, Final
 
+import structlog
+
+from hostd.machine import macros
+from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
+from hostd.machine.preflight import OutOfTravel, analyze_for, work_offset
 from hostd.machine.supervisor import State as SupState
+from hostd.machine.workers import WorkerPool
 from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
+from hostd.protocol.gcode import axes_words, short_number
+from hostd.protocol.gcodestate.analysis import beyond_travel
+from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
 
-HOME_AXES: Final = ("x", "y", "z")  # what "all axes" homes: the axes both sims and boards have
+log = structlog.get_logger(__name__)
+
 # A homing cycle may take this long before the operation gives up waiting (the
 # board goes on: a feedhold or reset stops it). grbl's own bound is its session's.
 HOMING_WAIT: Final = 300.0
 MOVE_WAIT: Final = 600.0  # a go-to-zero's moves, from anywhere on the table at a slow rapid
 ANSWER_WAIT: Final = 10.0
 AT_ZERO: Final = 0.001  # mm (or in): the reports' resolution, three decimals
-# g2core's override factors (planner.h FEED_OVERRIDE_MIN/MAX, TRAVERSE_OVERRIDE_MAX;
-# settings_default.h SPINDLE_OVERRIDE_MIN/MAX), in percent.
-_WCS_P: Final = {"G54": 1, "G55": 2, "G56": 3, "G57": 4, "G58": 5, "G59": 6}
 
 _running: set[str] = set()  # machines with an operation of this module under way
 
@@ -58,42 +66,21 @@ async def _operation(machine: Machine) -> AsyncIterator[None]:
         _running.discard(machine.id)
 
 
-def _axes_words(axes: Iterable[str]) -> str:
-    return " ".join(f"{a.upper()}0" for a in axes)
-
-
-def home_lines(dialect: str, axes: list[str] | None) -> list[str]:
-    """g2core: `G28.2` with a word per axis (cycle_homing.cpp homes the axes named);
-    grbl: `$H`, every axis the board's `$23`.. homes (one-axis `$HX` needs grblHAL's
-    single-axis homing setting, system.c go_home: refused here, not guessed)."""
-    if dialect == "grbl":
-        if axes is not None and set(axes) != set(HOME_AXES):
-            raise InvalidCommand(
-                Refusal.UNREADABLE,
-                "grbl homes every axis at once with $H: leave axes out (or give x, y and z)",
-            )
-        return ["$H"]
-    return [f"G28.2 {_axes_words(axes or HOME_AXES)}"]
-
-
 async def home(machine: Machine, axes: list[str] | None) -> None:
     """Home; return once the board says the cycle is done (ControllerError if it failed)."""
-    lines = home_lines(machine.config.dialect, axes)
     engine = machine.engine
+    session = engine.session
+    lines = session.home_lines(axes)
     async with _operation(machine):
         before = engine.model.last_exception
-        if machine.config.dialect == "grbl":
-            # grbl answers `$H` only once the cycle has ended (system.c); the session
-            # sets `homed` from that answer (hostd/protocol/grbl/session.py).
+        if session.homing_answered_at_end:
             await engine.send(lines[0], timeout=HOMING_WAIT)
             await _at_rest(machine)  # a report after the answer: out of ALARM, say
             return
         await engine.send(lines[0], timeout=ANSWER_WAIT)
-        # g2core answers G28.2 as it starts the cycle (cm_homing_cycle_start sets
-        # MACHINE_CYCLE / CYCLE_HOMING at once: the combined state reads HOMING, 9).
-        # A status report asked after the answer shows the cycle; its end is the
-        # state leaving HOMING.
-        await engine.send("{sr:n}", timeout=ANSWER_WAIT)
+        # The answer came as the cycle started; a status report asked after it shows
+        # the cycle, and its end is the state leaving HOMING.
+        await _fresh_report(machine)
         model = engine.model
         try:
             async with asyncio.timeout(HOMING_WAIT):
@@ -101,42 +88,17 @@ async def home(machine: Machine, axes: list[str] | None) -> None:
         except TimeoutError:
             raise ControllerTimeout(f"{machine.id}: homing did not end") from None
         failed = model.last_exception
-        if failed is not before and failed is not None and _homing_status(failed):
+        if failed is not before and failed is not None and session.homing_failed(failed):
             raise ControllerError(int(failed["st"]), str(failed.get("msg") or "homing failed"))
         if model.state is not None and model.state.is_lockout:
             raise ControllerError(0, f"{machine.id}: homing ended in {model.state.name}")
-
-
-def _homing_status(report: Mapping[str, Any]) -> bool:
-    """g2core's homing failures are statuses 240-247 (error.h STAT_HOMING_*)."""
-    status = report.get("st")
-    return isinstance(status, int) and 240 <= status <= 247
-
-
-def zero_line(wcs: str | None, axes: Mapping[str, float], dialect: str) -> str:
-    """`G10 L20 P<active WCS>`: the current position reads as given, in that WCS."""
-    words = " ".join(f"{a.upper()}{_number(v)}" for a, v in axes.items())
-    p = _WCS_P.get(wcs or "")
-    if p is None:
-        if dialect != "grbl":
-            raise InvalidCommand(
-                Refusal.UNREADABLE,
-                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
-            )
-        p = 0  # gnea/grbl gcode.c: G10 P0 is the active coordinate system
-    return f"G10 L20 P{p} {words}"
-
-
-def _number(value: float) -> str:
-    text = f"{value:.4f}".rstrip("0").rstrip(".")
-    return "0" if text in ("", "-0") else text
 
 
 async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
     """Set work zero: each axis named reads the value given, now, in the active WCS."""
     engine = machine.engine
     async with _operation(machine):
-        line = zero_line(engine.model.modal.get("wcs"), axes, machine.config.dialect)
+        line = engine.session.zero_line(engine.model.modal.get("wcs"), axes)
         await engine.send(line, timeout=ANSWER_WAIT)
         # The position reports follow the offset; ask for one now so the answer's
         # snapshot already shows it.
@@ -144,10 +106,12 @@ async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
 
 
 async def _fresh_report(machine: Machine) -> None:
-    if machine.config.dialect == "grbl":
+    """Ask for a full status report: answered, where the dialect has such a line."""
+    line = machine.engine.session.report_line
+    if line is None:
         machine.engine.query_status()
         return
-    await machine.engine.send("{sr:n}", timeout=ANSWER_WAIT)
+    await machine.engine.send(line, timeout=ANSWER_WAIT)
 
 
 def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
@@ -158,9 +122,9 @@ def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
     lines: list[str] = []
     flat = [a for a in chosen if a != "z"]
     if flat and safe_z is not None:
-        lines.append(f"G53 G0 Z{_number(safe_z)}")
+        lines.append(f"G53 G0 Z{short_number(safe_z)}")
     if flat:
-        lines.append(f"G90 G0 {_axes_words(flat)}")
+        lines.append(f"G90 G0 {axes_words(flat)}")
     if "z" in chosen:
         lines.append("G90 G0 Z0")
     return lines
@@ -205,14 +169,17 @@ async def _at_rest(machine: Machine, there: Callable[[], bool] = lambda: True) -
 
 def spindle_line(state: str, speed: float | None) -> str:
     code = {"cw": "M3", "ccw": "M4", "off": "M5"}[state]
-    return code if speed is None else f"{code} S{_number(speed)}"
+    return code if speed is None else f"{code} S{short_number(speed)}"
 
 
 async def spindle(machine: Machine, state: str, speed: float | None) -> None:
-    """M3/M4/M5 (with S): answered once the board took the line."""
+    """M3/M4/M5 (with S): answered once a report read after the line says the board
+    rests again, so the next operation finds the machine idle (grbl syncs the
+    spindle with the planner: the line runs as a block, and the board is busy
+    until it has)."""
     async with _operation(machine):
         await machine.engine.send(spindle_line(state, speed), timeout=ANSWER_WAIT)
-        await _fresh_report(machine)
+        await _at_rest(machine)
 
 
 async def override(
@@ -240,3 +207,176 @@ def in_force(machine: Machine) -> dict[str, float | None]:
     """The overrides the board last reported, or nulls where it never said."""
     now = machine.engine.model.overrides or {}
     return {key: now.get(key) for key in ("feed", "spindle", "rapid")}
+
+
+# -- laser test-fire -----------------------------------------------------------
+
+LASER_TEST_MAX_S: Final = 2.0  # seconds: api.md's bound on duration_s
+BEAM_OFF_WAIT: Final = 5.0  # seconds past the dwell for the board to answer its M5
+
+
+async def full_power(machine: Machine) -> float:
+    """The S word of 100 % (grbl `$30`, g2core `th2mxs`), read from the board now."""
+    key = machine.engine.session.spindle_max_setting()
+    if key is None:
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id}: its firmware has no spindle maximum to scale a laser's power by",
+        )
+    found = await machine.read_settings([key])
+    value = found.get(key)
+    if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+        raise ControllerError(0, f"{machine.id}: the board did not say its spindle maximum")
+    return float(value)
+
+
+def _check_laser(machine: Machine, power: float) -> None:
+    if not machine.is_laser():
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id} is not a laser (set laser = true in its [[machines]] table,"
+            " or laser mode on the board)",
+        )
+    most = machine.config.laser_test_max
+    if power > most:
+        raise InvalidCommand(
+            Refusal.BAD_NUMBER,
+            f"{machine.id}: at most {most:g} % (laser_test_max in its config), not {power:g}",
+        )
+
+
+async def laser_test(machine: Machine, power: float, seconds: float) -> None:
+    """Fire the beam standing still at `power` % for `seconds`, then always off.
+
+    The lines (the session's `laser_test_lines`: on, dwell, off) are handed to the
+    board together, so its own dwell bounds the burn and its `M5` follows even if the
+    link drops or the host is gone. If the `M5` is not answered in time, or the call is
+    cancelled or fails before it is, the board is reset (every firmware's reset stops
+    the spindle: gnea/grbl mc_reset, g2core reboots). A feedhold during the dwell
+    stops the beam too on grbl (DISABLE_LASER_DURING_HOLD, protocol.c:536).
+    """
+    _check_laser(machine, power)
+    if not 0 < seconds <= LASER_TEST_MAX_S:
+        raise InvalidCommand(Refusal.BAD_NUMBER, f"duration_s is 0 to {LASER_TEST_MAX_S:g} s")
+    engine = machine.engine
+    async with _operation(machine):
+        engine.admit_action()  # in a lockout: its code (204/205/206), nothing sent
+        speed = await full_power(machine) * power / 100.0
+        lines = engine.session.laser_test_lines(speed, seconds)
+        wait = seconds + BEAM_OFF_WAIT
+        sends = [asyncio.ensure_future(engine.send(line, timeout=wait)) for line in lines]
+        off = sends[-1]
+        try:
+            await asyncio.gather(*(asyncio.shield(s) for s in sends))
+        except BaseException:
+            # Whatever went wrong before the board answered its M5: let the M5 answer
+            # (it was written with the rest), and if it does not come, reset the board.
+            if not await _answered(off, wait):
+                log.error("laser test: beam-off not answered: resetting", machine=machine.id)
+                with contextlib.suppress(Exception):
+                    await machine.reset()
+            raise
+        finally:
+            for task in sends:
+                if not task.done():
+                    task.cancel()
+
+
+async def _answered(task: asyncio.Future[Any], wait: float) -> bool:
+    """Whether the board answered this line OK within `wait` seconds."""
+    done, _ = await asyncio.wait({task}, timeout=wait)
+    return bool(done) and not task.cancelled() and task.exception() is None
+
+
+# -- frame -----------------------------------------------------------------
+
+FRAME_FEED: Final = 1000.0  # mm/min, when none is asked: a walk the eye can follow
+
+
+def frame_lines(
+    machine: Machine,
+    box: Mapping[str, tuple[float, float]],
+    *,
+    speed: float | None,
+    feed: float,
+    safe_z: float | None,
+    inches: bool,
+    relative: bool,
+) -> list[str]:
+    """The job's box traced in work coordinates, at `feed`, beam off (or at S `speed`).
+
+    Z is never moved down: a laser traces at its current Z (no Z word); a mill first
+    goes up to its safe height in machine coordinates (`safe_z` None: already there).
+    The board's units and distance mode are put back at the end.
+    """
+    (x0, x1), (y0, y1) = box["x"], box["y"]
+    lines = ["M5", "G21 G90 G94"]
+    if safe_z is not None:
+        lines.append(f"G53 G0 Z{short_number(safe_z)}")
+    lines.append(f"G0 X{short_number(x0)} Y{short_number(y0)}")
+    if speed is not None:
+        lines.append(machine.engine.session.beam_on_line(speed))
+    f = f" F{short_number(feed)}"
+    for x, y in ((x1, y0), (x1, y1), (x0, y1), (x0, y0)):
+        lines.append(f"G1 X{short_number(x)} Y{short_number(y)}{f}")
+        f = ""
+    lines.append("M5")
+    if inches:
+        lines.append("G20")
+    if relative:
+        lines.append("G91")
+    return lines
+
+
+async def frame(
+    machine: Machine, path: Path, power: float, feed: float | None, *, pool: WorkerPool
+) -> Job:
+    """Trace `path`'s XY bounding box (its analysis, work coordinates) as a make job.
+
+    Refused (1008, as job.start) when the box leaves the travel, where the travel
+    check can run (travel known, machine homed); power above 0 only on a laser, within
+    `laser_test_max`; a mill needs a safe height (`safe_z`, or the Z travel's top).
+    """
+    if power > 0:
+        _check_laser(machine, power)
+    check = await analyze_for(machine, path, pool=pool)
+    bounds = check.analysis.bounds
+    if "x" not in bounds or "y" not in bounds:
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{path.name} moves in no X and Y: no box to frame"
+        )
+    box = {"x": bounds["x"], "y": bounds["y"]}
+    limits = check.limits
+    offset = work_offset(machine.snapshot())
+    if limits is not None and limits.travel and offset:
+        beyond = beyond_travel(box, offset, limits.travel)
+        if beyond:
+            raise OutOfTravel(
+                f"the frame of {path.name} leaves {machine.id}'s travel: " + "; ".join(beyond),
+                {"beyond_travel": beyond},
+            )
+    laser = machine.is_laser()
+    safe_z = None if laser else machine.safe_height(limits)
+    if not laser and safe_z is None:
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id} is not a laser and its safe height is unknown: set safe_z",
+        )
+    z_now = machine.engine.model.machine_position.get("z")
+    if safe_z is not None and z_now is not None:
+        scale = MM_PER_INCH if machine.engine.model.units == "in" else 1.0
+        if z_now * scale >= safe_z:
+            safe_z = None  # already at or above it: Z never goes down
+    speed = await full_power(machine) * power / 100.0 if power > 0 else None
+    model = machine.engine.model
+    lines = frame_lines(
+        machine,
+        box,
+        speed=speed,
+        feed=feed or FRAME_FEED,
+        safe_z=safe_z,
+        inches=model.units == "in",
+        relative=model.modal.get("distance") == "G91",
+    )
+    macros.admit_program(machine, lines, f"the frame of {path.name}")
+    return await machine.start_program(lines)

@@ -28,9 +28,12 @@ from hostd.machine.guard import line_limit, tool_change_policy
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
+from hostd.protocol import dialects
 from hostd.protocol.commands import MAX_LINE_BYTES
+from hostd.protocol.dialects import DialectSpec
 from hostd.protocol.errors import MachineError
-from hostd.protocol.gcodestate import DIALECTS, Analysis, analyze
+from hostd.protocol.gcodestate import Analysis, analyze
+from hostd.protocol.gcodestate import Dialect as GcodeDialect
 from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError
 from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
@@ -158,7 +161,7 @@ def work_offset(snapshot: dict[str, Any]) -> dict[str, float] | None:
 
 async def analyze_file(
     path: Path,
-    dialect: str,
+    dialect: DialectSpec,
     limits: MachineLimits | None = None,
     offset: dict[str, float] | None = None,
     *,
@@ -179,12 +182,12 @@ async def analyze_file(
 
     velocity = tuple(sorted(limits.velocity.items())) if limits else ()
     acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()
-    key = (path, await asyncio.to_thread(digest), dialect, velocity, acceleration)
+    key = (path, await asyncio.to_thread(digest), dialect.name, velocity, acceleration)
     analysis = _analyses.get(key)
     if analysis is None:
         try:
             analysis = await pool.run(
-                f"analysing {path.name}", _analysis, path, dialect, velocity, acceleration
+                f"analysing {path.name}", _analysis, path, dialect.gcode, velocity, acceleration
             )
         except ProgramError as exc:
             raise BadProgram.of(path, exc) from None
@@ -202,7 +205,7 @@ async def analyze_file(
 
 async def check_file(
     path: Path,
-    dialect: str,
+    dialect: DialectSpec,
     max_line_bytes: int,
     tool_change: str | None,
     start_line: int = 1,
@@ -222,7 +225,11 @@ async def check_file(
 
 
 def _check_file(
-    path: Path, dialect: str, max_line_bytes: int, tool_change: str | None, start_line: int
+    path: Path,
+    dialect: DialectSpec,
+    max_line_bytes: int,
+    tool_change: str | None,
+    start_line: int,
 ) -> Findings:
     """`check_file`'s work, on a worker process."""
     with path.open(encoding="utf-8", errors="replace") as f:
@@ -236,7 +243,7 @@ def _check_file(
 
 def _analysis(
     path: Path,
-    dialect: str,
+    gcode: GcodeDialect,
     velocity: tuple[tuple[str, float], ...],
     acceleration: tuple[tuple[str, float], ...],
 ) -> Analysis:
@@ -244,7 +251,7 @@ def _analysis(
     with path.open(encoding="utf-8", errors="replace") as f:
         return analyze(
             f,
-            DIALECTS[dialect],
+            gcode,
             velocity=dict(velocity) or None,
             acceleration=dict(acceleration) or None,
         )
@@ -275,7 +282,7 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
 async def plan_at(
     path: Path,
     line: int,
-    dialect: str,
+    dialect: DialectSpec,
     *,
     board: Board | None,
     safe_z: float | None,
@@ -292,7 +299,7 @@ async def plan_at(
             _plan_file,
             path,
             line,
-            dialect,
+            dialect.gcode,
             board,
             safe_z,
             dwell,
@@ -310,7 +317,7 @@ async def plan_at(
 def _plan_file(
     path: Path,
     line: int,
-    dialect: str,
+    gcode: GcodeDialect,
     board: Board | None,
     safe_z: float | None,
     dwell: float,
@@ -322,7 +329,7 @@ def _plan_file(
         plan = plan_resume(
             f,
             line,
-            DIALECTS[dialect],
+            gcode,
             board=board,
             safe_z=safe_z,
             dwell=dwell,
@@ -345,16 +352,18 @@ def _at(plan: ResumePlan, line: int) -> ResumePlan:
 
 
 async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) -> Preflight:
-    """`path` against `machine`: its dialect, speeds and travel; without one, g2core's rules."""
+    """`path` against `machine`: its dialect, speeds and travel; without one, the default
+    dialect's rules (dialects.DEFAULT)."""
     if machine is None:
-        found = await check_file(path, "g2core", MAX_LINE_BYTES + 1, None, pool=pool)
-        return replace(await analyze_file(path, "g2core", pool=pool), findings=found)
+        spec = dialects.lookup(dialects.DEFAULT)
+        found = await check_file(path, spec, MAX_LINE_BYTES + 1, None, pool=pool)
+        return replace(await analyze_file(path, spec, pool=pool), findings=found)
     limits = await _limits(machine)
     offset = work_offset(machine.snapshot())
     found = await check_file(
-        path, machine.config.dialect, line_limit(machine), tool_change_policy(machine), pool=pool
+        path, machine.config.spec, line_limit(machine), tool_change_policy(machine), pool=pool
     )
-    analysis = await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
+    analysis = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
     return replace(analysis, findings=found)
 
 
@@ -384,7 +393,7 @@ async def prepare_start(
         # 20,000th line for what the host can see now fails before anything moves.
         found = await check_file(
             path,
-            machine.config.dialect,
+            machine.config.spec,
             line_limit(machine),
             tool_change_policy(machine),
             start_line,
@@ -408,7 +417,7 @@ async def prepare_start(
     if not force and limits is not None and limits.travel and offset:
         # Only a check that can run is worth reading the file for: the travel
         # is known and so is the work offset (the machine is homed).
-        check = await analyze_file(path, machine.config.dialect, limits, offset, pool=pool)
+        check = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
         if check.beyond:
             raise OutOfTravel(
                 f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
@@ -453,7 +462,7 @@ async def _plan(
     return await plan_at(
         path,
         line,
-        config.dialect,
+        config.spec,
         board=board,
         safe_z=machine.safe_height(limits),
         dwell=config.spindle_dwell,

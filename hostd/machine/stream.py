@@ -1,168 +1,130 @@
-"""A job's lines on their way to the board, and how the job ended.
+"""A job's file on its way into the session, and the job's outcome as its runner awaits it.
 
-The engine pulls lines with `peek`/`take` only when the window has room, so
-the source (a file, streamed) is read no faster than the board takes it, but
-for LOOK_AHEAD lines: after each write the engine has the next lines read and
-encoded (`prefetch`), so that the path from an answer to the next line written
-carries no file reading and no encoding. A line that may not be sent is
-refused when its turn comes, not when it is read ahead.
-Counts only move forward: `sent` when a line is written, `acked` when the
-board answers it with status 0. Every sent line ends in exactly one of
-`acked`, `rejected`, `discarded`, or is still unanswered when the link is
-lost. The outcome is set once.
+The session holds the job's read position (hostd/protocol/stream.py): what
+is sent, answered, executed, and how the job ended. This side holds what
+the session must not: the file (an iterator of its lines, read no faster
+than the board takes them, but for LOOK_AHEAD lines fed ahead), and the
+asyncio objects the runner waits on. The engine calls `fill` after every
+step it delivers, and `ended` when the session tells `StreamEnded`.
 
-`line_executed` is the file line the board said it was executing (its N word in
-a status report; the session decides which reports say so, per dialect). It
-only moves forward and never past the last line sent: every value it takes is
-a lower bound of the truth, so it never claims more than the board ran.
+`holds`, if given, names file lines the job holds before (a tool change's
+M6, hostd/machine/toolchange.py): each is fed as the session's hold point,
+and `reached` is set once the session holds there.
 """
 
 from __future__ import annotations
 
 import asyncio
-import re
-from collections import deque
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Container, Iterator
 
-from hostd.protocol.commands import InvalidCommand, encode_line
-from hostd.protocol.linemode import InFlight
-from hostd.protocol.vocabulary import StreamEnd
+from hostd.protocol.stream import Stream
+from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
-_ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
-LOOK_AHEAD = 8  # lines read and encoded ahead of the flow control's room
-_PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
-
-
-@dataclass(frozen=True, slots=True)
-class StreamResult:
-    end: StreamEnd
-    code: int | None = None
-    message: str | None = None
+__all__ = ["JobStream", "StreamEnd", "StreamResult"]
 
 
 class JobStream:
-    """A job's lines for the session (a `hostd.protocol.vocabulary.LineSource`), and its outcome."""
+    """A job's source of lines, the session's position in it, and its outcome."""
 
     def __init__(
         self,
         lines: Iterator[tuple[int, str]],
         job_id: int | None = None,
-        encode: Callable[[str, int | None], bytes] | None = None,
         *,
         numbered: bool = False,
+        holds: Container[int] | None = None,
     ) -> None:
         self._lines = lines
-        # The dialect's: what a job line becomes on the wire; `numbered` gives each line its
-        # file line number as an N word, so that status reports say which line runs.
-        self._encode = encode or (lambda text, _number: encode_line(text))
+        self._holds = holds
+        self.job_id = job_id
         self.numbered = numbered
-        self.job_id = job_id  # the job row it belongs to, for the logs
-        self._next: InFlight | None = None
-        # Read ahead: a line as the flow control books it, or why it may not be sent.
-        self._ahead: deque[InFlight | tuple[int, InvalidCommand]] = deque()
-        self._source_done = False
-        self.exhausted = False  # every line was handed out (none left ahead either)
-        self.sent = 0
-        self.acked = 0  # answered with status 0
-        self.rejected = 0  # answered with a non-zero status
-        self.discarded = 0  # dropped unanswered by the board's flush or kill
-        self.last_acked_line: int | None = None
-        self.line_executed: int | None = None
-        self._sent_line = 0  # the highest file line number written
-        self._first_line: int | None = None  # the first one (a resume's preamble is line 0)
-        self._acked_lines: deque[int | None] = deque(maxlen=_ACKED_KEPT)
-        # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
-        self.program_pause_sent = False
-        self.paused = False  # from the job's `!` to its `~`: none of its lines is written
+        # The session's, from `start` on: the counts are read from it.
+        self.position = Stream(job_id, numbered=numbered)
         self.result: asyncio.Future[StreamResult] = asyncio.get_running_loop().create_future()
-        self.done = False  # the outcome is set (read at every line: a plain attribute)
         # Set when `acked` reaches `wake_at`, and when the stream ends: its runner's cue.
         self.wake = asyncio.Event()
         self.wake_at: int | None = None
+        # Set when the session holds at one of `holds` (cleared by whoever waits for it).
+        self.reached = asyncio.Event()
 
-    def peek(self) -> InFlight | None:
-        """The next line to write, booked as it will be (its bytes, this stream, its file
-        line number), or None when there is none.
+    def start(self, encode: Callable[[str, int | None], bytes]) -> Stream:
+        """The session's position in this job, its lines encoded in the session's dialect."""
+        self.position = Stream(self.job_id, encode, numbered=self.numbered)
+        return self.position
 
-        A line the board must never receive ends the stream as failed, unsent.
-        """
-        if self._next is None and not self.exhausted and not self.done:
-            if not self._ahead and not self._read_ahead():
-                self.exhausted = True
-                return None
-            entry = self._ahead.popleft()
-            if isinstance(entry, tuple):
-                number, invalid = entry
-                self.finish(StreamEnd.FAILED, -32602, f"line {number}: {invalid.message}")
-                return None
-            self._next = entry
-        return self._next
-
-    def prefetch(self) -> None:
-        """Read and encode up to LOOK_AHEAD lines ahead (the engine calls it after a write)."""
-        while len(self._ahead) < LOOK_AHEAD and not self.done and self._read_ahead():
-            pass
-
-    def _read_ahead(self) -> bool:
-        """One more line of the source onto the look-ahead; False once there is none."""
-        if self._source_done:
+    def fill(self) -> bool:
+        """Feed the session the lines it wants next; True if it had room and nothing ahead
+        (it must be pumped again now), or the file just ended (it may be complete)."""
+        position = self.position
+        want = position.wanted()
+        if want <= 0:
             return False
-        try:
-            number, text = next(self._lines)
-        except StopIteration:
-            self._source_done = True
-            return False
-        try:
-            encoded = self._encode(text, number if self.numbered else None)
-        except InvalidCommand as exc:
-            self._ahead.append((number, exc))  # refused when its turn comes: the lines before go
-        else:
-            self._ahead.append(InFlight(encoded, self, number))
-        return True
+        again = position.starved
+        lines = self._lines
+        holds = self._holds
+        for _ in range(want):
+            item = next(lines, None)
+            if item is None:
+                position.end_of_input()
+                return True
+            if holds is not None and item[0] in holds:
+                position.feed(item[0], item[1], hold=True)
+            else:
+                position.feed(item[0], item[1])
+        return again
 
-    def take(self) -> None:
-        """The peeked line was written."""
-        entry = self._next
-        assert entry is not None
-        line = entry.line
-        if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
-            self.program_pause_sent = True
-        number = entry.file_line
-        assert number is not None
-        if number > self._sent_line:  # file lines only grow; a resume's preamble is line 0
-            if self._first_line is None:
-                self._first_line = number
-            self._sent_line = number
-        self._next = None
-        self.sent += 1
-
-    def acknowledged(self, file_line: int | None) -> None:
-        self.acked += 1
-        self.last_acked_line = file_line
-        self._acked_lines.append(file_line)
-        if self.wake_at is not None and self.acked >= self.wake_at:
+    def stepped(self) -> None:
+        """After a step: wake the runner if the answered lines crossed its mark, and
+        whoever waits for a hold point if the session holds at one."""
+        if self.position.held is not None and not self.reached.is_set():
+            self.reached.set()
+        wake_at = self.wake_at
+        if wake_at is not None and self.position.acked >= wake_at:
             self.wake_at = None
             self.wake.set()
 
-    def executing(self, file_line: int) -> None:
-        """The board runs (or ran) this line. A number no line of this job carries is stale
-        (a line before the job, or read ahead of what was sent) and is ignored."""
-        first = self._first_line
-        if first is None or not first <= file_line <= self._sent_line:
-            return
-        if file_line > (self.line_executed or 0):
-            self.line_executed = file_line
+    def ended(self, result: StreamResult) -> None:
+        """The session told the end: resolve the outcome, wake the runner."""
+        if not self.result.done():
+            self.result.set_result(result)
+        self.wake.set()
 
-    def acked_line(self, back: int) -> int | None:
-        if back >= len(self._acked_lines):
-            return None
-        return self._acked_lines[-1 - back]
+    # -- the counts, as the session keeps them ------------------------------------
 
-    def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
-        if not self.done:
-            self.done = True
-            self._next = None
-            self._ahead.clear()
-            self.result.set_result(StreamResult(end, code, message))
-            self.wake.set()
+    @property
+    def held(self) -> int | None:
+        """The file line the job holds before, once its turn came; else None."""
+        return self.position.held
+
+    @property
+    def paused(self) -> bool:
+        """The user's pause (`!` to `~`), apart from any hold."""
+        return self.position.paused
+
+    @property
+    def done(self) -> bool:
+        return self.position.done
+
+    @property
+    def sent(self) -> int:
+        return self.position.sent
+
+    @property
+    def acked(self) -> int:
+        return self.position.acked
+
+    @property
+    def rejected(self) -> int:
+        return self.position.rejected
+
+    @property
+    def discarded(self) -> int:
+        return self.position.discarded
+
+    @property
+    def line_executed(self) -> int | None:
+        return self.position.line_executed
+
+    @property
+    def last_acked_line(self) -> int | None:
+        return self.position.last_acked_line

@@ -22,12 +22,15 @@
   job.start's and file.analyze's warnings, hostd/protocol/jobcheck.py).
 - "refuse" (or no policy): job.start refuses the file (jobcheck.py).
 
-The job's line source is wrapped (`ToolChangeLines`) and its stream is a
-`ToolChangeStream`, whose `peek` holds before a marked line: nothing here
-reaches into the session's flow control. The hold is the stream's `paused`,
-which every dialect's pump already honours; a user's pause and resume
-(`!`/`~`) set and clear only their own half of it, so `job.resume` can never
-carry the job past an M6 the operator has not answered.
+The job's line source is wrapped (`ToolChangeLines`), which notes each M6
+line (`marks`); the job's stream feeds each noted line to the session as a
+hold point (hostd/protocol/stream.py, `feed(..., hold=True)`): when its turn
+comes the session hands out nothing more and says so (`Stream.held`), and no
+dialect's pump takes it for an underflow. The session passes it only when
+told (`release_stream`), which only `job.tool_change_done` does. A user's
+pause and resume (`!`/`~`) are the stream's `paused`, apart from the hold,
+so `job.resume` can never carry the job past an M6 the operator has not
+answered.
 
 A cancel while it holds ends the job (`cancelled`) as any cancel does; a lost
 link or a daemon stopped while it holds leaves the job `interrupted`, resumable
@@ -101,43 +104,6 @@ class ToolChangeLines:
         return number, without_m6(text) or self._rewrite(text, tool)
 
 
-class ToolChangeStream(JobStream):
-    """A job stream that holds before each line its `ToolChangeLines` marked."""
-
-    def __init__(self, lines: ToolChangeLines, *args: Any, **kwargs: Any) -> None:
-        self._holding = False
-        self._user_paused = False
-        self.marks = lines.marks
-        # (file line, tool, the program's modes) while it holds
-        self.at: tuple[int, int | None, Modes] | None = None
-        self.reached = asyncio.Event()
-        super().__init__(lines, *args, **kwargs)
-
-    @property
-    def paused(self) -> bool:
-        """No line is written: the user's pause, or a tool-change hold."""
-        return self._user_paused or self._holding
-
-    @paused.setter
-    def paused(self, value: bool) -> None:
-        self._user_paused = value  # `!` and `~` are the user's; the hold is released apart
-
-    def peek(self) -> Any:
-        entry = super().peek()
-        if entry is not None and not self._holding and entry.file_line in self.marks:
-            tool, modes = self.marks.pop(entry.file_line)
-            self.at = (entry.file_line, tool, modes)
-            self._holding = True
-            self.reached.set()
-            return None
-        return entry
-
-    def release(self) -> None:
-        """The operator answered: the marked line goes next."""
-        self._holding = False
-        self.at = None
-
-
 @dataclass(frozen=True, slots=True)
 class Waiting:
     line: int
@@ -154,7 +120,8 @@ class ToolChanger:
 
     def __init__(self, machine: Machine) -> None:
         self.machine = machine
-        self.stream: ToolChangeStream | None = None
+        self.stream: JobStream | None = None
+        self.marks: dict[int, tuple[int | None, Modes]] = {}  # the followed job's M6 lines
         self.waiting: Waiting | None = None
         self.reference: float | None = None  # the first tool's probed Z (machine, mm)
         self._answering = False
@@ -171,39 +138,40 @@ class ToolChanger:
         session = self.machine.engine.session
         return ToolChangeLines(lines, str(self.policy), session.tool_change_line, self.machine.id)
 
-    def make_stream(
-        self,
-        lines: Iterator[tuple[int, str]],
-        job_id: int,
-        encode: Callable[[str, int | None], bytes],
-        *,
-        numbered: bool,
-    ) -> JobStream:
-        """The job's stream; one that holds at its M6s under "pause" and "probe"."""
+    @staticmethod
+    def holds(lines: Iterator[tuple[int, str]]) -> dict[int, tuple[int | None, Modes]] | None:
+        """The file lines a job of these lines holds before (filled as they are read)."""
         if not isinstance(lines, ToolChangeLines) or lines.policy not in HOLDS:
-            return JobStream(lines, job_id, encode, numbered=numbered)
-        stream = ToolChangeStream(lines, job_id, encode, numbered=numbered)
+            return None
+        return lines.marks
+
+    def follow(self, stream: JobStream | None, marks: dict[int, tuple[int | None, Modes]]) -> None:
+        """Follow a job that holds at its M6s, in the machine's task group."""
+        if stream is None:
+            return
         self.stream = stream
+        self.marks = marks
         self.waiting = None
         self.reference = None
-        task = asyncio.create_task(self._follow(stream), name=f"job-{job_id}-tools")
-        self.machine.keep(task)
-        return stream
+        self.machine.jobs.follow_also(self._follow(stream), f"{self.machine.id}-job-tools")
 
     # -- holding --------------------------------------------------------------
 
-    async def _follow(self, stream: ToolChangeStream) -> None:
-        """Each time the stream reaches a marked line: let the board finish, then hold."""
+    async def _follow(self, stream: JobStream) -> None:
+        """Each time the session holds at a marked line: let the board finish, then hold."""
         try:
             while not stream.done:
                 await _first(stream.reached.wait(), stream.result)
                 if stream.done:
                     return
                 stream.reached.clear()
+                line = stream.held
+                if line is None:
+                    continue
+                tool, modes = self.marks.pop(line, (None, Modes()))
                 await self._board_done(stream)
-                if stream.done or stream.at is None:
+                if stream.done or stream.held != line:
                     return
-                line, tool, modes = stream.at
                 self.waiting = Waiting(line, tool, modes)
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
@@ -214,12 +182,12 @@ class ToolChanger:
             if self.stream is stream:
                 self.waiting = None
 
-    async def _answered(self, stream: ToolChangeStream) -> None:
+    async def _answered(self, stream: JobStream) -> None:
         # The answer releases the hold, and the very next line may hold again in the same
         # step: the waiting record, cleared by the answer, is what tells.
         await self.machine.engine.wait_for(lambda: stream.done or self.waiting is None)
 
-    async def _board_done(self, stream: ToolChangeStream) -> None:
+    async def _board_done(self, stream: JobStream) -> None:
         """Every line sent is answered, and a report read after that says the board rests."""
         engine = self.machine.engine
         model = engine.model

@@ -31,6 +31,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 KILL_IS_JOB_KILL = 101.02  # from here ^D kills the job instead of raising ALARM
+# From 101.02 the override settings are `fro`/`tro`/`spo` (before: `mfo`/`mto`/`sso`).
+OVERRIDES_RENAMED = 101.02
 ALARM_THROUGH_HOLD = 101.05  # from here an alarm holds first, then kills, then is ALARM
 
 
@@ -76,5 +78,35 @@ class Build:
         config_app.cpp, present in 101.03)."""
         return self.fb >= KILL_IS_JOB_KILL
 
+    @property
+    def override_keys(self) -> dict[str, str]:
+        """The settings that hold the feed, rapid (traverse) and spindle override factors.
+
+        100.26 `config_app.cpp:847,849,862` (`mfo`, `mto`, `sso`); 101.02
+        `config_app.cpp:703,723,725` and edge-preview `config_app.cpp:993,995`,
+        `spindle.cpp:486` (`fro`, `tro`, `spo`).
+        """
+        if self.fb < OVERRIDES_RENAMED:
+            return {"feed": "mfo", "rapid": "mto", "spindle": "sso"}
+        return {"feed": "fro", "rapid": "tro", "spindle": "spo"}
+
+    @property
+    def override_enables(self) -> dict[str, str]:
+        """The enables a host can write, by override. 100.26's are off at start
+        (`cm_reset_overrides`, canonical_machine.cpp:1620,1622; spindle.h:61) and
+        written with `set_01` (config_app.cpp:846,848,861). From 101.02 `froe` and
+        `troe` are read-only (their table entry's setter is `cm_get_froe`/`cm_get_troe`,
+        101.02 config_app.cpp:722,724) and on (`cm_reset_overrides`, edge-preview
+        canonical_machine.cpp:1438,1440); `spoe` is written by `sp_set_spoe`
+        (edge-preview spindle.cpp:248)."""
+        if self.fb < OVERRIDES_RENAMED:
+            return {"feed": "mfoe", "rapid": "mtoe", "spindle": "ssoe"}
+        return {"spindle": "spoe"}
+
+
+# The override factors' bounds, in percent: planner.h FEED_OVERRIDE_MIN/MAX (0.05-2.00),
+# TRAVERSE_OVERRIDE_MIN/MAX (0.05-1.00); spindle.h (100.26, 101.03) and
+# settings_default.h:117-122 (edge-preview) SPINDLE_OVERRIDE_MIN/MAX (0.05-2.00).
+OVERRIDE_RANGES = {"feed": (5, 200), "rapid": (5, 100), "spindle": (5, 200)}
 
 NEWEST = Build(101.06)

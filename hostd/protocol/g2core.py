@@ -44,7 +44,7 @@ from __future__ import annotations
 import json
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from enum import Enum, auto
 from typing import Any
 
@@ -52,7 +52,9 @@ import structlog
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
+    InvalidCommand,
     Realtime,
+    Refusal,
     encode_clear,
     encode_get,
     encode_in_hold,
@@ -68,7 +70,7 @@ from hostd.protocol.errors import (
     NotConnected,
     Rejected,
 )
-from hostd.protocol.g2builds import NEWEST, Build
+from hostd.protocol.g2builds import NEWEST, OVERRIDE_RANGES, Build
 from hostd.protocol.g2handshake import (
     BANNER_WAIT,
     OLDEST_BUILD,
@@ -77,7 +79,7 @@ from hostd.protocol.g2handshake import (
     check_firmware,
     protocol_settings,
 )
-from hostd.protocol.gcode import jog_line
+from hostd.protocol.gcode import HOME_AXES, axes_words, jog_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
@@ -91,17 +93,18 @@ from hostd.protocol.messages import (
     Unparseable,
 )
 from hostd.protocol.parser import parse_line, plain_ok_count
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import SessionBase
 from hostd.protocol.settings import set_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import LOCKOUT_RAISED_BY, Status, message
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Probed,
@@ -159,6 +162,7 @@ class _Own(OwnLine, Enum):
     QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
     REAPPLY = auto()  # a setting sent again once a lockout ended
     CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
+    OVERRIDES = auto()  # the override factors, read or written (g2builds.py override_keys)
 
 
 class G2Session(SessionBase):
@@ -356,22 +360,23 @@ class G2Session(SessionBase):
             # cycle_homing.cpp answers the G28.2 itself with 0 and reports its failure
             # apart; the board would run the moves after it from an unknown position.
             what = f"controller reported {response.status}: {msg or message(response.status)}"
-            stream.finish(StreamEnd.FAILED, ControllerError.code, what)
+            self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
             self._write_realtime(Realtime.JOB_KILL)
         self._on_exception(ExceptionReport(response.status, msg, fields, response.raw))
 
-    def _fail_job_line(self, stream: LineSource, entry: InFlight, what: str) -> None:
+    def _fail_job_line(self, stream: Stream, entry: InFlight, what: str) -> None:
         """A job line went wrong on the board: the job fails, and what follows it must not run."""
         if stream.done:
             return
-        stream.finish(StreamEnd.FAILED, ControllerError.code, f"line {entry.file_line}: {what}")
+        what = f"line {entry.file_line}: {what}"
+        self._end_stream(stream, StreamEnd.FAILED, ControllerError.code, what)
         self._write_realtime(Realtime.JOB_KILL)
 
-    def _job_line_ok(self, stream: LineSource, entry: InFlight) -> None:
+    def _job_line_ok(self, stream: Stream, entry: InFlight) -> None:
         stream.acknowledged(entry.file_line)
         self._check_stream_complete()
 
-    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+    def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:
             self._job_line_ok(stream, entry)
             return
@@ -386,9 +391,10 @@ class G2Session(SessionBase):
             return  # already ended (an alarm, a cancel): this answer is accounted, no more
         text = message(status)
         if status in _LOCKOUT_REJECTIONS:
-            stream.finish(StreamEnd.FAILED, status, text)
+            self._end_stream(stream, StreamEnd.FAILED, status, text)
         else:
-            stream.finish(
+            self._end_stream(
+                stream,
                 StreamEnd.FAILED,
                 ControllerError.code,
                 f"line {entry.file_line}: controller answered {status}: {text}",
@@ -571,6 +577,11 @@ class G2Session(SessionBase):
         self._job_log().info("controller state", state=state.name)
         if before is MachineState.HOMING:
             self._ask_own(encode_get("home"), _Own.HOMED)  # a homing cycle ended, done or failed
+        if state is MachineState.PROGRAM_END and self.model.overrides is not None:
+            # A program end puts the feed and traverse factors back to 1.0, the spindle's
+            # untouched (_exec_program_finalize calls cm_reset_overrides: edge-preview
+            # canonical_machine.cpp:1436-1442, 1632; 100.26 :1617-1624).
+            self.model.overrides = {**self.model.overrides, "feed": 100.0, "rapid": 100.0}
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
             stream.program_pause_sent = False
@@ -583,8 +594,7 @@ class G2Session(SessionBase):
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
             and not self.model.hold  # a hold at rest (101.05+) is no starving either
-            and (waiting := stream.peek()) is not None  # lines still on the host
-            and not waiting.control  # a `{`-line waits for the lines before it, on purpose
+            and stream.lines_on_host()  # but a `{`-line, which waits on purpose
         ):
             # The board ran out of moves while the job still had lines on the host:
             # reported with the file line it stopped after (behaviour.md, faults).
@@ -645,6 +655,7 @@ class G2Session(SessionBase):
         if self._to_set:
             self._ask_own(encode_set(self._to_set[0]), _Own.SETTING)
         else:
+            self._read_overrides()  # answered before the report that makes the session ready
             self._ask_own(encode_get("home"), _Own.HOMED)
             self._ask_own(encode_get("sr"), _Own.FIRST_REPORT)
 
@@ -667,6 +678,8 @@ class G2Session(SessionBase):
             self.phase = Phase.READY
             self._handshake_deadline = None
             self._events.append(Ready())
+        elif own is _Own.OVERRIDES:
+            self._overrides_answered(response)
         elif own is _Own.HEARTBEAT:
             self._heartbeat_deadline = None
         elif own is _Own.CLEAR and not response.ok:
@@ -776,8 +789,8 @@ class G2Session(SessionBase):
             # Before 101.02 ^D is an ALARM and flushes nothing: every line in flight is
             # read and answered 204, and those answers settle it (g2builds.py).
             self._kill_alarm = True
-            if self.stream is not None and not self.stream.done:
-                self.stream.finish(StreamEnd.CANCELLED, None, "job killed")
+            if self.stream is not None:
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, "job killed")
             return
         if command is Realtime.JOB_KILL:
             self._kills_unseen += 1
@@ -809,7 +822,7 @@ class G2Session(SessionBase):
         self._flush_deadline = self.clock() + FLUSH_CONFIRM_TIMEOUT
         if self.stream is not None and not self.stream.done:
             reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
-            self.stream.finish(StreamEnd.CANCELLED, None, reason)
+            self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
 
     def _confirm_flush(self, *, kill_seen: bool = False) -> None:
         """The board shows the flush happened: the data lines it held are dropped from the books.
@@ -900,6 +913,52 @@ class G2Session(SessionBase):
     def _realtime(self, command: Realtime) -> None:
         self._write_realtime(command)
 
+    def override(
+        self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
+    ) -> None:
+        """The override factors as settings (`{"fro":1.2}`), in any state but a lockout.
+
+        A `{`-line of the session's own on the control lane: the board runs it on
+        arrival, ahead of queued G-code, so it acts mid-job; the factor applies to the
+        blocks planned after it (edge-preview plan_zoid.cpp:145-148). Where the build
+        has a writable enable, it is written on with the factor (100.26's are off at
+        start). The answer's values become the model's overrides.
+        """
+        self._require_ready()
+        self.admit_action()  # a board in a lockout refuses every SET: 204/205/206 here
+        asked = {"feed": feed, "rapid": rapid, "spindle": spindle}
+        keys, enables = self.build.override_keys, self.build.override_enables
+        values: dict[str, Any] = {}
+        for what, percent in asked.items():
+            if percent is None:
+                continue
+            low, high = OVERRIDE_RANGES[what]
+            if not low <= percent <= high:
+                raise InvalidCommand(
+                    Refusal.BAD_NUMBER,
+                    f"a g2core {what} override is {low} to {high} percent, not {percent}",
+                )
+            if what in enables:
+                values[enables[what]] = 1
+            values[keys[what]] = round(percent / 100.0, 3)
+        self._ask_own(encode_set(values), _Own.OVERRIDES)
+
+    def _read_overrides(self) -> None:
+        self._ask_own(encode_get(*self.build.override_keys.values()), _Own.OVERRIDES)
+
+    def _overrides_answered(self, response: Response) -> None:
+        """The factors the board answered with (what it stored), as percentages."""
+        if not response.ok:
+            self._log.warning("override settings refused", status=response.status)
+        now = dict(self.model.overrides or {})
+        for what, key in self.build.override_keys.items():
+            value = response.body.get(key)
+            if isinstance(value, int | float) and not isinstance(value, bool):
+                now[what] = round(float(value) * 100.0, 1)
+        if now:
+            self.model.overrides = now
+        self.model.override_reports += 1
+
     def reset(self) -> None:
         """0x18: the board reboots; so do the session's books when it comes back."""
         self._require_open()
@@ -951,6 +1010,14 @@ class G2Session(SessionBase):
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         return encode_line(text if number is None else number_line(text, number))
 
+    def spindle_max_setting(self) -> str | None:
+        """`th2mxs`, the S of the laser toolhead's full power (edge-preview
+        board/ArduinoDue/0_hardware.cpp:296; laser_toolhead.h:255 scales S between
+        `th2mns` and it); absent before 101.05 and on builds without a laser toolhead,
+        which then refuse it. `laser_test` is refused on g2core anyway: the toolhead
+        fires by distance moved (laser_toolhead.h:491-515), never standing still."""
+        return "th2mxs" if self.build.fb >= 101.05 else None
+
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]
@@ -968,6 +1035,22 @@ class G2Session(SessionBase):
         entry = max(tool, 1)
         return [f"G10 L1 P{entry} Z{delta:.4f}", f"G43 H{entry}"]
 
+    report_line = "{sr:n}"  # a GET: answered once the report has been printed
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """`G28.2` with a word per axis: cycle_homing.cpp homes the axes named.
+
+        g2core answers it as the cycle starts (cm_homing_cycle_start sets
+        MACHINE_CYCLE / CYCLE_HOMING at once: the combined state reads HOMING);
+        the cycle's end is the state leaving HOMING.
+        """
+        return [f"G28.2 {axes_words(axes or HOME_AXES)}"]
+
+    def homing_failed(self, report: Mapping[str, Any]) -> bool:
+        """g2core's homing failures are statuses 240-247 (error.h STAT_HOMING_*)."""
+        status = report.get("st")
+        return isinstance(status, int) and 240 <= status <= 247
+
     def status_text(self, code: int) -> str:
         return message(code)  # status.py: g2core's own table (error.h)
 
@@ -976,6 +1059,40 @@ class G2Session(SessionBase):
 
     def shutdown_line(self) -> str:
         return "{shutd:n}"
+
+    def probe_input_reads(self) -> list[str]:
+        """`{"prbin":null}`: the digital input G38.x reads (canonical_machine.cpp
+        `prb_config_items_1`, cm_get_probe_input)."""
+        return [json.dumps({"prbin": None})]
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`in<prbin>` (config_app.cpp's `in1`..: din_get_input), read by a GET.
+
+        prbin 0 is no input: gpio_read_input(0) reads false (gpio.cpp), so a G38.2
+        could never trip and ends in an alarm at the end of its travel.
+        """
+        n = next((b["prbin"] for b in bodies if "prbin" in b), None)
+        if not isinstance(n, int | float) or isinstance(n, bool) or int(n) < 1:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"{self.id} has no probe input configured (prbin is {n}): set prbin to the"
+                " digital input the plate is wired to",
+            )
+        key = f"in{int(n)}"
+        return ProbeInput(key, json.dumps({key: None}))
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """P1..P6 for G54..G59: cm_set_g10_data refuses P0 (STAT_P_WORD_IS_INVALID,
+        canonical_machine.cpp), so the active WCS must be known from `coor`."""
+        wcs = self.model.modal.get("wcs")
+        p = _OFFSET_GROUPS.index(wcs.lower()) + 1 if wcs and wcs.lower() in _OFFSET_GROUPS else 0
+        if not p:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P{p} {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         return [json.dumps({key: None}) for key in keys]

@@ -26,7 +26,7 @@ rules, each a refusal of the whole line (BAD_NUMBER unless said otherwise):
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 
 from hostd.protocol.gcodewords import strip_comments
 from hostd.protocol.numbers import format_distance, format_feed
@@ -125,3 +125,24 @@ def _code_part(text: str) -> str:
 def _around(text: str, at: int) -> str:
     start = max(0, at - 6)
     return text[start : at + 6].strip()
+
+
+HOME_AXES = ("x", "y", "z")  # what "all axes" homes: the axes both sims and boards have
+WCS_P = {"G54": 1, "G55": 2, "G56": 3, "G57": 4, "G58": 5, "G59": 6}
+
+
+def axes_words(axes: Iterable[str]) -> str:
+    """`X0 Y0`: each axis named, at zero."""
+    return " ".join(f"{a.upper()}0" for a in axes)
+
+
+def short_number(value: float) -> str:
+    """A value in at most four decimals, without trailing zeros (`1.5`, `0`, `-2.25`)."""
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
+
+
+def work_zero_line(p: int, axes: Mapping[str, float]) -> str:
+    """`G10 L20 P<p>`: the current position reads as given, in coordinate system `p`."""
+    words = " ".join(f"{a.upper()}{short_number(v)}" for a, v in axes.items())
+    return f"G10 L20 P{p} {words}"

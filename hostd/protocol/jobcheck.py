@@ -29,11 +29,11 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 
-from hostd.protocol.commands import InvalidCommand, Refusal, encode_line
-from hostd.protocol.gcodestate.dialects import DIALECTS
+from hostd.protocol.commands import InvalidCommand
+from hostd.protocol.dialects import DialectSpec, lookup
 from hostd.protocol.gcodewords import (
     INTEGER_DIGITS,
     not_a_number,
@@ -41,8 +41,6 @@ from hostd.protocol.gcodewords import (
     strip_comments,
     too_long,
 )
-from hostd.protocol.grbl import codec
-from hostd.protocol.maintenance import maintenance_command
 from hostd.protocol.program import number_line
 from hostd.protocol.toolchange import has_m6, tool_words
 
@@ -83,18 +81,18 @@ class Findings:
 def check_program(
     lines: Iterable[tuple[int, str]],
     *,
-    dialect: str,
+    dialect: str | DialectSpec,
     max_line_bytes: int,
     tool_change: str | None = None,
     numbered: bool = True,
 ) -> Findings:
     """Read a program's sendable lines ((file line, text), as `program_lines` gives them).
 
-    `max_line_bytes`: the longest line, its LF included, the board takes (grbl: its
-    receive buffer less one; g2core 511). `numbered`: job lines carry `N<line>`.
+    `dialect`: the registry's entry (dialects.py), or its name. `max_line_bytes`: the
+    longest line, its LF included, the board takes (grbl: its receive buffer less one;
+    g2core 511). `numbered`: job lines carry `N<line>`.
     """
-    encode = _encoder(dialect, max_line_bytes)
-    unsupported = DIALECTS[dialect].unsupported if dialect in DIALECTS else frozenset()
+    spec = lookup(dialect) if isinstance(dialect, str) else dialect
     policy = tool_change in _POLICIES
     found: list[Finding] = []
     total = 0
@@ -102,7 +100,7 @@ def check_program(
     notes_total = 0
     tool: int | None = None  # the last T word read
     for number, text in lines:
-        finding = _check_line(number, text, dialect, encode, unsupported, policy, numbered)
+        finding = _check_line(number, text, spec, max_line_bytes, policy, numbered)
         selected = tool_words(text)
         tool = selected[-1] if selected else tool
         if finding is None and policy and has_m6(text):
@@ -136,37 +134,21 @@ def _to(tool: int | None) -> str:
     return "" if tool is None else f" to T{tool}"
 
 
-def _encoder(dialect: str, max_line_bytes: int) -> Callable[[str], bytes]:
-    if dialect == "grbl":
-        return lambda text: codec.encode(text, max_bytes=max_line_bytes)
-
-    def g2core(text: str) -> bytes:
-        encoded = encode_line(text)
-        if len(encoded) > max_line_bytes:
-            raise InvalidCommand(
-                Refusal.TOO_LONG, f"longer than the board takes ({max_line_bytes} bytes)"
-            )
-        return encoded
-
-    return g2core
-
-
 def _check_line(
     number: int,
     text: str,
-    dialect: str,
-    encode: Callable[[str], bytes],
-    unsupported: frozenset[str],
+    spec: DialectSpec,
+    max_line_bytes: int,
     policy: bool,
     numbered: bool,
 ) -> Finding | None:
     try:
-        encode(number_line(text, number) if numbered else text)
+        spec.encode_line(number_line(text, number) if numbered else text, max_line_bytes)
     except InvalidCommand as exc:
         return Finding(number, "unsendable", exc.message)
     if text[:1] in ("$", "{"):
         # Not G-code: a `$` or JSON command, maybe maintenance.
-        found = maintenance_command(dialect, text)
+        found = spec.maintenance(text, {}, False)
         return None if found is None else Finding(number, "maintenance", found.why)
     bad = _bad_number(text)
     if bad is not None:
@@ -181,8 +163,8 @@ def _check_line(
                     "M6 (tool change) with no tool-change policy for this machine",
                 )
             continue
-        if code in unsupported:
-            return Finding(number, "unsupported", f"{code} is not supported by {dialect}")
+        if code in spec.gcode.unsupported:
+            return Finding(number, "unsupported", f"{code} is not supported by {spec.name}")
     return None
 
 

@@ -97,7 +97,21 @@ def maintenance_command(
     `inches`: the board's modal units are G20 (a jog without G20/G21 is read in them).
     """
     if dialect == "grbl":
-        return _grbl(normalized(text), travel or {}, inches)
+        return grbl_maintenance(text, travel or {}, inches)
+    return g2core_maintenance(text, travel or {}, inches)
+
+
+def grbl_maintenance(
+    text: str, travel: Mapping[str, tuple[float, float]], inches: bool
+) -> Maintenance | None:
+    """grbl's (its registry entry's `maintenance`, dialects.py): as `maintenance_command`."""
+    return _grbl(normalized(text), travel, inches)
+
+
+def g2core_maintenance(
+    text: str, travel: Mapping[str, tuple[float, float]], inches: bool
+) -> Maintenance | None:
+    """g2core's (its registry entry's `maintenance`): jogs are G-code there, none absurd here."""
     return _g2core(text)
 
 

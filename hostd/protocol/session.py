@@ -12,31 +12,34 @@ and the words for both, are in vocabulary.py.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import structlog
 
 from hostd.protocol.classes import CommandClass, classify_realtime
-from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
+from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
+from hostd.protocol.gcode import WCS_P, work_zero_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
+from hostd.protocol.probing import ProbeInput
 from hostd.protocol.states import MachineState
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
     Context,
     Detected,
     Event,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Queued,
     Settled,
     StreamEnd,
+    StreamEnded,
 )
 
 log = structlog.get_logger(__name__)
@@ -60,7 +63,7 @@ class SessionBase:
         self.clock = clock
         self.model = MachineModel(machine_id)
         self.phase = Phase.CLOSED
-        self.stream: LineSource | None = None
+        self.stream: Stream | None = None  # the job's read position: the session's own
         self.halted = False  # an internal fault: nothing but halts and reset is written
         self._out: list[tuple[Lane, bytes]] = []
         self._events: list[Event] = []
@@ -224,12 +227,71 @@ class SessionBase:
         """The lines that make `delta` (mm, along Z) the length offset of `tool`, in force."""
         raise NotImplementedError
 
+    # The board answers its homing line only once the cycle has ended (grbl's `$H`).
+    # False: it answers as the cycle starts, and the cycle ends when the state
+    # leaves HOMING (g2core's G28.2).
+    homing_answered_at_end = False
+    # A line that asks for a full status report and is answered (g2core's `{sr:n}`),
+    # so the answer comes once the report has: None where `query_status` asks for one
+    # realtime, with no answer (grbl's `?`).
+    report_line: str | None = None
+
+    def line_limit(self) -> int:
+        """The longest job line, its LF included, the board takes (g2core: 511 and the LF)."""
+        return MAX_LINE_BYTES + 1
+
+    def known_travel(self) -> dict[str, tuple[float, float]]:
+        """The machine's travel per axis (mm) the session already knows, without asking."""
+        return {}
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """The lines that home these axes (None: all of them), in the board's words."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no homing command"
+        )
+
+    def homing_failed(self, report: Mapping[str, Any]) -> bool:
+        """An exception report says the homing cycle failed (where the answer does not)."""
+        return False
+
+    def zero_line(self, wcs: str | None, axes: Mapping[str, float]) -> str:
+        """`G10 L20 P<active WCS>`: the current position reads as given, in that WCS.
+
+        The active WCS must be known and one of G54-G59 (RS274/NGC); a dialect
+        that can name "the active one" without knowing it says so (grbl's P0).
+        """
+        p = WCS_P.get(wcs or "")
+        if p is None:
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                f"the active work coordinate system is {wcs or 'unknown'}: select G54-G59 first",
+            )
+        return work_zero_line(p, axes)
+
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
         """Set the feed, rapid and spindle overrides (percent) now, in any state."""
         raise InvalidCommand(
             Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no realtime overrides"
+        )
+
+    def spindle_max_setting(self) -> str | None:
+        """The setting that holds the S word of full power (a laser's 100 %), or None
+        where the board has none a host can read."""
+        return None
+
+    def beam_on_line(self, speed: float) -> str:
+        """The line that lets a laser burn at S `speed` in the feed moves after it
+        (a frame at low power); the moves end with `M5`."""
+        return f"M3 S{gcode_number(speed)}"
+
+    def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
+        """The lines of a test-fire at S `speed` for `seconds`, standing still; the last
+        one turns the beam off. They go to the board together, so that its own dwell
+        bounds the burn even if the host is gone before the last is answered."""
+        raise InvalidCommand(
+            Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no laser test-fire"
         )
 
     def safety_door(self) -> None:
@@ -290,6 +352,24 @@ class SessionBase:
 
     def board_offsets(self, bodies: list[JsonObject]) -> Board:
         """What the answers to `offset_reads` say, in mm (a resume plans from it)."""
+        raise NotImplementedError
+
+    def probe_input_reads(self) -> list[str]:
+        """The queries that say which input the probe is ([] where the reports show it)."""
+        raise NotImplementedError
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """How the probe input is seen, from the answers to `probe_input_reads`.
+
+        InvalidCommand where the board has no probe input a G38 could trip on.
+        """
+        raise NotImplementedError
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P<n>`: the current position reads `values` in the active WCS.
+
+        InvalidCommand where the active WCS cannot be named to the board.
+        """
         raise NotImplementedError
 
     # -- outputs ---------------------------------------------------------------
@@ -363,9 +443,13 @@ class SessionBase:
         the state known before may be from before the job's moves began.
         """
         stream = self.stream
-        if stream is None or stream.done or not stream.exhausted:
+        if stream is None or stream.done:
             return
-        if stream.acked < stream.sent:
+        if stream.refused is not None:  # a line the board must never receive: its turn came
+            number, why = stream.refused
+            self._end_stream(stream, StreamEnd.FAILED, -32602, f"line {number}: {why}")
+            return
+        if not stream.exhausted or stream.acked < stream.sent:
             return
         if not self._awaiting_rest:
             self._awaiting_rest = True
@@ -374,7 +458,15 @@ class SessionBase:
         # At rest: PROGRAM_STOP or PROGRAM_END, or READY for a job that never moved it.
         if reported and self._at_rest():
             self._awaiting_rest = False
-            stream.finish(StreamEnd.COMPLETED)
+            self._end_stream(stream, StreamEnd.COMPLETED)
+
+    def _end_stream(
+        self, stream: Stream, end: StreamEnd, code: int | None = None, message: str | None = None
+    ) -> None:
+        """The job ends, once: its outcome is set, and told as `StreamEnded`."""
+        if stream.finish(end, code, message):
+            assert stream.result is not None
+            self._events.append(StreamEnded(stream.job_id, stream.result))
 
     def _require_ready(self) -> None:
         if self.phase is not Phase.READY:
@@ -387,11 +479,12 @@ class SessionBase:
 
     def _end_stream_on_close(self, reason: str, restarted: bool) -> None:
         """The link is gone: a live job ends failed if the board was reset, else interrupted."""
-        if self.stream is not None and not self.stream.done:
+        stream = self.stream
+        if stream is not None:
             if restarted:
-                self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+                self._end_stream(stream, StreamEnd.FAILED, 1005, "the controller was reset")
             else:
-                self.stream.finish(StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
+                self._end_stream(stream, StreamEnd.INTERRUPTED, 1002, f"link lost: {reason}")
 
     def _drain_for_lockout(self, state: MachineState, describe: Callable[[int], str]) -> None:
         """A lockout: the running job ends failed with the lockout's code, and its remaining
@@ -400,7 +493,7 @@ class SessionBase:
         refusal = self._admit(CommandClass.ACTION, state)
         if refusal is not None and self.stream is not None and not self.stream.done:
             text = self.model.last_exception_message() or describe(refusal)
-            self.stream.finish(StreamEnd.FAILED, int(refusal), text)
+            self._end_stream(self.stream, StreamEnd.FAILED, int(refusal), text)
 
     def cancel(self, token: Any) -> None:
         """The asker gave up: a line not yet written is not written."""
@@ -413,7 +506,8 @@ class SessionBase:
         if verdict is not None:
             raise Rejected(verdict, self._locked_message())
 
-    def start_stream(self, stream: LineSource) -> None:
+    def start_stream(self, stream: Stream) -> None:
+        """Stream this job: its lines go as the flow control has room, as they are fed."""
         self._require_ready()
         if self._job_running():
             raise Busy(f"{self.id} is running a job")
@@ -436,11 +530,19 @@ class SessionBase:
         self.realtime(Realtime.CYCLE_START)
         stream.paused = False
 
+    def release_stream(self) -> None:
+        """Pass the job's hold point (stream.py: a tool change the operator answered): the
+        line it kept back goes as the flow control has room, unless the job is paused."""
+        stream = self._live_stream()
+        if stream.held is None:
+            raise Busy(f"{self.id}: the job is not held")
+        stream.release()
+
     def stop_stream(self, code: int, text: str) -> None:
         """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""
         if self.stream is None or self.stream.done:
             return
-        self.stream.finish(StreamEnd.FAILED, code, text)
+        self._end_stream(self.stream, StreamEnd.FAILED, code, text)
         if self.phase is not Phase.CLOSED:
             self._stop_board()
 
@@ -448,10 +550,12 @@ class SessionBase:
         """The daemon broke one of its own invariants: write nothing more until reset."""
         self.halted = True
         if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}")
+            self._end_stream(
+                self.stream, StreamEnd.FAILED, FaultActive.code, f"internal fault: {text}"
+            )
         self._detected("internal", None, text)
 
-    def _live_stream(self) -> LineSource:
+    def _live_stream(self) -> Stream:
         stream = self.stream
         if stream is None or stream.done:
             raise Busy(f"{self.id} has no job streaming")
@@ -514,3 +618,9 @@ def _context_changed(machine: str, admitted: Context, now: Context) -> str:
     if admitted is Context.HOLD and now is not Context.HOLD:
         what = "the hold ended"
     return f"{machine}: {what} before the line was written; it was not sent"
+
+
+def gcode_number(value: float) -> str:
+    """A number as G-code takes it: plain decimal, at most four places, no exponent."""
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text

@@ -9,18 +9,19 @@ prints and the requests clients make, and gives:
 
 Requests carry an opaque token of the caller's (the engine's futures). The
 session hands each token back exactly once, in a `Settled` event, with the
-controller's answer or the error the request ends in.
+controller's answer or the error the request ends in. A job's read
+position is the session's own (stream.py): the caller feeds it lines and
+reads its counts, and hears its end as a `StreamEnded` event.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any, Protocol
+from typing import Any
 
 from hostd.protocol.classes import CommandClass
 from hostd.protocol.errors import MachineError
-from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
 
 
@@ -56,38 +57,13 @@ class StreamEnd(StrEnum):
     INTERRUPTED = "interrupted"
 
 
-class LineSource(Protocol):
-    """A job's lines, pulled only when the flow control has room (machine/stream.py)."""
+@dataclass(frozen=True, slots=True)
+class StreamResult:
+    """How a job's stream ended: its end, and the error code and text of a failure."""
 
-    job_id: int | None
-    exhausted: bool
-    paused: bool
-    program_pause_sent: bool
-    sent: int
-    acked: int
-    rejected: int
-    discarded: int
-    last_acked_line: int | None
-    line_executed: int | None
-
-    @property
-    def done(self) -> bool: ...
-    def peek(self) -> InFlight | None:
-        """The next line, booked as it will be written (`source` is this stream)."""
-
-    def take(self) -> None: ...
-    def prefetch(self) -> None:
-        """Get the next lines ready (read, encoded) while the board works: after a write."""
-
-    def acknowledged(self, file_line: int | None) -> None: ...
-    def executing(self, file_line: int) -> None:
-        """The board says it runs (or has run) this line: a lower bound, kept if higher."""
-
-    def acked_line(self, back: int) -> int | None:
-        """The file line of the answered line `back` answers before the last (0: the last)."""
-
-    def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> None:
-        """Set the outcome once; later calls are ignored."""
+    end: StreamEnd
+    code: int | None = None
+    message: str | None = None
 
 
 # -- events ----------------------------------------------------------------
@@ -148,7 +124,16 @@ class Closing:
     reopen: bool = True
 
 
-Event = Settled | Reported | Excepted | Probed | Detected | Ready | Closing
+@dataclass(frozen=True, slots=True)
+class StreamEnded:
+    """The job's stream ended (all answered and the board at rest, or failed, cancelled,
+    interrupted): told once, after which the stream's counts only account late answers."""
+
+    job_id: int | None
+    result: StreamResult
+
+
+Event = Settled | Reported | Excepted | Probed | Detected | Ready | Closing | StreamEnded
 
 
 class OwnLine:

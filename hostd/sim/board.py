@@ -72,12 +72,17 @@ class Board(Commands):
         self.rx_controls = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
+        # The next G-code line is answered with this status instead of run (a test's: a
+        # status the firmware gives only for a file, a build or a machine hostd lacks).
+        self.refuse_next: int | None = None
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.
         self.probe_surface = None  # axis, machine mm the probe touches
         self.tool_sensor = None  # a fixed tool-length sensor (probing.ToolSensor)
         self.tool_length = 0.0  # the tool in the spindle: mm longer than the first
+        self.touch_plate = None  # the touch plate on the work (probing.TouchPlate)
+        self.touch_reads = 0
         self.homing_failure = None  # axis, why homing it fails
         self.output_buffer = OUTPUT_BUFFER_LEN  # answers this long or longer are not printed
         self.overflow_reported = True  # as an `er` 113, or (False) not at all

@@ -74,7 +74,8 @@ class Commands(Planner):
         elif first == "$":
             self._text(stripped, linelen)
         else:
-            status, n = self._gcode(text)
+            refused, self.refuse_next = self.refuse_next, None
+            status, n = self._gcode(text) if refused is None else (Status(refused), 0)
             body: dict[str, Any] = {"gc": text} if self._jv >= 5 else {}
             self._respond(body, status, linelen, data=True, n=n)
             self._sr_requested = True
@@ -172,6 +173,8 @@ class Commands(Planner):
             body[key] = self.settings.get(key)
         elif key in reports.SR_KEYS:
             body[key] = self._values(self._clock())[key]
+            if key == f"in{int(self.settings['prbin'])}" and self.touch_reads:
+                self.touch_reads -= 1  # the operator saw it read and lets go
         else:
             return Status.UNRECOGNIZED_NAME
         return Status.OK

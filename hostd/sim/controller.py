@@ -31,7 +31,7 @@ from hostd.protocol.status import Status
 from hostd.sim.board import Board
 from hostd.sim.callsites import CallSite
 from hostd.sim.config import AXES, Kind, Received, SimConfig
-from hostd.sim.probing import ToolSensor
+from hostd.sim.probing import ToolSensor, TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
@@ -225,6 +225,23 @@ class SimController(SimShell[Board, MachineState]):
         """The operator put in a tool `mm` longer than the first (it trips the sensor higher)."""
         self._board.tool_length = float(mm)
 
+    def touch_plate(self, plate: TouchPlate | None) -> None:
+        """A touch plate on the work, wired to the probe input (`prbin`); None takes it away.
+
+        The input reads closed wherever the bit touches it (probing.TouchPlate), in
+        the status reports and `{inN:n}` as in G38.x. Kept across resets.
+        """
+        self._board.touch_plate = plate
+        self._kick()
+
+    def touch(self, reads: int = 1) -> None:
+        """The operator holds the plate to the bit: the probe input reads closed for the
+        next `reads` reads of `in<prbin>` (`{in5:n}`), then opens as they let go."""
+        if reads < 0:
+            raise ValueError("reads is 0 or more")
+        self._board.touch_reads = reads
+        self._kick()
+
     def set_output_buffer(self, size: int, *, reported: bool = True) -> None:
         """Answers of `size` bytes or more are not printed: an `er` 113 instead, or nothing.
 
@@ -270,6 +287,10 @@ class SimController(SimShell[Board, MachineState]):
         if port is not None and port.write(data):
             self._keep(self.sent, Received(time.monotonic(), port.name, data, "raw"))
             self._pulse()
+
+    def refuse_next(self, status: int) -> None:
+        """The next G-code line is answered with `status` (any of error.h's) and not run."""
+        self._board.refuse_next = int(Status(status))
 
     def set_ack_delay(self, seconds: float) -> None:
         """Each data line's response goes out this much later (the board reads on after it)."""

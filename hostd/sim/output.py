@@ -24,7 +24,7 @@ from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import ProbeCycle, ToolSensor
+from hostd.sim.probing import ProbeCycle, ToolSensor, TouchPlate, probe_input, sensor_surface
 from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
@@ -78,10 +78,13 @@ class Output:
     build: Build  # the rules of the firmware build this board is (g2builds.py)
     output_blocked: bool
     ack_delay: float
+    refuse_next: int | None  # a test's: the next G-code line's status
     inputs: dict[str, float | int]
     probe_surface: tuple[str, float] | None
     tool_sensor: ToolSensor | None  # a fixed tool-length sensor (issue 29)
     tool_length: float  # how much longer the tool in the spindle is than the first, mm
+    touch_plate: TouchPlate | None
+    touch_reads: int  # the operator holds the plate to the bit for this many reads of it
     homing_failure: tuple[str, Status] | None
     output_buffer: int
     overflow_reported: bool
@@ -261,6 +264,24 @@ class Output:
     def tool_position(self, now: float) -> dict[str, float]:
         return self.active.position(now) if self.active is not None else dict(self.position)
 
+    def probe_closed(self) -> bool:
+        """gpio_read_input(prbin): the digital input `prbin` names (gpio.cpp; input 0 reads
+        false), closed by its wire, the surface or plate under the tool, or a touch."""
+        n = int(self.settings["prbin"])
+        if n == 0:
+            return False
+        return (
+            bool(self.inputs[f"in{n}"])
+            or self.touch_reads > 0
+            or probe_input(self.probe_surface_here(), self.touch_plate, self.position)
+        )
+
+    def probe_surface_here(self) -> tuple[str, float] | None:
+        """The tool sensor where the tool stands over it, else the test's surface."""
+        return (
+            sensor_surface(self.tool_sensor, self.tool_length, self.position) or self.probe_surface
+        )
+
     def _values(self, now: float) -> dict[str, float | int]:
         """Every status report key's current value, rounded as reported."""
         interp = self.interp
@@ -301,6 +322,8 @@ class Output:
             "qr": self._free,
         }
         values |= self.inputs
+        if self.settings["prbin"]:
+            values[f"in{int(self.settings['prbin'])}"] = int(self.probe_closed())
         offset = interp.work_offset()
         for axis in AXES:
             values[f"pos{axis}"] = (machine[axis] - offset[axis]) / scale

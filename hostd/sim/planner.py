@@ -10,6 +10,7 @@ cycle, the realtime controls, feedhold, resume, queue flush and job kill
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import structlog
@@ -24,9 +25,7 @@ from hostd.sim.probing import (
     MINIMUM_PROBE_TRAVEL,
     PROBE_AXES,
     ProbeCycle,
-    probe_touching,
-    probe_trip,
-    sensor_surface,
+    contact,
 )
 
 log = structlog.get_logger(__name__)
@@ -105,6 +104,7 @@ class Planner(Output):
         block = self.planner[0]
         if isinstance(block, ProgramEnd):
             self._pop()
+            self.settings.reset_overrides()  # _exec_program_finalize: cm_reset_overrides
             self._set_state(MachineState.PROGRAM_END)
             return
         if isinstance(block, SetPosition):
@@ -125,12 +125,15 @@ class Planner(Output):
         if isinstance(block, Move | Probe):
             move = block if isinstance(block, Move) else block.move
             self.traversed.append(Traversed(dict(self.position), move))
+        if isinstance(block, Move) and not block.rapid:
+            # The feed override scales the feed moves planned after it (plan_zoid.cpp:148).
+            block = replace(block, feed=block.feed * self.settings.override("feed"))
         self.active = start_block(
             block,
             self.position,
             now,
             speed_factor=cfg.speed_factor,
-            rapid_rate=cfg.rapid_rate,
+            rapid_rate=cfg.rapid_rate * self.settings.override("rapid"),
             instant=cfg.instant,
         )
         if isinstance(block, Home):
@@ -203,22 +206,23 @@ class Planner(Output):
         if travel < MINIMUM_PROBE_TRAVEL:
             self._probe_exception(Status.PROBE_TRAVEL_TOO_SMALL)
             return None
-        surface = self._probe_surface_here()
-        if probe_touching(surface, self.position) == block.on_contact:
+        if self.probe_closed() == block.on_contact:  # gpio_read_input(pb.probe_input)
             self._probe_exception(Status.PROBE_IS_ALREADY_TRIPPED)
             return None
-        trip = probe_trip(surface, self.position, block)
+        trip = None
+        if self.settings["prbin"]:  # input 0 is none: gpio_read_input(0) reads false
+            trip = contact(
+                self.probe_surface_here(),
+                self.touch_plate,
+                self.position,
+                block.move.target,
+                block.on_contact,
+            )
         if trip is not None:  # the move ends where the input trips
             cycle.tripped = True
             block = Probe(Move(trip, block.move.feed, block.n), block.on_contact, block.alarm)
             self.planner[0] = block
         return block
-
-    def _probe_surface_here(self) -> tuple[str, float] | None:
-        """The tool sensor where the probe starts over it, else the test's surface."""
-        return (
-            sensor_surface(self.tool_sensor, self.tool_length, self.position) or self.probe_surface
-        )
 
     def _probe_exception(self, status: Status) -> None:
         """`_probing_exception_exit`: settings restored, then cm_alarm(status, "probe error")."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from hostd.protocol.g2builds import OVERRIDE_RANGES, OVERRIDES_RENAMED, Build
 from hostd.protocol.status import Status
 from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
@@ -22,6 +23,11 @@ MIN_SI_MS = 100.0  # STATUS_REPORT_MIN_MS
 JV_MAX = 6  # JV_EXCEPTIONS
 _RANGES = {"ej": (0, 2), "jv": (0, JV_MAX), "sv": (0, 2), "qv": (0, 2)}
 _RANGES |= {"sl": (0, 1), "lim": (0, 1), "saf": (0, 1)}
+# `prbin`: the digital input G38.x reads (canonical_machine.cpp cm_set_probe_input:
+# 0..D_IN_CHANNELS; 0 is none). This profile wires the probe to in5, as
+# settings_cheapo_laser.h does (PROBING_INPUT 5).
+_RANGES |= {"prbin": (0, reports.DIGITAL_INPUTS)}
+PROBING_INPUT = 5.0
 # What every open resets them to; `jv` and `si` are kept [10].
 _PER_OPEN = {"ej": 1.0, "sv": 1.0, "qv": 0.0}
 
@@ -41,6 +47,7 @@ class Settings:
             "sl": 1.0,
             "lim": 1.0,
             "saf": 1.0,
+            "prbin": PROBING_INPUT,
         }
         for axis in AXES:
             self._values[f"{axis}vm"] = config.rapid_rate
@@ -48,12 +55,43 @@ class Settings:
             self._values[f"{axis}tn"] = 0.0
             self._values[f"{axis}tm"] = float(config.travel.get(axis, 0.0))
         self.sr_keys: list[str] = list(reports.DEFAULT_SR)
+        # The override factors and their enables, named as the build names them
+        # (g2builds.py): factors 1.0; 100.26's enables off, 101.02+'s on.
+        build = Build(config.fb)
+        renamed = build.fb >= OVERRIDES_RENAMED
+        self._override_keys = build.override_keys
+        self._enables = (
+            {"feed": "froe", "rapid": "troe", "spindle": "spoe"}
+            if renamed
+            else {"feed": "mfoe", "rapid": "mtoe", "spindle": "ssoe"}
+        )
+        for key in self._override_keys.values():
+            self._values[key] = 1.0
+        for key in self._enables.values():
+            self._values[key] = 1.0 if renamed else 0.0
+        # 101.02+: `froe`/`troe` are read-only, their table's setter is the getter.
+        self._read_only: frozenset[str] = frozenset({"froe", "troe"} if renamed else ())
 
     def __getitem__(self, key: str) -> float:
         return self._values[key]
 
     def __contains__(self, key: str) -> bool:
         return key in self._values or key in self.identity
+
+    def override(self, what: str) -> float:
+        """The factor in force for "feed", "rapid" or "spindle": 1.0 while its enable is off
+        (edge-preview plan_zoid.cpp:145-148)."""
+        if not self._values[self._enables[what]]:
+            return 1.0
+        return self._values[self._override_keys[what]]
+
+    def reset_overrides(self) -> None:
+        """cm_reset_overrides at a program end: feed and traverse back to 1.0 (edge-preview
+        canonical_machine.cpp:1436-1442; 100.26 also turns their enables off)."""
+        for what in ("feed", "rapid"):
+            self._values[self._override_keys[what]] = 1.0
+            if self._enables[what] not in self._read_only:
+                self._values[self._enables[what]] = 0.0
 
     def reset_per_open(self) -> None:
         self._values.update(_PER_OPEN)
@@ -89,13 +127,15 @@ class Settings:
         """Store `value` under a known key, checked as the board checks it."""
         if key in self.identity:
             return Status.PARAMETER_IS_READ_ONLY
+        if key in self._read_only:
+            return Status.OK  # the setter is the getter: the answer shows the value kept
         if isinstance(value, bool):
             number = 1.0 if value else 0.0
         elif isinstance(value, float):
             number = value
         else:
             return Status.VALUE_TYPE_ERROR
-        low, high = _RANGES.get(key, (None, None))
+        low, high = self._range(key)
         if low is not None and number < low:
             return Status.INPUT_LESS_THAN_MIN_VALUE
         if high is not None and number > high:
@@ -105,6 +145,17 @@ class Settings:
             number = max(number, min(MIN_SI_MS, self._config.status_interval * 1000.0))
         self._values[key] = number
         return Status.OK
+
+    def _range(self, key: str) -> tuple[float | None, float | None]:
+        """What `set_float_range` and `set_01` accept for `key` (None: no bound)."""
+        for what, factor_key in self._override_keys.items():
+            if key == factor_key:
+                low, high = OVERRIDE_RANGES[what]
+                return low / 100.0, high / 100.0
+            if key == self._enables[what]:
+                return 0.0, 1.0
+        low_, high_ = _RANGES.get(key, (None, None))
+        return low_, high_
 
     def set_status_report(self, value: Value) -> Status:
         """`{sr:{posx:t,...}}` replaces the list: leaf keys, each true, 1 to 39 of them [4]."""

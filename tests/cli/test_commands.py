@@ -77,18 +77,32 @@ def test_an_unknown_machine_is_error_1001(idle: Daemon) -> None:
 # -- send ----------------------------------------------------------------------
 
 
-def test_send_prints_the_controllers_answer_to_a_query(idle: Daemon) -> None:
-    result = idle.cli("send", MACHINE, '{"sr":null}')
+def test_send_prints_the_controllers_answer_to_a_query_as_keys_and_values(
+    idle: Daemon,
+) -> None:
+    result = idle.cli("send", MACHINE, '{"sr":null}', '{"xvm":null}')
 
     assert result.returncode == 0, result.stderr
-    assert "stat" in json.loads(result.stdout)["sr"]
+    lines = result.stdout.splitlines()
+    assert lines.count("ok") == 2  # each answer's status first
+    fields = dict(line.split(": ", 1) for line in lines if ": " in line)
+    assert fields["sr.stat"].isdigit()  # a nested object as dotted keys
+    assert float(fields["xvm"]) > 0
+
+
+def test_send_json_prints_the_answer_as_json(idle: Daemon) -> None:
+    result = idle.cli("send", MACHINE, '{"sr":null}', "--json")
+
+    assert result.returncode == 0, result.stderr
+    answer = json.loads(result.stdout)
+    assert answer["status"] == 0 and "stat" in answer["r"]["sr"]
 
 
 def test_send_of_a_gcode_line_moves_the_machine(idle: Daemon) -> None:
     result = idle.cli("send", MACHINE, "G90 G0 X3 Y4")
 
     assert result.returncode == 0, result.stderr
-    assert json.loads(result.stdout) == {}
+    assert result.stdout.splitlines() == ["ok"]
     snap = idle.wait_machine(lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 3)
     assert snap["position"]["y"] == 4
 

@@ -1,4 +1,4 @@
-"""`hostd home`, `zero`, `override` and `spindle`, run as a user runs them.
+"""`hostd home`, `zero`, `override`, `spindle`, `frame`, `laser-test` and `macro`, as run.
 
 Subprocesses against one `hostd serve` with a simulated g2core (`sim1`) and a
 simulated grbl laser (`laser`), over the real socket.
@@ -17,13 +17,22 @@ from hostd.cli.client import Client
 from tests.cli.conftest import MACHINE, Daemon
 
 LASER = "laser"
-EXTRA_CONFIG = f"""
+EXTRA_CONFIG = (
+    f"""
 [[machines]]
 id = "{LASER}"
 dialect = "grbl"
 data_port = "sim"
 auto_connect = true
+laser = true
 """
+    + """
+[[machines.macros]]
+name = "corner"
+text = "G21 G90\\nG0 X{x} Y{y}"
+params = { x = { min = 0, max = 40 }, y = { min = 0, max = 40, default = 2 } }
+"""
+)
 
 
 def laser_idle(daemon: Daemon) -> dict[str, Any]:
@@ -103,11 +112,14 @@ def test_override_on_grbl_prints_the_overrides_in_force(daemon: Daemon) -> None:
     assert json.loads(as_json.stdout) == {"feed": 120, "spindle": 70, "rapid": 25}
 
 
-def test_override_needs_a_value_and_g2core_refuses_it(idle: Daemon) -> None:
+def test_override_needs_a_value_and_g2core_takes_its_own_bounds(idle: Daemon) -> None:
     none = idle.cli("override", MACHINE)
     assert none.returncode == 2 and "--feed" in none.stderr
-    refused = idle.cli("override", MACHINE, "--feed", "110")
-    assert refused.returncode == 1 and "-32602" in refused.stderr
+    done = idle.cli("override", MACHINE, "--feed", "110")
+    assert done.returncode == 0, done.stderr
+    assert "feed 110%, spindle 100%, rapid 100%" in done.stdout
+    refused = idle.cli("override", MACHINE, "--rapid", "150")
+    assert refused.returncode == 1 and "-32602" in refused.stderr and "5 to 100" in refused.stderr
 
 
 def test_spindle_on_grbl_shows_in_its_snapshot(daemon: Daemon) -> None:
@@ -117,3 +129,40 @@ def test_spindle_on_grbl_shows_in_its_snapshot(daemon: Daemon) -> None:
     laser_until(daemon, lambda snap: (snap["spindle"] or {}).get("state") == "cw")
     assert daemon.cli("spindle", LASER, "off").returncode == 0
     laser_until(daemon, lambda snap: (snap["spindle"] or {}).get("state") == "off")
+
+
+def test_frame_traces_a_files_box_and_prints_the_job(
+    daemon: Daemon, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    laser_idle(daemon)
+    path = tmp_path_factory.mktemp("frame") / "box.gcode"
+    path.write_text("G21 G90\nG0 X5 Y6\nG1 X15 Y6 F900 S500 M4\nG1 X15 Y16\nM5\n")
+    result = daemon.cli("frame", LASER, str(path), "--feed", "3000")
+    assert result.returncode == 0, result.stderr
+    assert "completed" in result.stdout
+    snap = laser_idle(daemon)
+    assert (snap["work_position"]["x"], snap["work_position"]["y"]) == (5, 6)  # back at the start
+
+
+def test_laser_test_fires_and_says_the_beam_is_off(daemon: Daemon) -> None:
+    laser_idle(daemon)
+    result = daemon.cli("laser-test", LASER, "3", "--seconds", "0.2")
+    assert result.returncode == 0, result.stderr
+    assert "beam off" in result.stdout
+    too_much = daemon.cli("laser-test", LASER, "50")
+    assert too_much.returncode == 1 and "laser_test_max" in too_much.stderr
+
+
+def test_macro_list_and_run(daemon: Daemon) -> None:
+    laser_idle(daemon)
+    listed = daemon.cli("macro", "list", LASER)
+    assert listed.returncode == 0, listed.stderr
+    assert "corner" in listed.stdout and "x (0..40), y=2 (0..40)" in listed.stdout
+    ran = daemon.cli("macro", "run", LASER, "corner", "x=7.5")
+    assert ran.returncode == 0, ran.stderr
+    snap = laser_until(daemon, lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 7.5)
+    assert snap["position"]["y"] == 2
+    bad = daemon.cli("macro", "run", LASER, "corner", "x=5 M3")
+    assert bad.returncode == 2 and "NAME=NUMBER" in bad.stderr
+    unknown = daemon.cli("macro", "run", LASER, "nope")
+    assert unknown.returncode == 1 and "1004" in unknown.stderr

@@ -43,3 +43,19 @@ def test_a_job_error_shows_its_message_and_code() -> None:
 def test_times_of_another_day_keep_their_date() -> None:
     assert render.when("2020-01-02T03:04:05.678Z").startswith("2020-01-0")
     assert render.when(None) == "-"
+
+
+def test_a_send_answer_reads_as_status_then_key_value_lines() -> None:
+    g2 = {"status": 0, "r": {"xvm": 16000, "sys": {"fv": 0.99, "fbs": "101.06"}, "x": None}}
+    assert render.answer_lines(g2) == [
+        "ok",
+        "xvm: 16000",
+        "sys.fv: 0.99",
+        "sys.fbs: 101.06",
+        "x: null",
+    ]
+    grbl = {"status": 0, "r": {"lines": ["$0=10", "[G54:0.000,0.000,0.000]"]}}
+    assert render.answer_lines(grbl) == ["ok", "$0=10", "[G54:0.000,0.000,0.000]"]
+    assert render.answer_lines({"status": 0, "r": {}}) == ["ok"]
+    report = {"status": 0, "r": {"report": {"state": "Idle", "FS": [0, 0]}}}
+    assert render.answer_lines(report) == ["ok", "report.state: Idle", "report.FS: [0,0]"]

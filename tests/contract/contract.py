@@ -30,22 +30,9 @@ ERRORS: Final[list[int]] = CONTRACT["errors"]
 LATER: Final[frozenset[str]] = frozenset(CONTRACT["stages"]["turn3"])
 
 # Contract methods the daemon does not serve yet (all of the operator's-day additions).
-NOT_BUILT: Final = frozenset(
-    {
-        "machine.probe",
-        "machine.laser_test",
-        "machine.frame",
-        "macro.list",
-        "macro.run",
-    }
-)
+NOT_BUILT: Final[frozenset[str]] = frozenset()
 # Served, but not yet as the contract says: the reason, for the day it is.
-NOT_YET_AS_NAMED: Final = {
-    "machine.override": (
-        "grbl answers {feed, spindle, rapid} as its report says them; g2core's fro/tro/spo"
-        " settings are not built yet: -32602 there"
-    ),
-}
+NOT_YET_AS_NAMED: Final[dict[str, str]] = {}
 # Object keys of the contract no object carries yet ("object.key").
 KEYS_NOT_BUILT: Final[frozenset[str]] = frozenset()
 

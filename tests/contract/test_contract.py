@@ -22,7 +22,9 @@ import pytest
 import pytest_asyncio
 
 from hostd.api.openrpc import dumps
+from hostd.machine import probing
 from hostd.sim import SimController
+from hostd.sim.probing import TouchPlate
 from tests.contract.clients import ContractClient, SocketClient, WebSocketClient
 from tests.contract.contract import (
     ERRORS,
@@ -45,6 +47,9 @@ SIGNALS = {
     "lid_open": {"key": "in1", "equals": 1},
     "main_laser": {"key": "in2", "equals": 1},
 }
+LASER_ID = "sim2"
+LASER = {"dialect": "grbl", "laser": True, "signals": {}}
+MACRO = {"name": "to", "text": "G90 G0 X{x}", "params": {"x": {"min": 0, "max": 20}}}
 LONG = "G21 G90\nG0 X0 Y0 Z5\n" + "".join(f"G1 X{i % 40} Y{i % 9} F600\n" for i in range(400))
 TERMINAL = ("completed", "failed", "cancelled", "interrupted")
 
@@ -58,12 +63,14 @@ class Setup:
 
 @pytest_asyncio.fixture(params=["socket", "websocket"])
 async def setup(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterator[Setup]:
-    machine = {
+    machine: dict[str, Any] = {
         "signals": SIGNALS,
         "spindle_dwell": 0.05,
         "safe_z": 90.0,
         "tool_change": "pause",
     }
+    # A grbl laser beside it, for the laser's methods; a macro on each.
+    machine |= {"macros": [MACRO], "machines": 2, "per_machine": [{}, LASER]}
     async with running_web(tmp_path, machine=machine) as web:
         await web.hostd.idle(None)  # type: ignore[arg-type]  # idle opens its own client
         client: ContractClient
@@ -322,6 +329,20 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     # The operator's day: spindle, home, zero, go to zero.
     await s.ok("machine.spindle", machine=M, state="cw", speed=1000)
     await s.ok("machine.spindle", machine=M, state="off")
+    await s.ok("machine.override", machine=M, feed=120, spindle=90, rapid=50)
+    await s.ok("macro.list")
+    await s.ok("macro.list", machine=M)
+    ran = await s.ok("macro.run", machine=M, name="to", params={"x": 3})
+    if ran:
+        await s.job_end(ran["job"])
+    await s.idle()
+    await s.ok("file.upload", name="box.gcode", data="G21 G90\nG0 X1 Y1\nG1 X4 Y3 F900\n")
+    framed = await s.ok("machine.frame", machine=M, file="box.gcode", power=0, feed=2000)
+    if framed:
+        await s.job_end(framed["job"])
+    await s.idle()
+    await s.setup.hostd.idle(None, LASER_ID)  # type: ignore[arg-type]  # its own client
+    await s.ok("machine.laser_test", machine=LASER_ID, power=2, duration_s=0.1)
     jog = await s.ok("machine.jog", machine=M, axes={"x": 2}, feed=600)
     if jog:
         await s.job_end(jog["job"])
@@ -330,6 +351,15 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     await s.idle()
     await s.ok("machine.zero", machine=M, axes={"x": 0, "z": 0})
     await s.ok("machine.goto_zero", machine=M, axes=["x", "y"])
+    await s.idle()
+    # Probing: a plate 3 mm under the bit, touched to the bit first, then Z.
+    monkeypatch.setattr(probing, "SETTLE", 0.0)
+    sim.touch_plate(TouchPlate(top=sim.position["z"] - 3.0))
+    sim.touch(reads=2)
+    await s.ok(
+        "machine.probe", machine=M, kind="z", plate=10.0, feed=600.0, max_travel=10.0, retract=2.0
+    )
+    sim.touch_plate(None)
     await s.idle()
 
     # Beyond the travel: 1008 on a homed machine.

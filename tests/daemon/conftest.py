@@ -19,6 +19,8 @@ from hostd.api.server import ApiServer
 from hostd.config import parse_config
 from hostd.daemon import Daemon
 
+READER = "test-rpc-reader"  # a test client's task, the test's own
+
 
 class RpcFailure(Exception):
     def __init__(self, error: dict[str, Any]) -> None:
@@ -36,7 +38,7 @@ class Rpc:
         self._ids = itertools.count(1)
         self._waiting: dict[int, asyncio.Future[dict[str, Any]]] = {}
         self.notifications: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
-        self._task = asyncio.create_task(self._read())
+        self._task = asyncio.create_task(self._read(), name=READER)
 
     @classmethod
     async def open(cls, path: str) -> Rpc:
@@ -74,6 +76,7 @@ class Rpc:
 
     async def close(self) -> None:
         self._task.cancel()
+        await asyncio.wait({self._task})  # the reader ends here: no task outlives its client
         self.writer.close()
         with contextlib.suppress(Exception):
             await self.writer.wait_closed()

@@ -74,7 +74,7 @@ async def test_a_line_grbl_would_misread_never_reaches_it(both: tuple[Running, R
     assert not any(r.kind == "realtime" and r.data == b"!" for r in sim.received)
 
 
-async def test_overrides_reach_a_grbl_board_and_are_refused_on_g2core(
+async def test_overrides_reach_a_grbl_board_within_its_steps(
     both: tuple[Running, Rpc],
 ) -> None:
     _, rpc = both
@@ -89,8 +89,6 @@ async def test_overrides_reach_a_grbl_board_and_are_refused_on_g2core(
     assert "10 to 200" in err.message
     err = await fails(-32602, rpc.call("machine.override", machine="sim2", rapid=75))
     assert "100, 50 or 25" in err.message
-    err = await fails(-32602, rpc.call("machine.override", machine="sim1", feed=110))
-    assert "no realtime overrides" in err.message
 
 
 async def test_the_host_opens_a_grbl_boards_safety_door(both: tuple[Running, Rpc]) -> None:

@@ -14,9 +14,9 @@ from hostd.config import MachineConfig
 from hostd.machine.engine import Engine
 from hostd.machine.events import (
     Console,
+    EngineEvent,
     Event,
     ExceptionRaised,
-    Hub,
     JobChanged,
     StatusChanged,
     SupervisorChanged,
@@ -39,16 +39,18 @@ FAST = SimConfig(
 
 @dataclass
 class Recorder:
-    """Every event the engine published, in order."""
+    """Every event an engine told (a rig's) or a machine published (a bench's), in order."""
 
-    events: list[Event] = field(default_factory=list)
+    events: list[Event | EngineEvent] = field(default_factory=list)
     _arrived: asyncio.Event = field(default_factory=asyncio.Event)
 
-    def __call__(self, event: Event) -> None:
+    def __call__(self, event: Event | EngineEvent) -> None:
         self.events.append(event)
         self._arrived.set()
 
-    async def wait_for(self, predicate: Callable[[Event], bool]) -> Event:
+    async def wait_for(
+        self, predicate: Callable[[Event | EngineEvent], bool]
+    ) -> Event | EngineEvent:
         """The first event, past or future, that satisfies the predicate."""
         seen = 0
         async with asyncio.timeout(5):
@@ -63,13 +65,13 @@ class Recorder:
     def tx(self) -> list[str]:
         return [e.text for e in self.events if isinstance(e, Console) and e.direction == "tx"]
 
-    def index_of(self, predicate: Callable[[Event], bool]) -> int:
+    def index_of(self, predicate: Callable[[Event | EngineEvent], bool]) -> int:
         return next(i for i, e in enumerate(self.events) if predicate(e))
 
     def lockout_read_at(self) -> int:
         """Where the engine first read that the board locked out."""
 
-        def locked(e: Event) -> bool:
+        def locked(e: Event | EngineEvent) -> bool:
             if isinstance(e, ExceptionRaised):
                 return True
             return isinstance(e, StatusChanged) and e.report.get("stat") in (2, 12, 13)
@@ -132,6 +134,8 @@ def machine_config(path: str, control: str | None = None, **overrides: object) -
         "status_interval": 0.1,
     }
     values.update(overrides)
+    if values.get("dialect", "g2core") != "g2core":
+        del values["window"]  # g2core's own key (its registry entry's options)
     return MachineConfig.model_validate(values)
 
 
@@ -139,10 +143,8 @@ def machine_config(path: str, control: str | None = None, **overrides: object) -
 async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
     path = str(tmp_path / "ttyG2")
     async with SimController(path, config=FAST) as sim:
-        hub = Hub()
         recorder = Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path), hub)
+        engine = Engine(machine_config(path), recorder)
         engine.console = True  # the recorder reads the traffic
         async with running(engine):
             await engine.connect()
@@ -161,7 +163,7 @@ class Bench:
         (self.jobs / name).write_text(text)
 
     async def job_ended(self, job_id: int) -> Job:
-        def ended(e: Event) -> bool:
+        def ended(e: Event | EngineEvent) -> bool:
             if not isinstance(e, JobChanged) or e.job["id"] != job_id:
                 return False
             return e.job["state"] not in ("running", "paused")

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hostd.machine.engine import Engine
-from hostd.machine.events import FaultDetected, Hub
+from hostd.machine.events import FaultDetected
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Rejected
@@ -39,11 +39,9 @@ async def rig_for(tmp_path: Path, fb: float, *, dual: bool) -> AsyncIterator[Rig
     data = str(tmp_path / "data")
     control = str(tmp_path / "ctrl") if dual else None
     async with SimController(data, control_path=control, config=replace(SLOW, fb=fb)) as sim:
-        hub = Hub()
         recorder = Recorder()
-        hub.subscribe(recorder)
         # A window wider than the planner: lines wait in the board's input.
-        engine = Engine(machine_config(data, control, window=12), hub)
+        engine = Engine(machine_config(data, control, window=12), recorder)
         engine.console = True
         async with running(engine):
             await engine.connect()

@@ -14,10 +14,17 @@ import pytest
 
 from hostd.link import Channel, Link
 from hostd.machine.engine import Engine, LinkState
-from hostd.machine.events import Console, ExceptionRaised, FaultDetected, Hub, LinkChanged
+from hostd.machine.events import (
+    Console,
+    ExceptionRaised,
+    FaultDetected,
+    LinkChanged,
+    StatusChanged,
+)
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
+from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim import SimConfig, SimController
@@ -236,7 +243,7 @@ async def test_alarm_mid_stream_stops_every_action_line_after_it_is_read(rig: Ri
     assert after == []
     # Every line written is accounted for: none lost, none re-sent.
     async with asyncio.timeout(2):
-        await rig.engine.wait_for(lambda: not len(rig.engine.sender))
+        await rig.engine.wait_for(lambda: not len(rig.engine.session.sender))
     assert stream.sent == stream.acked + stream.rejected + stream.discarded
     gcode = [line for line in rig.received_lines() if line.startswith(b"G")]
     assert len(gcode) == len(set(gcode)) or len(gcode) == stream.sent
@@ -263,7 +270,7 @@ async def test_feedhold_then_flush_cancels_and_frees_the_window(rig: Rig) -> Non
     await finished(stream)
     assert stream.result.result().end is StreamEnd.CANCELLED
     await state(rig, S.PROGRAM_STOP)
-    assert len(rig.engine.sender) == 0
+    assert len(rig.engine.session.sender) == 0
     assert stream.sent == stream.acked + stream.discarded
     assert (await rig.engine.send("G0 X1")).ok  # the window is free again
 
@@ -275,7 +282,7 @@ async def test_job_kill_cancels_and_frees_the_window(rig: Rig) -> None:
     await finished(stream)
     assert stream.result.result().end is StreamEnd.CANCELLED
     await state(rig, S.PROGRAM_END)
-    assert len(rig.engine.sender) == 0
+    assert len(rig.engine.session.sender) == 0
     assert (await rig.engine.send("G0 X1")).ok
 
 
@@ -377,9 +384,8 @@ async def test_unplug_mid_job_interrupts_it_with_exact_counts(rig: Rig) -> None:
 async def test_a_silent_board_is_declared_lost(tmp_path: Path) -> None:
     path = str(tmp_path / "ttyG2")
     async with SimController(path, config=FAST) as sim:
-        hub, recorder = Hub(), Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path, heartbeat=0.2), hub)
+        recorder = Recorder()
+        engine = Engine(machine_config(path, heartbeat=0.2), recorder)
         async with running(engine):
             await engine.connect()
             sim.go_silent(True)
@@ -415,7 +421,7 @@ async def test_a_board_already_in_alarm_connects_and_gets_its_settings_after_cle
             assert (await engine.send("{jv:n}")).body["jv"] != 4  # refused while alarmed
             await engine.clear()
             async with asyncio.timeout(2):
-                await engine.wait_for(lambda: len(engine.sender) == 0)
+                await engine.wait_for(lambda: len(engine.session.sender) == 0)
             assert (await engine.send("{jv:n}")).body["jv"] == 4
 
 
@@ -547,13 +553,42 @@ async def test_startup_messages_are_no_answers(tmp_path: Path) -> None:
     # report.cpp `_startup_helper`: status 15, printed on a UART link at boot.
     path = str(tmp_path / "ttyS")
     async with SimController(path, config=dataclasses.replace(FAST, uart=True)) as sim:
-        hub = Hub()
         recorder = Recorder()
-        hub.subscribe(recorder)
-        engine = Engine(machine_config(path), hub)
+        engine = Engine(machine_config(path), recorder)
         async with running(engine):
             await engine.connect()
             await engine.reset()  # it boots, and prints them where the host reads
             assert any(b"Loading configs from EEPROM" in s.data for s in sim.sent)
             assert (await engine.send("{xvm:n}")).body == {"xvm": 6000}
     assert not [e for e in recorder.events if isinstance(e, FaultDetected)]
+
+
+async def test_a_stop_given_while_an_event_is_told_runs_once_the_step_is_delivered(
+    tmp_path: Path,
+) -> None:
+    """The Machine stops a job from inside the engine's callback (a fault): the call does
+    not reach into the session there, it runs once the step's events are handed out,
+    in the same delivery, and what it writes goes out then."""
+    path = str(tmp_path / "ttyG2")
+    async with SimController(path, config=FAST) as sim:
+        live_when_asked: list[bool] = []
+        engine: Engine
+
+        def on_event(event: object) -> None:
+            stream = engine.session.stream
+            running = isinstance(event, StatusChanged) and event.report.get("stat") == S.RUN
+            if running and stream is not None and not live_when_asked:
+                engine.stop_stream(1007, "fault active: lid_open")
+                live_when_asked.append(not stream.done)
+
+        engine = Engine(machine_config(path), on_event)
+        async with running(engine):
+            await engine.connect()
+            stream = JobStream(program_lines(moves(200)))
+            engine.start_stream(stream)
+            async with asyncio.timeout(10):
+                result = await stream.result
+            # The stop was not run inside the callback: the job was still live there.
+            assert live_when_asked == [True]
+            assert (result.end, result.code) == (StreamEnd.FAILED, 1007)
+            await sim.wait_for(lambda: any(r.data == b"!" for r in sim.received))

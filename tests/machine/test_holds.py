@@ -275,7 +275,7 @@ async def test_pause_resume_and_cancel_after_the_end_are_refused(bench: Bench) -
 async def test_a_pause_as_the_stream_ends_leaves_the_job_completed(bench: Bench) -> None:
     bench.write("short.gcode", SHORT)
     job = await bench.machine.start_make("short.gcode")
-    stream = bench.machine._stream
+    stream = bench.machine.jobs.stream
     assert stream is not None
     outcomes: list[str] = []
 

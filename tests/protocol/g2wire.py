@@ -80,7 +80,7 @@ class Wire:
             done += 1
 
     def connect(self, report: dict[str, Any] | None = None) -> None:
-        """Banner, settings, `{home:n}` and the first report: the session is ready."""
+        """Banner, settings, the overrides, `{home:n}` and the first report: ready."""
         self.session.open()
         self.pump()
         self.feed(banner(self.fb))
@@ -115,6 +115,10 @@ def _single(data: bytes) -> bool:
     return len(data) == 2 and data.endswith(b"\n") and data[:1] in b"!~%\x04\x05\x18"
 
 
+# What a GET of these reads on a fresh board: homed, the newest build, overrides 1.0.
+_GOT = {"home": 1, "fb": 101.06} | dict.fromkeys(("fro", "tro", "spo", "mfo", "mto", "sso"), 1.0)
+
+
 def _echo(line: bytes, report: dict[str, Any] | None = None) -> dict[str, Any]:
     """What g2core puts in an answer's body: the pairs of the line, with GETs filled in."""
     if not line.startswith(b"{"):
@@ -122,5 +126,5 @@ def _echo(line: bytes, report: dict[str, Any] | None = None) -> dict[str, Any]:
     body: dict[str, Any] = json.loads(line)
     for key, value in body.items():
         if value is None:
-            body[key] = (report or REPORT) if key == "sr" else {"home": 1, "fb": 101.06}.get(key, 0)
+            body[key] = (report or REPORT) if key == "sr" else _GOT.get(key, 0)
     return body

@@ -11,23 +11,21 @@ import json
 
 import pytest
 
-from hostd.machine.stream import JobStream
-from hostd.protocol.commands import Realtime
+from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.g2core import FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Detected, Excepted, Lane, StreamEnd
-from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire
-
-pytestmark = pytest.mark.asyncio
+from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire, banner
 
 KILL = b"\x04\n"
 CLEAR = b'{"clear":null}\n'
 LIMIT = '{"er":{"fb":%s,"st":203,"msg":"Limit hit - input 1"}}'
 
 
-def moves(n: int) -> JobStream:
-    return JobStream(iter(enumerate((f"G1 X{i % 100} F1000" for i in range(n)), start=1)))
+def moves(n: int) -> Stream:
+    return Stream().feed_all(enumerate((f"G1 X{i % 100} F1000" for i in range(n)), start=1))
 
 
 def ready(fb: float, **options: object) -> Wire:
@@ -53,7 +51,7 @@ def faults(wire: Wire) -> list[Detected]:
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
-async def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_both_reports(
+def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_both_reports(
     fb: float,
 ) -> None:
     wire = ready(fb, dual=True)
@@ -71,12 +69,12 @@ async def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_both_reports
     wire.feed(kill_report(fb))  # the data port's kill: the rest never will be answered
     assert not wire.session.flushing()
     assert stream.acked == 1 and stream.discarded == 3
-    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert stream.result.end is StreamEnd.CANCELLED
     assert faults(wire) == []
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
-async def test_a_kill_on_one_port_is_written_once_and_settled_by_its_report(fb: float) -> None:
+def test_a_kill_on_one_port_is_written_once_and_settled_by_its_report(fb: float) -> None:
     wire = ready(fb)
     stream = moves(20)
     wire.session.start_stream(stream)
@@ -89,7 +87,7 @@ async def test_a_kill_on_one_port_is_written_once_and_settled_by_its_report(fb: 
 
 
 @pytest.mark.parametrize("fb", [100.26, 101.03])
-async def test_a_flush_on_two_ports_before_101_05_flushes_the_data_port_too(fb: float) -> None:
+def test_a_flush_on_two_ports_before_101_05_flushes_the_data_port_too(fb: float) -> None:
     """`%` flushes its own port (xio_flush_to_command); only 101.05+ flushes every data port
     once held, so older builds get `!` `%` on the data port as well (a `%` after `!` is a
     flush even at rest)."""
@@ -99,7 +97,7 @@ async def test_a_flush_on_two_ports_before_101_05_flushes_the_data_port_too(fb: 
     assert wire.written[-2:] == [(Lane.DATA, b"!\n"), (Lane.DATA, b"%\n")]
 
 
-async def test_a_flush_on_two_ports_on_101_06_goes_on_the_control_port_alone() -> None:
+def test_a_flush_on_two_ports_on_101_06_goes_on_the_control_port_alone() -> None:
     wire = ready(101.06, dual=True)
     wire.session.realtime(Realtime.QUEUE_FLUSH)
     wire.pump()
@@ -109,7 +107,7 @@ async def test_a_flush_on_two_ports_on_101_06_goes_on_the_control_port_alone() -
 # -- item 5: before 101.02 ^D is an ALARM and every caught line is answered 204 ------------
 
 
-async def test_before_101_02_a_cancel_is_settled_by_the_204s_then_cleared() -> None:
+def test_before_101_02_a_cancel_is_settled_by_the_204s_then_cleared() -> None:
     wire = ready(100.26, dual=True)
     stream = moves(20)
     wire.session.start_stream(stream)
@@ -118,7 +116,7 @@ async def test_before_101_02_a_cancel_is_settled_by_the_204s_then_cleared() -> N
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
     assert [x for x in wire.written if x[1] == KILL] == [(Lane.REALTIME, KILL)]
-    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert stream.result.end is StreamEnd.CANCELLED
     wire.feed(kill_report(100.26))
     assert wire.session.model.state is S.ALARM
     assert CLEAR not in wire.lines()  # not while lines it would clear behind are unanswered
@@ -133,7 +131,7 @@ async def test_before_101_02_a_cancel_is_settled_by_the_204s_then_cleared() -> N
     assert wire.session.model.state is S.PROGRAM_STOP
 
 
-async def test_before_101_02_no_g_code_runs_inside_a_hold() -> None:
+def test_before_101_02_no_g_code_runs_inside_a_hold() -> None:
     wire = ready(100.26)
     wire.report(stat=6, hold=10)
     with pytest.raises(Busy, match="gc2"):
@@ -143,7 +141,7 @@ async def test_before_101_02_no_g_code_runs_inside_a_hold() -> None:
 # -- items 2 and 3: 101.06 alarms arrive through a hold --------------------------------
 
 
-async def test_101_06_the_lockout_stands_through_the_alarms_hold_and_keeps_its_reason() -> None:
+def test_101_06_the_lockout_stands_through_the_alarms_hold_and_keeps_its_reason() -> None:
     wire = ready(101.06)
     stream = moves(20)
     wire.session.start_stream(stream)
@@ -166,7 +164,7 @@ async def test_101_06_the_lockout_stands_through_the_alarms_hold_and_keeps_its_r
     assert not [x for _, x in wire.written[written:] if x.startswith((b"G", b'{"gc'))]
 
 
-async def test_101_06_the_alarms_own_kill_does_not_settle_a_kill_of_ours() -> None:
+def test_101_06_the_alarms_own_kill_does_not_settle_a_kill_of_ours() -> None:
     wire = ready(101.06)
     stream = moves(20)
     wire.session.start_stream(stream)
@@ -182,14 +180,14 @@ async def test_101_06_the_alarms_own_kill_does_not_settle_a_kill_of_ours() -> No
 # -- item 4: 101.02-101.04 never enter ALARM: hostd stops the board and keeps the lockout --
 
 
-async def test_101_03_an_alarm_is_stopped_by_hostd_and_held_until_a_clear() -> None:
+def test_101_03_an_alarm_is_stopped_by_hostd_and_held_until_a_clear() -> None:
     wire = ready(101.03)
     stream = moves(20)
     wire.session.start_stream(stream)
     wire.pump()
     wire.feed(LIMIT % 101.03)
     assert (Lane.REALTIME, KILL) in wire.written  # the board would run the next line read
-    assert stream.result.result().code == 204
+    assert stream.result.code == 204
     wire.feed(kill_report(101.03))  # our kill ran: what it flushed is dropped
     assert not wire.session.flushing() and stream.discarded == 4
     wire.report(stat=4, hold=0)  # the board shows no alarm: hostd's lockout stands
@@ -209,7 +207,7 @@ async def test_101_03_an_alarm_is_stopped_by_hostd_and_held_until_a_clear() -> N
 
 
 @pytest.mark.parametrize("fb", [100.26, 101.06])
-async def test_a_board_that_enters_alarm_itself_is_not_killed_by_hostd(fb: float) -> None:
+def test_a_board_that_enters_alarm_itself_is_not_killed_by_hostd(fb: float) -> None:
     wire = ready(fb)
     wire.session.start_stream(moves(20))
     wire.pump()
@@ -221,7 +219,7 @@ async def test_a_board_that_enters_alarm_itself_is_not_killed_by_hostd(fb: float
 
 
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_hold_shown_only_by_the_hold_field_stops_job_lines(fb: float) -> None:
+def test_a_hold_shown_only_by_the_hold_field_stops_job_lines(fb: float) -> None:
     wire = ready(fb)
     wire.report(stat=3, hold=10)  # 101.06: `!` at rest; stat is unchanged
     stream = moves(5)
@@ -232,7 +230,7 @@ async def test_a_hold_shown_only_by_the_hold_field_stops_job_lines(fb: float) ->
     assert len(data_lines(wire)) == 4
 
 
-async def test_101_06_a_line_sent_in_a_hold_at_rest_runs_inside_it() -> None:
+def test_101_06_a_line_sent_in_a_hold_at_rest_runs_inside_it() -> None:
     wire = ready(101.06)
     wire.report(stat=3, hold=10)
     wire.session.send("G0 X1", object())
@@ -244,7 +242,7 @@ async def test_101_06_a_line_sent_in_a_hold_at_rest_runs_inside_it() -> None:
 
 
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_clear_is_written_on_the_data_lane(fb: float) -> None:
+def test_a_clear_is_written_on_the_data_lane(fb: float) -> None:
     wire = ready(fb, dual=True)
     wire.report(stat=2)
     assert wire.session.clear(object())
@@ -256,7 +254,7 @@ async def test_a_clear_is_written_on_the_data_lane(fb: float) -> None:
 
 
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_204_answer_alone_locks_out(fb: float) -> None:
+def test_a_204_answer_alone_locks_out(fb: float) -> None:
     wire = ready(fb)
     token = object()
     wire.session.send("G0 X1", token)
@@ -267,7 +265,7 @@ async def test_a_204_answer_alone_locks_out(fb: float) -> None:
         wire.session.send("G0 X2", object())
 
 
-async def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> None:
+def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> None:
     wire = ready(101.06, dual=True)
     wire.session.start_stream(moves(20))
     wire.pump()
@@ -279,7 +277,7 @@ async def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> 
 
 
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: float) -> None:
+def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: float) -> None:
     wire = ready(fb)
     stream = moves(20)
     wire.session.start_stream(stream)
@@ -293,10 +291,10 @@ async def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: flo
 
 
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_stop_before_a_jobs_json_line_is_no_underflow(fb: float) -> None:
+def test_a_stop_before_a_jobs_json_line_is_no_underflow(fb: float) -> None:
     """The `{`-line waits for the lines before it: the planner drains there on purpose."""
     wire = ready(fb)
-    stream = JobStream(iter(enumerate(["G1 X1 F100", '{"out4":1}', "G1 X2"], start=1)))
+    stream = Stream().feed_all(enumerate(["G1 X1 F100", '{"out4":1}', "G1 X2"], start=1))
     wire.session.start_stream(stream)
     wire.pump()
     wire.report(stat=5)
@@ -304,7 +302,7 @@ async def test_a_stop_before_a_jobs_json_line_is_no_underflow(fb: float) -> None
     assert faults(wire) == []
 
 
-async def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
+def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
     """101.03 never enters ALARM: an M30 (a clear in the class table) runs as a plain line,
     and its OK ends the lockout hostd kept."""
     wire = ready(101.03)
@@ -321,7 +319,7 @@ async def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
     assert wire.session.model.state is S.PROGRAM_END
 
 
-async def test_101_06_a_clear_during_the_alarms_hold_leaves_the_lockout() -> None:
+def test_101_06_a_clear_during_the_alarms_hold_leaves_the_lockout() -> None:
     """cm_clear finds no ALARM while the alarm's hold runs: the board gets there after."""
     wire = ready(101.06)
     wire.feed(LIMIT % 101.06)
@@ -347,9 +345,7 @@ async def test_101_06_a_clear_during_the_alarms_hold_leaves_the_lockout() -> Non
         (101.06, "encoder stopped returning values", S.ALARM),  # kinematics_four_cable.h:684
     ],
 )
-async def test_status_92_is_a_panic_where_the_source_says_so(
-    fb: float, detail: str, lockout: S
-) -> None:
+def test_status_92_is_a_panic_where_the_source_says_so(fb: float, detail: str, lockout: S) -> None:
     wire = ready(fb)
     msg = f"Encoder assertion failure - {detail}"
     wire.feed(json.dumps({"er": {"fb": fb, "st": 92, "msg": msg}}))
@@ -357,16 +353,78 @@ async def test_status_92_is_a_panic_where_the_source_says_so(
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
-async def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> None:
+def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> None:
     wire = ready(fb, dual=True)
     stream = moves(20)
     wire.session.start_stream(stream)
     wire.pump()
     first, *rest = data_lines(wire)
     wire.answer(first, {}, status=133)  # modal group violation: the job fails, the rest is killed
-    assert stream.result.result().end is StreamEnd.FAILED
+    assert stream.result.end is StreamEnd.FAILED
     assert (Lane.REALTIME, KILL) in wire.written and (Lane.DATA, KILL) in wire.written
     wire.feed(kill_report(fb))
     assert wire.session.flushing()  # the data port's kill is still to come
     wire.feed(kill_report(fb))
     assert stream.discarded == len(rest) and faults(wire) == []
+
+
+# -- overrides: the build's settings (g2builds.py override_keys) ------------------------
+
+OVERRIDE_LINES = {
+    100.26: (b'{"mfo":null,"mto":null,"sso":null}\n', b'{"mfoe":1,"mfo":1.5,"ssoe":1,"sso":0.8}\n'),
+    101.03: (b'{"fro":null,"tro":null,"spo":null}\n', b'{"fro":1.5,"spoe":1,"spo":0.8}\n'),
+    101.06: (b'{"fro":null,"tro":null,"spo":null}\n', b'{"fro":1.5,"spoe":1,"spo":0.8}\n'),
+}
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_overrides_are_read_and_written_as_the_build_names_them(fb: float) -> None:
+    read, write = OVERRIDE_LINES[fb]
+    wire = Wire(fb)
+    wire.session.open()
+    wire.pump()
+    wire.feed(banner(fb))
+    while read not in wire.unanswered:
+        wire.answer(wire.unanswered[0])
+    wire.answer(read, dict.fromkeys(json.loads(read), 1.0))  # asked in the handshake
+    while not wire.session.ready:
+        wire.answer(wire.unanswered[0])
+    assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 100.0}
+    seen = wire.session.model.override_reports
+    wire.session.override(feed=150, spindle=80)
+    wire.pump()
+    assert (Lane.CONTROL, write) in wire.written
+    wire.answer(write, {k: v for k, v in json.loads(write).items()})
+    assert wire.session.model.overrides == {"feed": 150.0, "rapid": 100.0, "spindle": 80.0}
+    assert wire.session.model.override_reports == seen + 1
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_an_override_out_of_the_firmwares_bounds_writes_nothing(fb: float) -> None:
+    wire = ready(fb)
+    for asked in ({"rapid": 150}, {"feed": 201}, {"spindle": 4}):
+        with pytest.raises(InvalidCommand):
+            wire.session.override(**asked)
+    wire.session.override(rapid=5)
+    assert not any(b"150" in line or b"2.01" in line for line in wire.lines())
+
+
+def test_a_program_end_puts_feed_and_rapid_back_as_the_board_does() -> None:
+    wire = ready(101.06)
+    wire.session.override(feed=150, rapid=50, spindle=80)
+    wire.pump()
+    wire.answer_all()
+    assert wire.session.model.overrides == {"feed": 150.0, "rapid": 50.0, "spindle": 80.0}
+    wire.report(stat=5)  # running
+    wire.clear()
+    wire.report(stat=4)  # M2/M30: cm_reset_overrides
+    assert wire.session.model.overrides == {"feed": 100.0, "rapid": 100.0, "spindle": 80.0}
+    assert wire.lines() == []  # known from the firmware's rule: nothing asked
+
+
+def test_an_override_in_an_alarm_is_refused_with_its_code() -> None:
+    wire = ready(101.06)
+    wire.report(stat=2)  # ALARM
+    with pytest.raises(Rejected) as err:
+        wire.session.override(feed=110)
+    assert err.value.code == 204

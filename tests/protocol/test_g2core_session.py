@@ -10,13 +10,13 @@ import json
 
 import pytest
 
-from hostd.machine.stream import JobStream
 from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
 from hostd.protocol.g2builds import Build
 from hostd.protocol.g2core import BANNER_WAIT, FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
     Detected,
@@ -27,10 +27,9 @@ from hostd.protocol.vocabulary import (
     Ready,
     Reported,
     StreamEnd,
+    StreamEnded,
 )
 from tests.protocol.g2wire import BANNER, BUILDS, JOB_KILLERS, Wire
-
-pytestmark = pytest.mark.asyncio
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
@@ -44,11 +43,11 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("fb", BUILDS)
 
 
-def job(*lines: str) -> JobStream:
-    return JobStream(iter(enumerate(lines, start=1)), job_id=1)
+def job(*lines: str) -> Stream:
+    return Stream(job_id=1).feed_all(enumerate(lines, start=1))
 
 
-def moves(n: int) -> JobStream:
+def moves(n: int) -> Stream:
     return job(*(f"G1 X{i % 100} F1000" for i in range(n)))
 
 
@@ -61,7 +60,7 @@ def ready(**options: object) -> Wire:
 # -- the handshake -------------------------------------------------------------
 
 
-async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(fb: float) -> None:
+def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(fb: float) -> None:
     wire = Wire(fb)
     wire.session.open()
     assert wire.pump() == []
@@ -72,21 +71,23 @@ async def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(
     assert wire.lines()[-1] == b'{"jv":4}\n'
 
 
-async def test_the_handshake_ends_ready_after_settings_home_and_a_report(fb: float) -> None:
+def test_the_handshake_ends_ready_after_settings_home_and_a_report(fb: float) -> None:
     wire = Wire(fb, status_interval=0.1, signal_keys=["in1"])
     wire.session.open()
     wire.feed(BANNER)
     while not wire.session.ready:
         wire.answer(wire.unanswered[0])
     sent = [json.loads(x) for x in wire.lines()]
-    assert [next(iter(x)) for x in sent] == ["ej", "jv", "sv", "qv", "si", "sr", "home", "sr"]
+    # ... with the overrides in force asked before the last report (BANNER's build: fro..)
+    names = ["ej", "jv", "sv", "qv", "si", "sr", "fro", "home", "sr"]
+    assert [next(iter(x)) for x in sent] == names
     assert sent[4] == {"si": 100}
     assert sent[5]["sr"]["in1"] is True and sent[5]["sr"]["mpox"] is True
     assert wire.of(Ready) == [Ready()]
     assert wire.session.model.homed is True and wire.session.model.state is S.READY
 
 
-async def test_a_board_that_prints_no_banner_is_asked_its_version(fb: float) -> None:
+def test_a_board_that_prints_no_banner_is_asked_its_version(fb: float) -> None:
     wire = Wire(fb)
     wire.session.open()
     assert wire.session.next_deadline() == BANNER_WAIT
@@ -95,7 +96,7 @@ async def test_a_board_that_prints_no_banner_is_asked_its_version(fb: float) -> 
     assert wire.lines()[-1] == b'{"ej":1}\n'
 
 
-async def test_after_a_reset_only_the_banner_will_do(fb: float) -> None:
+def test_after_a_reset_only_the_banner_will_do(fb: float) -> None:
     wire = Wire(fb, handshake_timeout=5.0)
     wire.session.open(rebooting=True)
     assert wire.at(BANNER_WAIT) == []
@@ -106,9 +107,7 @@ async def test_after_a_reset_only_the_banner_will_do(fb: float) -> None:
 @pytest.mark.parametrize(
     ("fb", "why"), [(440.2, "TinyG"), (99.5, "older than 100"), (None, "did not say")]
 )
-async def test_firmware_that_is_not_g2core_100_or_later_is_refused(
-    fb: float | None, why: str
-) -> None:
+def test_firmware_that_is_not_g2core_100_or_later_is_refused(fb: float | None, why: str) -> None:
     wire = Wire()
     wire.session.open()
     wire.at(BANNER_WAIT)
@@ -118,7 +117,7 @@ async def test_firmware_that_is_not_g2core_100_or_later_is_refused(
     assert not wire.session.ready
 
 
-async def test_a_refused_setting_fails_the_handshake_with_its_status(fb: float) -> None:
+def test_a_refused_setting_fails_the_handshake_with_its_status(fb: float) -> None:
     wire = Wire(fb)
     wire.session.open()
     wire.feed(BANNER)
@@ -127,7 +126,7 @@ async def test_a_refused_setting_fails_the_handshake_with_its_status(fb: float) 
     assert "controller refused {'ej': 1}: 100" in closing.reason
 
 
-async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared(fb: float) -> None:
+def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared(fb: float) -> None:
     wire = Wire(fb)
     wire.session.open()
     wire.feed(BANNER)
@@ -146,7 +145,7 @@ async def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared(fb: f
 # -- flow control --------------------------------------------------------------
 
 
-async def test_a_job_never_has_more_than_the_window_unanswered(fb: float) -> None:
+def test_a_job_never_has_more_than_the_window_unanswered(fb: float) -> None:
     wire = ready(fb=fb, window=4)
     stream = moves(2_000)
     wire.session.start_stream(stream)
@@ -158,11 +157,11 @@ async def test_a_job_never_has_more_than_the_window_unanswered(fb: float) -> Non
         if not wire.answer_all():
             wire.report(stat=4)  # the board rests
     assert most == 4
-    assert stream.result.result().end is StreamEnd.COMPLETED
+    assert stream.result.end is StreamEnd.COMPLETED
     assert (stream.sent, stream.acked) == (2_000, 2_000)
 
 
-async def test_queries_take_the_control_lane_not_the_jobs_window(fb: float) -> None:
+def test_queries_take_the_control_lane_not_the_jobs_window(fb: float) -> None:
     wire = ready(fb=fb, window=4)
     wire.session.start_stream(moves(100))
     tokens = [object() for _ in range(10)]
@@ -179,7 +178,7 @@ async def test_queries_take_the_control_lane_not_the_jobs_window(fb: float) -> N
     assert all(wire.settled(t) for t in tokens)
 
 
-async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait(fb: float) -> None:
+def test_an_answer_is_matched_by_its_count_when_both_kinds_wait(fb: float) -> None:
     wire = ready(fb=fb)
     a, b = object(), object()
     wire.session.send("G0 X1", a)
@@ -192,14 +191,14 @@ async def test_an_answer_is_matched_by_its_count_when_both_kinds_wait(fb: float)
     assert wire.settled(a) is None
 
 
-async def test_an_answer_to_no_line_is_a_lexical_fault_and_books_nothing(fb: float) -> None:
+def test_an_answer_to_no_line_is_a_lexical_fault_and_books_nothing(fb: float) -> None:
     wire = ready(fb=fb)
     wire.feed('{"r":{},"f":[1,0,9]}')
     (fault,) = wire.of(Detected)
     assert fault.fault == "lexical"
 
 
-async def test_a_short_count_answer_is_a_report_not_an_answer(fb: float) -> None:
+def test_a_short_count_answer_is_a_report_not_an_answer(fb: float) -> None:
     wire = ready(fb=fb)
     token = object()
     wire.session.send("G28.2 X0", token)
@@ -214,7 +213,7 @@ async def test_a_short_count_answer_is_a_report_not_an_answer(fb: float) -> None
     assert settled.outcome.status == 240
 
 
-async def test_an_answer_too_long_fails_the_control_line_being_run(fb: float) -> None:
+def test_an_answer_too_long_fails_the_control_line_being_run(fb: float) -> None:
     wire = ready(fb=fb)
     token = object()
     wire.session.send("{sys:n}", token)
@@ -228,7 +227,7 @@ async def test_an_answer_too_long_fails_the_control_line_being_run(fb: float) ->
 # -- holds ---------------------------------------------------------------------
 
 
-async def test_a_paused_job_writes_nothing_until_resumed(fb: float) -> None:
+def test_a_paused_job_writes_nothing_until_resumed(fb: float) -> None:
     wire = ready(fb=fb, window=4)
     stream = moves(50)
     wire.session.start_stream(stream)
@@ -245,7 +244,7 @@ async def test_a_paused_job_writes_nothing_until_resumed(fb: float) -> None:
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)  # gc2 and ^D's flush: 101.02+
-async def test_a_line_sent_in_a_hold_runs_inside_it_at_once(fb: float) -> None:
+def test_a_line_sent_in_a_hold_runs_inside_it_at_once(fb: float) -> None:
     wire = ready(fb=fb)
     wire.report(stat=6)
     token = object()
@@ -255,7 +254,7 @@ async def test_a_line_sent_in_a_hold_runs_inside_it_at_once(fb: float) -> None:
         wire.session.send("$xvm=1000", object())
 
 
-async def test_no_line_written_after_the_resume_carries_the_hold() -> None:
+def test_no_line_written_after_the_resume_carries_the_hold() -> None:
     """Issue 24 part 5: the `~` ends in-hold admission in the same step."""
     wire = ready(window=4)
     wire.session.start_stream(moves(50))
@@ -287,7 +286,7 @@ async def test_no_line_written_after_the_resume_carries_the_hold() -> None:
     assert not any(b"Z9" in line for line in wire.lines())
 
 
-async def test_a_hold_after_a_resume_takes_in_hold_lines_again() -> None:
+def test_a_hold_after_a_resume_takes_in_hold_lines_again() -> None:
     wire = ready()
     wire.report(stat=6)
     wire.session.realtime(Realtime.CYCLE_START)
@@ -303,7 +302,7 @@ async def test_a_hold_after_a_resume_takes_in_hold_lines_again() -> None:
     assert (Lane.CONTROL, b'{"gc2":"M5"}\n') in wire.pump()
 
 
-async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent(fb: float) -> None:
+def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent(fb: float) -> None:
     wire = ready(fb=fb, window=1)
     first, second = object(), object()
     wire.session.send("G0 X1", first)
@@ -317,7 +316,7 @@ async def test_a_free_line_still_waiting_when_a_hold_begins_is_not_sent(fb: floa
     assert b"G0 X2\n" not in wire.lines()
 
 
-async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pass(
+def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pass(
     fb: float,
 ) -> None:
     wire = ready(fb=fb)
@@ -331,14 +330,14 @@ async def test_client_actions_are_busy_during_an_operation_but_its_own_lines_pas
 # -- lockouts, clears, flushes -------------------------------------------------
 
 
-async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared(fb: float) -> None:
+def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared(fb: float) -> None:
     wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
     wire.pump()
     wire.feed('{"er":{"fb":101.06,"st":203,"msg":"Limit switch hit"}}')
-    assert stream.result.result().end is StreamEnd.FAILED
-    assert stream.result.result().code == 204
+    assert stream.result.end is StreamEnd.FAILED
+    assert stream.result.code == 204
     with pytest.raises(Rejected) as refused:
         wire.session.send("G0 X1", object())
     assert refused.value.code == 204 and "Limit switch hit" in refused.value.message
@@ -348,7 +347,7 @@ async def test_an_alarm_drains_the_job_and_refuses_actions_until_cleared(fb: flo
     assert b'{"pos":null}\n' in wire.lines(Lane.CONTROL)
 
 
-async def test_a_clear_waits_until_no_data_line_is_unanswered(fb: float) -> None:
+def test_a_clear_waits_until_no_data_line_is_unanswered(fb: float) -> None:
     wire = ready(fb=fb)
     wire.session.send("G0 X1", object())
     wire.pump()
@@ -366,7 +365,7 @@ async def test_a_clear_waits_until_no_data_line_is_unanswered(fb: float) -> None
     assert wire.lines()[-1] == b'{"clear":null}\n'
 
 
-async def test_panic_is_left_only_by_a_reset(fb: float) -> None:
+def test_panic_is_left_only_by_a_reset(fb: float) -> None:
     wire = ready(fb=fb)
     wire.feed('{"er":{"fb":101.06,"st":20,"msg":"Internal error"}}')  # raises PANIC
     with pytest.raises(Rejected, match="only by a reset"):
@@ -376,7 +375,7 @@ async def test_panic_is_left_only_by_a_reset(fb: float) -> None:
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)  # gc2 and ^D's flush: 101.02+
-async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush(
+def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush(
     fb: float,
 ) -> None:
     wire = ready(fb=fb)
@@ -385,7 +384,7 @@ async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flus
     wire.pump()
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
-    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert stream.result.end is StreamEnd.CANCELLED
     token = object()
     wire.session.send("{xvm:n}", token)  # queries still run meanwhile
     wire.session.set_operation(False)
@@ -398,7 +397,7 @@ async def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flus
     assert not wire.session.flushing()
 
 
-async def test_a_stop_read_before_the_flush_went_out_proves_nothing(fb: float) -> None:
+def test_a_stop_read_before_the_flush_went_out_proves_nothing(fb: float) -> None:
     wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
@@ -413,7 +412,7 @@ async def test_a_stop_read_before_the_flush_went_out_proves_nothing(fb: float) -
     assert not wire.session.flushing() and stream.discarded == 4
 
 
-async def test_an_unconfirmed_flush_gives_up_after_its_timeout(fb: float) -> None:
+def test_an_unconfirmed_flush_gives_up_after_its_timeout(fb: float) -> None:
     wire = ready(fb=fb)
     wire.session.realtime(Realtime.QUEUE_FLUSH)
     wire.pump()
@@ -422,7 +421,7 @@ async def test_an_unconfirmed_flush_gives_up_after_its_timeout(fb: float) -> Non
     assert not wire.session.flushing()
 
 
-async def test_an_exception_holds_actions_until_a_status_report(fb: float) -> None:
+def test_an_exception_holds_actions_until_a_status_report(fb: float) -> None:
     wire = ready(fb=fb)
     wire.feed('{"er":{"fb":101.06,"st":107,"msg":"Input exceeds max length"}}')
     assert wire.lines() == [b'{"sr":null}\n']
@@ -436,7 +435,7 @@ async def test_an_exception_holds_actions_until_a_status_report(fb: float) -> No
 # -- what the board tells ------------------------------------------------------
 
 
-async def test_reports_carry_the_snapshot_they_left(fb: float) -> None:
+def test_reports_carry_the_snapshot_they_left(fb: float) -> None:
     wire = ready(fb=fb)
     wire.report(stat=5, posx=1.5)
     wire.report(stat=3)
@@ -445,7 +444,7 @@ async def test_reports_carry_the_snapshot_they_left(fb: float) -> None:
     assert second.snapshot["state"]["name"] == "PROGRAM_STOP"
 
 
-async def test_a_probe_result_is_kept_and_told(fb: float) -> None:
+def test_a_probe_result_is_kept_and_told(fb: float) -> None:
     wire = ready(fb=fb)
     wire.feed('{"prb":{"e":1,"x":1.5,"y":2.0,"z":-3.25}}')
     (probe,) = wire.of(Probed)
@@ -453,20 +452,20 @@ async def test_a_probe_result_is_kept_and_told(fb: float) -> None:
     assert wire.session.model.probe == probe.probe
 
 
-async def test_homed_is_asked_when_homing_ends(fb: float) -> None:
+def test_homed_is_asked_when_homing_ends(fb: float) -> None:
     wire = ready(fb=fb)
     wire.report(stat=9)
     wire.report(stat=1)
     assert wire.lines()[-1] == b'{"home":null}\n'
 
 
-async def test_a_banner_mid_session_closes_it(fb: float) -> None:
+def test_a_banner_mid_session_closes_it(fb: float) -> None:
     wire = ready(fb=fb)
     wire.feed(BANNER)
     assert wire.of(Closing) == [Closing("controller restarted (unexpected SYSTEM READY)")]
 
 
-async def test_a_silent_board_is_asked_then_given_up(fb: float) -> None:
+def test_a_silent_board_is_asked_then_given_up(fb: float) -> None:
     wire = ready(fb=fb, heartbeat=2.0)
     assert wire.at(2.0) == [(Lane.CONTROL, b'{"sr":null}\n')]
     wire.at(3.9)
@@ -476,7 +475,7 @@ async def test_a_silent_board_is_asked_then_given_up(fb: float) -> None:
     assert "silent for 4 s" in closing.reason
 
 
-async def test_closing_settles_every_request_and_interrupts_the_job(fb: float) -> None:
+def test_closing_settles_every_request_and_interrupts_the_job(fb: float) -> None:
     wire = ready(fb=fb)
     stream = moves(50)
     wire.session.start_stream(stream)
@@ -487,13 +486,13 @@ async def test_closing_settles_every_request_and_interrupts_the_job(fb: float) -
     wire.pump()
     settled = wire.settled(waiting)
     assert settled is not None and isinstance(settled.outcome, NotConnected)
-    assert stream.result.result().end is StreamEnd.INTERRUPTED
+    assert stream.result.end is StreamEnd.INTERRUPTED
     assert wire.session.phase is Phase.CLOSED
     with pytest.raises(NotConnected):
         wire.session.send("G0 X1", queued)
 
 
-async def test_a_long_job_streams_in_plain_calls(fb: float) -> None:
+def test_a_long_job_streams_in_plain_calls(fb: float) -> None:
     """The session alone moves a 10,000-line job: no port, no event loop turn a line."""
     wire = ready(fb=fb, window=8)
     stream = moves(10_000)
@@ -505,8 +504,47 @@ async def test_a_long_job_streams_in_plain_calls(fb: float) -> None:
     assert (stream.sent, stream.acked, stream.rejected) == (10_000, 10_000, 0)
 
 
+def test_a_job_fed_a_few_lines_at_a_time_writes_only_what_it_was_fed(fb: float) -> None:
+    """The caller owns the file: the session writes the lines it was given, says when it
+    has room and nothing ahead (`starved`), and tells the end once, as an event."""
+    wire = ready(fb=fb, window=4)
+    stream = Stream(job_id=7)
+    stream.feed(1, "G1 X1 F100")
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert wire.lines(Lane.DATA) == [b"G1 X1 F100\n"]
+    assert stream.starved and stream.wanted() > 0  # room for three more, none fed
+    for number in (2, 3, 4, 5, 6):
+        stream.feed(number, f"G1 X{number}")
+    wire.pump()
+    assert len(wire.lines(Lane.DATA)) == 4 and not stream.starved  # the window, no more
+    wire.answer_all()  # each answer frees a slot: lines 5 and 6 follow, and are answered
+    wire.report(stat=4)
+    assert (stream.sent, stream.acked) == (6, 6)
+    assert not wire.of(StreamEnded)  # all answered, the board at rest, but the file goes on
+    stream.end_of_input()
+    wire.pump()
+    wire.answer_all()  # the status query that finds the board at rest
+    assert wire.of(StreamEnded) == [StreamEnded(7, stream.result)]
+    assert stream.result is not None and stream.result.end is StreamEnd.COMPLETED
+    wire.report(stat=4)
+    assert len(wire.of(StreamEnded)) == 1  # told once
+
+
+def test_a_line_never_to_send_fails_the_job_when_its_turn_comes(fb: float) -> None:
+    wire = ready(fb=fb, window=4)
+    stream = job("G1 X1 F100", "G1 X2 " + "X" * 600, "G1 X3")
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert wire.lines(Lane.DATA) == [b"G1 X1 F100\n"]  # the line before it still goes
+    (ended,) = wire.of(StreamEnded)
+    assert ended.result.end is StreamEnd.FAILED and ended.result.code == -32602
+    assert ended.result.message is not None and ended.result.message.startswith("line 2:")
+    assert stream.sent == 1
+
+
 @pytest.mark.parametrize("fb", BUILDS)
-async def test_a_json_line_in_a_job_waits_for_the_lines_before_it(fb: float) -> None:
+def test_a_json_line_in_a_job_waits_for_the_lines_before_it(fb: float) -> None:
     """The board reads a `{`-line ahead of data lines still waiting (xio.cpp:789): written
     beside them it would run first, so it goes only once the lines before it are answered."""
     wire = ready(fb=fb, window=4)
@@ -520,19 +558,15 @@ async def test_a_json_line_in_a_job_waits_for_the_lines_before_it(fb: float) -> 
     wire.answer(b'{"out4":1}\n', {"out4": 1})
     wire.answer(b"G1 X2\n", {})
     wire.report(stat=4)
-    assert stream.result.result().end is StreamEnd.COMPLETED and stream.acked == 3
+    assert stream.result.end is StreamEnd.COMPLETED and stream.acked == 3
 
 
-async def test_the_executing_line_is_read_only_from_reports_that_show_motion(fb: float) -> None:
+def test_the_executing_line_is_read_only_from_reports_that_show_motion(fb: float) -> None:
     """canonical_machine.cpp: `line` is the runtime's N while moving, the last line *read*
     once stopped or holding: only a RUN report says which line executes."""
     wire = ready(fb=fb, window=4)
-    stream = JobStream(
-        iter(enumerate((f"G1 X{i} F100" for i in range(10)), start=1)),
-        job_id=1,
-        encode=wire.session.encode_job_line,
-        numbered=True,
-    )
+    stream = Stream(job_id=1, encode=wire.session.encode_job_line, numbered=True)
+    stream.feed_all(enumerate((f"G1 X{i} F100" for i in range(10)), start=1))
     wire.session.start_stream(stream)
     wire.pump()
     assert wire.lines(Lane.DATA)[0].startswith(b"N1 ")  # numbered with the file line
@@ -548,7 +582,7 @@ async def test_the_executing_line_is_read_only_from_reports_that_show_motion(fb:
     assert stream.line_executed == 3
 
 
-async def test_the_lockout_says_what_caused_it_and_what_ends_it() -> None:
+def test_the_lockout_says_what_caused_it_and_what_ends_it() -> None:
     wire = ready()
     assert wire.session.lockout() is None
     wire.feed('{"er":{"fb":101.06,"st":20,"msg":"Internal error"}}')  # raises PANIC

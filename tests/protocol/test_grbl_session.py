@@ -11,7 +11,6 @@ import math
 
 import pytest
 
-from hostd.machine.stream import JobStream
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
@@ -24,6 +23,7 @@ from hostd.protocol.grbl.session import (
 )
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
     Event,
@@ -34,8 +34,6 @@ from hostd.protocol.vocabulary import (
     Settled,
     StreamEnd,
 )
-
-pytestmark = pytest.mark.asyncio
 
 
 class Grbl:
@@ -98,12 +96,12 @@ class Grbl:
 IDLE = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
 
 
-def moves(n: int) -> JobStream:
+def moves(n: int) -> Stream:
     lines = ((i, f"G1 X{i % 100} Y{i % 7} F1000 (step {i}!)") for i in range(1, n + 1))
-    return JobStream(lines, job_id=1, encode=lambda text, _n: codec.encode(text))
+    return Stream(job_id=1, encode=lambda text, _n: codec.encode(text)).feed_all(lines)
 
 
-async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> None:
+def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> None:
     grbl = Grbl()
     grbl.session.open()
     assert grbl.pump() == []  # nothing before the banner (an Arduino is still booting)
@@ -140,9 +138,7 @@ async def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() 
         ("G38.2 G59 G17 G21 G90 G94 M5 M9 T0 F100 S0", "G59", "G38.2"),  # classic 1.1h
     ],
 )
-async def test_the_modes_are_read_by_group_not_by_position(
-    modes: str, wcs: str, motion: str
-) -> None:
+def test_the_modes_are_read_by_group_not_by_position(modes: str, wcs: str, motion: str) -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.send("$G", object())
@@ -153,7 +149,7 @@ async def test_the_modes_are_read_by_group_not_by_position(
     assert model.snapshot()["wcs"] == wcs
 
 
-async def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
+def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
     grbl = Grbl()
     grbl.session.open()
     grbl.at(BANNER_WAIT)
@@ -162,7 +158,7 @@ async def test_grblhal_that_prints_no_banner_is_asked_its_build() -> None:
     assert (grbl.session.blocks, grbl.session.rx_size) == (100, 1024)
 
 
-async def test_a_board_that_never_answers_closes_the_handshake() -> None:
+def test_a_board_that_never_answers_closes_the_handshake() -> None:
     grbl = Grbl(handshake_timeout=5.0)
     grbl.session.open()
     grbl.at(5.0)
@@ -170,7 +166,7 @@ async def test_a_board_that_never_answers_closes_the_handshake() -> None:
     assert "no grbl banner nor answer to $I" in closing.reason
 
 
-async def test_character_counting_never_passes_the_receive_buffer() -> None:
+def test_character_counting_never_passes_the_receive_buffer() -> None:
     grbl = Grbl()
     grbl.connect()
     stream = moves(500)
@@ -184,11 +180,11 @@ async def test_character_counting_never_passes_the_receive_buffer() -> None:
         else:
             grbl.feed("<Idle|MPos:0.000,0.000,0.000|Bf:15,128|FS:0,0>")
     assert 100 < worst <= 127  # a ring of 128 holds 127
-    assert stream.result.result().end is StreamEnd.COMPLETED
+    assert stream.result.end is StreamEnd.COMPLETED
     assert not any(b"!" in line or b"(" in line for line in grbl.lines())  # comments went
 
 
-async def test_a_job_is_not_done_while_the_planner_still_holds_blocks() -> None:
+def test_a_job_is_not_done_while_the_planner_still_holds_blocks() -> None:
     grbl = Grbl()
     grbl.connect()
     stream = moves(3)
@@ -198,10 +194,10 @@ async def test_a_job_is_not_done_while_the_planner_still_holds_blocks() -> None:
     grbl.feed("<Idle|MPos:0.000,0.000,0.000|Bf:12,110|FS:0,0>")  # the cycle not started yet
     assert not stream.done
     grbl.feed("<Idle|MPos:2.000,3.000,0.000|Bf:15,128|FS:0,0>")
-    assert stream.result.result().end is StreamEnd.COMPLETED
+    assert stream.result.end is StreamEnd.COMPLETED
 
 
-async def test_answers_carry_what_the_board_printed_before_them() -> None:
+def test_answers_carry_what_the_board_printed_before_them() -> None:
     grbl = Grbl()
     grbl.connect()
     token = object()
@@ -213,7 +209,7 @@ async def test_answers_carry_what_the_board_printed_before_them() -> None:
     assert settled.outcome.body["lines"][0] == "[G54:0.000,0.000,0.000]"
 
 
-async def test_a_query_is_a_realtime_byte_answered_by_the_next_report() -> None:
+def test_a_query_is_a_realtime_byte_answered_by_the_next_report() -> None:
     grbl = Grbl()
     grbl.connect()
     token = object()
@@ -225,15 +221,15 @@ async def test_a_query_is_a_realtime_byte_answered_by_the_next_report() -> None:
     assert settled.outcome.body["report"]["state"] == "Run"  # grbl's names: report.c
 
 
-async def test_an_alarm_drains_the_job_and_only_unlock_or_home_get_through() -> None:
+def test_an_alarm_drains_the_job_and_only_unlock_or_home_get_through() -> None:
     grbl = Grbl()
     grbl.connect()
     stream = moves(50)
     grbl.session.start_stream(stream)
     grbl.pump()
     grbl.feed("ALARM:9")
-    assert stream.result.result().end is StreamEnd.FAILED
-    assert stream.result.result().code == 204
+    assert stream.result.end is StreamEnd.FAILED
+    assert stream.result.code == 204
     assert isinstance(grbl.events[-1], Excepted) or any(
         isinstance(e, Excepted) for e in grbl.events
     )
@@ -246,7 +242,7 @@ async def test_an_alarm_drains_the_job_and_only_unlock_or_home_get_through() -> 
     grbl.session.send("$$", object())
 
 
-async def test_unlock_waits_for_every_line_to_be_answered() -> None:
+def test_unlock_waits_for_every_line_to_be_answered() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.send("G0 X1", object())
@@ -268,7 +264,7 @@ async def test_unlock_waits_for_every_line_to_be_answered() -> None:
     assert grbl.lines()[-1] == b"$X\n"
 
 
-async def test_an_estop_is_left_only_by_a_reset() -> None:
+def test_an_estop_is_left_only_by_a_reset() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.feed("ALARM:10")
@@ -278,7 +274,7 @@ async def test_an_estop_is_left_only_by_a_reset() -> None:
     assert refused.value.code == 205
 
 
-async def test_no_line_is_run_inside_a_hold() -> None:
+def test_no_line_is_run_inside_a_hold() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.feed("<Hold:0|MPos:0.000,0.000,0.000|FS:0,0>")
@@ -290,7 +286,7 @@ async def test_no_line_is_run_inside_a_hold() -> None:
         grbl.session.send("G0 X0", object())
 
 
-async def test_cancel_holds_then_resets_once_motion_rests() -> None:
+def test_cancel_holds_then_resets_once_motion_rests() -> None:
     grbl = Grbl()
     grbl.connect()
     stream = moves(50)
@@ -299,7 +295,7 @@ async def test_cancel_holds_then_resets_once_motion_rests() -> None:
     grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
     grbl.session.realtime(Realtime.JOB_KILL)
     grbl.pump()
-    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert stream.result.end is StreamEnd.CANCELLED
     assert grbl.realtime()[-2:] == [b"!", b"?"]
     grbl.feed("<Hold:1|MPos:1.500,0.000,0.000|FS:500,0>")
     assert b"\x18" not in grbl.realtime()  # still decelerating: a reset now loses position
@@ -317,7 +313,7 @@ async def test_cancel_holds_then_resets_once_motion_rests() -> None:
     assert grbl.session.model.homed is not False  # it had stopped: nothing lost
 
 
-async def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown() -> None:
+def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.model.homed = True
@@ -329,7 +325,7 @@ async def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown()
     assert grbl.session.model.homed is False
 
 
-async def test_a_jog_is_stopped_with_jog_cancel() -> None:
+def test_a_jog_is_stopped_with_jog_cancel() -> None:
     grbl = Grbl()
     grbl.connect()
     assert grbl.session.jog_lines({"x": 1.5}, 600) == ["$J=G91 X1.5000 F600.000"]
@@ -338,7 +334,7 @@ async def test_a_jog_is_stopped_with_jog_cancel() -> None:
     assert grbl.pump() == [(Lane.REALTIME, b"\x85")]
 
 
-async def test_a_probe_result_is_kept_and_told() -> None:
+def test_a_probe_result_is_kept_and_told() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.feed("[PRB:1.000,2.000,-3.250:1]")
@@ -346,20 +342,20 @@ async def test_a_probe_result_is_kept_and_told() -> None:
     assert probe.probe == {"ok": True, "position": {"x": 1.0, "y": 2.0, "z": -3.25}}
 
 
-async def test_a_job_line_error_fails_the_job_and_stops_the_board() -> None:
+def test_a_job_line_error_fails_the_job_and_stops_the_board() -> None:
     grbl = Grbl()
     grbl.connect()
     stream = moves(10)
     grbl.session.start_stream(stream)
     grbl.pump()
     grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>", "ok", "error:20")
-    result = stream.result.result()
+    result = stream.result
     assert result.end is StreamEnd.FAILED and "line 2" in (result.message or "")
     assert "error:20" in (result.message or "")
     assert grbl.realtime()[-2:] == [b"!", b"?"]  # the lines behind it would run: stop
 
 
-async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_is_over() -> None:
+def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_is_over() -> None:
     """The failed job's stop (a hold, then 0x18) would throw away a client's line sent
     meanwhile: until the board is back, the machine is not at rest (Machine._settle)."""
     grbl = Grbl()
@@ -368,7 +364,7 @@ async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_i
     grbl.session.start_stream(stream)
     grbl.pump()
     grbl.feed("ok", "error:20")
-    assert stream.result.done() and grbl.session.no_data_in_flight()
+    assert stream.done and grbl.session.no_data_in_flight()
     assert not grbl.session.quiet()  # stopping: `!` went, the board is not at rest yet
     grbl.feed("<Hold:0|MPos:1.000,0.000,0.000|FS:0,0>")
     assert grbl.realtime()[-1] == codec.RESET
@@ -380,7 +376,7 @@ async def test_after_a_job_line_error_the_session_is_not_quiet_until_the_reset_i
     assert grbl.session.ready and grbl.session.quiet()
 
 
-async def test_what_reports_said_now_and_then_is_forgotten_with_the_connection() -> None:
+def test_what_reports_said_now_and_then_is_forgotten_with_the_connection() -> None:
     """`WCO:` comes only in some reports, `Bf:` in each while `$10` asks for it: a planner
     full before an unplug must not keep a job on the next connection, whose board
     prints no Bf, from ever being at rest, hence done; nor the old offset stay."""
@@ -396,10 +392,10 @@ async def test_what_reports_said_now_and_then_is_forgotten_with_the_connection()
     grbl.pump()
     grbl.feed("ok")
     grbl.feed(IDLE)
-    assert stream.result.done() and stream.result.result().end is StreamEnd.COMPLETED
+    assert stream.done and stream.result.end is StreamEnd.COMPLETED
 
 
-async def test_a_report_without_bf_says_nothing_of_the_planner() -> None:
+def test_a_report_without_bf_says_nothing_of_the_planner() -> None:
     """`$10` changed to leave Bf out: the last Bf read no longer holds a job back."""
     grbl = Grbl()
     grbl.connect(report="<Idle|MPos:0.000,0.000,0.000|Bf:0,128|FS:0,0>")
@@ -408,7 +404,7 @@ async def test_a_report_without_bf_says_nothing_of_the_planner() -> None:
     grbl.pump()
     grbl.feed("ok")
     grbl.feed(IDLE)  # no Bf: the planner is not known to hold anything
-    assert stream.result.done() and stream.result.result().end is StreamEnd.COMPLETED
+    assert stream.done and stream.result.end is StreamEnd.COMPLETED
 
 
 @pytest.mark.parametrize(
@@ -420,7 +416,7 @@ async def test_a_report_without_bf_says_nothing_of_the_planner() -> None:
         ("G0 " + "X1 " * 60, "too-long"),
     ],
 )
-async def test_lines_grbl_would_misread_are_refused(line: str, why: str) -> None:
+def test_lines_grbl_would_misread_are_refused(line: str, why: str) -> None:
     grbl = Grbl()
     grbl.connect()
     with pytest.raises(InvalidCommand) as refused:
@@ -454,9 +450,7 @@ def homing_board(**options: float) -> Grbl:
     return grbl
 
 
-async def test_a_silent_board_is_asked_again_and_given_up_only_after_the_configured_silence() -> (
-    None
-):
+def test_a_silent_board_is_asked_again_and_given_up_only_after_the_configured_silence() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     grbl.at(0.25)
@@ -473,7 +467,7 @@ async def test_a_silent_board_is_asked_again_and_given_up_only_after_the_configu
     assert closing.reopen  # it stood idle: reopening its port harms nothing
 
 
-async def test_a_single_lost_query_is_asked_again_and_the_job_goes_on() -> None:
+def test_a_single_lost_query_is_asked_again_and_the_job_goes_on() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     stream = moves(40)
@@ -490,7 +484,7 @@ async def test_a_single_lost_query_is_asked_again_and_the_job_goes_on() -> None:
     assert closings(grbl) == [] and not stream.done
 
 
-async def test_oks_keep_a_board_alive_while_its_status_reports_stop() -> None:
+def test_oks_keep_a_board_alive_while_its_status_reports_stop() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     stream = moves(400)
@@ -506,7 +500,7 @@ async def test_oks_keep_a_board_alive_while_its_status_reports_stop() -> None:
     assert 14 <= queries(grbl) <= 16  # `?` asked again every `heartbeat`, never given up on
 
 
-async def test_a_board_silent_mid_job_is_given_up_but_its_port_not_reopened() -> None:
+def test_a_board_silent_mid_job_is_given_up_but_its_port_not_reopened() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     stream = moves(40)
@@ -519,10 +513,10 @@ async def test_a_board_silent_mid_job_is_given_up_but_its_port_not_reopened() ->
     (closing,) = closings(grbl)
     assert not closing.reopen and "may be moving" in closing.reason
     grbl.session.close(closing.reason)
-    assert stream.result.result().end is StreamEnd.INTERRUPTED
+    assert stream.result.end is StreamEnd.INTERRUPTED
 
 
-async def test_classic_homing_is_silent_for_its_whole_cycle_and_completes() -> None:
+def test_classic_homing_is_silent_for_its_whole_cycle_and_completes() -> None:
     grbl = homing_board()
     token = object()
     grbl.session.send("$H", token)
@@ -541,7 +535,7 @@ async def test_classic_homing_is_silent_for_its_whole_cycle_and_completes() -> N
     assert closings(grbl) == []
 
 
-async def test_a_homing_cycle_is_bounded_by_the_boards_travel_and_feeds() -> None:
+def test_a_homing_cycle_is_bounded_by_the_boards_travel_and_feeds() -> None:
     grbl = homing_board()
     bound = homing_time_bound(grbl.session.settings)
     # Per axis: 300 mm at 500 mm/min, 2 pull-offs of 1 mm at 500, 10 mm at 25 mm/min,
@@ -559,7 +553,7 @@ async def test_a_homing_cycle_is_bounded_by_the_boards_travel_and_feeds() -> Non
     assert not closing.reopen  # it may be moving: an Arduino's reset would stop it there
 
 
-async def test_a_configured_homing_timeout_replaces_the_bound() -> None:
+def test_a_configured_homing_timeout_replaces_the_bound() -> None:
     grbl = homing_board(homing_timeout=60.0)
     grbl.session.send("$H", object())
     grbl.pump()
@@ -570,7 +564,7 @@ async def test_a_configured_homing_timeout_replaces_the_bound() -> None:
     assert len(closings(grbl)) == 1
 
 
-async def test_homing_without_the_settings_to_bound_it_is_never_cut_off() -> None:
+def test_homing_without_the_settings_to_bound_it_is_never_cut_off() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()  # `$$` said nothing of $24/$25/$130
     grbl.session.send("$H", object())
@@ -580,7 +574,7 @@ async def test_homing_without_the_settings_to_bound_it_is_never_cut_off() -> Non
     assert closings(grbl) == []
 
 
-async def test_grblhal_reporting_home_expects_the_silence_of_a_cycle() -> None:
+def test_grblhal_reporting_home_expects_the_silence_of_a_cycle() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect(settings=HOMING_SETTINGS)
     # A cycle started on the board (a button, `$H` from another sender): its one report.
@@ -594,7 +588,7 @@ async def test_grblhal_reporting_home_expects_the_silence_of_a_cycle() -> None:
     assert len(closings(grbl)) == 1  # homing over: the usual silence again
 
 
-async def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() -> None:
+def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() -> None:
     grbl = homing_board()
     grbl.session.send("$H", object())
     grbl.pump()
@@ -609,7 +603,7 @@ async def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() 
     assert grbl.session.model.homed is True
 
 
-async def test_help_is_not_homing() -> None:
+def test_help_is_not_homing() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.send("$HELP", object())
@@ -618,7 +612,7 @@ async def test_help_is_not_homing() -> None:
     assert grbl.session.model.homed is not True
 
 
-async def test_settings_are_written_send_response_as_the_board_may_be_deaf_meanwhile() -> None:
+def test_settings_are_written_send_response_as_the_board_may_be_deaf_meanwhile() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     first, second, query = object(), object(), object()
@@ -637,7 +631,7 @@ async def test_settings_are_written_send_response_as_the_board_may_be_deaf_meanw
     assert closings(grbl) == []
 
 
-async def test_grblhal_may_be_quiet_after_answering_a_setting_while_it_writes_flash() -> None:
+def test_grblhal_may_be_quiet_after_answering_a_setting_while_it_writes_flash() -> None:
     grbl = Grbl(heartbeat=2.0, status_interval=0.25, link_silence=10.0)
     grbl.connect()
     grbl.session.send("$110=600", object())
@@ -650,11 +644,13 @@ async def test_grblhal_may_be_quiet_after_answering_a_setting_while_it_writes_fl
     assert len(closings(grbl)) == 1
 
 
-async def test_a_job_line_that_stores_offsets_is_answered_before_the_next_is_written() -> None:
+def test_a_job_line_that_stores_offsets_is_answered_before_the_next_is_written() -> None:
     grbl = Grbl()
     grbl.connect()
     text = ["G1 X1 F100", "G10 L20 P1 X0", "G1 X2", "G28.1", "G1 X3"]
-    stream = JobStream(enumerate(text, 1), job_id=1, encode=lambda line, _n: codec.encode(line))
+    stream = Stream(job_id=1, encode=lambda line, _n: codec.encode(line)).feed_all(
+        enumerate(text, 1)
+    )
     grbl.session.start_stream(stream)
     assert [data for _, data in grbl.pump()] == [b"G1 X1 F100\n", b"G10 L20 P1 X0\n"]
     grbl.feed("ok")
@@ -665,7 +661,7 @@ async def test_a_job_line_that_stores_offsets_is_answered_before_the_next_is_wri
     assert grbl.lines()[-1] == b"G1 X3\n"
 
 
-async def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
+def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
     assert homing_time_bound({}) is None
     assert homing_time_bound({"24": "25", "25": "500"}) is None  # no travel
     assert homing_time_bound({"25": "500", "130": "200"}) is None  # no locate feed
@@ -678,7 +674,7 @@ async def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
         assert bound is None or math.isfinite(bound)
 
 
-async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
+def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
     grbl = Grbl()
     grbl.connect()
     grbl.session.override(feed=123, rapid=25, spindle=85)
@@ -704,11 +700,12 @@ async def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
     assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}
 
 
-async def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:
+def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:
     grbl = Grbl()
     grbl.connect()
     lines = ((i, f"G1 X{i} F100") for i in range(1, 11))
-    stream = JobStream(lines, job_id=1, encode=grbl.session.encode_job_line, numbered=True)
+    stream = Stream(job_id=1, encode=grbl.session.encode_job_line, numbered=True)
+    stream.feed_all(lines)
     grbl.session.start_stream(stream)
     grbl.pump()
     assert grbl.lines()[0].startswith(b"N1 ")
@@ -722,7 +719,7 @@ async def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still
     assert stream.line_executed == 6  # the planner is empty: all six answered lines ran
 
 
-async def test_the_lockout_says_what_ends_it_on_grbl() -> None:
+def test_the_lockout_says_what_ends_it_on_grbl() -> None:
     grbl = Grbl()
     grbl.connect()
     assert grbl.session.lockout() is None
@@ -743,7 +740,7 @@ async def test_the_lockout_says_what_ends_it_on_grbl() -> None:
 # -- startup blocks (issue 24, part 3) ----------------------------------------------
 
 
-def cancelled_at_rest(grbl: Grbl) -> JobStream:
+def cancelled_at_rest(grbl: Grbl) -> Stream:
     stream = moves(50)
     grbl.session.start_stream(stream)
     grbl.pump()
@@ -754,7 +751,7 @@ def cancelled_at_rest(grbl: Grbl) -> JobStream:
     return stream
 
 
-async def test_the_startup_blocks_are_read_at_connect_and_shown_with_what_they_do() -> None:
+def test_the_startup_blocks_are_read_at_connect_and_shown_with_what_they_do() -> None:
     grbl = Grbl()
     grbl.connect(startup=("G54G21", "G0X-100"))
     blocks = grbl.session.model.snapshot()["startup_blocks"]
@@ -764,11 +761,11 @@ async def test_the_startup_blocks_are_read_at_connect_and_shown_with_what_they_d
     ]
 
 
-async def test_a_cancel_holds_instead_of_resetting_while_a_startup_block_moves() -> None:
+def test_a_cancel_holds_instead_of_resetting_while_a_startup_block_moves() -> None:
     grbl = Grbl()
     grbl.connect(startup=("", "X-100"))
     stream = cancelled_at_rest(grbl)
-    assert stream.result.result().end is StreamEnd.CANCELLED
+    assert stream.result.end is StreamEnd.CANCELLED
     assert codec.RESET not in grbl.realtime()  # the block would run: no reset of ours
     (held,) = [e for e in grbl.events if isinstance(e, Excepted)]
     assert "held instead of reset" in held.fields["msg"] and "$N1=X-100" in held.fields["msg"]
@@ -783,7 +780,7 @@ async def test_a_cancel_holds_instead_of_resetting_while_a_startup_block_moves()
     assert grbl.realtime()[-1] == codec.RESET
 
 
-async def test_a_stop_timeout_holds_too_while_a_startup_block_starts_the_spindle() -> None:
+def test_a_stop_timeout_holds_too_while_a_startup_block_starts_the_spindle() -> None:
     grbl = Grbl()
     grbl.connect(startup=("M3S1000", ""))
     grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
@@ -794,14 +791,14 @@ async def test_a_stop_timeout_holds_too_while_a_startup_block_starts_the_spindle
     assert "starts the spindle or laser (M3)" in grbl.session.model.last_exception["msg"]
 
 
-async def test_startup_motion_allowed_resets_as_usual() -> None:
+def test_startup_motion_allowed_resets_as_usual() -> None:
     grbl = Grbl(startup_motion=True)
     grbl.connect(startup=("G0X-100", ""))
     cancelled_at_rest(grbl)
     assert grbl.realtime()[-1] == codec.RESET
 
 
-async def test_a_reset_reads_the_startup_blocks_again() -> None:
+def test_a_reset_reads_the_startup_blocks_again() -> None:
     grbl = Grbl()
     grbl.connect(startup=("G0X-100", ""))
     grbl.session.reset()

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import pytest
-
-from hostd.machine.stream import JobStream
 from hostd.protocol.program import MAX_LINE_NUMBER, number_line
+from hostd.protocol.stream import Stream
 
 
 def test_a_line_gets_its_file_line_number_in_place_of_its_own() -> None:
@@ -21,16 +19,15 @@ def test_lines_that_are_not_gcode_and_numbers_too_big_stay_as_they_are() -> None
     assert number_line("G1 X1", MAX_LINE_NUMBER + 1) == "G1 X1"
 
 
-def _stream(lines: list[tuple[int, str]]) -> JobStream:
-    stream = JobStream(iter(lines), 1, lambda text, n: f"{n}:{text}".encode(), numbered=True)
+def _stream(lines: list[tuple[int, str]]) -> Stream:
+    stream = Stream(1, lambda text, n: f"{n}:{text}".encode(), numbered=True).feed_all(lines)
     for _ in lines:
         assert stream.peek() is not None
         stream.take()
     return stream
 
 
-@pytest.mark.asyncio
-async def test_line_executed_only_moves_forward_within_the_lines_sent() -> None:
+def test_line_executed_only_moves_forward_within_the_lines_sent() -> None:
     stream = _stream([(0, "G21"), (10, "G1 X1"), (11, "G1 X2"), (14, "G1 X3")])
     stream.executing(9)  # a number from before this job (a previous job's, stale)
     assert stream.line_executed is None
@@ -41,8 +38,7 @@ async def test_line_executed_only_moves_forward_within_the_lines_sent() -> None:
     assert stream.line_executed == 11
 
 
-@pytest.mark.asyncio
-async def test_acked_lines_are_remembered_for_the_planner_bound() -> None:
+def test_acked_lines_are_remembered_for_the_planner_bound() -> None:
     stream = _stream([(3, "G1 X1"), (5, "G1 X2"), (8, "G1 X3")])
     for line in (3, 5, 8):
         stream.acknowledged(line)

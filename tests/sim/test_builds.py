@@ -191,3 +191,42 @@ async def test_101_06_a_feedhold_at_rest_is_a_silent_hold(tmp_path: Path) -> Non
         host.send(b"~")
         assert (await host.response())["f"] == [1, 0, 6]
         await sim.wait_for(lambda: sim.position["x"] == 1)
+
+
+# -- overrides: settings named and enabled per build (docs/protocol.md, "Overrides") ---
+
+
+async def test_before_101_02_the_overrides_are_mfo_and_off_until_enabled(tmp_path: Path) -> None:
+    async with single(tmp_path, replace(TIMED, fb=100.26)) as (sim, host):
+        answer = await host.ask(b'{"mfo":1.5}\n')
+        assert answer["r"] == {"mfo": 1.5} and answer["f"][1] == 0
+        assert sim._board.settings.override("feed") == 1.0  # mfoe is off (spindle.h:61 too)
+        answer = await host.ask(b'{"mfoe":1}\n')
+        assert sim._board.settings.override("feed") == 1.5
+        answer = await host.ask(b'{"fro":1.2}\n')
+        assert answer["f"][1] != 0  # no `fro` on 100.26
+
+
+@pytest.mark.parametrize("fb", [101.03, 101.06])
+async def test_from_101_02_fro_acts_froe_is_read_only_and_bounds_hold(
+    tmp_path: Path, fb: float
+) -> None:
+    async with single(tmp_path, replace(TIMED, fb=fb)) as (sim, host):
+        answer = await host.ask(b'{"fro":1.5}\n')
+        assert answer["r"] == {"fro": 1.5}
+        assert sim._board.settings.override("feed") == 1.5
+        answer = await host.ask(b'{"froe":0}\n')
+        assert answer["r"] == {"froe": 1}  # the setter is the getter
+        assert sim._board.settings.override("feed") == 1.5
+        too_fast = await host.ask(b'{"tro":1.5}\n')
+        assert too_fast["f"][1] != 0 and sim._board.settings.override("rapid") == 1.0
+
+
+async def test_a_program_end_puts_feed_and_traverse_back(tmp_path: Path) -> None:
+    async with single(tmp_path, replace(INSTANT, fb=101.06)) as (sim, host):
+        await host.ask(b'{"fro":1.5,"tro":0.5,"spo":0.7}\n')
+        await host.ask(b"M30\n")
+        await sim.wait_for(lambda: sim.state == MachineState.PROGRAM_END)
+        settings = sim._board.settings
+        assert (settings.override("feed"), settings.override("rapid")) == (1.0, 1.0)
+        assert settings.override("spindle") == 0.7  # cm_reset_overrides leaves spo alone

@@ -18,6 +18,7 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.status import message
 from hostd.sim import SimController
 from hostd.sim.callsites import CALL_SITES, CallSite
+from hostd.sim.probing import TouchPlate
 
 from .conftest import INSTANT, Host, Message, has_stat
 
@@ -57,6 +58,49 @@ async def test_a_probe_that_touches_reports_where_it_touched(
     assert timed_sim.position["z"] == pytest.approx(-1.25)
     # The motion mode is cancelled when the cycle ends (_probe_restore_settings).
     assert (await timed_host.ask(b"{momo:n}\n"))["r"] == {"momo": 4}
+
+
+async def test_a_touch_plate_trips_the_probe_at_its_top_face(
+    host: Host, sim: SimController
+) -> None:
+    sim.touch_plate(TouchPlate(top=-2.5))
+    await host.ask(b"G38.2 Z-5 F600\n")
+    (report,) = [m for m in await host.until(is_probe) if "prb" in m]
+    assert report["prb"]["e"] == 1 and report["prb"]["z"] == -2.5
+    # The bit rests on the plate: the probe input (in<prbin>) reads closed.
+    assert (await host.ask(b"{prbin:n}\n"))["r"] == {"prbin": 5}
+    assert (await host.ask(b"{in5:n}\n"))["r"] == {"in5": 1}
+
+
+async def test_a_corner_plate_has_walls_the_bit_meets_by_its_radius(
+    host: Host, sim: SimController
+) -> None:
+    sim.touch_plate(TouchPlate(top=-10.0, x_face=20.0, y_face=30.0, tool_radius=1.5))
+    await host.ask(b"G0 Y35 Z-12\n")  # over the plate in Y, beside it in X, below its top
+    await host.ask(b"G38.2 X40 F600\n")
+    (report,) = [m for m in await host.until(is_probe) if "prb" in m]
+    assert report["prb"]["e"] == 1 and report["prb"]["x"] == 18.5  # the face less the radius
+
+
+async def test_the_operator_touching_the_plate_shows_on_the_probe_input(
+    host: Host, sim: SimController
+) -> None:
+    assert (await host.ask(b"{in5:n}\n"))["r"] == {"in5": 0}
+    sim.touch(reads=1)
+    assert (await host.ask(b"{in5:n}\n"))["r"] == {"in5": 1}
+    assert (await host.ask(b"{in5:n}\n"))["r"] == {"in5": 0}  # let go
+
+
+async def test_with_no_probe_input_configured_a_probe_never_trips(
+    host: Host, sim: SimController
+) -> None:
+    # prbin 0: gpio_read_input(0) reads false, so the plate is never felt (gpio.cpp).
+    await host.ask(b"{prbin:0}\n")
+    sim.touch_plate(TouchPlate(top=-2.5))
+    await host.ask(b"G38.2 Z-5 F600\n")
+    got = await host.until(is_probe)
+    assert got[-1]["prb"]["e"] == 0 and got[-1]["prb"]["z"] == -5
+    await sim.wait_state(MachineState.ALARM)
 
 
 async def test_a_g38_2_that_never_touches_is_an_alarm_and_a_failed_report(

@@ -25,7 +25,7 @@ from typing import Any
 from hostd.machine.events import (
     Console,
     Event,
-    FaultDetected,
+    FaultChanged,
     JobChanged,
     LinkChanged,
     StatusChanged,
@@ -129,8 +129,10 @@ class Observer:
             self._supervisor(event)
         elif isinstance(event, JobChanged):
             self._job(event.job, supervisor)
-        elif isinstance(event, FaultDetected) and event.fault == "internal":
-            self.fail("daemon", f"internal fault: {event.message}")
+        elif isinstance(event, FaultChanged):
+            fault = event.fault
+            if fault["id"] == "internal" and fault["active"]:
+                self.fail("daemon", f"internal fault: {fault['message']}")
 
     def _status(self, report: dict[str, Any]) -> None:
         stat = report.get("stat")

@@ -147,6 +147,9 @@ async def test_watch_only_serves_reads_and_refuses_control_and_uploads(tmp_path:
         api = await web.ws()
         try:
             assert (await api.call("machine.status", machine="sim1"))["id"] == "sim1"
+            assert await api.call("macro.list") == []  # a read: listed, never run
+            error = (await api.request("macro.run", machine="sim1", name="x"))["error"]
+            assert error["code"] == -32601
             for method in ("machine.feedhold", "job.cancel", "machine.reset"):
                 error = (await api.request(method, machine="sim1"))["error"]
                 assert error["code"] == -32601 and "watch only" in error["message"]

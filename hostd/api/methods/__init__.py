@@ -2,7 +2,7 @@
 
 One module per topic, each registering its own methods: daemon.py
 (rpc.discover, daemon.info), machine.py, settings.py, files.py, jobs.py,
-faults.py and subscriptions.py. `Api` (base.py) is what they share.
+faults.py, subscriptions.py and macros.py. `Api` (base.py) is what they share.
 
 Parameters are pydantic models (unknown fields refused: -32602). Errors
 keep their api.md codes: the machine layer's errors carry `code`, `message`
@@ -13,7 +13,16 @@ its engine.
 
 from __future__ import annotations
 
-from hostd.api.methods import daemon, faults, files, jobs, machine, settings, subscriptions
+from hostd.api.methods import (
+    daemon,
+    faults,
+    files,
+    jobs,
+    machine,
+    macros,
+    settings,
+    subscriptions,
+)
 from hostd.api.methods.base import API_VERSION, Api
 from hostd.api.methods.files import STORAGE, UploadParams
 from hostd.api.methods.subscriptions import (
@@ -36,7 +45,7 @@ __all__ = [
     "build_methods",
 ]
 
-TOPIC_MODULES = (daemon, machine, settings, files, jobs, faults, subscriptions)
+TOPIC_MODULES = (daemon, machine, settings, files, jobs, faults, subscriptions, macros)
 
 
 def build_methods(api: Api) -> Methods:

@@ -14,11 +14,11 @@ import contextlib
 from typing import TYPE_CHECKING, Annotated, Any, Final, Literal
 
 import structlog
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from hostd.api.appends import Chain
-from hostd.api.files import InvalidData, NoSuchFileError, check_name, decode
-from hostd.api.methods.params import MachineId, Params
+from hostd.api.files import InvalidData, NoSuchFileError, decode
+from hostd.api.methods.params import JobFile, MachineId, Params
 from hostd.api.rpc import Methods, RpcError
 from hostd.api.server import Client, current_client
 from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
@@ -34,12 +34,7 @@ UploadId = Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
 
 
 class FileName(Params):
-    name: str
-
-    @field_validator("name")
-    @classmethod
-    def _plain(cls, name: str) -> str:
-        return check_name(name)
+    name: JobFile
 
 
 class UploadParams(FileName):
@@ -52,13 +47,8 @@ class UploadParams(FileName):
 
 
 class FileAnalyzeParams(Params):
-    file: str
+    file: JobFile
     machine: MachineId | None = None  # its dialect, speeds and travel; none: default rules
-
-    @field_validator("file")
-    @classmethod
-    def _plain(cls, name: str) -> str:
-        return check_name(name)
 
 
 class FileMethods:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Annotated, Any
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
 from hostd.api.files import check_name
-from hostd.api.methods.params import Id, MachineId, MachineParams, Params
+from hostd.api.methods.params import Id, JobFile, MachineId, MachineParams, Params
 from hostd.api.rpc import Methods, RpcError
 from hostd.machine.preflight import plan_for, prepare_start, recovery_for
 
@@ -16,17 +16,12 @@ if TYPE_CHECKING:
 
 
 class JobStartParams(MachineParams):
-    file: str
+    file: JobFile
     start_line: Id = 1
     # From start_line > 1: restore the modal state and approach safely first (false: the
     # raw skip, dangerous: docs/api.md). `force` runs a program that leaves the travel.
     restore: Annotated[bool, Field(strict=True)] = True
     force: Annotated[bool, Field(strict=True)] = False
-
-    @field_validator("file")
-    @classmethod
-    def _plain(cls, name: str) -> str:
-        return check_name(name)
 
 
 class JobParams(Params):

@@ -1,7 +1,7 @@
 """machine.*: the machines, their lines, realtime commands and operations.
 
 Every handler calls the Machine (hostd/machine/machine.py) or an operation of
-hostd/machine/operations.py; none reaches past it to the engine.
+hostd/machine/operations.py or probing.py; none reaches past it to the engine.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from hostd.api.methods.base import refused
-from hostd.api.methods.params import Distance, Feed, MachineParams
-from hostd.api.rpc import Methods
-from hostd.machine import operations
+from hostd.api.methods.params import Distance, Feed, JobFile, MachineParams
+from hostd.api.rpc import Methods, RpcError
+from hostd.machine import operations, probing
 from hostd.machine.guard import check_jog, check_send, send_maintenance
 from hostd.protocol.commands import Realtime
 from hostd.protocol.gcode import JOG_AXES
@@ -63,6 +63,48 @@ class ZeroParams(MachineParams):
 class SpindleParams(MachineParams):
     state: Literal["cw", "ccw", "off"]
     speed: Speed | None = None
+
+
+Length = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=100)]
+Travel = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=500)]
+ProbeFeed = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=5000)]
+Seconds = Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=120)]
+
+
+class ProbeParams(MachineParams):
+    """A touch-plate probe; each length in mm, the feed in mm/min. Absent: the
+    machine's `[machines.probe]` value. `tool_diameter` places X and Y for "xyz" (the
+    bit's side meets the plate's walls); `confirmed` stands in for seeing the probe
+    input only where the board cannot show it; `wait` is how long the operator has
+    to touch the plate to the bit (hostd/machine/probing.py)."""
+
+    kind: Literal["z", "xyz"]
+    plate: Length | None = None
+    feed: ProbeFeed | None = None
+    max_travel: Travel | None = None
+    retract: Length | None = None
+    tool_diameter: Length | None = None
+    confirmed: Annotated[bool, Field(strict=True)] = False
+    wait: Seconds = 30.0
+
+
+PowerPercent = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=0, le=100)]
+
+
+class LaserTestParams(MachineParams):
+    """`power`: percent of full power (above 0, at most the config's laser_test_max);
+    `duration_s`: at most 2."""
+
+    power: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=100)]
+    duration_s: Annotated[float, Field(strict=True, allow_inf_nan=False, gt=0, le=2)]
+
+
+class FrameParams(MachineParams):
+    """`file`: a file of the jobs directory; `power` percent (0: beam off); `feed` mm/min."""
+
+    file: JobFile
+    power: PowerPercent = 0
+    feed: Feed | None = None
 
 
 class SendParams(MachineParams):
@@ -206,6 +248,48 @@ class MachineMethods:
             await operations.spindle(machine, p.state, p.speed)
         return {}
 
+    async def machine_probe(self, p: ProbeParams) -> dict[str, Any]:
+        """Probe with the touch plate and set work zero from it; see ProbeParams."""
+        machine = self.api.machine(p.machine)
+        cfg = machine.config.probe
+        plate = p.plate if p.plate is not None else cfg.plate
+        if plate is None:
+            raise RpcError(
+                -32602, "give plate (the plate's thickness, mm), or set it in [machines.probe]"
+            )
+        if p.kind == "xyz" and p.tool_diameter is None:
+            raise RpcError(
+                -32602, "an xyz probe needs tool_diameter (mm): the bit's side meets the walls"
+            )
+        with refused():
+            return await probing.probe(
+                machine,
+                p.kind,
+                plate,
+                feed=p.feed if p.feed is not None else cfg.feed,
+                max_travel=p.max_travel if p.max_travel is not None else cfg.max_travel,
+                retract=p.retract if p.retract is not None else cfg.retract,
+                tool_diameter=p.tool_diameter or 0.0,
+                confirmed=p.confirmed,
+                wait=p.wait,
+            )
+
+    async def machine_laser_test(self, p: LaserTestParams) -> dict[str, Any]:
+        """Fire standing still for at most 2 s, then always off (operations.laser_test)."""
+        with refused():
+            await operations.laser_test(self.api.machine(p.machine), p.power, p.duration_s)
+        return {}
+
+    async def machine_frame(self, p: FrameParams) -> dict[str, Any]:
+        """Trace the file's bounding box, as a job (operations.frame)."""
+        machine = self.api.machine(p.machine)
+        path = await self.api.resolve(p.file)
+        with refused():
+            job = await operations.frame(
+                machine, path, p.power, p.feed, pool=self.api.daemon.workers
+            )
+        return {"job": job.id}
+
     async def machine_safety_door(self, p: MachineParams) -> dict[str, Any]:
         self.api.machine(p.machine).safety_door()
         return {}
@@ -239,4 +323,7 @@ def register(m: Methods, api: Api) -> None:
     m.register("machine.zero", ZeroParams, h.machine_zero)
     m.register("machine.goto_zero", HomeParams, h.machine_goto_zero)
     m.register("machine.spindle", SpindleParams, h.machine_spindle)
+    m.register("machine.probe", ProbeParams, h.machine_probe)
     m.register("machine.safety_door", MachineParams, h.machine_safety_door, immediate=True)
+    m.register("machine.laser_test", LaserTestParams, h.machine_laser_test)
+    m.register("machine.frame", FrameParams, h.machine_frame)

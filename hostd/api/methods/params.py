@@ -9,8 +9,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
+from hostd.api.files import check_name
 from hostd.protocol.numbers import MAX_DISTANCE, MAX_FEED, MIN_FEED
 
 MachineId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]
@@ -20,6 +21,8 @@ Distance = Annotated[
     float, Field(strict=True, allow_inf_nan=False, ge=-MAX_DISTANCE, le=MAX_DISTANCE)
 ]
 Feed = Annotated[float, Field(strict=True, allow_inf_nan=False, ge=MIN_FEED, le=MAX_FEED)]
+# A file of the jobs directory, by a name that cannot leave it (hostd/api/files.py).
+JobFile = Annotated[str, AfterValidator(check_name)]
 
 
 class Params(BaseModel):

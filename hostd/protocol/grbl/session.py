@@ -52,14 +52,14 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from enum import Enum, auto
 from typing import Any
 
 from hostd.protocol.classes import FORWARD, CommandClass, Table, admit
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, ControllerError, MachineError, NotConnected, Rejected
-from hostd.protocol.gcode import jog_words
+from hostd.protocol.gcode import HOME_AXES, WCS_P, jog_words, work_zero_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import (
@@ -82,16 +82,17 @@ from hostd.protocol.linemode import InFlight
 from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
+from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.program import number_line
-from hostd.protocol.session import SessionBase
+from hostd.protocol.session import SessionBase, gcode_number
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
+from hostd.protocol.stream import Stream
 from hostd.protocol.toolchange import without_m6
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
     Lane,
-    LineSource,
     OwnLine,
     Phase,
     Probed,
@@ -240,6 +241,25 @@ class GrblSession(SessionBase):
         """G43.1, grbl's dynamic tool length offset (gcode.c `case 43`, mantissa 10)."""
         return [f"G43.1 Z{delta:.4f}"]
 
+    def spindle_max_setting(self) -> str | None:
+        """`$30`, the S of full power (gnea/grbl settings.c; laser PWM is S / $30)."""
+        return "30"
+
+    def beam_on_line(self, speed: float) -> str:
+        """`M4`: in laser mode, dynamic power, and none at rest (gnea/grbl
+        spindle_control.c:252-253 gives M4 zero power whenever it is synced standing
+        still), so the beam burns only along the frame's moves."""
+        return f"M4 S{gcode_number(speed)}"
+
+    def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
+        """`G1 M3 S..`, `G4 P..`, `M5`: in laser mode grbl lights M3 standing still only
+        when the motion mode is G1/G2/G3 (gnea/grbl gcode.c:868-893: any other motion
+        mode sets GC_PARSER_LASER_DISABLE and the sync passes zero power, :917-938;
+        a G1 with no axis word moves nothing, :875-879), and keeps it through the dwell
+        (mc_dwell only waits); `M5` turns it off (spindle_sync, :945). The motion mode
+        is left at G1."""
+        return [f"G1 M3 S{gcode_number(speed)}", f"G4 P{gcode_number(seconds)}", "M5"]
+
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
@@ -264,12 +284,60 @@ class GrblSession(SessionBase):
         self._require_open()
         self._out.append((Lane.REALTIME, codec.SAFETY_DOOR))
 
+    # grbl answers `$H` only once the cycle has ended (system.c); the session sets
+    # `homed` from that answer.
+    homing_answered_at_end = True
+
+    def line_limit(self) -> int:
+        """The receive buffer less one (`[OPT:]`'s, or classic grbl's 128)."""
+        return self.rx_size - 1
+
+    def known_travel(self) -> dict[str, tuple[float, float]]:
+        """The travel of `$130`.. as the handshake's `$$` read them."""
+        found: dict[str, Any] = {}
+        for key in self.limit_settings():
+            try:
+                found[key] = float(self.settings[key])
+            except (KeyError, ValueError):
+                continue
+        return dict(self.machine_limits(found).travel)
+
+    def home_lines(self, axes: Sequence[str] | None) -> list[str]:
+        """`$H`: every axis the board's `$23`.. homes. One-axis `$HX` needs grblHAL's
+        single-axis homing setting (system.c go_home): refused here, not guessed."""
+        if axes is not None and set(axes) != set(HOME_AXES):
+            raise InvalidCommand(
+                Refusal.UNREADABLE,
+                "grbl homes every axis at once with $H: leave axes out (or give x, y and z)",
+            )
+        return ["$H"]
+
+    def zero_line(self, wcs: str | None, axes: Mapping[str, float]) -> str:
+        """As every dialect's, but an unknown WCS is `P0`: gnea/grbl gcode.c reads G10 P0
+        as the active coordinate system."""
+        return work_zero_line(WCS_P.get(wcs or "", 0), axes)
+
     def status_text(self, code: int) -> str:
         return error_text(code)  # codes.py: grblHAL errors.c (classic grbl: 1-38)
 
     # No alarm_line or shutdown_line: neither grbl 1.1 (system.c system_execute_line)
     # nor grblHAL (system.c sys_commands) has a command that raises an alarm, and
     # `$SLP` is a maintenance command (maintenance.py), so SessionBase refuses both.
+
+    def probe_input_reads(self) -> list[str]:
+        return []  # every status report shows it
+
+    def probe_input(self, bodies: list[JsonObject]) -> ProbeInput:
+        """`Pn:P` in every status report while the probe pin reads closed (gnea/grbl
+        report.c report_realtime_status: probe_get_state(); grblHAL report.c the same),
+        read into the report's `pin_p` (report.py)."""
+        return ProbeInput("pin_p")
+
+    def work_zero_line(self, values: Mapping[str, float]) -> str:
+        """`G10 L20 P0`: P0 is the active coordinate system (gnea/grbl gcode.c, "Index P0
+        as the active coordinate system"), so no report of it is needed."""
+        words = " ".join(f"{a.upper()}{number(v)}" for a, v in values.items())
+        return f"G10 L20 P0 {words}"
 
     def settings_read(self, keys: list[str]) -> list[str]:
         _setting_numbers(keys)
@@ -507,7 +575,7 @@ class GrblSession(SessionBase):
         else:
             self._settle(source, response)
 
-    def _on_job_answer(self, stream: LineSource, entry: InFlight, response: Response) -> None:
+    def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:
             stream.acknowledged(entry.file_line)
             self._check_stream_complete()
@@ -518,9 +586,10 @@ class GrblSession(SessionBase):
         status = response.status
         if status in LOCKOUT_ERRORS and self.locked():
             code = self._admit(CommandClass.ACTION, self.model.state) or _REFUSED_BY_ALARM
-            stream.finish(StreamEnd.FAILED, code, error_text(status))
+            self._end_stream(stream, StreamEnd.FAILED, code, error_text(status))
             return
-        stream.finish(
+        self._end_stream(
+            stream,
             StreamEnd.FAILED,
             ControllerError.code,
             f"line {entry.file_line}: controller answered error:{status}: {error_text(status)}",
@@ -616,7 +685,7 @@ class GrblSession(SessionBase):
         self._stopping = None
         self._held = None
         if self.stream is not None and not self.stream.done:
-            self.stream.finish(StreamEnd.FAILED, 1005, "the controller was reset")
+            self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
         self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
@@ -908,7 +977,7 @@ class GrblSession(SessionBase):
         else:  # QUEUE_FLUSH, JOB_KILL: grbl has neither; it empties itself by a reset
             if self.stream is not None and not self.stream.done:
                 reason = "job killed" if command is Realtime.JOB_KILL else "queue flushed"
-                self.stream.finish(StreamEnd.CANCELLED, None, reason)
+                self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
             self._begin_stop()
 
     def reset(self) -> None:

@@ -74,7 +74,7 @@ from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import ToolSensor
+from hostd.sim.probing import ToolSensor, TouchPlate, probe_input, sensor_surface
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -98,11 +98,15 @@ class GrblBoard:
         # than the first the tool in the spindle is: a G38.2 over the sensor trips itself.
         self.tool_sensor: ToolSensor | None = None
         self.tool_length = 0.0
-        self.sensor_contact = False  # the probe move under way ends on the sensor
+        self.touch_plate: TouchPlate | None = None  # on the work, wired to the probe pin
+        self.touch_reads = 0  # the operator holds the plate to the bit for this many `?`
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
         self.status_ignored = False  # `?` is not answered (reports stop), lines still are
+        # The next G-code line is answered `error:N` with this code instead of run (a
+        # test's: a code of a build, a setting or a machine the simulator lacks).
+        self.refuse_next: int | None = None
         self.position = dict.fromkeys(AXES, 0.0)  # machine mm, survives a soft reset
         # `$N0`, `$N1` (N_STARTUP_LINE 2): kept in EEPROM, run after every reset (system.c).
         self.startup_lines = ["", ""]
@@ -112,6 +116,8 @@ class GrblBoard:
         self.state = "Idle"
         # Every move the machine made, in order (motion.Traversed), kept across resets.
         self.traversed: deque[Traversed] = deque(maxlen=config.history)
+        # The spindle/laser output over time: (clock, S after overrides), one entry a change.
+        self.beam: deque[tuple[float, float]] = deque([(0.0, 0.0)], maxlen=config.history)
         self.power_on()
 
     # --- power, reset
@@ -279,6 +285,15 @@ class GrblBoard:
         elif not active and self.state == "Door" and self.door == 1:
             self.door = 0  # EXEC_DOOR_CLOSED: ready to resume
 
+    def probe_closed(self) -> bool:
+        """probe_get_state(): the pin (a test's `probe`), a touch, or the plate at the bit."""
+        return self.probe or self.touch_reads > 0 or self._touching(self.tool_position())
+
+    def _touching(self, at: dict[str, float]) -> bool:
+        """The bit at `at` touches the plate, or the tool sensor it stands over."""
+        surface = sensor_surface(self.tool_sensor, self.tool_length, at)
+        return probe_input(surface, self.touch_plate, at)
+
     def set_probe(self, active: bool) -> None:
         self.probe = active
         wait = self._wait
@@ -291,6 +306,42 @@ class GrblBoard:
 
     def tick(self) -> bool:
         """Do one thing that is due; False when nothing is."""
+        did = self._tick()
+        self._note_beam()
+        return did
+
+    def beam_power(self) -> float:
+        """The spindle output (a laser's power, S units) as the firmware drives it now.
+
+        In laser mode ($32=1): off in a hold or at the door (config.h
+        DISABLE_LASER_DURING_HOLD, protocol.c:536), and in a rapid; in a feed move the
+        move's own S; standing still, M3 burns only while the motion mode is G1/G2/G3
+        (gcode.c:868-893, 917-938) and M4 never does (spindle_control.c:252-253). Any
+        alarm went through mc_reset, which stops the spindle. M5 is off.
+        """
+        laser = self.settings[32] == 1
+        if self.state == "Alarm" or (laser and self.state in ("Hold", "Door")):
+            return 0.0
+        scale = self.spindle_ovr / 100.0
+        active = self.active
+        if active is not None and active.move is not None:
+            move = active.move
+            if move.spindle == "M5" or (laser and move.rapid):
+                return 0.0
+            return move.speed * scale
+        modal = self.modal
+        if modal.spindle == "M5":
+            return 0.0
+        if laser and (modal.spindle == "M4" or modal.motion not in (1.0, 2.0, 3.0)):
+            return 0.0
+        return modal.speed * scale
+
+    def _note_beam(self) -> None:
+        power = self.beam_power()
+        if power != self.beam[-1][1]:
+            self.beam.append((self._clock(), power))
+
+    def _tick(self) -> bool:
         now = self._clock()
         if self._deaf_until is not None:
             if now < self._deaf_until:
@@ -398,6 +449,10 @@ class GrblBoard:
             status = Error.SYSTEM_GC_LOCK
         elif self.hal and self.last_error != Error.OK:
             status = self.last_error  # the error latch
+        elif self.refuse_next is not None:
+            code, self.refuse_next = self.refuse_next, None
+            self._emit(f"error:{code}")  # nothing latched, nothing run: the test's code only
+            return
         else:
             result = self._gcode(line)
             if result is None:
@@ -419,6 +474,8 @@ class GrblBoard:
             return result
         if result.offsets_changed:
             self._report_flags.add("wco")
+            if not self.hal:  # classic: system_flag_wco_change (system.c): WCO next report
+                self._wco_counter = 0
         if self.state == "Check":
             return Error.OK  # parsed, nothing moves (the parser's position moved on)
         for move in result.moves:

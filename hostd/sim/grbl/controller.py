@@ -21,7 +21,7 @@ import structlog
 from hostd.sim.config import Received
 from hostd.sim.grbl.board import GrblBoard
 from hostd.sim.grbl.config import GrblConfig
-from hostd.sim.probing import ToolSensor
+from hostd.sim.probing import ToolSensor, TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.shell import SimShell
 
@@ -146,6 +146,23 @@ class GrblSimController(SimShell[GrblBoard, str]):
         """The operator put in a tool `mm` longer than the first (it trips the sensor higher)."""
         self._board.tool_length = float(mm)
 
+    def touch_plate(self, plate: TouchPlate | None) -> None:
+        """A touch plate on the work, wired to the probe pin; None takes it away.
+
+        The pin reads closed (`Pn:P`) wherever the bit touches it
+        (probing.TouchPlate), and a G38.x move ends where it meets it. Kept across resets.
+        """
+        self._board.touch_plate = plate
+        self._kick()
+
+    def touch(self, reads: int = 1) -> None:
+        """The operator holds the plate to the bit: `Pn:P` in the next `reads` status
+        reports, then the pin opens as they let go."""
+        if reads < 0:
+            raise ValueError("reads is 0 or more")
+        self._board.touch_reads = reads
+        self._kick()
+
     def lose_status_requests(self, count: int = 1) -> None:
         """The wire loses the next `count` `?` bytes (line noise, a USB-serial adapter)."""
         self._board.status_lost += count
@@ -153,6 +170,11 @@ class GrblSimController(SimShell[GrblBoard, str]):
     def ignore_status_requests(self, ignored: bool = True) -> None:
         """`?` gets no report while lines still get their `ok` (reports stop, answers go on)."""
         self._board.status_ignored = ignored
+
+    def refuse_next(self, code: int) -> None:
+        """The next G-code line is answered `error:<code>` and not run: any of grblHAL's
+        errors.h, including those this simulator's firmware model never gives."""
+        self._board.refuse_next = code
 
     def hang(self, hung: bool = True) -> None:
         """The firmware hangs with its USB device still there: it reads and prints nothing."""

@@ -28,7 +28,7 @@ from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
 from hostd.sim.grbl.settings import HOMING_PULLOFF
 from hostd.sim.motion import Active, Traversed, start_block
-from hostd.sim.probing import sensor_surface
+from hostd.sim.probing import contact, sensor_surface
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -42,6 +42,7 @@ class Wait:
     line: str
     result: Executed | None = None
     until: float = 0.0
+    tripped: bool = False  # a probe move that ends where the touch plate trips it
 
 
 def advance(board: GrblBoard, now: float) -> bool:
@@ -93,8 +94,7 @@ def _finish(board: GrblBoard, active: Active) -> None:
     if board.planner:
         board.planner.popleft()
     if board._wait is not None and board._wait.kind == "probe":
-        contact, board.sensor_contact = board.sensor_contact, False
-        _probe_end(board, contact=contact)  # the move's end: on the tool sensor, or nothing
+        _probe_end(board, contact=board._wait.tripped)
 
 
 def _stopped(board: GrblBoard, now: float) -> None:
@@ -206,33 +206,21 @@ def flush_planner(board: GrblBoard) -> None:
 
 
 def _probe_start(board: GrblBoard, probe: Probe, now: float) -> bool:
-    if board.probe == probe.toward:
+    # mc_probe_cycle: "check if probe is already triggered" (probe_get_state) after
+    # the sync, ALARM:4 (EXEC_ALARM_PROBE_FAIL_INITIAL) and GC_PROBE_FAIL_INIT.
+    if board.probe_closed() == probe.toward:
         board._raise(Alarm.PROBE_FAIL_INITIAL)
         board._done()
         return True
-    trip = _sensor_trip(board, probe)
-    board.sensor_contact = trip is not None
+    # The touch plate: the move ends where the bit meets it (the stepper ISR's
+    # probe_state_monitor copies sys_position into sys_probe_position and stops).
+    # The tool sensor (issue 29), where the bit stands over it, likewise.
+    surface = sensor_surface(board.tool_sensor, board.tool_length, board.position)
+    trip = contact(surface, board.touch_plate, board.position, probe.move.target, probe.toward)
     board.planner.append(probe.move if trip is None else replace(probe.move, target=trip))
-    board._wait = Wait("probe", "", _probe_result(probe))
+    board._wait = Wait("probe", "", _probe_result(probe), tripped=trip is not None)
     _start(board, now)
     return True
-
-
-def _sensor_trip(board: GrblBoard, probe: Probe) -> dict[str, float] | None:
-    """Where a G38.2/G38.3 over the tool sensor closes the probe input, if it does."""
-    surface = sensor_surface(board.tool_sensor, board.tool_length, board.position)
-    if surface is None or not probe.toward:
-        return None
-    axis, at = surface
-    start, end = board.position[axis], probe.move.target[axis]
-    if start == end or not min(start, end) <= at <= max(start, end):
-        return None
-    fraction = (at - start) / (end - start)
-    point = {
-        a: board.position[a] + (probe.move.target[a] - board.position[a]) * fraction for a in AXES
-    }
-    point[axis] = at
-    return point
 
 
 def probe_contact(board: GrblBoard) -> None:

@@ -52,6 +52,8 @@ def status_report(board: GrblBoard) -> str:
     speed = board.modal.speed * board.spindle_ovr / 100 if board.modal.spindle != "M5" else 0.0
     fields.append(f"FS:{rate:.0f},{speed:.0f}")
     pins = _pins(board)
+    if board.touch_reads:
+        board.touch_reads -= 1  # the operator saw it read and lets go
     if pins:
         fields.append(f"Pn:{pins}")
     if board.hal:
@@ -76,10 +78,10 @@ def state_text(board: GrblBoard) -> str:
 def _pins(board: GrblBoard) -> str:
     limits = "".join(a.upper() for a in AXES if a in board.limits)
     if not board.hal:  # classic order: P, XYZ, then D R H S
-        return ("P" if board.probe else "") + limits + ("D" if board.door_open else "")
+        return ("P" if board.probe_closed() else "") + limits + ("D" if board.door_open else "")
     # HAL: limits, then control signals in bit order "RHSDLTEOFM Q  P ".
     ctrl = ("D" if board.door_open else "") + ("E" if board.estop else "")
-    return limits + ctrl + ("P" if board.probe else "")
+    return limits + ctrl + ("P" if board.probe_closed() else "")
 
 
 def _classic_tail(board: GrblBoard, wco: dict[str, float]) -> list[str]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from hostd.sim.grbl import GrblConfig, GrblSimController
+from hostd.sim.probing import TouchPlate
 
 from .conftest import CLASSIC, HAL, GrblHost, connect, is_answer
 
@@ -352,6 +353,41 @@ async def test_probe_already_touching_is_alarm_4(
 ) -> None:
     hal.probe(True)
     assert await hal_host.ask(b"G38.2 Z-10 F600\n") == ["ALARM:4", "ok"]
+
+
+async def test_a_touch_plate_ends_the_probe_at_its_top_face(
+    hal_host: GrblHost, hal: GrblSimController
+) -> None:
+    hal.touch_plate(TouchPlate(top=-2.5))
+    assert await hal_host.ask(b"G38.2 Z-10 F600\n") == ["[PRB:0.000,0.000,-2.500:1]", "ok"]
+    assert "Pn:P" in await hal_host.status()  # the bit rests on the plate
+
+
+async def test_a_probe_that_misses_the_plate_is_alarm_5(
+    classic_host: GrblHost, classic: GrblSimController
+) -> None:
+    classic.touch_plate(TouchPlate(top=-20.0))
+    got = await classic_host.ask(b"G38.2 Z-10 F600\n")
+    assert got == ["ALARM:5", "[PRB:0.000,0.000,0.000:0]", "ok"]
+    assert classic.position["z"] == -10  # where the board stopped
+    assert classic.state == "Alarm"
+
+
+async def test_a_corner_plates_wall_meets_the_bit_by_its_radius(
+    hal_host: GrblHost, hal: GrblSimController
+) -> None:
+    hal.touch_plate(TouchPlate(top=-10.0, x_face=20.0, y_face=30.0, tool_radius=1.5))
+    assert await hal_host.ask(b"G0 X25 Z-12\n") == ["ok"]  # over the plate in X, beside it in Y
+    assert await hal_host.ask(b"G38.2 Y40 F600\n") == ["[PRB:25.000,28.500,-12.000:1]", "ok"]
+
+
+async def test_the_operator_touching_the_plate_shows_pn_p(
+    hal_host: GrblHost, hal: GrblSimController
+) -> None:
+    assert "Pn" not in await hal_host.status()
+    hal.touch(reads=1)
+    assert "Pn:P" in await hal_host.status()
+    assert "Pn" not in await hal_host.status()  # let go
 
 
 async def test_check_mode(classic_host: GrblHost, classic: GrblSimController) -> None:

@@ -1,0 +1,218 @@
+"""A job's read position, as its session holds it: plain data, no file, no future.
+
+The session owns what it decides about a job: which line goes next, how
+many are sent, answered, refused, discarded, which one the board runs, and
+how the job ended. The caller (the machine layer) owns the file: it feeds
+lines in with `feed` while `wanted()` says there is room ahead, says
+`end_of_input()` when the file has no more, and reads the counts back. The
+session tells the job's end as an event (`StreamEnded`), never by
+resolving anything of its caller's.
+
+Lines are encoded when fed, so that the path from an answer to the next line
+written carries no encoding: the caller keeps LOOK_AHEAD lines ahead of what
+the flow control has taken. When the flow control has room and nothing
+ahead (`starved`), the caller feeds more and the session is pumped again in
+the same step. A line that may not be sent is refused when its turn comes,
+not when it is fed: the lines before it still go.
+
+Counts only move forward: `sent` when a line is written, `acked` when the
+board answers it with status 0. Every sent line ends in exactly one of
+`acked`, `rejected`, `discarded`, or is still unanswered when the link is
+lost. The outcome is set once.
+
+A line fed with `hold` is a hold point (a tool change, hostd/machine/toolchange.py):
+when its turn comes `peek` hands out nothing and `held` names it, until the
+caller has the session `release` it. It is not the job's pause (`paused`, the
+user's `!` to `~`): neither clears the other, so a resume never carries a job
+past a hold. Held lines are no underflow (`lines_on_host` is False): the host
+keeps them back on purpose.
+
+`line_executed` is the file line the board said it was executing (its N word in
+a status report; the session decides which reports say so, per dialect). It
+only moves forward and never past the last line sent: every value it takes is
+a lower bound of the truth, so it never claims more than the board ran.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import deque
+from collections.abc import Callable, Iterable
+
+from hostd.protocol.commands import InvalidCommand, encode_line
+from hostd.protocol.linemode import InFlight
+from hostd.protocol.vocabulary import StreamEnd, StreamResult
+
+_ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
+LOOK_AHEAD = 8  # lines fed and encoded ahead of the flow control's room
+_PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
+
+
+class Stream:
+    """One job's lines ahead and its counts; the session moves it, the caller feeds it."""
+
+    def __init__(
+        self,
+        job_id: int | None = None,
+        encode: Callable[[str, int | None], bytes] | None = None,
+        *,
+        numbered: bool = False,
+    ) -> None:
+        # The dialect's: what a job line becomes on the wire; `numbered` gives each line its
+        # file line number as an N word, so that status reports say which line runs.
+        self._encode = encode or (lambda text, _number: encode_line(text))
+        self.numbered = numbered
+        self.job_id = job_id  # the job row it belongs to, for the logs
+        self._next: InFlight | None = None
+        # Fed ahead: a line as the flow control books it, or why it may not be sent, or
+        # (file line, None): a hold point before that line.
+        self._ahead: deque[InFlight | tuple[int, InvalidCommand | None]] = deque()
+        self._input_ended = False  # the caller has no more lines
+        self.starved = False  # the flow control asked for a line and none was ahead
+        self.refused: tuple[int, str] | None = None  # the file line whose turn came, unsendable
+        self.sent = 0
+        self.acked = 0  # answered with status 0
+        self.rejected = 0  # answered with a non-zero status
+        self.discarded = 0  # dropped unanswered by the board's flush or kill
+        self.last_acked_line: int | None = None
+        self.line_executed: int | None = None
+        self._sent_line = 0  # the highest file line number written
+        self._first_line: int | None = None  # the first one (a resume's preamble is line 0)
+        self._acked_lines: deque[int | None] = deque(maxlen=_ACKED_KEPT)
+        # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
+        self.program_pause_sent = False
+        self.paused = False  # from the job's `!` to its `~`: none of its lines is written
+        self.held: int | None = None  # the file line a hold point keeps back, its turn come
+        self.result: StreamResult | None = None
+        self.done = False  # the outcome is set (read at every line: a plain attribute)
+
+    # -- the caller's side ---------------------------------------------------------
+
+    def wanted(self) -> int:
+        """How many more lines to feed now: up to LOOK_AHEAD ahead, none once it ended."""
+        if self.done or self._input_ended:
+            return 0
+        return LOOK_AHEAD - len(self._ahead)
+
+    def feed(self, number: int, text: str, *, hold: bool = False) -> None:
+        """One more line of the job: its file line number and its text. `hold`: the job
+        holds before it until `release` (a tool change)."""
+        self.starved = False
+        if hold:
+            self._ahead.append((number, None))
+        try:
+            encoded = self._encode(text, number if self.numbered else None)
+        except InvalidCommand as exc:
+            self._ahead.append((number, exc))  # refused when its turn comes: the lines before go
+        else:
+            self._ahead.append(InFlight(encoded, self, number))
+
+    def feed_all(self, lines: Iterable[tuple[int, str]]) -> Stream:
+        """Every line at once, and the end of input (a short job, or a test)."""
+        for number, text in lines:
+            self.feed(number, text)
+        self.end_of_input()
+        return self
+
+    def end_of_input(self) -> None:
+        """The caller has no more lines: once those fed are written, the job is all sent."""
+        self._input_ended = True
+        self.starved = False
+
+    @property
+    def exhausted(self) -> bool:
+        """Every line was handed out, and no more will be fed."""
+        return self._input_ended and self._next is None and not self._ahead
+
+    # -- the session's side --------------------------------------------------------
+
+    def peek(self) -> InFlight | None:
+        """The next line to write, booked as it will be (its bytes, this stream, its file
+        line number), or None when there is none now.
+
+        None with `refused` set: the next line must never reach the board; the
+        session ends the stream failed. None with `starved`: the caller has more.
+        """
+        entry = self._next
+        if entry is None and not self.done:
+            ahead = self._ahead
+            if not ahead:
+                self.starved = not self._input_ended
+                return None
+            first = ahead[0]
+            if isinstance(first, tuple):
+                number, invalid = first
+                if invalid is None:  # a hold point: nothing goes until it is released
+                    self.held = number
+                else:
+                    self.refused = (number, invalid.message)
+                return None
+            entry = self._next = ahead.popleft()  # type: ignore[assignment]
+        return entry
+
+    def lines_on_host(self) -> bool:
+        """Lines of the job wait on the host that the board could run now (not a `{`-line,
+        which waits for the lines before it on purpose)."""
+        entry = self.peek()
+        if entry is not None:
+            return not entry.control
+        return self.refused is None and self.held is None and not self._input_ended
+
+    def release(self) -> None:
+        """The hold point whose turn came is passed: the line after it goes next."""
+        if self.held is None:
+            return
+        first = self._ahead[0]
+        assert isinstance(first, tuple) and first[1] is None
+        self._ahead.popleft()
+        self.held = None
+
+    def take(self) -> None:
+        """The peeked line was written."""
+        entry = self._next
+        assert entry is not None
+        line = entry.line
+        if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
+            self.program_pause_sent = True
+        number = entry.file_line
+        assert number is not None
+        if number > self._sent_line:  # file lines only grow; a resume's preamble is line 0
+            if self._first_line is None:
+                self._first_line = number
+            self._sent_line = number
+        self._next = None
+        self.sent += 1
+
+    def acknowledged(self, file_line: int | None) -> None:
+        self.acked += 1
+        self.last_acked_line = file_line
+        self._acked_lines.append(file_line)
+
+    def executing(self, file_line: int) -> None:
+        """The board runs (or ran) this line. A number no line of this job carries is stale
+        (a line before the job, or fed ahead of what was sent) and is ignored."""
+        first = self._first_line
+        if first is None or not first <= file_line <= self._sent_line:
+            return
+        if file_line > (self.line_executed or 0):
+            self.line_executed = file_line
+
+    def acked_line(self, back: int) -> int | None:
+        """The file line of the answered line `back` answers before the last (0: the last)."""
+        if back >= len(self._acked_lines):
+            return None
+        return self._acked_lines[-1 - back]
+
+    def finish(self, end: StreamEnd, code: int | None = None, message: str | None = None) -> bool:
+        """Set the outcome once; False, and nothing changed, if it was set already.
+
+        Only the session calls it, and it tells the end as a `StreamEnded` event.
+        """
+        if self.done:
+            return False
+        self.done = True
+        self._next = None
+        self._ahead.clear()
+        self.held = None
+        self.result = StreamResult(end, code, message)
+        return True
