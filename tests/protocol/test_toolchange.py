@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
+from hostd.protocol.errors import Busy
+from hostd.protocol.grbl import codec
+from hostd.protocol.stream import Stream
 from hostd.protocol.toolchange import has_m6, tool_words, without_m6
+from hostd.protocol.vocabulary import Detected, Lane, StreamEnd
 from tests.protocol.g2wire import Wire
 from tests.protocol.test_grbl_session import Grbl
 
@@ -42,3 +48,76 @@ def test_g2core_takes_the_m6_and_sets_the_offset_through_its_tool_table() -> Non
     session = Wire().session
     assert session.tool_change_line("T2 M6", 2) == "T2 M6"
     assert session.tool_length_lines(2, 3.5) == ["G10 L1 P2 Z3.5000", "G43 H2"]
+
+
+# -- the hold point: the session's Stream holds before an M6 line (stream.py) -----------
+
+
+def _held_job(encode: Any = None, *, ended: bool = True) -> Stream:
+    """Four lines; the third (the M6 line) is a hold point. Not `ended`: the file has
+    more lines, not fed yet."""
+    stream = Stream(job_id=1, encode=encode)
+    stream.feed(1, "G1 X1 F600")
+    stream.feed(2, "G1 X2")
+    stream.feed(3, "T2 M6", hold=True)
+    stream.feed(4, "G1 X3")
+    if ended:
+        stream.end_of_input()
+    return stream
+
+
+def test_g2core_holds_before_the_m6_line_and_takes_the_stop_for_no_underflow() -> None:
+    wire = Wire(window=4)
+    wire.connect()
+    stream = _held_job(ended=False)  # a long file: more lines on the host
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert [line for line in wire.lines(Lane.DATA) if b"X" in line] == [
+        b"G1 X1 F600\n",
+        b"G1 X2\n",
+    ]
+    assert stream.held == 3 and not stream.lines_on_host()
+    wire.report(stat=5)
+    wire.answer_all()
+    wire.report(stat=3)  # the board ran all it had: a stop, with the rest held on the host
+    assert wire.of(Detected) == [] and not stream.done
+    assert len(wire.lines(Lane.DATA)) == 2  # nothing past the hold
+    wire.session.release_stream()
+    wire.pump()
+    assert wire.lines(Lane.DATA)[2:] == [b"T2 M6\n", b"G1 X3\n"] and stream.held is None
+
+
+def test_a_users_resume_never_carries_a_job_past_its_hold() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = _held_job(lambda text, _n: codec.encode(text))
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    assert grbl.lines() == [b"G1 X1 F600\n", b"G1 X2\n"] and stream.held == 3
+    grbl.session.pause_stream()
+    grbl.feed("ok", "ok", "<Hold:0|MPos:2.000,0.000,0.000|FS:0,0>")
+    grbl.session.resume_stream()  # `~`: the user's pause ends, the hold stays
+    grbl.feed("<Idle|MPos:2.000,0.000,0.000|FS:0,0>")
+    assert grbl.realtime()[-1] == b"~" and len(grbl.lines()) == 2 and stream.held == 3
+    with pytest.raises(Busy):
+        grbl.session.resume_stream()  # not paused: no `~` to send
+    grbl.session.release_stream()
+    grbl.pump()
+    assert grbl.lines()[2:] == [b"T2 M6\n", b"G1 X3\n"]
+    with pytest.raises(Busy, match="not held"):
+        grbl.session.release_stream()
+    grbl.feed("ok", "ok", "<Idle|MPos:3.000,0.000,0.000|FS:0,0>")
+    grbl.feed("<Idle|MPos:3.000,0.000,0.000|FS:0,0>")
+    assert stream.done and stream.result is not None and stream.result.end is StreamEnd.COMPLETED
+
+
+def test_a_job_that_ends_while_held_drops_its_hold() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    stream = _held_job(lambda text, _n: codec.encode(text))
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.session.stop_stream(1007, "fault active: estop")
+    assert stream.done and stream.held is None
+    with pytest.raises(Busy):
+        grbl.session.release_stream()
