@@ -2,12 +2,16 @@
 
 - "pause": the job stops handing out lines before the M6 line, lets the board run
   what it already has (every line answered, then a status report read after that
-  says it rests), and holds: supervisor `paused`, job `paused`, the snapshot's
+  says it rests), stops the spindle if it is on (`M5`, the board at rest after
+  it: a spindle left running while the operator's hands are at the tool is
+  dangerous), and holds: supervisor `paused`, job `paused`, the snapshot's
   `tool_change` names the tool and the line. The operator may jog (`machine.jog`)
   and send lines (`machine.send`) while it holds: they go as the job's own
   operation lines, through the same command-class admission as any line.
-  `job.tool_change_done` records the change in the job's `tool_changes` and
-  lets the job go on with the M6 line as its session sends it
+  `job.tool_change_done` turns the spindle back on as the job had it at the M6
+  (`Modes`: M3/M4 and its S), gives it `spindle_dwell` (none on a laser),
+  records the change in the job's `tool_changes` and lets the job go on with
+  the M6 line as its session sends it
   (`SessionBase.tool_change_line`: grbl without the M6, g2core as written).
 - "probe": the same, and before the job goes on the new tool is measured on the
   fixed sensor (`[machines.probe] tool_sensor`): in mm and absolute, up to the
@@ -172,6 +176,9 @@ class ToolChanger:
                 await self._board_done(stream)
                 if stream.done or stream.held != line:
                     return
+                await self._spindle_off(modes)
+                if stream.done:
+                    return
                 self.waiting = Waiting(line, tool, modes)
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
@@ -233,11 +240,33 @@ class ToolChanger:
                 await self._measure(waiting)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
+            await self._spindle_back(waiting.modes)
+            if stream.done:
+                raise Busy(f"{self.machine.id}: the job ended during the tool change")
             change = ToolChange(tool=waiting.tool, line=waiting.line, at=now())
             self.waiting = None
             self.machine.tool_change_answered(stream, change)
         finally:
             self._answering = False
+
+    # -- the spindle: off while the operator's hands are at it ------------------
+
+    async def _spindle_off(self, modes: Modes) -> None:
+        """M5, and the board at rest after it, before the operator is told to change the
+        tool: the job's spindle on (as its lines say), or the board's (as it reports)."""
+        reported = (self.machine.engine.model.spindle or {}).get("state")
+        if modes.spinning or reported in ("cw", "ccw"):
+            self._log.info("tool change: spindle off", spindle=modes.spindle, reported=reported)
+            await self._run(["M5"], lambda: True)
+
+    async def _spindle_back(self, modes: Modes) -> None:
+        """The spindle as the job had it at the M6 (M3/M4 and its S), then the machine's
+        `spindle_dwell` for it to reach its speed (none on a laser: no spin-up)."""
+        dwell = 0.0 if self.machine.is_laser() else self.machine.config.spindle_dwell
+        lines = modes.spindle_lines(dwell)
+        if lines:
+            self._log.info("tool change: spindle back on", lines=lines)
+            await self._run(lines, lambda: True)
 
     # -- "probe": the tool length on the fixed sensor --------------------------
 

@@ -30,6 +30,9 @@ POLICIES = ("pause", "probe", "ignore", "refuse")
 # (G20/G21), distance (G90/G91, not the arc modes G90.1/G91.1) and the feed (F).
 _MODE = re.compile(r"[gG][ \t]*+0*+(2[01]|9[01])(?![0-9.])")
 _F = re.compile(r"[fF][ \t]*+([0-9]*+\.?[0-9]*+)")
+# The spindle's state (M3 CW, M4 CCW, M5 off; M30 and the like are not it) and speed (S).
+_SPINDLE = re.compile(r"[mM][ \t]*+0*+([345])(?![0-9.])")
+_S = re.compile(r"[sS][ \t]*+([0-9]*+\.?[0-9]*+)")
 
 
 def has_m6(text: str) -> bool:
@@ -53,15 +56,19 @@ def without_m6(text: str) -> str:
 
 @dataclass(frozen=True, slots=True)
 class Modes:
-    """The program's units, distance mode and feed where it stands (as its words say)."""
+    """The program's units, distance mode, feed and spindle where it stands (as its
+    words say)."""
 
     units: str = "G21"
     distance: str = "G90"
     feed: str | None = None  # the F word's number as written, in the program's units
+    spindle: str = "M5"  # M3, M4 or M5
+    speed: str | None = None  # the S word's number as written
 
     def after(self, text: str) -> Modes:
         """These modes once `text` has run."""
         units, distance, feed = self.units, self.distance, self.feed
+        spindle, speed = self.spindle, self.speed
         if "G" in text or "g" in text:
             for code in _MODE.findall(text):
                 if code in ("20", "21"):
@@ -72,9 +79,31 @@ class Modes:
             for number in _F.findall(text):
                 if number not in ("", "."):
                     feed = number
-        return Modes(units, distance, feed)
+        if "M" in text or "m" in text:
+            for code in _SPINDLE.findall(text):
+                spindle = "M" + code
+        if "S" in text or "s" in text:
+            for number in _S.findall(text):
+                if number not in ("", "."):
+                    speed = number
+        return Modes(units, distance, feed, spindle, speed)
 
     def lines(self) -> list[str]:
         """The lines that put these modes back on the board."""
         words = f"{self.units} {self.distance}"
         return [words + (f" F{self.feed}" if self.feed is not None else "")]
+
+    @property
+    def spinning(self) -> bool:
+        """The program had the spindle on (M3 or M4)."""
+        return self.spindle != "M5"
+
+    def spindle_lines(self, dwell: float) -> list[str]:
+        """The lines that turn the spindle back on as the program had it, then give it
+        `dwell` seconds to reach its speed (none: no dwell); nothing if it was off."""
+        if not self.spinning:
+            return []
+        on = self.spindle + (f" S{self.speed}" if self.speed is not None else "")
+        if dwell <= 0:
+            return [on]
+        return [on, f"G4 P{dwell:.3f}".rstrip("0").rstrip(".")]

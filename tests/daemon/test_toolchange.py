@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ import pytest_asyncio
 from hostd.sim import SimController
 from tests.daemon.conftest import G2, GRBL, Rpc, RpcFailure, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
+from tests.daemon.test_operations import lines_sent
 
 pytestmark = pytest.mark.asyncio
 
@@ -297,3 +299,48 @@ async def test_the_operator_cannot_move_the_machine_while_a_tool_is_measured(
             sim.resume_reading()
         job = await answering
         assert [c["tool"] for c in job["tool_changes"]] == [1]
+
+
+# The spindle on at 8000 rpm when the job reaches its M6 (line 5).
+SPINNING = "G21 G90\nG0 X0 Y0 Z0\nM3 S8000\nG1 X1 F3000\nT2 M6\nG0 X2\nM5\nM2\n"
+
+
+def _spindle_of(running: Running, machine: str) -> str:
+    """The spindle as the simulated board's interpreter holds it (M3, M4 or M5)."""
+    sim = running.daemon.sims[machine]
+    if isinstance(sim, SimController):
+        return str(sim._board.interp.spindle)
+    return str(sim.board.modal.spindle)  # type: ignore[attr-defined]
+
+
+def _unnumbered(sent: list[bytes]) -> list[bytes]:
+    return [re.sub(rb"^N[0-9]+ *", b"", line) for line in sent]
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_the_spindle_stops_for_the_change_and_comes_back_as_the_job_had_it(
+    tmp_path: Path, machine: str
+) -> None:
+    async with _daemon(tmp_path, "pause", spindle_dwell=0.05) as (running, rpc):
+        if machine == GRBL:  # the simulated grbl is a laser ($32=1): make it a mill
+            await rpc.call("settings.set", machine=machine, values={"32": 0})
+            await rpc.call("settings.get", machine=machine, keys=["32"])  # `$$`: read again
+            status = await rpc.call("machine.status", machine=machine)
+            assert status["laser_mode"] is False
+        job_id = await _start(rpc, machine, "spin.nc", SPINNING)
+        await _waiting(rpc, machine, job_id, 5)
+        # The operator is told of the change only once the spindle is off.
+        assert _spindle_of(running, machine) == "M5"
+        sent = _unnumbered(lines_sent(running, machine))
+        assert [line for line in sent if line[:2] in (b"M3", b"M4", b"M5")] == [
+            b"M3 S8000",
+            b"M5",
+        ], sent
+        before = len(sent)
+        await rpc.call("job.tool_change_done", machine=machine)
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        after = _unnumbered(lines_sent(running, machine))[before:]
+        # Back on as it was, the machine's dwell for it to reach its speed, then the job.
+        assert after[:2] == [b"M3 S8000", b"G4 P0.05"], after
+        assert after.index(b"G0 X2") > 1 and _spindle_of(running, machine) == "M5"

@@ -9,7 +9,7 @@ import pytest
 from hostd.protocol.errors import Busy
 from hostd.protocol.grbl import codec
 from hostd.protocol.stream import Stream
-from hostd.protocol.toolchange import has_m6, tool_words, without_m6
+from hostd.protocol.toolchange import Modes, has_m6, tool_words, without_m6
 from hostd.protocol.vocabulary import Detected, Lane, StreamEnd
 from tests.protocol.g2wire import Wire
 from tests.protocol.test_grbl_session import Grbl
@@ -121,3 +121,14 @@ def test_a_job_that_ends_while_held_drops_its_hold() -> None:
     assert stream.done and stream.held is None
     with pytest.raises(Busy):
         grbl.session.release_stream()
+
+
+def test_the_programs_spindle_as_its_lines_leave_it() -> None:
+    modes = Modes()
+    assert modes.spindle_lines(2.0) == []  # off: nothing to turn back on
+    modes = modes.after("G1 X1 M03 S8000 F300")
+    assert modes.spinning and modes.spindle_lines(2.0) == ["M3 S8000", "G4 P2"]
+    assert modes.after("S12000").spindle_lines(0.25) == ["M3 S12000", "G4 P0.25"]
+    assert modes.after("M4").spindle_lines(0.0) == ["M4 S8000"]  # a laser: no dwell
+    assert modes.after("M30").spinning  # a program end is no spindle word
+    assert not modes.after("M5").spinning and not modes.after("m 05").spinning
