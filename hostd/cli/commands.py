@@ -117,6 +117,16 @@ async def cancel(c: Client, args: argparse.Namespace, out: Output) -> int:
     return OK
 
 
+async def tool_change_done(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """job.tool_change_done: the tool is changed; the waiting job goes on."""
+    job = await c.call("job.tool_change_done", machine=args.machine)
+    if out.json:
+        out.print_json(job)
+    else:
+        render.jobs(out.out, [job])
+    return OK
+
+
 # -- lists ---------------------------------------------------------------------------
 
 
@@ -268,6 +278,8 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
         started = await c.call("job.start", **params)
         job_id = int(started["job"])
         out.message(f"job #{job_id} started on {args.machine}")
+        for warning in started.get("warnings") or ():  # e.g. M6 lines a policy ignores
+            out.message(f"warning: {warning}")
         follower = JobFollower(
             c, args.machine, job_id, console=out.err, ctrl_c=ctrl_c, answers=StdinLines()
         )

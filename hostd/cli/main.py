@@ -124,6 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         client(name, "action", help).add_argument("machine", metavar="MACHINE")
     client("cancel", "cancel", "cancel the running job").add_argument("machine", metavar="MACHINE")
+    client(
+        "tool-change-done", "tool_change_done", "the tool is changed: the waiting job goes on"
+    ).add_argument("machine", metavar="MACHINE")
 
     p = client("home", "home", "home the machine (all axes, or AXES like xyz)")
     p.add_argument("machine", metavar="MACHINE")

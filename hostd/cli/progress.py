@@ -12,7 +12,14 @@ on every job state change and every tenth of the way: logs and pipes get
 a readable history instead of a redrawn bar.
 
 Ctrl-C while following asks "pause, cancel or continue?". After a pause the
-question becomes "resume, cancel or stay paused?". A second Ctrl-C at a
+question becomes "resume, cancel or stay paused?".
+
+A job that holds at a tool change (the machine's `tool_change` policy,
+docs/operations.md) shows "Change to tool 2 (line 57), then press Enter";
+Enter answers it with `job.tool_change_done`. Without input to read (stdin
+at its end: a script, a service) the prompt says how to answer from
+elsewhere (`hostd tool-change-done MACHINE`) and the client goes on
+following: the job continues once someone answers. A second Ctrl-C at a
 question, or the end of stdin, stops following (the job goes on; the
 client says so and how to stop it): only an explicit answer touches the job.
 """
@@ -149,6 +156,8 @@ class JobFollower:
         self.ctrl_c = ctrl_c
         self.answers = answers
         self._notes = client.notifications()
+        self._asked_at: int | None = None  # the M6 line last prompted for
+        self._no_input = False  # stdin ended: tool changes are answered elsewhere
 
     async def follow(self) -> dict[str, Any]:
         """The job's final row, once it has ended."""
@@ -173,7 +182,62 @@ class JobFollower:
                     job = row
                     news_at = time.monotonic()
                 display.update(job)
+                if job.get("state") == "paused":
+                    job = await self._tool_change(display, job)
+                else:
+                    self._asked_at = None
         return job
+
+    async def _tool_change(self, display: JobDisplay, job: dict[str, Any]) -> dict[str, Any]:
+        """A paused job that waits at a tool change: prompt, and answer on Enter."""
+        snapshot = await self.client.call("machine.status", machine=self.machine)
+        change = snapshot.get("tool_change") if isinstance(snapshot, dict) else None
+        if not isinstance(change, dict) or change.get("line") == self._asked_at:
+            return job
+        self._asked_at = change.get("line")
+        tool = change.get("tool")
+        what = f"Change to tool {tool}" if tool is not None else "Change the tool"
+        display.hide()
+        try:
+            if self._no_input:
+                self._hint(what, change)
+                return job
+            self.console.print(
+                f"{what} (line {change.get('line')}), then press Enter",
+                markup=False,
+                highlight=False,
+            )
+            while True:
+                try:
+                    line = await unless_interrupted(self.answers.readline(), self.ctrl_c)
+                except Interrupted:
+                    self.ctrl_c.clear()
+                    return await self._ask(display, job)
+                if line is None:
+                    self._no_input = True
+                    self._hint(what, change)
+                    return job
+                try:
+                    row: dict[str, Any] = await self.client.call(
+                        "job.tool_change_done", machine=self.machine
+                    )
+                except RpcError as exc:
+                    self.console.print(
+                        f"job.tool_change_done: {exc.message} ({exc.code}); press Enter to retry",
+                        markup=False,
+                    )
+                    continue
+                return row if row.get("id") == self.job_id else job
+        finally:
+            display.show()
+
+    def _hint(self, what: str, change: dict[str, Any]) -> None:
+        self.console.print(
+            f"{what} (line {change.get('line')}), then answer with "
+            f"`hostd tool-change-done {self.machine}`",
+            markup=False,
+            highlight=False,
+        )
 
     def _apply(
         self, display: JobDisplay, note: Notification, job: dict[str, Any]

@@ -12,7 +12,7 @@ a key of another dialect is refused by name like any unknown key.
 from __future__ import annotations
 
 import re
-from typing import Annotated, Any, Final, Self, cast
+from typing import Annotated, Any, Final, Literal, Self, cast
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 from pydantic_core.core_schema import ValidatorFunctionWrapHandler
@@ -122,6 +122,11 @@ class MachineConfig(SessionConfig, PortConfig):
     laser: bool = False
     # The touch plate and the tool-length sensor (running.md `[machines.probe]`).
     probe: ProbeConfig = ProbeConfig()
+    # What a job's M6 does (running.md; docs/operations.md, "Tool changes"): "pause" holds
+    # the job for the operator, "probe" holds and then measures the new tool on the
+    # `[machines.probe]` tool_sensor, "ignore" strips the M6 with a warning, "refuse"
+    # refuses the file at job.start. Unset is "refuse".
+    tool_change: Literal["pause", "probe", "ignore", "refuse"] | None = None
     # The most a laser test-fire (machine.laser_test) may ask, percent of full power.
     laser_test_max: Annotated[float, Field(gt=0, le=100)] = 10.0
     # Named G-code snippets with parameters (macro.list, macro.run).
@@ -157,6 +162,14 @@ class MachineConfig(SessionConfig, PortConfig):
         spec = lookup(self.dialect)
         if self.control_port is not None and spec.ports < 2:
             raise ValueError(f"a {spec.name} board has one port: no control_port")
+        return self
+
+    @model_validator(mode="after")
+    def _probe_needs_a_sensor(self) -> Self:
+        if self.tool_change == "probe" and self.probe.tool_sensor is None:
+            raise ValueError(
+                'tool_change = "probe" needs [machines.probe] with tool_sensor = { x = .., y = .. }'
+            )
         return self
 
     @model_validator(mode="after")

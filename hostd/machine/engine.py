@@ -608,6 +608,11 @@ class Engine:
         self.session.resume_stream()
         self._deliver()
 
+    def release_stream(self) -> None:
+        """Pass the job's hold point (a tool change answered): its lines flow again."""
+        self.session.release_stream()
+        self._deliver()
+
     def stop_stream(self, code: int, text: str) -> None:
         """Fail the running job and stop the board: feedhold, then flush (a fault's effect).
 

@@ -105,6 +105,5 @@ def line_limit(machine: Machine) -> int:
 
 
 def tool_change_policy(machine: Machine) -> str | None:
-    """running.md's `tool_change`, once the config has it; absent is no policy."""
-    policy = getattr(machine.config, "tool_change", None)
-    return policy if isinstance(policy, str) else None
+    """running.md's `tool_change`; absent is no policy (an M6 is refused, as "refuse")."""
+    return machine.config.tool_change

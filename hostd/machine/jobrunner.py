@@ -28,7 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Container, Coroutine, Iterator
 from typing import Any, TextIO
 
 import structlog
@@ -113,16 +113,18 @@ class JobRunner:
         start_line: int | None = None,
         preamble: list[str] | None = None,
         if_stopped: str | None = None,
+        holds: Container[int] | None = None,
     ) -> Job:
         """Begin a streaming operation and follow it in the machine's task group.
 
         `if_stopped`: a line sent when the job ends other than completed (a jog's G90).
+        `holds`: file lines the job holds before (JobStream; a tool change's M6).
         """
         group = self._group
         if group is None:
             raise NotConnected(f"{self.id} is not running")
         job = await self.begin(kind, file, total, start_line=start_line, preamble=preamble)
-        stream = JobStream(lines, job.id, numbered=kind == "make")
+        stream = JobStream(lines, job.id, numbered=kind == "make", holds=holds)
         try:
             self.engine.start_stream(stream)
         except MachineError as exc:
@@ -158,6 +160,25 @@ class JobRunner:
         self._unwritten = {}
         self.publish()
         return job
+
+    def follow_also(self, work: Coroutine[Any, Any, None], name: str) -> None:
+        """Another follower of the streaming job (its tool changes), in the machine's task
+        group: cancelled when the machine stops; a failure of its own is logged, never let
+        into the group."""
+        group = self._group
+        if group is None:
+            work.close()
+            raise NotConnected(f"{self.id} is not running")
+
+        async def guarded() -> None:
+            try:
+                await work
+            except Exception:
+                self._log.exception("a follower of the job failed", name=name)
+
+        task = group.create_task(guarded(), name=name)
+        self._followers.add(task)
+        task.add_done_callback(self._followers.discard)
 
     async def _follow(
         self, stream: JobStream, handle: TextIO | None, if_stopped: str | None

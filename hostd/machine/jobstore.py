@@ -50,21 +50,36 @@ CREATE TABLE IF NOT EXISTS jobs (
     error_message TEXT,
     line_executed INTEGER,
     start_line INTEGER,
-    preamble TEXT
+    preamble TEXT,
+    tool_changes TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_machine ON jobs (machine, id);
 """
 # Added after the first schema, with their SQL types: `_migrate` adds the missing ones.
-_ADDED = (("line_executed", "INTEGER"), ("start_line", "INTEGER"), ("preamble", "TEXT"))
+_ADDED = (
+    ("line_executed", "INTEGER"),
+    ("start_line", "INTEGER"),
+    ("preamble", "TEXT"),
+    ("tool_changes", "TEXT"),  # issue 29: JSON, [{"tool", "line", "at"}]
+)
 _COLUMNS = (
     "id, machine, file, kind, state, lines_total, lines_sent, lines_acked, "
-    "started_at, ended_at, error_code, error_message, line_executed, start_line, preamble"
+    "started_at, ended_at, error_code, error_message, line_executed, start_line, preamble, "
+    "tool_changes"
 )
 
 
 class JobError(BaseModel):
     code: int
     message: str
+
+
+class ToolChange(BaseModel):
+    """One tool change a job made: the tool, the file line of its M6, when it was done."""
+
+    tool: int | None
+    line: int
+    at: str
 
 
 class Job(BaseModel):
@@ -84,11 +99,12 @@ class Job(BaseModel):
     line_executed: int | None = None  # the file line the board last said it was running
     start_line: int | None = None  # a resumed job's first file line
     preamble: list[str] | None = None  # what a resumed job sent before it
+    tool_changes: list[ToolChange] = []  # each tool change the operator made, in order
 
     @classmethod
     def from_row(cls, row: tuple[Any, ...]) -> Job:
         (id_, machine, file, kind, state, total, sent, acked, start, end, code, msg) = row[:12]
-        executed, start_line, preamble = row[12:15]
+        executed, start_line, preamble, changes = row[12:16]
         error = JobError(code=code, message=msg or "") if code is not None else None
         return cls(
             id=id_,
@@ -105,6 +121,7 @@ class Job(BaseModel):
             line_executed=executed,
             start_line=start_line,
             preamble=json.loads(preamble) if preamble else None,
+            tool_changes=json.loads(changes) if changes else [],
         )
 
 
@@ -222,6 +239,10 @@ class JobStore:
         error = fields.pop("error", None)
         if isinstance(error, JobError):
             fields["error_code"], fields["error_message"] = error.code, error.message
+        if "tool_changes" in fields:
+            fields["tool_changes"] = json.dumps(
+                [c.model_dump() if isinstance(c, ToolChange) else c for c in fields["tool_changes"]]
+            )
         names = ", ".join(f"{name} = ?" for name in fields)
         if names:
             with self._lock:

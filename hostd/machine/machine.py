@@ -19,8 +19,9 @@ import asyncio
 import itertools
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import structlog
 
@@ -37,12 +38,13 @@ from hostd.machine.events import (
 )
 from hostd.machine.faults import Fault, FaultTable
 from hostd.machine.jobrunner import JobRunner
-from hostd.machine.jobstore import Job, JobStore
+from hostd.machine.jobstore import Job, JobStore, ToolChange
 from hostd.machine.signals import fault_conditions
 from hostd.machine.stream import JobStream
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
+from hostd.machine.toolchange import ToolChanger
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.gcodestate.resume import Board
@@ -87,6 +89,7 @@ class Machine:
         self._signal_values: dict[str, Any] = {}  # the last value of every signal key
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
+        self.tools = ToolChanger(self)  # the job's M6s, by the tool_change policy
         self._log = log.bind(machine=self.id)
 
     # -- lifecycle ---------------------------------------------------------
@@ -226,8 +229,7 @@ class Machine:
         handle = path.open(encoding="utf-8", errors="replace")
         try:
             lines = itertools.chain(before, program_lines(handle, start_line))
-            return await self.jobs.start(
-                "make",
+            return await self._start_make(
                 file,
                 total + len(before),
                 lines,
@@ -243,10 +245,44 @@ class Machine:
         """Lines the daemon made (a macro's, a frame's), run as a make job with no file:
         admitted, numbered, paused, resumed and cancelled as any make job. The caller has
         checked the lines as a file's are checked (hostd/machine/macros.py)."""
-        return await self.jobs.start("make", None, len(lines), enumerate(lines, start=1), None)
+        return await self._start_make(None, len(lines), enumerate(lines, start=1), None)
+
+    async def _start_make(
+        self,
+        file: str | None,
+        total: int,
+        lines: Iterator[tuple[int, str]],
+        handle: TextIO | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
+    ) -> Job:
+        """A make job, its M6s read by the tool-change policy (toolchange.py)."""
+        lines = self.tools.lines(lines)
+        holds = self.tools.holds(lines)
+        job = await self.jobs.start(
+            "make",
+            file,
+            total,
+            lines,
+            handle,
+            start_line=start_line,
+            preamble=preamble,
+            holds=holds,
+        )
+        if holds is not None:
+            self.tools.follow(self.jobs.live(), holds)
+        return job
 
     async def jog(self, axes: dict[str, float], feed: float) -> Job:
         lines = self.engine.session.jog_lines(axes, feed)
+        if self.tools.holding() and self.job is not None:
+            if not self.tools.operator_may_move():
+                raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
+            # A job waits at a tool change: the jog is its own lines, no operation of its own.
+            for line in lines:
+                await self.engine.send(line, operation=True)
+            return self.job
         # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
         restore = lines[-1] if len(lines) > 1 else None
         return await self.jobs.start(
@@ -335,8 +371,13 @@ class Machine:
         self.engine.console = listening
 
     async def send(self, line: str, timeout: float = 10.0) -> Response:
-        """One line, through the same admission as any other; its answer."""
-        return await self.engine.send(line, timeout=timeout)
+        """One line, through the same admission as any other; its answer.
+
+        While a job waits at a tool change the line goes as the job's own (the operator
+        works inside it), still through the command-class admission."""
+        if self.tools.holding() and not self.tools.operator_may_move():
+            raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
+        return await self.engine.send(line, timeout=timeout, operation=self.tools.holding())
 
     def realtime(self, command: Realtime) -> None:
         """A realtime command: written ahead of every queued line."""
@@ -362,6 +403,12 @@ class Machine:
 
     def jog_stop(self) -> None:
         """Feedhold, then queue flush (seed 002's jog stop): the rest of the move is dropped."""
+        if self.tools.holding():
+            # The flush would end the waiting job too (it is the job's cancel on both dialects).
+            raise Busy(
+                f"{self.id} waits at a tool change: jog by distances, or machine.feedhold "
+                "to stop a jog (a queue flush would cancel the job)"
+            )
         self.engine.realtime(Realtime.FEEDHOLD)
         self.engine.realtime(Realtime.QUEUE_FLUSH)
 
@@ -373,8 +420,9 @@ class Machine:
             self.engine.realtime(Realtime.FEEDHOLD)
 
     def cycle_start(self) -> None:
-        """`~`; while paused it is the job's resume."""
-        if self._resumable():
+        """`~`; while paused it is the job's resume (but at a tool change, where it only
+        lets a jog the operator held go on: job.tool_change_done goes past the M6)."""
+        if self._resumable() and not self.tools.holding():
             self.resume()
         else:
             self.engine.realtime(Realtime.CYCLE_START)
@@ -392,6 +440,8 @@ class Machine:
         return self._set_job_state("paused")
 
     def resume(self) -> Job:
+        if self.tools.holding():
+            raise Busy(f"{self.id} waits at a tool change: answer it with job.tool_change_done")
         if not self._resumable():
             raise Busy(f"{self.id} has no paused job to resume")
         with self.engine.one_step():  # no job line goes out while the supervisor says paused
@@ -430,6 +480,36 @@ class Machine:
     def _resumable(self) -> bool:
         return self.supervisor.state is SupState.PAUSED and self._live_stream() is not None
 
+    # -- tool changes (hostd/machine/toolchange.py) --------------------------
+
+    async def tool_change_done(self) -> Job:
+        """The operator changed the tool: record it and go on (1003 if none is waited for)."""
+        await self.tools.done()
+        return self.current_job() or self._no_job()
+
+    def _no_job(self) -> Job:
+        raise Busy(f"{self.id} has no job")
+
+    def tool_change_held(self) -> None:
+        """The job holds at an M6, the board at rest: paused, until the operator answers."""
+        if self.supervisor.can(SupEvent.PAUSE_OPERATION):
+            self.supervisor.fire(SupEvent.PAUSE_OPERATION)
+        if self._live_stream() is not None:
+            self._set_job_state("paused")
+
+    def tool_change_answered(self, stream: JobStream, change: ToolChange) -> None:
+        """Record the change; the job goes on with the M6 line, in one step."""
+        assert self.job is not None
+        changes = [*self.job.tool_changes, change]
+        with self.engine.one_step():  # no job line goes out while the supervisor says paused
+            self.engine.release_stream()
+            if stream.paused:  # the user's `!` too: its `~`
+                self.engine.resume_stream()
+            if self.supervisor.can(SupEvent.UNPAUSE_OPERATION):
+                self.supervisor.fire(SupEvent.UNPAUSE_OPERATION)
+        if self._live_stream() is not None:
+            self.jobs.change(state="running", tool_changes=changes)
+
     def _set_job_state(self, state: str) -> Job:
         """Only ever called while the job streams: a job's end state is final."""
         assert self.job is not None and self._live_stream() is not None
@@ -458,6 +538,7 @@ class Machine:
             lockout=self.engine.session.lockout(),
             faults=[f.to_json() for f in self.faults.active()],
             job=None if job is None else job.model_dump(mode="json"),
+            tool_change=self.tools.snapshot(),
         )
         return snap
 

@@ -102,6 +102,8 @@ class Preflight:
         a = self.analysis
         details = [{"text": w.text, "line": w.line, "count": w.count} for w in a.warnings]
         details += [{"text": text, "line": None, "count": 1} for text in self.beyond]
+        if self.findings is not None:  # the M6s a machine's "ignore" policy strips
+            details += [{"text": f.text, "line": f.line, "count": 1} for f in self.findings.notes]
         if self.limits is None or not self.limits.velocity:
             details.insert(0, {"text": DEFAULT_LIMITS_TEXT, "line": None, "count": 1})
         return {
@@ -373,8 +375,12 @@ async def prepare_start(
     restore: bool,
     force: bool,
     pool: WorkerPool,
+    notes: list[str] | None = None,
 ) -> list[str] | None:
     """What a make job of `path` from `start_line` needs before it starts: the preamble.
+
+    `notes`, if given, gets what the job will do that the file does not say (the
+    M6s a "ignore" policy strips), one line each, for job.start's `warnings`.
 
     Refuses a program whose moves leave the machine's travel (OutOfTravel)
     unless `force`, when the check can run (the travel known, the machine
@@ -393,6 +399,10 @@ async def prepare_start(
             start_line,
             pool=pool,
         )
+        if notes is not None:
+            notes += [f"line {f.line}: {f.text}" for f in found.notes]
+            if found.notes_total > len(found.notes):
+                notes.append(f"and {found.notes_total - len(found.notes)} more M6 lines")
         if found:
             raise NotRunnable(
                 f"{path.name} cannot run on {machine.id}: {found.summary()}",

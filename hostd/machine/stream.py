@@ -6,12 +6,16 @@ the session must not: the file (an iterator of its lines, read no faster
 than the board takes them, but for LOOK_AHEAD lines fed ahead), and the
 asyncio objects the runner waits on. The engine calls `fill` after every
 step it delivers, and `ended` when the session tells `StreamEnded`.
+
+`holds`, if given, names file lines the job holds before (a tool change's
+M6, hostd/machine/toolchange.py): each is fed as the session's hold point,
+and `reached` is set once the session holds there.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Container, Iterator
 
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
@@ -23,9 +27,15 @@ class JobStream:
     """A job's source of lines, the session's position in it, and its outcome."""
 
     def __init__(
-        self, lines: Iterator[tuple[int, str]], job_id: int | None = None, *, numbered: bool = False
+        self,
+        lines: Iterator[tuple[int, str]],
+        job_id: int | None = None,
+        *,
+        numbered: bool = False,
+        holds: Container[int] | None = None,
     ) -> None:
         self._lines = lines
+        self._holds = holds
         self.job_id = job_id
         self.numbered = numbered
         # The session's, from `start` on: the counts are read from it.
@@ -34,6 +44,8 @@ class JobStream:
         # Set when `acked` reaches `wake_at`, and when the stream ends: its runner's cue.
         self.wake = asyncio.Event()
         self.wake_at: int | None = None
+        # Set when the session holds at one of `holds` (cleared by whoever waits for it).
+        self.reached = asyncio.Event()
 
     def start(self, encode: Callable[[str, int | None], bytes]) -> Stream:
         """The session's position in this job, its lines encoded in the session's dialect."""
@@ -49,16 +61,23 @@ class JobStream:
             return False
         again = position.starved
         lines = self._lines
+        holds = self._holds
         for _ in range(want):
             item = next(lines, None)
             if item is None:
                 position.end_of_input()
                 return True
-            position.feed(item[0], item[1])
+            if holds is not None and item[0] in holds:
+                position.feed(item[0], item[1], hold=True)
+            else:
+                position.feed(item[0], item[1])
         return again
 
     def stepped(self) -> None:
-        """After a step: wake the runner if the answered lines crossed its mark."""
+        """After a step: wake the runner if the answered lines crossed its mark, and
+        whoever waits for a hold point if the session holds at one."""
+        if self.position.held is not None and not self.reached.is_set():
+            self.reached.set()
         wake_at = self.wake_at
         if wake_at is not None and self.position.acked >= wake_at:
             self.wake_at = None
@@ -71,6 +90,16 @@ class JobStream:
         self.wake.set()
 
     # -- the counts, as the session keeps them ------------------------------------
+
+    @property
+    def held(self) -> int | None:
+        """The file line the job holds before, once its turn came; else None."""
+        return self.position.held
+
+    @property
+    def paused(self) -> bool:
+        """The user's pause (`!` to `~`), apart from any hold."""
+        return self.position.paused
 
     @property
     def done(self) -> bool:

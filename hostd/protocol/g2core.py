@@ -1022,6 +1022,19 @@ class G2Session(SessionBase):
         """A relative move, then G90 back: a jog is G-code on g2core."""
         return [jog_line(axes, feed), "G90"]
 
+    def tool_change_line(self, text: str, tool: int | None) -> str:
+        """The line as written: g2core takes M6 (gcode_parser.cpp `case 6`, tool_change)
+        and only makes the selected tool the current one (canonical_machine.cpp
+        `_exec_change_tool`), so its `tool` reports the change."""
+        return text
+
+    def tool_length_lines(self, tool: int, delta: float) -> list[str]:
+        """g2core has no G43.1 (gcode_parser.cpp `case 43`: only G43 and G43.2): the
+        offset goes into the tool's entry of the tool table (G10 L1, cm_set_g10_data;
+        entries from 1, TOOLS of them) and G43 H applies it (cm_set_tl_offset)."""
+        entry = max(tool, 1)
+        return [f"G10 L1 P{entry} Z{delta:.4f}", f"G43 H{entry}"]
+
     report_line = "{sr:n}"  # a GET: answered once the report has been printed
 
     def home_lines(self, axes: Sequence[str] | None) -> list[str]:

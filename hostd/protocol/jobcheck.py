@@ -13,8 +13,13 @@ see at the first. Each finding names its file line:
 - `number`: a number no board reads (spelled inf or nan, or with more integer digits
   than a board accumulates: gcodewords.INTEGER_DIGITS);
 - `tool-change`: `M6` on a machine without a tool-change policy (the config's
-  `tool_change`; absent or "refuse", no policy);
+  `tool_change`; absent or "refuse", no policy), or, where the machine holds for
+  the change ("pause", "probe"), an `M6` with no T word on its line or before it
+  (the operator could not be told which tool);
 - `unsupported`: a G or M code the dialect lacks (gcodestate/dialects.py).
+
+Under "ignore" each `M6` is a note, not a finding (`Findings.notes`): the job
+runs without it, and says so.
 
 Lines are read once, each in linear time: words by a pattern whose two
 classes do not overlap, so it never backtracks.
@@ -37,12 +42,14 @@ from hostd.protocol.gcodewords import (
     too_long,
 )
 from hostd.protocol.program import number_line
+from hostd.protocol.toolchange import has_m6, tool_words
 
 MAX_FINDINGS = 50  # listed one by one; the rest are counted
 # A G or M word: the letter, blanks, the number. Disjoint classes: no backtracking. Lines
 # come without comments (program_lines), so no word is read out of one.
 _CODE = re.compile(r"([GM])\s*([0-9.]+)")
 _POLICIES = frozenset({"pause", "probe", "ignore"})  # running.md's tool_change, but "refuse"
+_HOLDS = frozenset({"pause", "probe"})  # the job holds at an M6 and names the tool
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +66,8 @@ class Finding:
 class Findings:
     found: tuple[Finding, ...]  # the first MAX_FINDINGS
     total: int
+    notes: tuple[Finding, ...] = ()  # M6s the "ignore" policy strips (the first MAX_FINDINGS)
+    notes_total: int = 0
 
     def __bool__(self) -> bool:
         return self.total > 0
@@ -87,13 +96,42 @@ def check_program(
     policy = tool_change in _POLICIES
     found: list[Finding] = []
     total = 0
+    notes: list[Finding] = []
+    notes_total = 0
+    tool: int | None = None  # the last T word read
     for number, text in lines:
         finding = _check_line(number, text, spec, max_line_bytes, policy, numbered)
+        selected = tool_words(text)
+        tool = selected[-1] if selected else tool
+        if finding is None and policy and has_m6(text):
+            if tool_change in _HOLDS:
+                if tool is None:
+                    finding = Finding(
+                        number,
+                        "tool-change",
+                        "M6 (tool change) with no T word on its line or before it: "
+                        "the tool to load is unknown",
+                    )
+            else:
+                notes_total += 1
+                if len(notes) < MAX_FINDINGS:
+                    notes.append(
+                        Finding(
+                            number,
+                            "tool-change-ignored",
+                            f"M6 (tool change{_to(tool)}) is ignored on this machine "
+                            f"(tool_change = {tool_change!r}): the tool is not changed",
+                        )
+                    )
         if finding is not None:
             total += 1
             if len(found) < MAX_FINDINGS:
                 found.append(finding)
-    return Findings(tuple(found), total)
+    return Findings(tuple(found), total, tuple(notes), notes_total)
+
+
+def _to(tool: int | None) -> str:
+    return "" if tool is None else f" to T{tool}"
 
 
 def _check_line(

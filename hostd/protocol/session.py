@@ -215,6 +215,18 @@ class SessionBase:
         """The lines of a jog by these distances at this feed."""
         raise NotImplementedError
 
+    def tool_change_line(self, text: str, tool: int | None) -> str:
+        """A job's `M6` line as it goes to this board once the host has handled the change
+        (held for it, or ignores it): `tool` is the tool it changes to, if known.
+
+        Never empty: the job's line counts stay those of the file.
+        """
+        raise NotImplementedError
+
+    def tool_length_lines(self, tool: int, delta: float) -> list[str]:
+        """The lines that make `delta` (mm, along Z) the length offset of `tool`, in force."""
+        raise NotImplementedError
+
     # The board answers its homing line only once the cycle has ended (grbl's `$H`).
     # False: it answers as the cycle starts, and the cycle ends when the state
     # leaves HOMING (g2core's G28.2).
@@ -517,6 +529,14 @@ class SessionBase:
             raise Busy(f"{self.id}: the job is not paused")
         self.realtime(Realtime.CYCLE_START)
         stream.paused = False
+
+    def release_stream(self) -> None:
+        """Pass the job's hold point (stream.py: a tool change the operator answered): the
+        line it kept back goes as the flow control has room, unless the job is paused."""
+        stream = self._live_stream()
+        if stream.held is None:
+            raise Busy(f"{self.id}: the job is not held")
+        stream.release()
 
     def stop_stream(self, code: int, text: str) -> None:
         """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""

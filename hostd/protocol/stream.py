@@ -20,6 +20,13 @@ board answers it with status 0. Every sent line ends in exactly one of
 `acked`, `rejected`, `discarded`, or is still unanswered when the link is
 lost. The outcome is set once.
 
+A line fed with `hold` is a hold point (a tool change, hostd/machine/toolchange.py):
+when its turn comes `peek` hands out nothing and `held` names it, until the
+caller has the session `release` it. It is not the job's pause (`paused`, the
+user's `!` to `~`): neither clears the other, so a resume never carries a job
+past a hold. Held lines are no underflow (`lines_on_host` is False): the host
+keeps them back on purpose.
+
 `line_executed` is the file line the board said it was executing (its N word in
 a status report; the session decides which reports say so, per dialect). It
 only moves forward and never past the last line sent: every value it takes is
@@ -57,8 +64,9 @@ class Stream:
         self.numbered = numbered
         self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: InFlight | None = None
-        # Fed ahead: a line as the flow control books it, or why it may not be sent.
-        self._ahead: deque[InFlight | tuple[int, InvalidCommand]] = deque()
+        # Fed ahead: a line as the flow control books it, or why it may not be sent, or
+        # (file line, None): a hold point before that line.
+        self._ahead: deque[InFlight | tuple[int, InvalidCommand | None]] = deque()
         self._input_ended = False  # the caller has no more lines
         self.starved = False  # the flow control asked for a line and none was ahead
         self.refused: tuple[int, str] | None = None  # the file line whose turn came, unsendable
@@ -74,6 +82,7 @@ class Stream:
         # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
         self.program_pause_sent = False
         self.paused = False  # from the job's `!` to its `~`: none of its lines is written
+        self.held: int | None = None  # the file line a hold point keeps back, its turn come
         self.result: StreamResult | None = None
         self.done = False  # the outcome is set (read at every line: a plain attribute)
 
@@ -85,9 +94,12 @@ class Stream:
             return 0
         return LOOK_AHEAD - len(self._ahead)
 
-    def feed(self, number: int, text: str) -> None:
-        """One more line of the job: its file line number and its text."""
+    def feed(self, number: int, text: str, *, hold: bool = False) -> None:
+        """One more line of the job: its file line number and its text. `hold`: the job
+        holds before it until `release` (a tool change)."""
         self.starved = False
+        if hold:
+            self._ahead.append((number, None))
         try:
             encoded = self._encode(text, number if self.numbered else None)
         except InvalidCommand as exc:
@@ -130,7 +142,10 @@ class Stream:
             first = ahead[0]
             if isinstance(first, tuple):
                 number, invalid = first
-                self.refused = (number, invalid.message)
+                if invalid is None:  # a hold point: nothing goes until it is released
+                    self.held = number
+                else:
+                    self.refused = (number, invalid.message)
                 return None
             entry = self._next = ahead.popleft()  # type: ignore[assignment]
         return entry
@@ -141,7 +156,16 @@ class Stream:
         entry = self.peek()
         if entry is not None:
             return not entry.control
-        return self.refused is None and not self._input_ended
+        return self.refused is None and self.held is None and not self._input_ended
+
+    def release(self) -> None:
+        """The hold point whose turn came is passed: the line after it goes next."""
+        if self.held is None:
+            return
+        first = self._ahead[0]
+        assert isinstance(first, tuple) and first[1] is None
+        self._ahead.popleft()
+        self.held = None
 
     def take(self) -> None:
         """The peeked line was written."""
@@ -189,5 +213,6 @@ class Stream:
         self.done = True
         self._next = None
         self._ahead.clear()
+        self.held = None
         self.result = StreamResult(end, code, message)
         return True

@@ -79,6 +79,8 @@ class Board(Commands):
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
         # So is the rest of the machine a test sets up: a reset keeps these too.
         self.probe_surface = None  # axis, machine mm the probe touches
+        self.tool_sensor = None  # a fixed tool-length sensor (probing.ToolSensor)
+        self.tool_length = 0.0  # the tool in the spindle: mm longer than the first
         self.touch_plate = None  # the touch plate on the work (probing.TouchPlate)
         self.touch_reads = 0
         self.homing_failure = None  # axis, why homing it fails

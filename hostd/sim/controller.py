@@ -31,7 +31,7 @@ from hostd.protocol.status import Status
 from hostd.sim.board import Board
 from hostd.sim.callsites import CallSite
 from hostd.sim.config import AXES, Kind, Received, SimConfig
-from hostd.sim.probing import TouchPlate
+from hostd.sim.probing import ToolSensor, TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.reports import ANALOG_INPUTS, DIGITAL_INPUTS
 from hostd.sim.scanner import ControlLine, DataLine, LineScanner, NulFlush, Realtime
@@ -214,6 +214,16 @@ class SimController(SimShell[Board, MachineState]):
             raise ValueError(f"no axis {axis!r}: the board has {', '.join(AXES)}")
         self._board.probe_surface = None if axis is None else (axis, float(at))
         self._kick()
+
+    def tool_sensor(self, x: float, y: float, z: float) -> None:
+        """A fixed tool-length sensor at machine X, Y: a G38.2 that starts over it (within
+        1 mm) trips at machine Z `z` plus the tool's length (`tool_length`)."""
+        self._board.tool_sensor = ToolSensor(float(x), float(y), float(z))
+        self._kick()
+
+    def tool_length(self, mm: float) -> None:
+        """The operator put in a tool `mm` longer than the first (it trips the sensor higher)."""
+        self._board.tool_length = float(mm)
 
     def touch_plate(self, plate: TouchPlate | None) -> None:
         """A touch plate on the work, wired to the probe input (`prbin`); None takes it away.

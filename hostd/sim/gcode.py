@@ -7,9 +7,11 @@ and the machine state are the board's business (board.py); this is pure.
 
 Supported: N; G0 G1 G2 G3 (arcs with I/J/K offsets or R), G4 P (seconds),
 G17-G19, G20/G21, G28.2 (homing), G28.3 (set position), G38.2-G38.5
-(straight probes, cycle_probing.cpp), G40, G49, G53 (one
+(straight probes, cycle_probing.cpp), G40, G43 H and G49 (the tool length
+offset from the tool table, `cm_set_tl_offset`), G53 (one
 block in machine coordinates), G10 L2/L20 P0-P6 (the stored offsets,
-`cm_set_g10_data`; L20 without G92, as canonical_machine.cpp), G54-G59, G61
+`cm_set_g10_data`; L20 without G92, as canonical_machine.cpp) and G10 L1
+P1-P32 (a tool table entry), G54-G59, G61
 G61.1 G64, G80, G90/G91, G90.1/G91.1, G92/G92.1, G93/G94; M0 M1 (accepted,
 no pause), M2/M30 (program end), M3 M4 M5 (the spindle, kept with each move),
 M6 M7 M8 M9 (accepted); F S T and the parameters P I J K R L. Any other
@@ -27,9 +29,10 @@ from hostd.protocol.status import Status
 from hostd.sim.config import AXES
 
 MM_PER_INCH = 25.4
+TOOLS = 32  # g2core.h: entries in the tool table, from 1
 
 _SUPPORTED_G = frozenset(
-    {0, 1, 2, 3, 4, 10, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 49, 53}
+    {0, 1, 2, 3, 4, 10, 17, 18, 19, 20, 21, 28.2, 28.3, 38.2, 38.3, 38.4, 38.5, 40, 43, 49, 53}
     | {54, 55, 56, 57, 58, 59}
     | {61, 61.1, 64, 80, 90, 91, 90.1, 91.1, 92, 92.1, 93, 94}
 )
@@ -182,6 +185,10 @@ class Interpreter:
     path: int = 2  # 0 G61, 1 G61.1, 2 G64
     inverse_time: bool = False
     line: int = 0  # model line number (last N)
+    # The tool table (G10 L1, tt.tt_offset) and the length offset in force (G43, G49:
+    # cm->tool_offset, part of the combined offset).
+    tools: dict[int, dict[str, float]] = field(default_factory=dict)
+    tool_offset: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))
 
     def copy(self) -> Interpreter:
         return Interpreter(
@@ -199,6 +206,8 @@ class Interpreter:
             path=self.path,
             inverse_time=self.inverse_time,
             line=self.line,
+            tools={n: dict(t) for n, t in self.tools.items()},
+            tool_offset=dict(self.tool_offset),
         )
 
     @property
@@ -209,7 +218,7 @@ class Interpreter:
     def work_offset(self) -> dict[str, float]:
         """The offset in force (mm): the coordinate system's plus G92 (cm_get_combined_offset)."""
         coord = self.coords[self.coord - 1]
-        return {a: coord[a] + self.offsets[a] for a in AXES}
+        return {a: coord[a] + self.offsets[a] + self.tool_offset[a] for a in AXES}
 
     def sync(self, position: Mapping[str, float]) -> None:
         """The planner was flushed: the next block starts where the machine stands."""
@@ -339,6 +348,16 @@ class Interpreter:
             axes_used = True
         elif 92.1 in gset:
             self.offsets = dict.fromkeys(AXES, 0.0)
+        if 43 in gset:
+            # cm_set_tl_offset: the H word's entry (H0 or none: the current tool, which
+            # this model does not track: entry 0, no offset).
+            h = int(params.get("H", 0))
+            if not 0 <= h <= TOOLS:
+                raise _Refused(Status.H_WORD_IS_INVALID)
+            entry = self.tools.get(h, {})
+            self.tool_offset = {a: entry.get(a, 0.0) for a in AXES}
+        elif 49 in gset:
+            self.tool_offset = dict.fromkeys(AXES, 0.0)  # cm_cancel_tl_offset
 
         probe = next((g for g in gcodes if g in _PROBES), None)
         if probe is not None:
@@ -361,6 +380,14 @@ class Interpreter:
     def _g10(self, axes: dict[str, float], params: dict[str, float]) -> None:
         """G10 L2 (the offset) or L20 (the current position reads as given, G92 not
         counted: canonical_machine.cpp cm_set_g10_data); P0 is the active system."""
+        if params.get("L") == 1.0 and "P" in params:
+            tool = int(params["P"])
+            if not 1 <= tool <= TOOLS:
+                raise _Refused(Status.P_WORD_IS_INVALID)
+            entry = self.tools.setdefault(tool, dict.fromkeys(AXES, 0.0))
+            for a, v in axes.items():
+                entry[a] = v * self.scale
+            return
         if params.get("L") not in (2.0, 20.0) or "P" not in params:
             raise _Refused(Status.GCODE_COMMAND_UNSUPPORTED)
         p = int(params["P"])
@@ -369,7 +396,11 @@ class Interpreter:
         coord = self.coords[(p or self.coord) - 1]
         for a, v in axes.items():
             value = v * self.scale
-            coord[a] = value if params["L"] == 2.0 else self.position[a] - value
+            coord[a] = (
+                value
+                if params["L"] == 2.0
+                else self.position[a] - value - self.tool_offset[a]  # L20, as g2core
+            )
 
     def _motion(
         self,

@@ -24,7 +24,7 @@ from hostd.sim import reports
 from hostd.sim.config import AXES, SimConfig
 from hostd.sim.gcode import Block, Interpreter
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import ProbeCycle, TouchPlate, probe_input
+from hostd.sim.probing import ProbeCycle, ToolSensor, TouchPlate, probe_input, sensor_surface
 from hostd.sim.scanner import ControlLine, DataLine, Realtime
 from hostd.sim.settings import BOARD_ID, JV_MAX, Settings
 
@@ -81,6 +81,8 @@ class Output:
     refuse_next: int | None  # a test's: the next G-code line's status
     inputs: dict[str, float | int]
     probe_surface: tuple[str, float] | None
+    tool_sensor: ToolSensor | None  # a fixed tool-length sensor (issue 29)
+    tool_length: float  # how much longer the tool in the spindle is than the first, mm
     touch_plate: TouchPlate | None
     touch_reads: int  # the operator holds the plate to the bit for this many reads of it
     homing_failure: tuple[str, Status] | None
@@ -271,7 +273,13 @@ class Output:
         return (
             bool(self.inputs[f"in{n}"])
             or self.touch_reads > 0
-            or probe_input(self.probe_surface, self.touch_plate, self.position)
+            or probe_input(self.probe_surface_here(), self.touch_plate, self.position)
+        )
+
+    def probe_surface_here(self) -> tuple[str, float] | None:
+        """The tool sensor where the tool stands over it, else the test's surface."""
+        return (
+            sensor_surface(self.tool_sensor, self.tool_length, self.position) or self.probe_surface
         )
 
     def _values(self, now: float) -> dict[str, float | int]:

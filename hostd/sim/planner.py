@@ -212,7 +212,7 @@ class Planner(Output):
         trip = None
         if self.settings["prbin"]:  # input 0 is none: gpio_read_input(0) reads false
             trip = contact(
-                self.probe_surface,
+                self.probe_surface_here(),
                 self.touch_plate,
                 self.position,
                 block.move.target,

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 from hostd.sim.config import AXES, EPS
 
+SENSOR_REACH = 1.0  # mm: a probe this close to the tool sensor's X and Y is over it
+
 MINIMUM_PROBE_TRAVEL = 0.254  # mm, cycle_probing.cpp
 PROBE_AXES = ("x", "y", "z", "a", "b", "c")  # the axes `_send_probe_report` prints
 
@@ -51,6 +53,28 @@ def probe_trip(
     point = {a: start[a] + (end[a] - start[a]) * fraction for a in AXES}
     point[axis] = at
     return point
+
+
+@dataclass(frozen=True, slots=True)
+class ToolSensor:
+    """A fixed tool-length sensor (issue 29): where it is, in machine mm, and the machine
+    Z at which a tool of length 0 closes it. A tool `length` mm longer closes it that
+    much higher: its tip reaches the sensor sooner."""
+
+    x: float
+    y: float
+    z: float
+
+
+def sensor_surface(
+    sensor: ToolSensor | None, tool_length: float, at: Mapping[str, float]
+) -> tuple[str, float] | None:
+    """The sensor as a Z surface for the tool in the spindle, when `at` is over it."""
+    if sensor is None:
+        return None
+    if abs(at["x"] - sensor.x) > SENSOR_REACH or abs(at["y"] - sensor.y) > SENSOR_REACH:
+        return None
+    return "z", sensor.z + tool_length
 
 
 @dataclass(frozen=True)

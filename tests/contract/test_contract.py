@@ -63,7 +63,12 @@ class Setup:
 
 @pytest_asyncio.fixture(params=["socket", "websocket"])
 async def setup(request: pytest.FixtureRequest, tmp_path: Path) -> AsyncIterator[Setup]:
-    machine: dict[str, Any] = {"signals": SIGNALS, "spindle_dwell": 0.05, "safe_z": 90.0}
+    machine: dict[str, Any] = {
+        "signals": SIGNALS,
+        "spindle_dwell": 0.05,
+        "safe_z": 90.0,
+        "tool_change": "pause",
+    }
     # A grbl laser beside it, for the laser's methods; a macro on each.
     machine |= {"macros": [MACRO], "machines": 2, "per_machine": [{}, LASER]}
     async with running_web(tmp_path, machine=machine) as web:
@@ -260,6 +265,15 @@ async def run(s: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
         if recovery is not None and not all(isinstance(u, str) for u in recovery["uncertain"]):
             s.problems.append(f"job.recovery: uncertain must be [str]: {recovery['uncertain']}")
     await s.ok("job.list", machine=M, limit=10)
+    await s.idle()
+
+    # A tool change: the job holds at its M6 until the operator answers.
+    await s.ok("file.upload", name="tools.gcode", data="G21 G90\nG0 X1\nT2 M6\nG0 X0\n")
+    changing = await s.ok("job.start", machine=M, file="tools.gcode")
+    await s.until(lambda n: n["method"] == "job" and n["params"]["job"]["state"] == "paused")
+    await s.ok("job.tool_change_done", machine=M)
+    if changing:
+        await s.job_end(changing["job"])
     await s.idle()
 
     # Faults: one that forbids a job until overridden, one software clears.

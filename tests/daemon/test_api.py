@@ -44,6 +44,7 @@ JOB_KEYS = {
     "line_executed",
     "start_line",
     "preamble",
+    "tool_changes",
 }
 
 

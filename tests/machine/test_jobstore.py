@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from hostd.machine.jobstore import JobError, JobStore
+from hostd.machine.jobstore import JobError, JobStore, ToolChange
 
 pytestmark = pytest.mark.asyncio
 
@@ -106,4 +106,34 @@ async def test_a_database_of_an_older_hostd_gains_the_new_columns_and_keeps_its_
     job = await store.create("m1", "make", "a.nc", 10, start_line=25, preamble=["G21", "M3"])
     job = await store.update(job.id, line_executed=27)
     assert (job.line_executed, job.start_line, job.preamble) == (27, 25, ["G21", "M3"])
+    assert kept.tool_changes == [] and job.tool_changes == []  # none made
     store.close()
+
+
+async def test_a_database_before_tool_changes_keeps_its_rows_and_records_them(
+    tmp_path: Path,
+) -> None:
+    """Issue 29's column: added to a database that has every column but it."""
+    path = tmp_path / "jobs.db"
+    old = sqlite3.connect(path)
+    old.executescript(
+        "CREATE TABLE jobs (id INTEGER PRIMARY KEY AUTOINCREMENT, machine TEXT NOT NULL, "
+        "file TEXT, kind TEXT NOT NULL, state TEXT NOT NULL, lines_total INTEGER, "
+        "lines_sent INTEGER NOT NULL DEFAULT 0, lines_acked INTEGER NOT NULL DEFAULT 0, "
+        "started_at TEXT, ended_at TEXT, error_code INTEGER, error_message TEXT, "
+        "line_executed INTEGER, start_line INTEGER, preamble TEXT);"
+        "INSERT INTO jobs (machine, file, kind, state, lines_total, line_executed) "
+        "VALUES ('m1', 'a.nc', 'make', 'completed', 50, 50);"
+    )
+    old.commit()
+    old.close()
+    store = JobStore(path)
+    kept = await store.get(1)
+    assert kept is not None and kept.line_executed == 50 and kept.tool_changes == []
+    change = ToolChange(tool=2, line=57, at="2026-11-27T10:00:00.000Z")
+    job = await store.update(1, tool_changes=[change])
+    assert job.tool_changes == [change]
+    store.close()
+    again = JobStore(path)  # and it opens again, as is
+    assert (await again.get(1)) == job
+    again.close()

@@ -35,6 +35,26 @@ def test_m6_needs_a_tool_change_policy() -> None:
     assert check("T1 M6\n", dialect="g2core", limit=512, policy="refuse")
 
 
+def test_a_held_tool_change_must_name_its_tool() -> None:
+    """Under "pause" and "probe" the operator is told which tool: a T word must say."""
+    found = check("G21\nM6\nT2\nM6\n", dialect="g2core", limit=512, policy="pause")
+    assert [(f.line, f.kind) for f in found.found] == [(2, "tool-change")]
+    assert "T word" in found.found[0].text
+    assert not check("T3\nG0 X1\nM6\n", policy="pause")  # the T word before it counts
+    assert not check("T3\nG0 X1\nM6\n", policy="probe")
+    assert check("G0 X1\nM6\n", policy="probe")
+
+
+def test_ignore_notes_each_m6_it_strips() -> None:
+    found = check("G21\nT1 M6\nG0 X1\nM06 T2\n", policy="ignore")
+    assert not found  # nothing refuses the file
+    assert [(n.line, n.kind) for n in found.notes] == [
+        (2, "tool-change-ignored"),
+        (4, "tool-change-ignored"),
+    ]
+    assert "T2" in found.notes[1].text and found.notes_total == 2
+
+
 def test_codes_the_dialect_lacks_are_named_with_their_line() -> None:
     found = check("G21\nG0 X1\nG43 H1\nG38.2 Z-5 F10\nG81 X1 Y1 Z-1 R1\n")
     assert [(f.line, f.text) for f in found.found] == [

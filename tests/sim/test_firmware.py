@@ -296,3 +296,51 @@ async def test_a_tinyg_answers_with_a_checksum_footer(tmp_path: Path) -> None:
             assert answer["r"] == {"fb": 440.21} and len(answer["f"]) == 4
         finally:
             await host.close()
+
+
+# -- the tool-length sensor and the tool table (issue 29) ----------------------------
+
+
+async def test_a_probe_over_the_tool_sensor_trips_higher_for_a_longer_tool(
+    timed_sim: SimController, timed_host: Host
+) -> None:
+    timed_sim.tool_sensor(-5.0, -5.0, -3.0)
+    timed_sim.probe_surface("z", -4.5)  # the table, elsewhere
+    await timed_host.ask(b"G53 G0 X-5 Y-5\n")
+    await timed_host.until(has_stat(MachineState.PROGRAM_STOP))
+    timed_sim.tool_length(1.5)
+    await timed_host.ask(b"G38.2 Z-5 F600\n")
+    report = await _probe_report(timed_host)
+    assert report["e"] == 1 and report["z"] == pytest.approx(-1.5)
+    # Away from the sensor the test's surface is what the probe finds.
+    await timed_host.until(has_stat(MachineState.PROGRAM_STOP))
+    await timed_host.ask(b"G53 G0 X0 Y0\n")
+    await timed_host.until(has_stat(MachineState.PROGRAM_STOP))
+    await timed_host.ask(b"G38.2 Z-5 F600\n")
+    assert (await _probe_report(timed_host))["z"] == pytest.approx(-4.5)
+
+
+async def _probe_report(host: Host) -> dict[str, float]:
+    raw = b""
+    while not raw.startswith(b'{"prb"'):
+        raw = await host.line()
+    report: dict[str, float] = json.loads(raw)["prb"]
+    return report
+
+
+async def test_a_tool_table_offset_moves_every_target_until_g49(
+    timed_sim: SimController, timed_host: Host
+) -> None:
+    """G10 L1 writes the entry, G43 H applies it (cm_set_tl_offset), G49 cancels it;
+    an H past the table is 171 and a P past it 161 (canonical_machine.cpp)."""
+    assert (await timed_host.ask(b"G10 L1 P2 Z3.5\n"))["f"][1] == 0
+    assert (await timed_host.ask(b"G43 H2\n"))["f"][1] == 0
+    await timed_host.ask(b"G0 Z-1\n")
+    await timed_host.until(has_stat(MachineState.PROGRAM_STOP))
+    assert timed_sim.position["z"] == pytest.approx(2.5)
+    await timed_host.ask(b"G49\n")
+    await timed_host.ask(b"G0 Z-1\n")
+    await timed_host.until(has_stat(MachineState.PROGRAM_STOP))
+    assert timed_sim.position["z"] == pytest.approx(-1.0)
+    assert (await timed_host.ask(b"G43 H33\n"))["f"][1] == 171
+    assert (await timed_host.ask(b"G10 L1 P33 Z1\n"))["f"][1] == 161

@@ -59,6 +59,7 @@ class JobMethods:
     async def job_start(self, p: JobStartParams) -> dict[str, Any]:
         machine = self.api.machine(p.machine)
         path = await self.api.resolve(p.file)
+        warnings: list[str] = []
         preamble = await prepare_start(
             machine,
             path,
@@ -66,9 +67,13 @@ class JobMethods:
             restore=p.restore,
             force=p.force,
             pool=self.api.daemon.workers,
+            notes=warnings,
         )
         job = await machine.start_make(p.file, p.start_line, preamble)
-        return {"job": job.id, "preamble": preamble}
+        answer: dict[str, Any] = {"job": job.id, "preamble": preamble}
+        if warnings:  # what the job does that the file does not say (M6s ignored)
+            answer["warnings"] = warnings
+        return answer
 
     async def job_recovery(self, p: JobRecoveryParams) -> dict[str, Any]:
         pool = self.api.daemon.workers
@@ -100,6 +105,11 @@ class JobMethods:
 
     async def job_resume(self, p: MachineParams) -> dict[str, Any]:
         return self.api.machine(p.machine).resume().model_dump(mode="json")
+
+    async def job_tool_change_done(self, p: MachineParams) -> dict[str, Any]:
+        """The operator changed the tool the job waits for: it goes on (1003 if none)."""
+        job = await self.api.machine(p.machine).tool_change_done()
+        return job.model_dump(mode="json")
 
     async def job_cancel(self, p: MachineParams) -> dict[str, Any]:
         job = await self.api.machine(p.machine).cancel()
@@ -133,6 +143,7 @@ def register(m: Methods, api: Api) -> None:
     m.register("job.pause", MachineParams, h.job_pause)
     m.register("job.resume", MachineParams, h.job_resume)
     m.register("job.cancel", MachineParams, h.job_cancel)
+    m.register("job.tool_change_done", MachineParams, h.job_tool_change_done)
     m.register("job.get", JobParams, h.job_get)
     m.register("job.list", JobListParams, h.job_list)
     m.register("job.recovery", JobRecoveryParams, h.job_recovery)

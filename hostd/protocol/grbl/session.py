@@ -88,6 +88,7 @@ from hostd.protocol.session import SessionBase, gcode_number
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
 from hostd.protocol.stream import Stream
+from hostd.protocol.toolchange import without_m6
 from hostd.protocol.vocabulary import (
     Context,
     Excepted,
@@ -228,6 +229,17 @@ class GrblSession(SessionBase):
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """`$J=G91 X1.5000 F600.000`: grbl allows no G1 in a jog (gcode.c), and 0x85 cancels it."""
         return [f"$J=G91 {jog_words(axes, feed)}"]
+
+    def tool_change_line(self, text: str, tool: int | None) -> str:
+        """Without its M6: grbl refuses it (gnea/grbl gcode.c, `default:
+        FAIL(STATUS_GCODE_UNSUPPORTED_COMMAND)` in the M switch: error:20), and grblHAL's
+        own tool-change cycle must not run behind the host's. The T word stays (gcode.c
+        only tracks it); a line of M6 alone becomes `T<tool>`."""
+        return without_m6(text) or f"T{tool or 0}"
+
+    def tool_length_lines(self, tool: int, delta: float) -> list[str]:
+        """G43.1, grbl's dynamic tool length offset (gcode.c `case 43`, mantissa 10)."""
+        return [f"G43.1 Z{delta:.4f}"]
 
     def spindle_max_setting(self) -> str | None:
         """`$30`, the S of full power (gnea/grbl settings.c; laser PWM is S / $30)."""

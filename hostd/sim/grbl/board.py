@@ -74,7 +74,7 @@ from hostd.sim.grbl.parser import Modal
 from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active, Traversed
-from hostd.sim.probing import TouchPlate, probe_input
+from hostd.sim.probing import ToolSensor, TouchPlate, probe_input, sensor_surface
 
 CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
@@ -94,6 +94,10 @@ class GrblBoard:
         self.estop = False
         self.door_open = False
         self.probe = False
+        # A fixed tool-length sensor (issue 29, probing.ToolSensor) and how much longer
+        # than the first the tool in the spindle is: a G38.2 over the sensor trips itself.
+        self.tool_sensor: ToolSensor | None = None
+        self.tool_length = 0.0
         self.touch_plate: TouchPlate | None = None  # on the work, wired to the probe pin
         self.touch_reads = 0  # the operator holds the plate to the bit for this many `?`
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
@@ -283,11 +287,12 @@ class GrblBoard:
 
     def probe_closed(self) -> bool:
         """probe_get_state(): the pin (a test's `probe`), a touch, or the plate at the bit."""
-        return (
-            self.probe
-            or self.touch_reads > 0
-            or probe_input(None, self.touch_plate, self.tool_position())
-        )
+        return self.probe or self.touch_reads > 0 or self._touching(self.tool_position())
+
+    def _touching(self, at: dict[str, float]) -> bool:
+        """The bit at `at` touches the plate, or the tool sensor it stands over."""
+        surface = sensor_surface(self.tool_sensor, self.tool_length, at)
+        return probe_input(surface, self.touch_plate, at)
 
     def set_probe(self, active: bool) -> None:
         self.probe = active

@@ -44,6 +44,7 @@ class Error(IntEnum):
     INVALID_TARGET = 33
     ARC_RADIUS_ERROR = 34
     UNUSED_WORDS = 36
+    G43_DYNAMIC_AXIS_ERROR = 37
     HOMING_REQUIRED = 46  # grblHAL only
     ESTOP = 50  # grblHAL only
     NOT_ALLOWED_CRITICAL_EVENT = 79  # grblHAL only: "$X" and friends after ALARM:1/2/10

@@ -21,7 +21,7 @@ import structlog
 from hostd.sim.config import Received
 from hostd.sim.grbl.board import GrblBoard
 from hostd.sim.grbl.config import GrblConfig
-from hostd.sim.probing import TouchPlate
+from hostd.sim.probing import ToolSensor, TouchPlate
 from hostd.sim.ptyport import PtyPort
 from hostd.sim.shell import SimShell
 
@@ -136,6 +136,15 @@ class GrblSimController(SimShell[GrblBoard, str]):
         """The probe input: contact (True) ends a G38.2 cycle with [PRB:...:1]."""
         self._board.set_probe(active)
         self._kick()
+
+    def tool_sensor(self, x: float, y: float, z: float) -> None:
+        """A fixed tool-length sensor at machine X, Y: a G38.2 that starts over it (within
+        1 mm) closes the probe input at machine Z `z` plus the tool's length."""
+        self._board.tool_sensor = ToolSensor(float(x), float(y), float(z))
+
+    def tool_length(self, mm: float) -> None:
+        """The operator put in a tool `mm` longer than the first (it trips the sensor higher)."""
+        self._board.tool_length = float(mm)
 
     def touch_plate(self, plate: TouchPlate | None) -> None:
         """A touch plate on the work, wired to the probe pin; None takes it away.

@@ -28,7 +28,7 @@ from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
 from hostd.sim.grbl.settings import HOMING_PULLOFF
 from hostd.sim.motion import Active, Traversed, start_block
-from hostd.sim.probing import contact
+from hostd.sim.probing import contact, sensor_surface
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -214,7 +214,9 @@ def _probe_start(board: GrblBoard, probe: Probe, now: float) -> bool:
         return True
     # The touch plate: the move ends where the bit meets it (the stepper ISR's
     # probe_state_monitor copies sys_position into sys_probe_position and stops).
-    trip = contact(None, board.touch_plate, board.position, probe.move.target, probe.toward)
+    # The tool sensor (issue 29), where the bit stands over it, likewise.
+    surface = sensor_surface(board.tool_sensor, board.tool_length, board.position)
+    trip = contact(surface, board.touch_plate, board.position, probe.move.target, probe.toward)
     board.planner.append(probe.move if trip is None else replace(probe.move, target=trip))
     board._wait = Wait("probe", "", _probe_result(probe), tripped=trip is not None)
     _start(board, now)

@@ -5,7 +5,8 @@ A line is checked as a whole before anything changes (gc_execute_block's
 position stay as they were and the line's `error:N` is the whole effect.
 
 Supported: N; G0 G1 G2 G3 (I/J/K or R), G4 P, G10 L2/L20 P0-6, G17-G19,
-G20/G21, G38.2-G38.5, G53, G54-G59, G80, G90/G91, G91.1, G92/G92.1,
+G20/G21, G38.2-G38.5, G43.1 Z/G49 (the dynamic tool length offset), G53, G54-G59,
+G80, G90/G91, G91.1, G92/G92.1,
 G93/G94; M0 M1 M2 M30, M3 M4 M5, M7 M8 M9; F S T. Anything else is error:20.
 Jogging (`$J=`, jog.c / gc_execute_block's jog branch) takes only G20 G21
 G90 G91 G53, axis words, F and N, and needs F.
@@ -38,6 +39,7 @@ _G_GROUP: dict[float, str] = {
     **dict.fromkeys((17.0, 18.0, 19.0), "plane"),
     **dict.fromkeys((90.0, 91.0), "distance"),
     91.1: "arc_distance",
+    **dict.fromkeys((43.1, 49.0), "tool_length"),
     **dict.fromkeys((93.0, 94.0), "feed_mode"),
     **dict.fromkeys((20.0, 21.0), "units"),
     **dict.fromkeys((54.0, 55.0, 56.0, 57.0, 58.0, 59.0), "coord"),
@@ -99,6 +101,7 @@ class Modal:
     program_flow: str = ""
     probe: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))
     probe_ok: bool = False
+    tlo: float = 0.0  # G43.1's tool length offset along Z, mm (gc_state.tool_length_offset)
 
     def copy(self) -> Modal:
         return replace(
@@ -110,8 +113,11 @@ class Modal:
         )
 
     def wco(self) -> dict[str, float]:
-        """The work coordinate offset: the G54-G59 offset plus G92."""
-        return {a: self.wcs[self.coord][a] + self.g92[a] for a in AXES}
+        """The work coordinate offset: the G54-G59 offset plus G92, and on Z the tool
+        length offset (gnea/grbl report.c, the WCO; gcode.c adds it to every target)."""
+        return {
+            a: self.wcs[self.coord][a] + self.g92[a] + (self.tlo if a == "z" else 0.0) for a in AXES
+        }
 
     def reset(self) -> None:
         """gc_init() after a soft reset: modes back to defaults; G54-G59 persist (EEPROM),
@@ -277,11 +283,23 @@ def _block(m: Modal, words: list[tuple[str, float]], travel_ok: TravelCheck, jog
         if not axes:
             raise _Refused(Error.NO_AXIS_WORDS)
         for a, v in mm.items():
-            m.g92[a] = m.position[a] - m.wcs[m.coord][a] - v
+            # gcode.c: the tool length offset is taken out of G92's value too (line 571).
+            m.g92[a] = m.position[a] - m.wcs[m.coord][a] - v - (m.tlo if a == "z" else 0.0)
         axes_taken = True
         out = replace(out, offsets_changed=True)
     elif 92.1 in gset:
         m.g92 = dict.fromkeys(AXES, 0.0)
+        out = replace(out, offsets_changed=True)
+
+    if 43.1 in gset:
+        # gcode.c line 495: the Z word alone; the offset is the value (line 990).
+        if set(axes) != {"z"}:
+            raise _Refused(Error.G43_DYNAMIC_AXIS_ERROR)
+        m.tlo = mm["z"]
+        axes_taken = True
+        out = replace(out, offsets_changed=True)
+    elif 49.0 in gset:
+        m.tlo = 0.0  # gcode.c line 987
         out = replace(out, offsets_changed=True)
 
     motion_codes = [g for g in gcodes if _G_GROUP[g] == "motion"]

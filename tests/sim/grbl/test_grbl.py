@@ -324,6 +324,30 @@ async def test_probe_cycle_reports_prb(tmp_path: Path) -> None:
         assert (await host.ask(b"$#\n"))[-2] == f"[PRB:0.000,0.000,{z:.3f}:1]"
 
 
+async def test_probe_over_the_tool_sensor_closes_on_it(tmp_path: Path) -> None:
+    """The sensor closes the probe input where a tool of this length reaches it."""
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        sim.tool_sensor(-5.0, -5.0, -3.0)
+        sim.tool_length(1.5)
+        assert await host.ask(b"G53 G0 X-5 Y-5\n") == ["ok"]
+        assert await host.ask(b"G38.2 Z-10 F600\n") == ["[PRB:-5.000,-5.000,-1.500:1]", "ok"]
+        assert sim.position["z"] == pytest.approx(-1.5)
+
+
+async def test_g43_1_offsets_every_target_until_g49(classic_host: GrblHost) -> None:
+    """gnea/grbl gcode.c: G43.1 takes the Z word alone (error:37 otherwise); the WCO
+    and every target carry it; G49 cancels it."""
+    assert await classic_host.ask(b"G43.1 X1\n") == ["error:37"]
+    assert await classic_host.ask(b"G43.1 Z2.5\n") == ["ok"]
+    assert await classic_host.ask(b"G0 Z-1\n") == ["ok"]
+    assert (await classic_host.ask(b"G4 P0\n")) == ["ok"]
+    assert "MPos:0.000,0.000,1.500" in await classic_host.status()
+    assert await classic_host.ask(b"G49\n") == ["ok"]
+    assert await classic_host.ask(b"G0 Z-1\n") == ["ok"]
+    assert await classic_host.ask(b"G4 P0\n") == ["ok"]
+    assert "MPos:0.000,0.000,-1.000" in await classic_host.status()
+
+
 async def test_probe_already_touching_is_alarm_4(
     hal_host: GrblHost, hal: GrblSimController
 ) -> None:
