@@ -21,6 +21,7 @@ pytestmark = pytest.mark.asyncio
 expect = playwright.expect
 
 PLATE_TOP = -3.0  # machine Z of the plate's top, 3 mm under the bit where the sim starts
+TWO_TOOLS = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X1\nG1 X2 F3000\nT2 M6 (second tool)\nG0 X3\nM2\n"
 MACROS = [
     {
         "name": "corner",
@@ -65,6 +66,36 @@ async def test_a_z_probe_on_the_touch_plate_from_the_page(
         # Retracted 2 mm above the plate's top, which is the plate's 10 mm above the work.
         await expect(page.locator("#wz")).to_have_text("12.000")
         await expect(page.locator("#mz")).to_have_text("-1.000")
+
+
+async def test_a_job_with_an_m6_prompts_is_answered_and_goes_on(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    async with running_web(tmp_path, machine={"tool_change": "pause"}) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "two.nc", TWO_TOOLS)
+        await page.click("#start")
+        await expect(page.locator("#toolchange")).to_be_visible()
+        await expect(page.locator("#toolchange-text")).to_have_text("Change to tool 1 (line 3)")
+        await expect(page.locator("#supervisor")).to_have_text("paused")
+        # Meanwhile the operator may jog (the daemon serves it as the job's lines), not
+        # resume past the prompt, and a held key's jog is refused: its stop would be.
+        await expect(page.locator("[data-action=resume]")).to_be_disabled()
+        await expect(page.locator("#jog-stop")).to_be_disabled()
+        await page.click("h1")
+        await page.keyboard.press("PageUp")
+        await expect(page.locator("#wz")).to_have_text("1.000")
+        await screenshot(page, tmp_path, "tool-change")
+        await page.click("#toolchange-done")
+        await expect(page.locator("#toolchange-text")).to_have_text("Change to tool 2 (line 6)")
+        await page.click("#toolchange-done")
+        await expect(page.locator("#toolchange")).to_be_hidden()
+        await expect(page.locator("#history tbody tr").first).to_contain_text("completed")
+        rpc = await web.hostd.client()
+        job = (await rpc.call("job.list", machine="sim1"))[0]
+        assert [(c["tool"], c["line"]) for c in job["tool_changes"]] == [(1, 3), (2, 6)]
+        await rpc.close()
 
 
 async def test_a_laser_test_fire_from_the_page_ends_with_the_beam_off(
