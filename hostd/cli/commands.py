@@ -291,16 +291,7 @@ async def run(c: Client, args: argparse.Namespace, out: Output) -> int:
                 f"(hostd cancel {args.machine} stops it)"
             )
             return INTERRUPTED
-    if out.json:
-        out.print_json(job)
-    else:
-        render.jobs(out.out, [job])
-    if job.get("state") == "completed":
-        return OK
-    error = job.get("error")
-    why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
-    out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
-    return FAILED
+    return _outcome(out, job, job_id)
 
 
 async def confirm(out: Output, question: str) -> bool:
@@ -501,16 +492,7 @@ async def _follow_job(c: Client, machine: str, job_id: int, out: Output) -> int:
         except Detached:
             out.message(f"stopped following job #{job_id}; it goes on (hostd cancel {machine})")
             return INTERRUPTED
-    if out.json:
-        out.print_json(job)
-    else:
-        render.jobs(out.out, [job])
-    if job.get("state") == "completed":
-        return OK
-    error = job.get("error")
-    why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
-    out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
-    return FAILED
+    return _outcome(out, job, job_id)
 
 
 async def frame(c: Client, args: argparse.Namespace, out: Output) -> int:
@@ -575,3 +557,17 @@ def _macro_params(params: dict[str, Any]) -> str:
 def _first_line(text: str) -> str:
     lines = text.strip().splitlines()
     return lines[0] + (" ..." if len(lines) > 1 else "") if lines else ""
+
+
+def _outcome(out: Output, job: dict[str, Any], job_id: int) -> int:
+    """A followed job's end: its row (or JSON), and OK only when it completed."""
+    if out.json:
+        out.print_json(job)
+    else:
+        render.jobs(out.out, [job])
+    if job.get("state") == "completed":
+        return OK
+    error = job.get("error")
+    why = f": {render.job_error(job)}" if isinstance(error, dict) else ""
+    out.message(f"hostd: job #{job_id} {job.get('state')}{why}")
+    return FAILED
