@@ -189,8 +189,7 @@ class DaemonProcess:
             f'event_loop = "{event_loop}"\n'
             + tables  # further top-level tables ([mqtt], [web]), before the machines
             + "".join(
-                f'\n[[machines]]\nid = "{id_}"\ndata_port = "{port}"\nwindow = {window}\n'
-                f'dialect = "{(dialects or {}).get(id_, "g2core")}"\n' + extra
+                _machine_table(id_, port, (dialects or {}).get(id_, "g2core"), window) + extra
                 for id_, port in self.machines.items()
             )
         )
@@ -281,3 +280,10 @@ class DaemonProcess:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+
+
+def _machine_table(machine: str, port: str, dialect: str, window: int) -> str:
+    """A `[[machines]]` table; `window` is g2core's key alone (grbl counts characters,
+    and the config refuses a key of another dialect)."""
+    table = f'\n[[machines]]\nid = "{machine}"\ndata_port = "{port}"\ndialect = "{dialect}"\n'
+    return table + (f"window = {window}\n" if dialect == "g2core" else "")
