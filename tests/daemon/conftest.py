@@ -68,7 +68,10 @@ class Rpc:
         return msg["result"]
 
     async def notification(self, predicate: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
-        async with asyncio.timeout(10):
+        # A bound for a test that would otherwise hang, not a timing check: generous, since
+        # a job's first line waits for its file check on a worker process (seconds when
+        # six test workers share two cores).
+        async with asyncio.timeout(30):
             while True:
                 msg = await self.notifications.get()
                 if predicate(msg):

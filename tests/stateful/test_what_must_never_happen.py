@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+import pytest
 from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
@@ -613,4 +614,7 @@ _EVENTS: dict[str, Callable[[object], bool]] = {
 }
 
 WhatMustNeverHappen.TestCase.settings = PROFILE
-TestWhatMustNeverHappen = WhatMustNeverHappen.TestCase
+# Twenty runs of up to 25 steps on a board that moves in real time: about 25 s alone,
+# past the suite's 60 s per test when six workers share two cores. Each step has its
+# own bound (STEP_LIMIT); this one is only the whole run's.
+TestWhatMustNeverHappen = pytest.mark.timeout(240)(WhatMustNeverHappen.TestCase)
