@@ -67,6 +67,10 @@ class DaemonConfig(BaseModel):
     # Start one worker as the daemon starts, so that the first job.start or file.analyze
     # does not wait a second or more for a new interpreter (docs/performance.md).
     prewarm_workers: bool = True
+    # Added to the analysis workers' niceness, so that on a small machine the daemon's own
+    # loop (feedholds, the job's lines) goes first. The test suite sets 0: its own six
+    # processes keep two cores busy, and a niced worker there waits tens of seconds.
+    analysis_nice: Annotated[int, Field(ge=0, le=19)] = 10
 
 
 class Settings(Protocol):
@@ -97,7 +101,9 @@ class Daemon:
         self._stop = asyncio.Event()
         # Whole-file reading, off this interpreter; its workers start on first use.
         self.workers = WorkerPool(
-            timeout=config.daemon.analysis_timeout, memory=config.daemon.analysis_memory
+            timeout=config.daemon.analysis_timeout,
+            memory=config.daemon.analysis_memory,
+            nice=config.daemon.analysis_nice,
         )
 
     def machine(self, machine_id: str) -> Machine | None:

@@ -65,11 +65,12 @@ def _ready(module: str) -> None:
     importlib.import_module(module)
 
 
-def _limit(memory: int) -> None:
+def _limit(memory: int, nice: int) -> None:
     """Worker initializer: cap the address space, and yield the CPU to the daemon."""
     if memory > 0:
         resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
-    os.nice(NICE)
+    if nice:
+        os.nice(nice)
 
 
 class WorkerPool:
@@ -81,10 +82,12 @@ class WorkerPool:
         *,
         timeout: float = DEFAULT_TIMEOUT,
         memory: int = DEFAULT_MEMORY,
+        nice: int = NICE,
     ) -> None:
         self.workers = workers
         self.timeout = timeout
         self.memory = memory
+        self.nice = nice  # added to the workers' niceness: the daemon's loop goes first
         self._idle: list[ProcessPoolExecutor] = []
         self._all: set[ProcessPoolExecutor] = set()
         self._slots: asyncio.Semaphore | None = None
@@ -166,7 +169,7 @@ class WorkerPool:
             max_workers=1,
             mp_context=multiprocessing.get_context("forkserver"),
             initializer=_limit,
-            initargs=(self.memory,),
+            initargs=(self.memory, self.nice),
         )
         self._all.add(executor)
         try:

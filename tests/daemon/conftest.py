@@ -117,6 +117,8 @@ def config_data(
             # A worker process for every test's daemon would cost the suite minutes of CPU:
             # tests/machine/test_workers.py and the daemon test of prewarming turn it on.
             "prewarm_workers": False,
+            # The suite's own processes keep the cores busy: a niced worker would starve.
+            "analysis_nice": 0,
             **(daemon or {}),
         },
         "machines": [

@@ -29,6 +29,7 @@ def write_config(tmp_path: Path, *daemon: str) -> Path:
         "[daemon]",
         f'socket = "{data["daemon"]["socket"]}"',
         f'state_dir = "{data["daemon"]["state_dir"]}"',
+        "analysis_nice = 0",  # the suite's processes keep the cores busy (conftest)
         *daemon,
         "",
         "[[machines]]",
