@@ -70,7 +70,10 @@ async def test_a_paused_job_writes_none_of_its_lines_until_resumed(bench: Bench)
 async def test_a_resume_the_board_never_held_for_writes_no_job_line_while_still_paused(
     tmp_path: Path,
 ) -> None:
-    async with bench_for(tmp_path, sim_config=replace(FAST, fb=101.03)) as bench:
+    # Moves in real time (speed_factor 1, ~85 ms a line), not FAST's fiftieth: the
+    # resumed job must not underflow because a loaded test machine was late to refill.
+    board = replace(FAST, fb=101.03, speed_factor=1.0)
+    async with bench_for(tmp_path, sim_config=board) as bench:
         await _a_resume_the_board_never_held_for(bench)
 
 
@@ -92,7 +95,7 @@ async def _a_resume_the_board_never_held_for(bench: Bench) -> None:
     """
     machine, engine = bench.machine, bench.machine.engine
     engine.console = True  # every line written is published in the step that writes it
-    job_line = re.compile(r"N(\d+) G1 X\d+ Y\d+ F3000")
+    job_line = re.compile(r"N(\d+) G1 X\d+ Y\d+ F1000")
     written: list[tuple[int, str]] = []  # (file line written, the supervisor's state then)
 
     def observe(event: Event) -> None:
@@ -102,7 +105,7 @@ async def _a_resume_the_board_never_held_for(bench: Bench) -> None:
                 written.append((int(line.group(1)), machine.supervisor.state.value))
 
     machine.hub.subscribe(observe)
-    bench.write("steps.gcode", "".join(f"G1 X{i % 2 + 1} Y{i} F3000\n" for i in range(12)))
+    bench.write("steps.gcode", "".join(f"G1 X{i % 2 + 1} Y{i} F1000\n" for i in range(12)))
     job = await machine.start_make("steps.gcode")
     machine.pause()  # no await since the window was written: the board reads both together
     window = len(written)
