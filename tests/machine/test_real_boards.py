@@ -166,6 +166,9 @@ async def test_an_answer_the_board_never_printed_is_found_by_the_next_answers_co
 ) -> None:
     rig.sim.set_output_buffer(120, reported=False)
     lost = asyncio.create_task(rig.engine.send("{sys:n}"))
+    # The board read it (and printed nothing) before the next query goes out: a task
+    # started late on a loaded machine would otherwise send it after that answer.
+    await rig.sim.wait_received(b'{"sys":null}')
     answer = await rig.engine.send("{si:n}")  # of another length: its count tells
     assert "si" in answer.body
     rig.sim.set_output_buffer(512)
