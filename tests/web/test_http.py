@@ -232,9 +232,7 @@ async def test_a_tab_that_never_reads_is_dropped_and_the_job_streams_on(tmp_path
             frozen.on_disconnect.append(dropped.set)
             # Moves of ~1.4 ms on the daemon's simulated board, each: 48 of them in its
             # planner outlast a loaded test machine's pause, so the job cannot underflow.
-            lines = "".join(
-                f"G1 X{i % 2} Y{i % 2} F6000 (tab test {i:05d})\n" for i in range(1500)
-            )
+            lines = "".join(f"G1 X{i % 2} Y{i % 2} F6000 (tab test {i:05d})\n" for i in range(1500))
             await other.call("file.upload", name="long.nc", data=lines)
             await other.call("subscribe", topics=["job"], machine="sim1")
             job = (await other.call("job.start", machine="sim1", file="long.nc"))["job"]
