@@ -349,10 +349,13 @@ async def analyze(c: Client, args: argparse.Namespace, out: Output) -> int:
     for axis, (low, high) in result["bounds"].items():
         rows.append((f"{axis} (mm)", f"{low:.3f} .. {high:.3f}"))
     render.pairs(out.out, rows)
+    problems = [f"line {p['line']}: {p['text']}" for p in result.get("problems", [])]
     for text in result["warnings"]:
-        out.out.print(f"warning: {text}", markup=False)
-    for p in result.get("problems", []):
-        out.out.print(f"refused: line {p['line']}: {p['text']}", markup=False)
+        # A refused M6 is also a warning (for the dashboard): say it once, as refused.
+        if not any(text.startswith(problem) for problem in problems):
+            out.out.print(f"warning: {text}", markup=False)
+    for problem in problems:
+        out.out.print(f"refused: {problem}", markup=False)
     more = result.get("problems_total", 0) - len(result.get("problems", []))
     if more > 0:
         out.out.print(f"refused: and {more} more lines", markup=False)

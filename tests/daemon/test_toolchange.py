@@ -177,12 +177,39 @@ async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path:
         assert (await rpc.call("machine.status", machine=GRBL))["tool_change"] is None
 
 
+@pytest.mark.parametrize("policy", ["pause", "probe", "ignore", "refuse"])
+async def test_analyze_says_what_the_machines_policy_does_with_each_m6(
+    tmp_path: Path, policy: str
+) -> None:
+    """grbl's G-code lacks M6, but the host handles it: file.analyze warns as the
+    machine's tool_change takes it, the same on both dialects, never "not supported"."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, policy, probe=probe) as (_, rpc):
+        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
+        for machine in MACHINES:
+            analysis = await rpc.call("file.analyze", file="two.nc", machine=machine)
+            warnings = analysis["warnings"]
+            assert not any("not supported" in w for w in warnings), (machine, warnings)
+            m6 = [w for w in warnings if "M6" in w]
+            problems = [p["line"] for p in analysis["problems"]]
+            if policy in ("pause", "probe"):  # the job holds at each: nothing to warn of
+                assert m6 == [] and problems == [], (machine, warnings)
+            elif policy == "ignore":
+                assert [w.split(":")[0] for w in m6] == ["line 3", "line 6"], m6
+                assert all("stripped" in w and "'ignore'" in w for w in m6), m6
+                assert problems == []
+            else:
+                assert [w.split(":")[0] for w in m6] == ["line 3", "line 6"], m6
+                assert all("refused" in w and "'refuse'" in w for w in m6), m6
+                assert problems == [3, 6]
+
+
 @pytest.mark.parametrize("machine", MACHINES)
 async def test_ignore_strips_the_m6_with_a_warning(tmp_path: Path, machine: str) -> None:
     async with _daemon(tmp_path, "ignore") as (_, rpc):
         await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
         analysis = await rpc.call("file.analyze", file="two.nc", machine=machine)
-        assert any("line 6" in w and "ignored" in w for w in analysis["warnings"])
+        assert any("line 6" in w and "stripped" in w for w in analysis["warnings"])
         await rpc.call("subscribe", topics=["job"], machine=machine)
         started = await rpc.call("job.start", machine=machine, file="two.nc")
         assert [w.split(":")[0] for w in started["warnings"]] == ["line 3", "line 6"]
