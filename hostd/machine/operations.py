@@ -23,7 +23,7 @@ from typing import Any, Final
 
 import structlog
 
-from hostd.machine import macros
+from hostd.machine import macros, rest
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import OutOfTravel, analyze_for, work_offset
@@ -145,26 +145,8 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
 
 
 async def _at_rest(machine: Machine, there: Callable[[], bool] = lambda: True) -> None:
-    """Until the board has run what it was given: a fresh report says it rests
-    (`there`, if given, holds too), or that it is locked out."""
-    engine = machine.engine
-    model = engine.model
-    asked = model.reports
-    await _fresh_report(machine)
-    try:
-        async with asyncio.timeout(MOVE_WAIT):
-            await engine.wait_for(
-                lambda: (
-                    model.reports > asked
-                    and model.state is not None
-                    and ((model.state.is_resting and there()) or model.state.is_lockout)
-                    and engine.quiet()
-                )
-            )
-    except TimeoutError:
-        raise ControllerTimeout(f"{machine.id}: the move did not end") from None
-    if model.state is not None and model.state.is_lockout:
-        raise ControllerError(0, f"{machine.id}: the move ended in {model.state.name}")
+    """Until the board has run what it was given (rest.py's rule)."""
+    await rest.at_rest(machine, there, timeout=MOVE_WAIT)
 
 
 def spindle_line(state: str, speed: float | None) -> str:

@@ -52,8 +52,9 @@ from typing import TYPE_CHECKING, Any
 import structlog
 
 from hostd.machine.jobstore import ToolChange, now
+from hostd.machine.rest import at_rest
 from hostd.machine.stream import JobStream
-from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, MachineError
+from hostd.protocol.errors import Busy, ControllerError, MachineError
 from hostd.protocol.toolchange import Modes, has_m6, tool_words, without_m6
 
 if TYPE_CHECKING:
@@ -333,25 +334,10 @@ class ToolChanger:
         engine = self.machine.engine
         for line in lines:
             await engine.send(line, timeout=ANSWER_WAIT, operation=True)
-        model = engine.model
-        asked = model.reports
-        engine.query_status()
-        try:
-            async with asyncio.timeout(MOVE_WAIT):
-                await engine.wait_for(
-                    lambda: (
-                        model.reports > asked
-                        and model.state is not None
-                        and ((model.state.is_resting and there()) or model.state.is_lockout)
-                        and engine.session.no_data_in_flight()
-                    )
-                )
-        except TimeoutError:
-            raise ControllerTimeout(
-                f"{self.machine.id}: the tool sensor's moves did not end"
-            ) from None
-        if model.state is not None and model.state.is_lockout:
-            raise ControllerError(0, f"{self.machine.id}: measuring the tool ended in a lockout")
+        # The job's stream is open, held at the M6: rest.py's in-job rule.
+        await at_rest(
+            self.machine, there, timeout=MOVE_WAIT, what="measuring the tool", in_job=True
+        )
 
     # -- views ----------------------------------------------------------------
 
