@@ -291,8 +291,9 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
         return job.start_line or 1, [about]
     about = (
         f"line {line} is the last the board reported running, at most a status "
-        f"interval before the stop; it answered lines up to {job.lines_acked} "
-        "of the job's, so it may have gone further"
+        f"interval before the stop (or the M6 a tool change held the job at: every "
+        f"line before it ran); it answered {job.lines_acked} of the job's lines, "
+        "so it may have gone further"
     )
     return line, [about]
 

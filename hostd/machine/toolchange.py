@@ -38,7 +38,9 @@ answered.
 
 A cancel while it holds ends the job (`cancelled`) as any cancel does; a lost
 link or a daemon stopped while it holds leaves the job `interrupted`, resumable
-with job.recovery (its `tool_changes` so far are on disk).
+with job.recovery (its `tool_changes` so far are on disk). While it holds, the
+job's `line_executed` is the M6 line (`JobStream.waits_at`): the board ran every
+line before it, so job.recovery plans the resume there, as the next line to run.
 """
 
 from __future__ import annotations
@@ -181,6 +183,7 @@ class ToolChanger:
                 if stream.done:
                     return
                 self.waiting = Waiting(line, tool, modes)
+                stream.waits_at(line)  # a lost link from now on resumes at the M6
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
                 await _first(self._answered(stream), stream.result)

@@ -162,6 +162,35 @@ async def test_a_link_lost_while_waiting_leaves_an_interrupted_job(
     assert (await rpc.call("job.get", job=job_id))["state"] == "interrupted"
 
 
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_job_whose_link_was_lost_at_a_tool_change_is_recovered_as_any_other(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    """Held at the first M6 (line 3) the board has run lines 1-2 and rests: the job's
+    place is the M6 line. Line 2 could not be resumed (no position is known before
+    it), which made job.recovery answer 1011."""
+    running, rpc = paused
+    job_id = await _start(rpc, machine, "two.nc", TWO_TOOLS)
+    await _waiting(rpc, machine, job_id, 3)
+    await running.daemon.sims[machine].unplug()
+    ended = await job_end(rpc, job_id)
+    assert ended["state"] == "interrupted" and ended["line_executed"] == 3, ended
+    await running.daemon.sims[machine].replug()
+    await running.idle(rpc, machine)
+    plan = await rpc.call("job.recovery", job=job_id)
+    assert plan["file"] == "two.nc" and plan["line"] == 3, plan
+    assert plan["position"]["x"] == pytest.approx(0.0) and plan["preamble"], plan
+    # Resumed there, it holds at that M6 again and asks for tool 1 (grbl: the T word).
+    started = await rpc.call("job.start", machine=machine, file="two.nc", start_line=3)
+    resumed = int(started["job"])
+    snapshot = await _waiting(rpc, machine, resumed, 3)
+    assert snapshot["tool_change"] == {"tool": 1, "line": 3}
+    await rpc.call("job.tool_change_done", machine=machine)
+    await _waiting(rpc, machine, resumed, 6, changes=1)
+    await rpc.call("job.tool_change_done", machine=machine)
+    assert (await job_end(rpc, resumed))["state"] == "completed"
+
+
 async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path: Path) -> None:
     async with _daemon(tmp_path, "pause") as (_, rpc):
         job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
@@ -173,7 +202,7 @@ async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path:
         assert job["state"] == "interrupted"
         assert [(c["tool"], c["line"]) for c in job["tool_changes"]] == [(1, 3)]
         plan = await rpc.call("job.recovery", job=job_id)
-        assert plan["file"] == "two.nc" and 1 <= plan["line"] <= 6
+        assert plan["file"] == "two.nc" and plan["line"] == 6  # the M6 it waited at
         assert (await rpc.call("machine.status", machine=GRBL))["tool_change"] is None
 
 
