@@ -205,7 +205,18 @@ async def full_power(machine: Machine) -> float:
             Refusal.UNREADABLE,
             f"{machine.id}: its firmware has no spindle maximum to scale a laser's power by",
         )
-    found = await machine.read_settings([key])
+    try:
+        found = await machine.read_settings([key])
+    except ControllerError as exc:
+        # The build has no such setting (a g2core without a laser toolhead answers
+        # `th2mxs` with 100, unrecognized name): nothing to scale the power by. Said as
+        # the board's limit, before anything moves, not as a failed line.
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id}: the board does not know {key!r}, its full-power S"
+            f" ({exc.message}): its firmware has no spindle maximum to scale a laser's"
+            " power by; frame at power 0 (beam off)",
+        ) from None
     value = found.get(key)
     if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
         raise ControllerError(0, f"{machine.id}: the board did not say its spindle maximum")
@@ -338,11 +349,16 @@ async def frame(
                 {"beyond_travel": beyond},
             )
     laser = machine.is_laser()
-    safe_z = None if laser else machine.safe_height(limits)
+    homed = machine.snapshot().get("homed") is True
+    # The Z travel's top is a place only once the machine is homed: before, machine
+    # coordinates count from wherever the board was switched on (g2core applies no
+    # soft limit either), and `G53 G0 Z<top>` would drive Z up into its end stop.
+    safe_z = None if laser else machine.safe_height(limits if homed else None)
     if not laser and safe_z is None:
         raise InvalidCommand(
             Refusal.UNREADABLE,
-            f"{machine.id} is not a laser and its safe height is unknown: set safe_z",
+            f"{machine.id} is not a laser and its safe height is unknown: set safe_z"
+            + ("" if homed else ", or home it (the Z travel's top means nothing before)"),
         )
     z_now = machine.engine.model.machine_position.get("z")
     if safe_z is not None and z_now is not None:
