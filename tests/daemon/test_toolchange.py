@@ -400,3 +400,67 @@ async def test_the_spindle_stops_for_the_change_and_comes_back_as_the_job_had_it
         # Back on as it was, the machine's dwell for it to reach its speed, then the job.
         assert after[:2] == [b"M3 S8000", b"G4 P0.05"], after
         assert after.index(b"G0 X2") > 1 and _spindle_of(running, machine) == "M5"
+
+
+def _modes_of(running: Running, machine: str) -> tuple[float | None, int, int]:
+    """The motion mode, plane and coordinate system (1 = G54) the simulated board holds."""
+    sim = running.daemon.sims[machine]
+    if isinstance(sim, SimController):
+        interp = sim._board.interp
+        return interp.motion, interp.plane, interp.coord
+    modal = sim.board.modal  # type: ignore[attr-defined]
+    return modal.motion, modal.plane, modal.coord + 1
+
+
+# G18 and G55 in force, G1 modal: line 7's bare `X3` must run as a feed, in G55, on G18.
+MODAL = "G21 G90 G18 G55\nG0 X0 Y0 Z0\nT1 M6\nG1 X1 F3000\nX2\nT2 M6\nX3\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_measured_tool_change_gives_the_job_its_modes_back(
+    tmp_path: Path, machine: str
+) -> None:
+    """The measuring ends in `G53 G0` moves: without the program's G1 put back, its
+    next bare `X3` would be a rapid."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "modal.nc", MODAL)
+        await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=machine)
+        await _waiting(rpc, machine, job_id, 6, changes=1)
+        before = len(lines_sent(running, machine))
+        await rpc.call("job.tool_change_done", machine=machine)
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        sent = _unnumbered(lines_sent(running, machine))[before:]
+        assert b"G21 G90 G18 G55 G1 F3000" in sent, sent
+        assert _modes_of(running, machine) == (1, 18, 2)  # G1, G18, G55 as the job left them
+        end = await rpc.call("machine.status", machine=machine)
+        assert end["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
+
+
+# Relative moves: after the change, `G0 X1` goes one more millimetre, to X2.
+RELATIVE = "G21 G91\nG0 X1\nT2 M6\nG0 X1\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_the_operators_jog_and_lines_at_a_pause_leave_the_jobs_modes_as_they_were(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    """A g2core jog is G-code (`G91 G1 .. F..`, then `G90`), and the operator may send
+    `G20`: the job's G21 G91 are put back before its next line."""
+    _, rpc = paused
+    job_id = await _start(rpc, machine, "relative.nc", RELATIVE)
+    await _waiting(rpc, machine, job_id, 3)
+    await rpc.call("subscribe", topics=["status"], machine=machine)
+    await rpc.call("machine.jog", machine=machine, axes={"z": 1.0}, feed=600)
+    await rpc.notification(lambda n: n["method"] == "status" and _rests_at(n, z=1.0))
+    await rpc.call("machine.send", machine=machine, line="G20")
+    await rpc.call("job.tool_change_done", machine=machine)
+    done = await job_end(rpc, job_id)
+    assert done["state"] == "completed", done
+    end = await rpc.call("machine.status", machine=machine)
+    assert end["units"] == "mm"
+    assert end["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+    assert end["machine_position"]["z"] == pytest.approx(1.0, abs=0.01)
