@@ -315,13 +315,23 @@ async def test_probe_that_misses_the_sensor_stops_in_the_boards_alarm(
         running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
         job_id = await _start(rpc, machine, "probed.nc", PROBED)
         await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("subscribe", topics=["status"], machine=machine)
         # 5 mm of travel from Z0 never reaches the sensor's Z-20.
         with pytest.raises(RpcFailure) as err:
             await rpc.call("job.tool_change_done", machine=machine)
         assert err.value.code in (204, 1005), err.value
         ended = await job_end(rpc, job_id)
         assert ended["state"] == "failed" and ended["tool_changes"] == []
-        status = await rpc.call("machine.status", machine=machine)
+        # The refusal and the job's end may come before the board's report after its
+        # alarm (grbl: ALARM:5, then the report the session asks for): wait for it.
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status"
+                and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+                and n["params"]["snapshot"]["machine_position"]["z"] < -1
+            )
+        )
+        status = await rpc.call("machine.status", machine=machine)  # the job has ended
         assert status["state"]["name"] == "ALARM" and status["tool_change"] is None
         assert status["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
         assert status["machine_position"]["x"] == pytest.approx(SENSOR["x"], abs=0.01)
