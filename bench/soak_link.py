@@ -20,6 +20,7 @@ import resource
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from hostd.config import MachineConfig
@@ -98,6 +99,12 @@ async def setup(
     return sim, machine, store, task
 
 
+def received_more(sim: SimController, count: int) -> Callable[[], bool]:
+    """Whether the board has read more than `count` lines: bound now, not at the call
+    (a lambda with a default argument for it is one mypy cannot type)."""
+    return lambda: len(sim.received) > count
+
+
 async def unplug_cycles(soak: Soak, cycles: int) -> None:
     print(f"== unplug and re-plug mid-job, {cycles} cycles", flush=True)
     sim, machine, store, task = await setup(soak, "unplug")
@@ -108,7 +115,7 @@ async def unplug_cycles(soak: Soak, cycles: int) -> None:
         soak.events.clear()
         job = await machine.start_make("part.gcode")
         at = rng.randint(5, 120)
-        await sim.wait_for(lambda at=at: len(sim.received) > at, timeout=10)
+        await sim.wait_for(received_more(sim, at), timeout=10)
         await sim.unplug()
         state = await soak.job_end(machine, job.id)
         row = await store.get(job.id)
@@ -157,7 +164,7 @@ async def alarm_points(soak: Soak, count: int) -> None:
         soak.events.clear()
         job = await machine.start_make("part.gcode")
         at = rng.randint(1, 200)
-        await sim.wait_for(lambda at=at: len(sim.received) > at + 10, timeout=10)
+        await sim.wait_for(received_more(sim, at + 10), timeout=10)
         sim.limit_switch(rng.choice("xyz"))
         state = await soak.job_end(machine, job.id)
         soak.check(state == "failed", f"job {n}: ended {state}")

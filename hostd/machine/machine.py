@@ -280,6 +280,7 @@ class Machine:
             if not self.tools.operator_may_move():
                 raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
             # A job waits at a tool change: the jog is its own lines, no operation of its own.
+            self.tools.operator_acted()
             for line in lines:
                 await self.engine.send(line, operation=True)
             return self.job
@@ -377,6 +378,8 @@ class Machine:
         works inside it), still through the command-class admission."""
         if self.tools.holding() and not self.tools.operator_may_move():
             raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
+        if self.tools.holding():
+            self.tools.operator_acted()
         return await self.engine.send(line, timeout=timeout, operation=self.tools.holding())
 
     def realtime(self, command: Realtime) -> None:

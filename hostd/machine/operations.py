@@ -23,7 +23,7 @@ from typing import Any, Final
 
 import structlog
 
-from hostd.machine import macros
+from hostd.machine import macros, rest
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import OutOfTravel, analyze_for, work_offset
@@ -145,26 +145,8 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
 
 
 async def _at_rest(machine: Machine, there: Callable[[], bool] = lambda: True) -> None:
-    """Until the board has run what it was given: a fresh report says it rests
-    (`there`, if given, holds too), or that it is locked out."""
-    engine = machine.engine
-    model = engine.model
-    asked = model.reports
-    await _fresh_report(machine)
-    try:
-        async with asyncio.timeout(MOVE_WAIT):
-            await engine.wait_for(
-                lambda: (
-                    model.reports > asked
-                    and model.state is not None
-                    and ((model.state.is_resting and there()) or model.state.is_lockout)
-                    and engine.quiet()
-                )
-            )
-    except TimeoutError:
-        raise ControllerTimeout(f"{machine.id}: the move did not end") from None
-    if model.state is not None and model.state.is_lockout:
-        raise ControllerError(0, f"{machine.id}: the move ended in {model.state.name}")
+    """Until the board has run what it was given (rest.py's rule)."""
+    await rest.at_rest(machine, there, timeout=MOVE_WAIT)
 
 
 def spindle_line(state: str, speed: float | None) -> str:
@@ -223,7 +205,18 @@ async def full_power(machine: Machine) -> float:
             Refusal.UNREADABLE,
             f"{machine.id}: its firmware has no spindle maximum to scale a laser's power by",
         )
-    found = await machine.read_settings([key])
+    try:
+        found = await machine.read_settings([key])
+    except ControllerError as exc:
+        # The build has no such setting (a g2core without a laser toolhead answers
+        # `th2mxs` with 100, unrecognized name): nothing to scale the power by. Said as
+        # the board's limit, before anything moves, not as a failed line.
+        raise InvalidCommand(
+            Refusal.UNREADABLE,
+            f"{machine.id}: the board does not know {key!r}, its full-power S"
+            f" ({exc.message}): its firmware has no spindle maximum to scale a laser's"
+            " power by; frame at power 0 (beam off)",
+        ) from None
     value = found.get(key)
     if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
         raise ControllerError(0, f"{machine.id}: the board did not say its spindle maximum")
@@ -356,11 +349,16 @@ async def frame(
                 {"beyond_travel": beyond},
             )
     laser = machine.is_laser()
-    safe_z = None if laser else machine.safe_height(limits)
+    homed = machine.snapshot().get("homed") is True
+    # The Z travel's top is a place only once the machine is homed: before, machine
+    # coordinates count from wherever the board was switched on (g2core applies no
+    # soft limit either), and `G53 G0 Z<top>` would drive Z up into its end stop.
+    safe_z = None if laser else machine.safe_height(limits if homed else None)
     if not laser and safe_z is None:
         raise InvalidCommand(
             Refusal.UNREADABLE,
-            f"{machine.id} is not a laser and its safe height is unknown: set safe_z",
+            f"{machine.id} is not a laser and its safe height is unknown: set safe_z"
+            + ("" if homed else ", or home it (the Z travel's top means nothing before)"),
         )
     z_now = machine.engine.model.machine_position.get("z")
     if safe_z is not None and z_now is not None:

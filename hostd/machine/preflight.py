@@ -35,7 +35,7 @@ from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import Analysis, analyze
 from hostd.protocol.gcodestate import Dialect as GcodeDialect
 from hostd.protocol.gcodestate.analysis import beyond_travel
-from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError
+from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError, unsupported_text
 from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.jobcheck import Findings, check_program
@@ -91,6 +91,7 @@ class Preflight:
     beyond: list[str]  # why the program leaves the travel, axis by axis
     checked: bool = False  # the travel and the work offset were known: the check ran
     findings: Findings | None = None  # lines the board would refuse (jobcheck.py)
+    dialect: str | None = None  # the G-code dialect's name the analysis ran with
 
     def to_json(self) -> dict[str, Any]:
         """file.analyze's answer: api.md's keys (`duration_s`, `warnings` as text) and ours.
@@ -98,11 +99,28 @@ class Preflight:
         `warnings` is api.md's list of strings; `warning_details` has the same
         warnings as `{text, line, count}`. Without the machine's speeds the
         estimate uses DEFAULT_LIMITS_TEXT's defaults, and a warning says so.
+
+        An `M6` is the machine's tool_change policy's to decide, not the dialect's
+        (grbl's G-code table lacks M6, but the host holds the job there, or strips
+        it): with the findings, the model's "M6 is not supported" is dropped and
+        each M6 is said as the policy takes it: nothing under "pause" or "probe"
+        (the job holds there), a "stripped" note under "ignore", a refusal under
+        "refuse" or no policy (also in `problems`: job.start refuses the file).
         """
         a = self.analysis
-        details = [{"text": w.text, "line": w.line, "count": w.count} for w in a.warnings]
+        warnings = a.warnings
+        if self.findings is not None and self.dialect is not None:
+            m6 = unsupported_text("M6", self.dialect)
+            warnings = tuple(w for w in warnings if w.text != m6)
+        details = [{"text": w.text, "line": w.line, "count": w.count} for w in warnings]
         details += [{"text": text, "line": None, "count": 1} for text in self.beyond]
-        if self.findings is not None:  # the M6s a machine's "ignore" policy strips
+        if self.findings is not None:
+            refused = [f for f in self.findings.found if f.kind == "tool-change"]
+            details += [
+                {"text": f"{f.text}: job.start refuses this file", "line": f.line, "count": 1}
+                for f in refused
+            ]
+            # the M6s a machine's "ignore" policy strips
             details += [{"text": f.text, "line": f.line, "count": 1} for f in self.findings.notes]
         if self.limits is None or not self.limits.velocity:
             details.insert(0, {"text": DEFAULT_LIMITS_TEXT, "line": None, "count": 1})
@@ -273,8 +291,9 @@ def _recovery_line(job: Job) -> tuple[int, list[str]]:
         return job.start_line or 1, [about]
     about = (
         f"line {line} is the last the board reported running, at most a status "
-        f"interval before the stop; it answered lines up to {job.lines_acked} "
-        "of the job's, so it may have gone further"
+        f"interval before the stop (or the M6 a tool change held the job at: every "
+        f"line before it ran); it answered {job.lines_acked} of the job's lines, "
+        "so it may have gone further"
     )
     return line, [about]
 
@@ -357,14 +376,15 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
     if machine is None:
         spec = dialects.lookup(dialects.DEFAULT)
         found = await check_file(path, spec, MAX_LINE_BYTES + 1, None, pool=pool)
-        return replace(await analyze_file(path, spec, pool=pool), findings=found)
+        analysed = await analyze_file(path, spec, pool=pool)
+        return replace(analysed, findings=found, dialect=spec.gcode.name)
     limits = await _limits(machine)
     offset = work_offset(machine.snapshot())
     found = await check_file(
         path, machine.config.spec, line_limit(machine), tool_change_policy(machine), pool=pool
     )
     analysis = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
-    return replace(analysis, findings=found)
+    return replace(analysis, findings=found, dialect=machine.config.spec.gcode.name)
 
 
 async def prepare_start(

@@ -40,6 +40,7 @@ import structlog
 from hostd.machine.events import Event, StatusChanged
 from hostd.machine.machine import Machine
 from hostd.machine.operations import _operation
+from hostd.machine.rest import at_rest
 from hostd.machine.supervisor import State as SupState
 from hostd.protocol.commands import InvalidCommand, Refusal
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, MachineError
@@ -290,36 +291,9 @@ async def _zero(machine: Machine, axis: str, value: float, touched: float) -> No
     await _send(machine, engine.session.work_zero_line({axis: reading}))
 
 
-async def _fresh_report(machine: Machine) -> None:
-    """Until a status report asked for now has been taken."""
-    engine = machine.engine
-    model = engine.model
-    asked = model.reports
-    engine.query_status()
-    await engine.wait_for(lambda: model.reports > asked)
-
-
 async def _at_rest(machine: Machine) -> None:
-    """Until a report asked for now says the board rests with nothing of ours queued.
-
-    Asked again every POLL while it does not: a report taken as a move starts says
-    it runs, and the board's own next report may be a status interval away.
-    """
-    engine = machine.engine
-    model = engine.model
-
-    def resting() -> bool:
-        state = model.state
-        return state is not None and (state.is_resting or state.is_lockout) and engine.quiet()
-
-    try:
-        async with asyncio.timeout(REST_WAIT):
-            while True:
-                await _fresh_report(machine)
-                if resting():
-                    break
-                await asyncio.sleep(POLL)
-    except TimeoutError:
-        raise ControllerTimeout(f"{machine.id}: the probe's move did not end") from None
-    if model.state is not None and model.state.is_lockout:
-        raise ControllerError(0, f"{machine.id}: the probe ended in {model.state.name}")
+    """Until a report asked for now says the board rests with nothing of ours queued
+    (rest.py's rule), asked again every POLL while it does not: a report taken as a
+    move starts says it runs, and the board's own next report may be a status
+    interval away."""
+    await at_rest(machine, timeout=REST_WAIT, what="the probe's move", poll=POLL)

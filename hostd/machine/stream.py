@@ -83,6 +83,16 @@ class JobStream:
             self.wake_at = None
             self.wake.set()
 
+    def waits_at(self, line: int) -> None:
+        """The job waits at its hold point `line`, the board having run every line before
+        it and come to rest (toolchange.py checks both): the job's place, its
+        `line_executed`, is that line, the next to run, and a resume starts there. The
+        line the board last reported is finished: run again, it may start from where
+        no position is known (line 2 of `G21` then `G0 X0 Y0 Z0`), and job.recovery
+        would find no safe approach."""
+        position = self.position
+        position.line_executed = max(line, position.line_executed or 0)
+
     def ended(self, result: StreamResult) -> None:
         """The session told the end: resolve the outcome, wake the runner."""
         if not self.result.done():

@@ -22,6 +22,13 @@
   safe height, and the program's units, distance mode and feed as they were at
   the M6 (`Modes`, read from its lines). A sensor not touched is 1005 and the job
   keeps waiting (answer again, or cancel).
+  The modes put back (`Modes.lines`, one line that moves nothing): units, distance
+  mode, feed, and where the program's words set them, plane, coordinate system and
+  motion mode (the measuring ends in `G53 G0` moves: a job's next `X3` would
+  otherwise be a rapid). A G2/G3 in force comes back as G1 (no firmware selects an
+  arc without moving), a G38.x not at all. The spindle comes back as for "pause".
+  Under "pause" the same line is sent at the answer if the operator jogged or sent
+  lines while it held (they run as the job's own).
 - "ignore": the M6 is stripped as the lines are read (a warning in the log, and in
   job.start's and file.analyze's warnings, hostd/protocol/jobcheck.py).
 - "refuse" (or no policy): job.start refuses the file (jobcheck.py).
@@ -38,7 +45,9 @@ answered.
 
 A cancel while it holds ends the job (`cancelled`) as any cancel does; a lost
 link or a daemon stopped while it holds leaves the job `interrupted`, resumable
-with job.recovery (its `tool_changes` so far are on disk).
+with job.recovery (its `tool_changes` so far are on disk). While it holds, the
+job's `line_executed` is the M6 line (`JobStream.waits_at`): the board ran every
+line before it, so job.recovery plans the resume there, as the next line to run.
 """
 
 from __future__ import annotations
@@ -52,8 +61,9 @@ from typing import TYPE_CHECKING, Any
 import structlog
 
 from hostd.machine.jobstore import ToolChange, now
+from hostd.machine.rest import at_rest
 from hostd.machine.stream import JobStream
-from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, MachineError
+from hostd.protocol.errors import Busy, ControllerError, MachineError
 from hostd.protocol.toolchange import Modes, has_m6, tool_words, without_m6
 
 if TYPE_CHECKING:
@@ -129,6 +139,7 @@ class ToolChanger:
         self.waiting: Waiting | None = None
         self.reference: float | None = None  # the first tool's probed Z (machine, mm)
         self._answering = False
+        self._acted = False  # the operator jogged or sent a line while the job held
         self._log = log.bind(machine=machine.id)
 
     @property
@@ -179,7 +190,9 @@ class ToolChanger:
                 await self._spindle_off(modes)
                 if stream.done:
                     return
+                self._acted = False
                 self.waiting = Waiting(line, tool, modes)
+                stream.waits_at(line)  # a lost link from now on resumes at the M6
                 self._log.info("tool change: waiting for the operator", line=line, tool=tool)
                 self.machine.tool_change_held()
                 await _first(self._answered(stream), stream.result)
@@ -237,7 +250,11 @@ class ToolChanger:
         self._answering = True
         try:
             if self.policy == "probe":
-                await self._measure(waiting)
+                await self._measure(waiting)  # puts the program's modes back itself
+            elif self._acted:
+                # The operator's lines ran as the job's (a g2core jog is `G91 G1 .. F..`
+                # then `G90`): the program's modes back before its next line.
+                await self._run(waiting.modes.lines(), lambda: True)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
             await self._spindle_back(waiting.modes)
@@ -333,25 +350,10 @@ class ToolChanger:
         engine = self.machine.engine
         for line in lines:
             await engine.send(line, timeout=ANSWER_WAIT, operation=True)
-        model = engine.model
-        asked = model.reports
-        engine.query_status()
-        try:
-            async with asyncio.timeout(MOVE_WAIT):
-                await engine.wait_for(
-                    lambda: (
-                        model.reports > asked
-                        and model.state is not None
-                        and ((model.state.is_resting and there()) or model.state.is_lockout)
-                        and engine.session.no_data_in_flight()
-                    )
-                )
-        except TimeoutError:
-            raise ControllerTimeout(
-                f"{self.machine.id}: the tool sensor's moves did not end"
-            ) from None
-        if model.state is not None and model.state.is_lockout:
-            raise ControllerError(0, f"{self.machine.id}: measuring the tool ended in a lockout")
+        # The job's stream is open, held at the M6: rest.py's in-job rule.
+        await at_rest(
+            self.machine, there, timeout=MOVE_WAIT, what="measuring the tool", in_job=True
+        )
 
     # -- views ----------------------------------------------------------------
 
@@ -363,6 +365,11 @@ class ToolChanger:
     def holding(self) -> bool:
         """A job waits at a tool change (while it is measured too)."""
         return self.waiting is not None and self.stream is not None and not self.stream.done
+
+    def operator_acted(self) -> None:
+        """A jog or a line of the operator's goes to the board as the job's: the modes
+        it may change are put back at the answer (`done`)."""
+        self._acted = True
 
     def operator_may_move(self) -> bool:
         """The operator's jogs and lines fit: it holds, and no measuring is under way

@@ -19,7 +19,8 @@ see at the first. Each finding names its file line:
 - `unsupported`: a G or M code the dialect lacks (gcodestate/dialects.py).
 
 Under "ignore" each `M6` is a note, not a finding (`Findings.notes`): the job
-runs without it, and says so.
+runs without it (stripped), and says so. Under "refuse" or no policy the finding
+says which of the two refused it.
 
 Lines are read once, each in linear time: words by a pattern whose two
 classes do not overlap, so it never backtracks.
@@ -100,7 +101,7 @@ def check_program(
     notes_total = 0
     tool: int | None = None  # the last T word read
     for number, text in lines:
-        finding = _check_line(number, text, spec, max_line_bytes, policy, numbered)
+        finding = _check_line(number, text, spec, max_line_bytes, tool_change, numbered)
         selected = tool_words(text)
         tool = selected[-1] if selected else tool
         if finding is None and policy and has_m6(text):
@@ -119,8 +120,9 @@ def check_program(
                         Finding(
                             number,
                             "tool-change-ignored",
-                            f"M6 (tool change{_to(tool)}) is ignored on this machine "
-                            f"(tool_change = {tool_change!r}): the tool is not changed",
+                            f"M6 (tool change{_to(tool)}) is stripped from the job: "
+                            f"tool_change = {tool_change!r} on this machine, so the tool "
+                            "is not changed",
                         )
                     )
         if finding is not None:
@@ -128,6 +130,16 @@ def check_program(
             if len(found) < MAX_FINDINGS:
                 found.append(finding)
     return Findings(tuple(found), total, tuple(notes), notes_total)
+
+
+def _refused_m6(tool_change: str | None) -> str:
+    """Why job.start refuses an M6: the machine says so, or says nothing."""
+    if tool_change == "refuse":
+        return "M6 (tool change) is refused on this machine (tool_change = 'refuse')"
+    return (
+        "M6 (tool change) with no tool-change policy for this machine "
+        "(its tool_change: pause, probe, ignore or refuse)"
+    )
 
 
 def _to(tool: int | None) -> str:
@@ -139,7 +151,7 @@ def _check_line(
     text: str,
     spec: DialectSpec,
     max_line_bytes: int,
-    policy: bool,
+    tool_change: str | None,
     numbered: bool,
 ) -> Finding | None:
     try:
@@ -156,12 +168,8 @@ def _check_line(
     for letter, digits in _CODE.findall(text.upper()):
         code = letter + _code(digits)
         if code == "M6":
-            if not policy:
-                return Finding(
-                    number,
-                    "tool-change",
-                    "M6 (tool change) with no tool-change policy for this machine",
-                )
+            if tool_change not in _POLICIES:
+                return Finding(number, "tool-change", _refused_m6(tool_change))
             continue
         if code in spec.gcode.unsupported:
             return Finding(number, "unsupported", f"{code} is not supported by {spec.name}")

@@ -26,13 +26,34 @@ _M6 = re.compile(r"[mM][ \t]*+0*+6(?![0-9.])")
 _T = re.compile(r"[tT][ \t]*+([0-9]++)")
 _ONLY_N = re.compile(r"[nN][ \t]*+[0-9]*+[ \t]*+")
 POLICIES = ("pause", "probe", "ignore", "refuse")
-# The modes a measurement between the program's lines changes, and must give back: units
-# (G20/G21), distance (G90/G91, not the arc modes G90.1/G91.1) and the feed (F).
-_MODE = re.compile(r"[gG][ \t]*+0*+(2[01]|9[01])(?![0-9.])")
+# The modes a measurement (or the operator's lines) between the program's lines may
+# change, and must give back: units (G20/G21), distance (G90/G91, not the arc modes
+# G90.1/G91.1), the feed (F), and the motion mode, plane and coordinate system.
+# A G word: its number, read in one pass (possessive, no two parts on the same digits).
+_G = re.compile(r"[gG][ \t]*+([0-9]++(?:\.[0-9]*+)?)")
 _F = re.compile(r"[fF][ \t]*+([0-9]*+\.?[0-9]*+)")
+_UNITS = frozenset({"G20", "G21"})
+_DISTANCE = frozenset({"G90", "G91"})
+_PLANES = frozenset({"G17", "G18", "G19"})
+_WCS = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3"})
+_MOTIONS = frozenset({"G0", "G1", "G2", "G3", "G38.2", "G38.3", "G38.4", "G38.5", "G80"})
+# The motion mode put back: a line of G0, G1 or G80 alone selects it and moves nothing
+# (gnea/grbl gcode.c:658,670 "Axis words are optional"; g2core cm_straight_traverse and
+# cm_straight_feed set the mode, then return on no axis word). An arc or a probe cannot
+# be selected without a move (gcode.c:682 "No axis words": error), so G1 stands in for
+# G2/G3 (a feed, never a rapid), and a G38.x in force is not put back.
+_MOTION_BACK = {"G0": "G0", "G1": "G1", "G80": "G80", "G2": "G1", "G3": "G1"}
 # The spindle's state (M3 CW, M4 CCW, M5 off; M30 and the like are not it) and speed (S).
 _SPINDLE = re.compile(r"[mM][ \t]*+0*+([345])(?![0-9.])")
 _S = re.compile(r"[sS][ \t]*+([0-9]*+\.?[0-9]*+)")
+
+
+def _g(number: str) -> str:
+    """`00` is G0, `38.20` is G38.2, `59.1` is G59.1: the code as the tables name it."""
+    whole, _, fraction = number.partition(".")
+    whole = whole.lstrip("0") or "0"
+    fraction = fraction.rstrip("0")
+    return f"G{whole}.{fraction}" if fraction else f"G{whole}"
 
 
 def has_m6(text: str) -> bool:
@@ -64,17 +85,29 @@ class Modes:
     feed: str | None = None  # the F word's number as written, in the program's units
     spindle: str = "M5"  # M3, M4 or M5
     speed: str | None = None  # the S word's number as written
+    # As the program's words set them; None where they never did (the board's own).
+    motion: str | None = None  # G0, G1, G2, G3, G38.x or G80
+    plane: str | None = None  # G17, G18 or G19
+    wcs: str | None = None  # G54 .. G59.3
 
     def after(self, text: str) -> Modes:
         """These modes once `text` has run."""
         units, distance, feed = self.units, self.distance, self.feed
         spindle, speed = self.spindle, self.speed
+        motion, plane, wcs = self.motion, self.plane, self.wcs
         if "G" in text or "g" in text:
-            for code in _MODE.findall(text):
-                if code in ("20", "21"):
-                    units = "G" + code
-                else:
-                    distance = "G" + code
+            for number in _G.findall(text):
+                code = _g(number)
+                if code in _UNITS:
+                    units = code
+                elif code in _DISTANCE:
+                    distance = code
+                elif code in _MOTIONS:
+                    motion = code
+                elif code in _PLANES:
+                    plane = code
+                elif code in _WCS:
+                    wcs = code
         if "F" in text or "f" in text:
             for number in _F.findall(text):
                 if number not in ("", "."):
@@ -86,12 +119,19 @@ class Modes:
             for number in _S.findall(text):
                 if number not in ("", "."):
                     speed = number
-        return Modes(units, distance, feed, spindle, speed)
+        return Modes(units, distance, feed, spindle, speed, motion, plane, wcs)
 
     def lines(self) -> list[str]:
-        """The lines that put these modes back on the board."""
-        words = f"{self.units} {self.distance}"
-        return [words + (f" F{self.feed}" if self.feed is not None else "")]
+        """The line that puts these modes back on the board, moving nothing: units,
+        distance, plane and coordinate system, the motion mode (`_MOTION_BACK`), feed."""
+        words = [self.units, self.distance]
+        words += [code for code in (self.plane, self.wcs) if code is not None]
+        back = _MOTION_BACK.get(self.motion or "")
+        if back is not None:
+            words.append(back)
+        if self.feed is not None:
+            words.append(f"F{self.feed}")
+        return [" ".join(words)]
 
     @property
     def spinning(self) -> bool:

@@ -77,6 +77,10 @@ class Board(Commands):
         self.refuse_next: int | None = None
         # Input pins are wired to the machine, not kept by the firmware: a reset keeps them.
         self.inputs = dict.fromkeys(reports.INPUT_KEYS, 0)
+        # Inputs no `in<n>` reader is forwarded to: their GET answers null (g2core gpio.h,
+        # gpioDigitalInputReader::getState with no pin), while G38.x still reads the pin
+        # (gpio_read_input, gpio.cpp): a board that cannot show its probe input.
+        self.unexposed: set[str] = set()
         # So is the rest of the machine a test sets up: a reset keeps these too.
         self.probe_surface = None  # axis, machine mm the probe touches
         self.tool_sensor = None  # a fixed tool-length sensor (probing.ToolSensor)

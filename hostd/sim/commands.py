@@ -171,6 +171,8 @@ class Commands(Planner):
             body[key] = {a: reports.number(values[a] / scale, 3) for a in AXES}
         elif key in self.settings:
             body[key] = self.settings.get(key)
+        elif key in self.unexposed:
+            body[key] = None  # gpio.h: a reader with no pin answers TYPE_NULL
         elif key in reports.SR_KEYS:
             body[key] = self._values(self._clock())[key]
             if key == f"in{int(self.settings['prbin'])}" and self.touch_reads:

@@ -267,6 +267,14 @@ class SimController(SimShell[Board, MachineState]):
         self._board.set_input(f"in{n}", int(value))
         self._kick()
 
+    def unexpose_input(self, n: int) -> None:
+        """Digital input `n` is forwarded to no `in<n>` reader (its `di<n>in` is another
+        number): `{"in<n>":null}` answers null (g2core gpio.h, the reader's getState
+        with no pin), while G38.x still reads the pin (gpio_read_input, gpio.cpp)."""
+        if not _input_number(n, DIGITAL_INPUTS):
+            raise ValueError(f"no digital input {n!r}: the board has in1..in{DIGITAL_INPUTS}")
+        self._board.unexposed.add(f"in{n}")
+
     def set_analog(self, n: int, value: float) -> None:
         """Analogue input `n` (1..4) reads `value`: `ain<n>`, reported when listed."""
         if not _input_number(n, ANALOG_INPUTS):

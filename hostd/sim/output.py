@@ -80,6 +80,7 @@ class Output:
     ack_delay: float
     refuse_next: int | None  # a test's: the next G-code line's status
     inputs: dict[str, float | int]
+    unexposed: set[str]  # inputs whose `in<n>` GET answers null (board.py)
     probe_surface: tuple[str, float] | None
     tool_sensor: ToolSensor | None  # a fixed tool-length sensor (issue 29)
     tool_length: float  # how much longer the tool in the spindle is than the first, mm

@@ -323,6 +323,7 @@ def test_analyze_exits_1_when_job_start_would_refuse_the_file(idle: Daemon, tmp_
 
     assert refused.returncode == 1, refused.stderr
     assert "refused: line 2: M6 (tool change)" in refused.stdout
+    assert refused.stdout.count("line 2: M6") == 1, refused.stdout  # said once, as refused
     assert "job.start refuses this file" in refused.stderr
 
     clean = tmp_path / "clean.gcode"

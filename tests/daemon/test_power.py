@@ -241,6 +241,8 @@ async def test_frame_traces_the_bounding_box_with_the_beam_off(
 ) -> None:
     hostd, rpc = both
     (hostd.jobs / "boxed.gcode").write_text(BOXED)
+    if machine == G2:  # a mill: up to the Z travel's top first, a place once homed
+        await rpc.call("machine.home", machine=G2)
     before = len(traced(hostd, machine))
     job = await rpc.call("machine.frame", machine=machine, file="boxed.gcode")
     ended = await job_end(rpc, job["job"])
@@ -254,6 +256,40 @@ async def test_frame_traces_the_bounding_box_with_the_beam_off(
     assert not any(m.cutting for m in moves)  # the beam (or spindle) never on
     z = {round(m.move.target["z"], 3) for m in moves[-5:]}
     assert len(z) == 1  # at one height, never plunging
+
+
+@pytest.mark.parametrize("laser", [False, True])
+async def test_g2core_frames_right_after_power_on(tmp_path: Path, laser: bool) -> None:
+    """Unhomed, no job run yet: a laser frames at its Z; a mill does not go to the Z
+    travel's top (a place only once homed) but says how to frame; power above 0 on a
+    build without a laser toolhead (no `th2mxs`) is refused saying so. Nothing moves
+    for a refusal."""
+    async with running_daemon(tmp_path, laser=laser) as hostd:
+        rpc = await hostd.client()
+        await rpc.call("subscribe", topics=["job"])
+        await hostd.idle(rpc, G2)
+        (hostd.jobs / "boxed.gcode").write_text(BOXED)
+        snap = await rpc.call("machine.status", machine=G2)
+        assert snap["homed"] is False and snap["job"] is None
+        before = len(traced(hostd, G2))
+        if not laser:
+            err = await fails(-32602, rpc.call("machine.frame", machine=G2, file="boxed.gcode"))
+            assert "safe_z" in err.message and "home" in err.message
+            assert len(traced(hostd, G2)) == before
+            return
+        err = await fails(
+            -32602, rpc.call("machine.frame", machine=G2, file="boxed.gcode", power=2)
+        )
+        assert "th2mxs" in err.message and "power 0" in err.message
+        assert len(traced(hostd, G2)) == before
+        job = await rpc.call("machine.frame", machine=G2, file="boxed.gcode")
+        assert (await job_end(rpc, job["job"]))["state"] == "completed"
+        moves = traced(hostd, G2)[before:]
+        corners = [(round(m.move.target["x"], 3), round(m.move.target["y"], 3)) for m in moves]
+        assert corners[-5:] == [(12, 7), (32.071, 7), (32.071, 25), (12, 25), (12, 7)]
+        assert {round(m.move.target["z"], 3) for m in moves} == {0.0}  # at its Z
+        assert not any(m.cutting for m in moves)
+        await rpc.close()
 
 
 async def test_frame_at_low_power_burns_only_along_the_box(both: tuple[Running, Rpc]) -> None:

@@ -227,6 +227,42 @@ async def test_a_board_with_no_probe_input_refuses_the_probe(both: tuple[Running
     assert moves_sent(hostd, G2) == []
 
 
+async def test_a_board_that_cannot_show_its_input_probes_only_once_confirmed(
+    both: tuple[Running, Rpc],
+) -> None:
+    """g2core's prbin input forwarded to no `in<n>` reader answers its GET null (gpio.h),
+    while G38.2 still reads the pin: the operator's `confirmed` stands in for the check."""
+    hostd, rpc = both
+    sim = sim_of(hostd, G2)
+    assert isinstance(sim, SimController)
+    sim.unexpose_input(5)  # prbin's input
+    sim.touch_plate(TouchPlate(top=TOP))
+    err = await fails(
+        -32602, rpc.call("machine.probe", machine=G2, kind="z", plate=PLATE, wait=0.5, **FAST)
+    )
+    assert "does not show its probe input" in err.message and "confirmed" in err.message
+    assert moves_sent(hostd, G2) == []
+    result = await rpc.call(
+        "machine.probe", machine=G2, kind="z", plate=PLATE, confirmed=True, **FAST
+    )
+    assert result == {"position": {"z": pytest.approx(TOP)}, "zeroed": ["z"]}
+    snap = await rpc.call("machine.status", machine=G2)
+    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
+    assert snap["supervisor"] == "idle"
+
+
+async def test_confirmed_does_not_stand_in_where_the_board_shows_its_input(
+    both: tuple[Running, Rpc],
+) -> None:
+    """On a board that shows its input, confirmed changes nothing: it must be seen."""
+    hostd, rpc = both
+    sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
+    params = {"kind": "z", "plate": PLATE, "wait": 0.5, "confirmed": True, **FAST}
+    err = await fails(1003, rpc.call("machine.probe", machine=G2, **params))
+    assert "not seen working" in err.message
+    assert moves_sent(hostd, G2) == []
+
+
 @pytest.mark.parametrize(
     "params",
     [

@@ -162,6 +162,35 @@ async def test_a_link_lost_while_waiting_leaves_an_interrupted_job(
     assert (await rpc.call("job.get", job=job_id))["state"] == "interrupted"
 
 
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_job_whose_link_was_lost_at_a_tool_change_is_recovered_as_any_other(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    """Held at the first M6 (line 3) the board has run lines 1-2 and rests: the job's
+    place is the M6 line. Line 2 could not be resumed (no position is known before
+    it), which made job.recovery answer 1011."""
+    running, rpc = paused
+    job_id = await _start(rpc, machine, "two.nc", TWO_TOOLS)
+    await _waiting(rpc, machine, job_id, 3)
+    await running.daemon.sims[machine].unplug()
+    ended = await job_end(rpc, job_id)
+    assert ended["state"] == "interrupted" and ended["line_executed"] == 3, ended
+    await running.daemon.sims[machine].replug()
+    await running.idle(rpc, machine)
+    plan = await rpc.call("job.recovery", job=job_id)
+    assert plan["file"] == "two.nc" and plan["line"] == 3, plan
+    assert plan["position"]["x"] == pytest.approx(0.0) and plan["preamble"], plan
+    # Resumed there, it holds at that M6 again and asks for tool 1 (grbl: the T word).
+    started = await rpc.call("job.start", machine=machine, file="two.nc", start_line=3)
+    resumed = int(started["job"])
+    snapshot = await _waiting(rpc, machine, resumed, 3)
+    assert snapshot["tool_change"] == {"tool": 1, "line": 3}
+    await rpc.call("job.tool_change_done", machine=machine)
+    await _waiting(rpc, machine, resumed, 6, changes=1)
+    await rpc.call("job.tool_change_done", machine=machine)
+    assert (await job_end(rpc, resumed))["state"] == "completed"
+
+
 async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path: Path) -> None:
     async with _daemon(tmp_path, "pause") as (_, rpc):
         job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
@@ -173,8 +202,35 @@ async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path:
         assert job["state"] == "interrupted"
         assert [(c["tool"], c["line"]) for c in job["tool_changes"]] == [(1, 3)]
         plan = await rpc.call("job.recovery", job=job_id)
-        assert plan["file"] == "two.nc" and 1 <= plan["line"] <= 6
+        assert plan["file"] == "two.nc" and plan["line"] == 6  # the M6 it waited at
         assert (await rpc.call("machine.status", machine=GRBL))["tool_change"] is None
+
+
+@pytest.mark.parametrize("policy", ["pause", "probe", "ignore", "refuse"])
+async def test_analyze_says_what_the_machines_policy_does_with_each_m6(
+    tmp_path: Path, policy: str
+) -> None:
+    """grbl's G-code lacks M6, but the host handles it: file.analyze warns as the
+    machine's tool_change takes it, the same on both dialects, never "not supported"."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, policy, probe=probe) as (_, rpc):
+        await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
+        for machine in MACHINES:
+            analysis = await rpc.call("file.analyze", file="two.nc", machine=machine)
+            warnings = analysis["warnings"]
+            assert not any("not supported" in w for w in warnings), (machine, warnings)
+            m6 = [w for w in warnings if "M6" in w]
+            problems = [p["line"] for p in analysis["problems"]]
+            if policy in ("pause", "probe"):  # the job holds at each: nothing to warn of
+                assert m6 == [] and problems == [], (machine, warnings)
+            elif policy == "ignore":
+                assert [w.split(":")[0] for w in m6] == ["line 3", "line 6"], m6
+                assert all("stripped" in w and "'ignore'" in w for w in m6), m6
+                assert problems == []
+            else:
+                assert [w.split(":")[0] for w in m6] == ["line 3", "line 6"], m6
+                assert all("refused" in w and "'refuse'" in w for w in m6), m6
+                assert problems == [3, 6]
 
 
 @pytest.mark.parametrize("machine", MACHINES)
@@ -182,7 +238,7 @@ async def test_ignore_strips_the_m6_with_a_warning(tmp_path: Path, machine: str)
     async with _daemon(tmp_path, "ignore") as (_, rpc):
         await rpc.call("file.upload", name="two.nc", data=TWO_TOOLS)
         analysis = await rpc.call("file.analyze", file="two.nc", machine=machine)
-        assert any("line 6" in w and "ignored" in w for w in analysis["warnings"])
+        assert any("line 6" in w and "stripped" in w for w in analysis["warnings"])
         await rpc.call("subscribe", topics=["job"], machine=machine)
         started = await rpc.call("job.start", machine=machine, file="two.nc")
         assert [w.split(":")[0] for w in started["warnings"]] == ["line 3", "line 6"]
@@ -259,13 +315,23 @@ async def test_probe_that_misses_the_sensor_stops_in_the_boards_alarm(
         running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
         job_id = await _start(rpc, machine, "probed.nc", PROBED)
         await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("subscribe", topics=["status"], machine=machine)
         # 5 mm of travel from Z0 never reaches the sensor's Z-20.
         with pytest.raises(RpcFailure) as err:
             await rpc.call("job.tool_change_done", machine=machine)
         assert err.value.code in (204, 1005), err.value
         ended = await job_end(rpc, job_id)
         assert ended["state"] == "failed" and ended["tool_changes"] == []
-        status = await rpc.call("machine.status", machine=machine)
+        # The refusal and the job's end may come before the board's report after its
+        # alarm (grbl: ALARM:5, then the report the session asks for): wait for it.
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status"
+                and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+                and n["params"]["snapshot"]["machine_position"]["z"] < -1
+            )
+        )
+        status = await rpc.call("machine.status", machine=machine)  # the job has ended
         assert status["state"]["name"] == "ALARM" and status["tool_change"] is None
         assert status["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
         assert status["machine_position"]["x"] == pytest.approx(SENSOR["x"], abs=0.01)
@@ -344,3 +410,67 @@ async def test_the_spindle_stops_for_the_change_and_comes_back_as_the_job_had_it
         # Back on as it was, the machine's dwell for it to reach its speed, then the job.
         assert after[:2] == [b"M3 S8000", b"G4 P0.05"], after
         assert after.index(b"G0 X2") > 1 and _spindle_of(running, machine) == "M5"
+
+
+def _modes_of(running: Running, machine: str) -> tuple[float | None, int, int]:
+    """The motion mode, plane and coordinate system (1 = G54) the simulated board holds."""
+    sim = running.daemon.sims[machine]
+    if isinstance(sim, SimController):
+        interp = sim._board.interp
+        return interp.motion, interp.plane, interp.coord
+    modal = sim.board.modal  # type: ignore[attr-defined]
+    return modal.motion, modal.plane, modal.coord + 1
+
+
+# G18 and G55 in force, G1 modal: line 7's bare `X3` must run as a feed, in G55, on G18.
+MODAL = "G21 G90 G18 G55\nG0 X0 Y0 Z0\nT1 M6\nG1 X1 F3000\nX2\nT2 M6\nX3\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_measured_tool_change_gives_the_job_its_modes_back(
+    tmp_path: Path, machine: str
+) -> None:
+    """The measuring ends in `G53 G0` moves: without the program's G1 put back, its
+    next bare `X3` would be a rapid."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "modal.nc", MODAL)
+        await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=machine)
+        await _waiting(rpc, machine, job_id, 6, changes=1)
+        before = len(lines_sent(running, machine))
+        await rpc.call("job.tool_change_done", machine=machine)
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        sent = _unnumbered(lines_sent(running, machine))[before:]
+        assert b"G21 G90 G18 G55 G1 F3000" in sent, sent
+        assert _modes_of(running, machine) == (1, 18, 2)  # G1, G18, G55 as the job left them
+        end = await rpc.call("machine.status", machine=machine)
+        assert end["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
+
+
+# Relative moves: after the change, `G0 X1` goes one more millimetre, to X2.
+RELATIVE = "G21 G91\nG0 X1\nT2 M6\nG0 X1\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_the_operators_jog_and_lines_at_a_pause_leave_the_jobs_modes_as_they_were(
+    paused: tuple[Running, Rpc], machine: str
+) -> None:
+    """A g2core jog is G-code (`G91 G1 .. F..`, then `G90`), and the operator may send
+    `G20`: the job's G21 G91 are put back before its next line."""
+    _, rpc = paused
+    job_id = await _start(rpc, machine, "relative.nc", RELATIVE)
+    await _waiting(rpc, machine, job_id, 3)
+    await rpc.call("subscribe", topics=["status"], machine=machine)
+    await rpc.call("machine.jog", machine=machine, axes={"z": 1.0}, feed=600)
+    await rpc.notification(lambda n: n["method"] == "status" and _rests_at(n, z=1.0))
+    await rpc.call("machine.send", machine=machine, line="G20")
+    await rpc.call("job.tool_change_done", machine=machine)
+    done = await job_end(rpc, job_id)
+    assert done["state"] == "completed", done
+    end = await rpc.call("machine.status", machine=machine)
+    assert end["units"] == "mm"
+    assert end["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+    assert end["machine_position"]["z"] == pytest.approx(1.0, abs=0.01)

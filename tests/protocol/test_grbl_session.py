@@ -737,6 +737,21 @@ def test_the_lockout_says_what_ends_it_on_grbl() -> None:
     assert grbl.session.lockout()["clear"] == "machine.reset, then machine.clear"  # type: ignore[index]
 
 
+@pytest.mark.parametrize(
+    ("homing", "homes"), [("1", True), ("3", True), ("0", False), ("nan", False)]
+)
+def test_a_grbl_that_homes_says_home_ends_its_alarm(homing: str, homes: bool) -> None:
+    """gnea/grbl system.c takes `$H` in ALARM where `$22` bit 0 enables homing."""
+    grbl = Grbl()
+    grbl.connect(settings=(f"$22={homing}",))
+    grbl.feed("ALARM:9")
+    home = " or machine.home" if homes else ""
+    assert grbl.session.lockout()["clear"] == "machine.clear" + home  # type: ignore[index]
+    grbl.feed("ALARM:1")  # a hard limit: the reset first, then either
+    want = f"machine.reset, then machine.clear{home}"
+    assert grbl.session.lockout()["clear"] == want  # type: ignore[index]
+
+
 # -- startup blocks (issue 24, part 3) ----------------------------------------------
 
 

@@ -132,3 +132,19 @@ def test_the_programs_spindle_as_its_lines_leave_it() -> None:
     assert modes.after("M4").spindle_lines(0.0) == ["M4 S8000"]  # a laser: no dwell
     assert modes.after("M30").spinning  # a program end is no spindle word
     assert not modes.after("M5").spinning and not modes.after("m 05").spinning
+
+
+def test_the_modes_put_back_after_a_measurement() -> None:
+    modes = Modes().after("G20 G91 G18 G55 G02 X1 Y1 I1 F30").after("g 00 x2")
+    assert modes.lines() == ["G20 G91 G18 G55 G0 F30"]
+    # An arc cannot be selected without a move: G1 (a feed) stands in; G38.x is left.
+    assert Modes().after("G03 X1 I1 F9").lines() == ["G21 G90 G1 F9"]
+    assert Modes().after("G38.20 Z-5").lines() == ["G21 G90"]
+    assert Modes().after("G1 X1 G59.1 G17").after("G80").lines() == ["G21 G90 G17 G59.1 G80"]
+    # G53, G28, G92, G90.1 are no mode to put back; G0 of N10 or X10 is no G word.
+    assert Modes().after("N10 G53 G28 G92 G90.1 X10").lines() == ["G21 G90"]
+
+
+def test_reading_the_modes_of_a_long_line_takes_linear_time() -> None:
+    line = "G" + "0" * 200_000 + "G1.5" * 50_000
+    assert Modes().after(line).motion == "G0"

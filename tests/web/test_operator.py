@@ -437,3 +437,41 @@ async def test_grbls_door_and_hard_limit_are_shown_with_the_way_out_and_ended_fr
         await page.click("#confirm-yes")
         await expect(page.locator("#indicator-text")).to_have_text("normal")
         await expect(page.locator("[data-action=clear]")).to_be_disabled()
+
+
+async def test_grbl_homes_out_of_an_alarm_from_the_page_where_its_firmware_allows(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """grbl takes `$H` in ALARM (system.c) on a machine that homes ($22): after a hard
+    limit's reset, Home is enabled and ends the ALARM; before the reset it is not."""
+    async with running_web(tmp_path, machine=GRBL) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await rpc.call("settings.set", machine="sim1", values={"21": 1, "22": 1})
+        await rpc.call("settings.get", machine="sim1", keys=["22"])  # `$$`: read again
+        await web.hostd.idle(rpc)
+        await expect(page.locator("#homed")).not_to_have_text("yes")
+        sim.limit_switch("x")  # a hard limit: the board reads nothing until a reset
+        await expect(page.locator("#lockout-clear")).to_have_text(
+            "To end it: Reset, then Clear or Home"
+        )
+        await expect(page.locator("#home")).to_be_disabled()
+        await expect(page.locator("#home")).to_have_attribute(
+            "title", "refused in ALARM: Reset, then Clear or Home"
+        )
+        assert await refused(rpc, "machine.home", machine="sim1") == 204
+        sim.limit_switch("x", active=False)
+        await page.click("[data-action=reset]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#lockout-clear")).to_have_text("To end it: Clear or Home")
+        await expect(page.locator("#home")).to_be_enabled()
+        for selector in ("[data-zero=x]", "#goto-zero", "[data-jog=X][data-dir='1']"):
+            await expect(page.locator(selector)).to_be_disabled()  # moves stay refused
+        await screenshot(page, tmp_path, "alarm-home")
+        await page.click("#home")
+        await expect(page.locator("#homed")).to_have_text("yes")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("[data-zero=x]")).to_be_enabled()
+        await rpc.close()

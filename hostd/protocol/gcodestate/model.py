@@ -83,6 +83,12 @@ _CODE_CACHE: dict[tuple[str, str], str] = {}
 MORE_WARNINGS = f"more warnings of other kinds: only the first {MAX_WARNINGS} are listed"
 
 
+def unsupported_text(code: str, dialect: str) -> str:
+    """The warning for a code the dialect lacks. Named so that a caller that decides a
+    code itself (preflight.py: the machine's tool_change policy decides M6) can find it."""
+    return f"{code} is not supported by {dialect}"
+
+
 class ProgramError(Exception):
     """A line no board may run as the file wrote it: the analysis stops and says where.
 
@@ -389,7 +395,7 @@ class GcodeModel:
     def _mcodes_before(self, mcodes: list[str], params: dict[str, float]) -> None:
         for m in mcodes:
             if m in self.dialect.unsupported:
-                self.warn(f"{m} is not supported by {self.dialect.name}")
+                self.warn(unsupported_text(m, self.dialect.name))
             elif m == "M6":
                 self.tool = self.selected_tool
             elif m == "M61" and "Q" in params:

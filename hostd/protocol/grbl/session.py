@@ -1000,12 +1000,26 @@ class GrblSession(SessionBase):
         return True
 
     def _lockout_exit(self, state: MachineState) -> str:
-        """`$X` ends an ALARM, unless it was critical or is an e-stop: then a reset first."""
+        """`$X` ends an ALARM, unless it was critical or is an e-stop: then a reset first.
+
+        A homing cycle ends it too where the board homes (`$22` bit 0): gnea/grbl
+        system.c:179 takes `$H` in IDLE or ALARM (error:5 with homing off), and a
+        cycle that completes leaves ALARM for IDLE. Not an e-stop (SHUTDOWN)."""
         if state is MachineState.INTERLOCK:
             return "close the door, then machine.cycle_start"
+        unlock = "machine.clear"
+        if state is MachineState.ALARM and self._homes():
+            unlock = "machine.clear or machine.home"
         if state is MachineState.ALARM and self._needs_reset is None:
-            return "machine.clear"
-        return "machine.reset, then machine.clear"
+            return unlock
+        return f"machine.reset, then {unlock}"
+
+    def _homes(self) -> bool:
+        """The board's `$22` (homing cycle enable, bit 0) as its `$$` said; False unread."""
+        found = codec.numbers(self.settings.get("22", ""))
+        if found is None or len(found) != 1 or not math.isfinite(found[0]):
+            return False
+        return int(found[0]) & 1 == 1
 
 
 def _setting_numbers(keys: list[str]) -> None:

@@ -146,6 +146,10 @@ function needs(snap) {
     hold: why(connected, notConnected),
     reset: why(connected, notConnected),
     move,
+    // Home is a move, but the daemon also takes it in a lockout whose first way out names
+    // machine.home (grbl's `$H` in ALARM, where its `$22` homes; never g2core's G28.2,
+    // which its ALARM refuses): the board's own rule, as the lockout's `clear` says it.
+    home: connected && lockout && lockout.clear.split(", then ")[0].includes("machine.home") ? null : move,
     jog: (toolChange && !lockout ? null : move)
       || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
     "jog-stop": why(connected, notConnected) || why(!toolChange, "refused while a tool change waits: press Done"),
@@ -179,7 +183,7 @@ function updateEnabled() {
 
 // --- drawing the machine ------------------------------------------------------------
 
-const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume" };
+const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume", home: "Home" };
 
 function lockoutExit(lockout) {
   return lockout.clear.replace(/machine\.(\w+)/g, (_, m) => EXITS[m] || m);

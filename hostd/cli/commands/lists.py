@@ -1,0 +1,33 @@
+"""Tables: jobs and faults."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from hostd.cli import render
+from hostd.cli.client import Client
+from hostd.cli.commands.base import (
+    OK,
+    listing,
+)
+from hostd.cli.render import Output
+
+# -- lists ---------------------------------------------------------------------------
+
+
+async def jobs(c: Client, args: argparse.Namespace, out: Output) -> int:
+    params: dict[str, Any] = {"limit": args.limit}
+    if args.machine is not None:
+        params["machine"] = args.machine
+    listing(out, await c.call("job.list", **params), render.jobs, "no jobs")
+    return OK
+
+
+async def faults(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """The active faults (fault.list answers the whole table; --all shows it)."""
+    rows = await c.call("fault.list", machine=args.machine)
+    if not args.all:
+        rows = [row for row in rows if row.get("active")]
+    listing(out, rows, render.faults, f"{args.machine}: no active faults")
+    return OK
