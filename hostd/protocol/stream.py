@@ -183,10 +183,13 @@ class Stream:
         self._next = None
         self.sent += 1
 
-    def acknowledged(self, file_line: int | None) -> None:
+    def acknowledged(self, file_line: int | None) -> bool:
+        """A sent line was answered with status 0. True if the job may be complete now
+        (its input ended, or a refused line's turn came): the session checks then."""
         self.acked += 1
         self.last_acked_line = file_line
         self._acked_lines.append(file_line)
+        return self._input_ended or self.refused is not None
 
     def executing(self, file_line: int) -> None:
         """The board runs (or ran) this line. A number no line of this job carries is stale
