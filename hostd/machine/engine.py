@@ -9,10 +9,10 @@ to its JobStream, and everything else up to its Machine, through one typed
 callback (`on_event`, an `EngineEvent`). The Machine decides what becomes
 public (hostd/machine/machine.py); the engine never publishes.
 
-Events are delivered only after the step that raised them is over (a batch
-of lines read, or its first line alone; a request taken; a timer). A
-command the Machine gives while an event is being handed to it (stopping a
-job for a fault, marking an operation) is not run there: it is queued, and
+Events are delivered only after the step that raised them is over (the
+lines of one read; a request taken; a timer). A command the Machine gives
+while an event is being handed to it (stopping a job for a fault, marking
+an operation) is not run there: it is queued, and
 the delivery loop runs it once the whole batch is handed out, then writes
 its consequences in the same step. Nothing re-enters the session from
 inside its own receive step, nor from inside the delivery of its events.

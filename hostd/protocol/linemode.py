@@ -109,9 +109,10 @@ class LineModeSender:
 
     def book(self, entry: InFlight) -> bool:
         """Record a written line if its kind has room; False, and nothing recorded, if not."""
-        queue, budget = (
-            (self._control, self.control_window) if entry.control else (self._data, self.window)
-        )
+        if entry.control:
+            queue, budget = self._control, self.control_window
+        else:
+            queue, budget = self._data, self.window  # a job's line: every line of a job
         if len(queue) >= budget:
             return False
         queue.append(entry)

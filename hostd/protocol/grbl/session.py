@@ -429,21 +429,20 @@ class GrblSession(SessionBase):
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
             return None
-        deadlines = [
-            d
-            for d in (self._banner_deadline, self._handshake_deadline, self._stopping)
-            if d is not None
-        ]
+        deadline = None  # asked after every step: no list built
+        for d in (self._banner_deadline, self._handshake_deadline, self._stopping):
+            if d is not None and (deadline is None or d < deadline):
+                deadline = d
         if self.phase is Phase.READY:
-            if self._asked_at is None:
-                deadlines.append(self._next_poll)
-            else:
-                deadlines.append(self._asked_at + self.heartbeat)
+            asked = self._asked_at
+            poll = self._next_poll if asked is None else asked + self.heartbeat
+            if deadline is None or poll < deadline:
+                deadline = poll
             if len(self._silent_asks) >= SILENT_QUERIES:  # `_lost_at` is None before
                 lost = self._lost_at()
-                if lost is not None:
-                    deadlines.append(lost)
-        return min(deadlines, default=None)
+                if lost is not None and lost < deadline:
+                    deadline = lost
+        return deadline
 
     def _silence_allowed(self) -> float | None:
         """Seconds the board may print nothing; None: however long (a homing cycle unbounded)."""
