@@ -107,6 +107,21 @@ class Stream:
         else:
             self._ahead.append(InFlight(encoded, self, number))
 
+    def feed_many(self, lines: Iterable[tuple[int, str]]) -> None:
+        """`feed` for each (file line number, text), none of them a hold point: a job's
+        file, a look-ahead's worth at a time, without a call a line."""
+        encode = self._encode
+        numbered = self.numbered
+        append = self._ahead.append
+        for number, text in lines:
+            self.starved = False
+            try:
+                encoded = encode(text, number if numbered else None)
+            except InvalidCommand as exc:
+                append((number, exc))  # refused when its turn comes: the lines before go
+            else:
+                append(InFlight(encoded, self, number))
+
     def feed_all(self, lines: Iterable[tuple[int, str]]) -> Stream:
         """Every line at once, and the end of input (a short job, or a test)."""
         for number, text in lines:
