@@ -34,7 +34,7 @@ from bench.client import program
 from hostd.link import Channel
 from hostd.logs import configure_logging
 from hostd.machine.config import MachineConfig
-from hostd.machine.engine import Engine
+from hostd.machine.engine import Engine, LinkState
 from hostd.machine.stream import JobStream
 from hostd.protocol.program import program_lines
 
@@ -127,8 +127,6 @@ def config(dialect: str) -> MachineConfig:
 
 
 async def _connect(engine: Engine, board: Board) -> None:
-    from hostd.machine.engine import LinkState
-
     engine.link = board  # type: ignore[assignment]
     engine.link_state = LinkState.HANDSHAKE
     engine.session.open()
