@@ -9,10 +9,10 @@ to its JobStream, and everything else up to its Machine, through one typed
 callback (`on_event`, an `EngineEvent`). The Machine decides what becomes
 public (hostd/machine/machine.py); the engine never publishes.
 
-Events are delivered only after the step that raised them is over (a batch
-of lines read, or its first line alone; a request taken; a timer). A
-command the Machine gives while an event is being handed to it (stopping a
-job for a fault, marking an operation) is not run there: it is queued, and
+Events are delivered only after the step that raised them is over (the
+lines of one read; a request taken; a timer). A command the Machine gives
+while an event is being handed to it (stopping a job for a fault, marking
+an operation) is not run there: it is queued, and
 the delivery loop runs it once the whole batch is handed out, then writes
 its consequences in the same step. Nothing re-enters the session from
 inside its own receive step, nor from inside the delivery of its events.
@@ -253,36 +253,35 @@ class Engine:
     def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
         """Lines as the link read them, in its read callback: no inbox, no task switch.
 
-        A read is one step, but for a read that may answer every line the board
-        held: the board has nothing left to do, so the line its first answer
-        frees is written at once, and the board works on it while the daemon
-        reads the rest (one write more for such a read).
+        A read is one step: every line it holds goes to the session, then what
+        they freed is written in one write. (Until issue 30 a read that could
+        answer every line the board held wrote the first freed line at once,
+        so that the board worked while the daemon read the rest: on a shared,
+        unpinned machine that second write woke the board for one line and
+        broke the answers into one-line reads, which cost twice the CPU a line;
+        docs/performance.md.)
         """
         if self.link is None:
             return  # a read that raced the teardown
-        session = self.session
         if self._traffic_logged or self.console:
             for line in lines:
-                self._log.debug("rx", channel=channel.value, line=line)
+                if self._traffic_logged:
+                    self._log.debug("rx", channel=channel.value, line=line)
                 if self.console:
                     self._publish_console("rx", channel, line)
-        # The steps end after the last line, and after the first too when the read
-        # has as many lines as the board has unanswered.
-        last = len(lines) - 1
-        may_answer_all = last > 0 and len(lines) >= session.unanswered()
-        first = 0 if may_answer_all else last
-        for index, line in enumerate(lines):
+        session = self.session
+        receive = session.receive
+        for line in lines:
             try:
-                session.receive(line)
+                receive(line)
             except Exception as exc:  # a bug of ours: stop writing, keep reading
                 self._log.exception("engine invariant broken")
                 session.halt(f"{type(exc).__name__}: {exc}")
-            if index in (first, last):
-                try:
-                    self._deliver()
-                except Exception as exc:  # never into the transport's callback: end it
-                    self._log.exception("engine failure")
-                    self._end(f"internal error: {exc!r}")
+        try:
+            self._deliver()
+        except Exception as exc:  # never into the transport's callback: end it
+            self._log.exception("engine failure")
+            self._end(f"internal error: {exc!r}")
 
     def link_lost(self, reason: str) -> None:
         self._end(reason)
@@ -380,7 +379,9 @@ class Engine:
     def _tx(self, link: Link, lane: Lane, lines: list[bytes]) -> None:
         if not (self._traffic_logged or self.console):
             return
-        if lane is Lane.DATA and len(lines) > 1:
+        if not self._traffic_logged:
+            pass  # the console listens; no debug record is kept
+        elif lane is Lane.DATA and len(lines) > 1:
             self._log.debug("tx", lane=lane.value, lines=len(lines))  # a job's window
         else:
             for line in lines:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable, Container, Iterator
+from itertools import islice
 
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
@@ -62,6 +63,13 @@ class JobStream:
         again = position.starved
         lines = self._lines
         holds = self._holds
+        if holds is None:  # no hold point: the lines go in as one batch
+            batch = list(islice(lines, want))
+            position.feed_many(batch)
+            if len(batch) < want:
+                position.end_of_input()
+                return True
+            return again
         for _ in range(want):
             item = next(lines, None)
             if item is None:

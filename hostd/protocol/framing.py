@@ -29,15 +29,14 @@ class LineBuffer:
         rest of it up to the next LF is dropped.
         """
         buf = self._buf
-        if (
-            not buf
-            and not self._discarding
-            and data[-1:] == b"\n"
-            and len(data) <= self.max_line
-            and b"\r" not in data
-        ):
-            return data[:-1].split(b"\n")  # whole lines in one read, none too long: the most
-        lines: list[bytes] = []
+        if not buf and not self._discarding and data[-1:] == b"\n" and len(data) <= self.max_line:
+            # Whole lines in one read, none too long: the most. grbl ends its lines in
+            # CRLF: each loses one CR at its end, as `_strip_cr` takes it below.
+            lines = data[:-1].split(b"\n")
+            if b"\r" in data:
+                return [line[:-1] if line[-1:] == b"\r" else line for line in lines]
+            return lines
+        lines = []
         buf += data
         start = 0
         while True:

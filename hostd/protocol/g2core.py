@@ -52,6 +52,7 @@ import structlog
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import (
+    MAX_LINE_BYTES,
     InvalidCommand,
     Realtime,
     Refusal,
@@ -79,7 +80,7 @@ from hostd.protocol.g2handshake import (
     check_firmware,
     protocol_settings,
 )
-from hostd.protocol.gcode import HOME_AXES, axes_words, jog_line
+from hostd.protocol.gcode import HOME_AXES, axes_words, jog_line, plain_match
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.linemode import InFlight, LineModeSender, SenderError
@@ -92,9 +93,9 @@ from hostd.protocol.messages import (
     StatusReport,
     Unparseable,
 )
-from hostd.protocol.parser import parse_line, plain_ok_count
+from hostd.protocol.parser import parse_line, plain_answer
 from hostd.protocol.probing import ProbeInput, number
-from hostd.protocol.program import number_line
+from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.session import SessionBase
 from hostd.protocol.settings import set_lines
@@ -279,16 +280,15 @@ class G2Session(SessionBase):
     def receive(self, line: bytes) -> None:
         """One line the board printed (without its line end)."""
         self._last_rx = self.clock()
-        count = plain_ok_count(line)
-        if count is not None:
+        plain = plain_answer(line)
+        if plain is not None and plain[2] == b"0":
             # `{"r":{},"f":[1,0,count]}` for the oldest job line, taken in one look: what
             # `_on_response` would do with it (the line is acknowledged), unparsed.
-            sender = self.sender
-            entry = sender.data_answered_by(count)
-            if entry is not None and entry.file_line is not None:
-                sender.pop_data()
-                self._job_line_ok(entry.source, entry)
+            entry = self.sender.pop_job_answer(int(plain[3]))
+            if entry is not None:
                 self._lines_in += 1
+                if entry.source.acknowledged(entry.file_line):
+                    self._check_stream_complete()
                 return
         msg = parse_line(line)
         if isinstance(msg, Response):
@@ -1008,7 +1008,15 @@ class G2Session(SessionBase):
         return self._flush is not None
 
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
-        return encode_line(text if number is None else number_line(text, number))
+        if number is not None:
+            if text[:1] not in NOT_PREFIXED and 0 <= number <= MAX_LINE_NUMBER:
+                # `number_line`'s answer for almost every job line, and `encode_line`'s
+                # first branch on it (a numbered line never starts with one of _TEXT_LEADS).
+                line = f"N{number} {text}"
+                if len(line) <= MAX_LINE_BYTES and plain_match(line) is not None:
+                    return (line + "\n").encode("ascii")
+            text = number_line(text, number)
+        return encode_line(text)
 
     def spindle_max_setting(self) -> str | None:
         """`th2mxs`, the S of the laser toolhead's full power (edge-preview

@@ -109,9 +109,10 @@ class LineModeSender:
 
     def book(self, entry: InFlight) -> bool:
         """Record a written line if its kind has room; False, and nothing recorded, if not."""
-        queue, budget = (
-            (self._control, self.control_window) if entry.control else (self._data, self.window)
-        )
+        if entry.control:
+            queue, budget = self._control, self.control_window
+        else:
+            queue, budget = self._data, self.window  # a job's line: every line of a job
         if len(queue) >= budget:
             return False
         queue.append(entry)
@@ -151,6 +152,20 @@ class LineModeSender:
 
     def pop_data(self) -> None:
         self._data.popleft()
+
+    def pop_job_answer(self, count: int) -> InFlight | None:
+        """`data_answered_by` and `pop_data` in one call, for a job's line only: the
+        oldest data line, taken off the books, if an answer of `count` can only be
+        its answer and it is a job's line (it has a file line); else None, nothing
+        changed."""
+        data = self._data
+        if self._control or not data:
+            return None
+        entry = data[0]
+        if entry.count != count or entry.file_line is None:
+            return None
+        data.popleft()
+        return entry
 
     def oldest_control(self) -> InFlight | None:
         """The control line the board is answering now, if any: the first unanswered one."""

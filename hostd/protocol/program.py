@@ -26,21 +26,34 @@ MAX_LINE_NUMBER = 10_000_000
 def strip_line(text: str) -> str:
     """The part of one program line that goes to the board ("" for none)."""
     # `( ... )` comments (not nested, as in RS274NGC) and `;` to the end of line.
-    text, _ = strip_comments(text, "")
+    if "(" in text or ";" in text:
+        text, _ = strip_comments(text, "")
     text = text.strip()
-    if text.startswith("%"):
+    if text[:1] == "%":
         return ""
     return text
 
 
 def program_lines(lines: Iterable[str], start_line: int = 1) -> Iterator[tuple[int, str]]:
-    """(file line number, line to send) for every sendable line at or after `start_line`."""
+    """(file line number, line to send) for every sendable line at or after `start_line`.
+
+    `strip_line` written out (the same steps): this runs for every line of every
+    job, and once more to count them, so a call a line is worth saving.
+    """
     for number, text in enumerate(lines, start=1):
         if number < start_line:
             continue
-        sendable = strip_line(text)
-        if sendable:
-            yield number, sendable
+        if "(" in text or ";" in text:
+            text, _ = strip_comments(text, "")
+        text = text.strip()
+        if text and text[0] != "%":
+            yield number, text
+
+
+# The leads `number_line` does not simply put `N<number> ` in front of: every other line
+# (almost every job line) becomes f"N{number} {text}" when 0 <= number <= MAX_LINE_NUMBER.
+# The dialects' `encode_job_line` test this first, to skip the general path.
+NOT_PREFIXED = ("", "$", "{", "?", "n", "N")
 
 
 def number_line(text: str, number: int) -> str:

@@ -107,6 +107,21 @@ class Stream:
         else:
             self._ahead.append(InFlight(encoded, self, number))
 
+    def feed_many(self, lines: Iterable[tuple[int, str]]) -> None:
+        """`feed` for each (file line number, text), none of them a hold point: a job's
+        file, a look-ahead's worth at a time, without a call a line."""
+        encode = self._encode
+        numbered = self.numbered
+        append = self._ahead.append
+        for number, text in lines:
+            self.starved = False
+            try:
+                encoded = encode(text, number if numbered else None)
+            except InvalidCommand as exc:
+                append((number, exc))  # refused when its turn comes: the lines before go
+            else:
+                append(InFlight(encoded, self, number))
+
     def feed_all(self, lines: Iterable[tuple[int, str]]) -> Stream:
         """Every line at once, and the end of input (a short job, or a test)."""
         for number, text in lines:
@@ -183,10 +198,13 @@ class Stream:
         self._next = None
         self.sent += 1
 
-    def acknowledged(self, file_line: int | None) -> None:
+    def acknowledged(self, file_line: int | None) -> bool:
+        """A sent line was answered with status 0. True if the job may be complete now
+        (its input ended, or a refused line's turn came): the session checks then."""
         self.acked += 1
         self.last_acked_line = file_line
         self._acked_lines.append(file_line)
+        return self._input_ended or self.refused is not None
 
     def executing(self, file_line: int) -> None:
         """The board runs (or ran) this line. A number no line of this job carries is stale

@@ -327,10 +327,9 @@ async def test_garbage_from_the_board_does_not_stop_a_job(rig: Rig) -> None:
     assert stream.result.result().end is StreamEnd.COMPLETED
 
 
-async def test_a_read_answering_every_line_in_flight_writes_the_first_freed_line_at_once(
-    rig: Rig,
-) -> None:
-    """The board has nothing left to do: its next line goes before the rest of the read.
+async def test_a_read_writes_every_line_its_answers_freed_in_one_write(rig: Rig) -> None:
+    """A read is one step: its answers are all taken, then the lines they freed go in
+    one write (not the first freed line alone, then the rest: issue 30).
 
     The board is silent, so the test plays its answers, as one read would
     bring them, into the engine's read callback; the writes go to the real pty.
@@ -353,8 +352,7 @@ async def test_a_read_answering_every_line_in_flight_writes_the_first_freed_line
 
     first = [f"{line}\n".encode() for line in moves(4)]
     rig.engine.link_lines(Channel.DATA, answers(first))
-    # One write after the first answer (its freed line), one after the last (three).
-    assert [(acked, len(lines)) for acked, lines in writes] == [(1, 1), (4, 3)]
+    assert [(acked, len(lines)) for acked, lines in writes] == [(4, 4)]
     written = [line for _, lines in writes for line in lines]
     assert written == [f"{line}\n".encode() for line in moves(8)[4:]]
 

@@ -275,6 +275,11 @@ def classify(text: str) -> CommandClass:
     return CommandClass.ACTION
 
 
+# Printable ASCII without the bytes grbl picks out of a line: `encode`'s one-regex test,
+# for the session's per-line path.
+printable = _PRINTABLE_LINE.fullmatch
+
+
 def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
     """A line to write: comments removed, no byte the board would pick out, LF-terminated.
 

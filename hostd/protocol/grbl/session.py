@@ -83,7 +83,7 @@ from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.probing import ProbeInput, number
-from hostd.protocol.program import number_line
+from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
 from hostd.protocol.session import SessionBase, gcode_number
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import Status
@@ -223,7 +223,21 @@ class GrblSession(SessionBase):
         return not self._outbox and not self._job_running() and not self.flushing()
 
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
-        text = text if number is None else number_line(text, number)
+        if number is not None:
+            if (
+                text[:1] not in NOT_PREFIXED
+                and 0 <= number <= MAX_LINE_NUMBER
+                and text[-1:] != " "
+                and "(" not in text
+                and ";" not in text
+            ):
+                # `number_line`'s answer for almost every job line, and `codec.encode`'s
+                # first branch on it: no comment to strip, no blank to strip at either end
+                # (it starts with N; any other trailing blank fails the printable test).
+                line = f"N{number} {text}"
+                if len(line) < self.rx_size - 1 and codec.printable(line):
+                    return (line + "\n").encode("ascii")
+            text = number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
@@ -415,20 +429,20 @@ class GrblSession(SessionBase):
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
             return None
-        deadlines = [
-            d
-            for d in (self._banner_deadline, self._handshake_deadline, self._stopping)
-            if d is not None
-        ]
+        deadline = None  # asked after every step: no list built
+        for d in (self._banner_deadline, self._handshake_deadline, self._stopping):
+            if d is not None and (deadline is None or d < deadline):
+                deadline = d
         if self.phase is Phase.READY:
-            if self._asked_at is None:
-                deadlines.append(self._next_poll)
-            else:
-                deadlines.append(self._asked_at + self.heartbeat)
-            lost = self._lost_at()
-            if lost is not None:
-                deadlines.append(lost)
-        return min(deadlines, default=None)
+            asked = self._asked_at
+            poll = self._next_poll if asked is None else asked + self.heartbeat
+            if deadline is None or poll < deadline:
+                deadline = poll
+            if len(self._silent_asks) >= SILENT_QUERIES:  # `_lost_at` is None before
+                lost = self._lost_at()
+                if lost is not None and lost < deadline:
+                    deadline = lost
+        return deadline
 
     def _silence_allowed(self) -> float | None:
         """Seconds the board may print nothing; None: however long (a homing cycle unbounded)."""
@@ -517,6 +531,8 @@ class GrblSession(SessionBase):
         self._heard_at = self.clock()  # any line, `ok`s too: the board lives
         if self._silent_asks:
             self._silent_asks.clear()
+        if line == b"ok" and self._job_ok():
+            return
         msg = codec.parse(line)
         if isinstance(msg, codec.Ok | codec.Error):
             self._answered(msg)
@@ -541,6 +557,31 @@ class GrblSession(SessionBase):
         elif msg.text:
             self._said.append(msg.text)
         self._lines_in += 1
+
+    def _job_ok(self) -> bool:
+        """An `ok` for the oldest line, a job's plain line: what `_answered` would do
+        with it, without its message and its Response; False, and nothing done, for
+        any other line (no line waiting, a `$` line, one that homes or stores)."""
+        inflight = self._inflight
+        if not inflight:
+            return False
+        entry = inflight[0]
+        line = entry.line
+        if (
+            entry.file_line is None
+            or line[:1] == b"$"
+            or entry is self._storing
+            or (self._homing_lines and codec.homes(line))
+        ):
+            return False
+        inflight.popleft()
+        self._rx_used -= len(line)
+        if self._said:
+            self._said = []  # what the board printed before it: a job line's ok carries none
+        self._lines_in += 1
+        if entry.source.acknowledged(entry.file_line):
+            self._check_stream_complete()
+        return True
 
     def _answered(self, msg: codec.Ok | codec.Error) -> None:
         if not self._inflight:
@@ -781,7 +822,8 @@ class GrblSession(SessionBase):
         if self._storing is not None:
             return  # bytes arriving while the board writes EEPROM are lost: wait for its answer
         state = self.model.state
-        context = self._context()
+        # Judged only when a client's line waits: most passes carry job lines alone.
+        context = self._context() if self._outbox else Context.FREE
         while self._outbox:
             head = self._outbox[0]
             if not self._room(head.encoded):
@@ -804,18 +846,24 @@ class GrblSession(SessionBase):
             or (state is not None and (state.is_lockout or state in _NO_JOB_LINES))
         ):
             return
+        # `_room` and `_special`'s first test written out: this loop runs for every job line.
+        room = self.rx_size - 1
+        inflight = self._inflight
+        out = self._out
+        data = Lane.DATA
         while True:
             entry = stream.peek()
             if entry is None:
                 self._check_stream_complete()
                 return
-            if not self._room(entry.line):
+            line = entry.line
+            if self._rx_used + len(line) > room:
                 return
             stream.take()
-            self._inflight.append(entry)
-            self._rx_used += len(entry.line)
-            self._out.append((Lane.DATA, entry.line))
-            if self._special(entry):
+            inflight.append(entry)
+            self._rx_used += len(line)
+            out.append((data, line))
+            if (line[:1] == b"$" or _MAY_STORE(line)) and self._special(entry):
                 return
 
     def _special(self, entry: InFlight) -> bool:
