@@ -7,6 +7,7 @@ fixture every transport's tests share: `rpc_answer_fails_once`.
 from __future__ import annotations
 
 import asyncio
+import multiprocessing
 import os
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -21,6 +22,13 @@ LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
     "asyncio": asyncio.new_event_loop,
     "uvloop": uvloop.new_event_loop,
 }
+
+
+# The analysis workers (hostd/machine/workers.py) fork from multiprocessing's forkserver,
+# one per test process: with the G-code readers loaded there once, a test's daemon gets
+# a worker in milliseconds, not the second and a half of CPU of importing them again
+# (hundreds of daemons start jobs in the suite). The workers' limits are unchanged.
+multiprocessing.set_forkserver_preload(["hostd.machine.preflight"])
 
 
 def chosen_loop() -> str:
