@@ -31,6 +31,28 @@ LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
 multiprocessing.set_forkserver_preload(["hostd.machine.preflight"])
 
 
+# The longest tests (tens of seconds of a simulated board's real time each), run first:
+# pytest-xdist hands tests out in collection order, and one of these handed out last kept
+# the whole suite waiting on a single worker while the others had nothing left to do.
+LONGEST_FIRST = (
+    "tests/stateful/",
+    "tests/test_demo.py",
+    "tests/daemon/test_resume_safety.py",
+    "tests/daemon/test_process.py",
+    "tests/fuzz/test_parser_fuzz.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        return next(
+            (i for i, p in enumerate(LONGEST_FIRST) if item.nodeid.startswith(p)),
+            len(LONGEST_FIRST),
+        )
+
+    items.sort(key=rank)  # stable: the rest keep their order
+
+
 def chosen_loop() -> str:
     return os.environ.get("HOSTD_TEST_LOOP") or DaemonConfig().event_loop
 
