@@ -66,7 +66,7 @@ async def test_missing_file_is_1004(bench: Bench) -> None:
 
 
 async def test_operations_start_only_from_idle(bench: Bench) -> None:
-    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(200)))
     job = await bench.machine.start_make("slow.gcode")
     with pytest.raises(Refused) as err:
         await bench.machine.start_make("slow.gcode")
@@ -97,7 +97,7 @@ async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
 
 
 async def test_cancel_kills_the_job_on_the_board(bench: Bench) -> None:
-    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(200)))
     await bench.machine.start_make("slow.gcode")
     await bench.sim.wait_state(S.RUN)
     ended = await bench.machine.cancel()
