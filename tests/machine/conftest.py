@@ -37,6 +37,14 @@ FAST = SimConfig(
 )
 
 
+def long_moves(count: int, feed: int = 1500) -> list[str]:
+    """`count` job lines of 40 mm each, for a job that must complete: ~32 ms a line on
+    FAST's board (1.6 s in real time at F1500). The engine keeps `window` (4) lines on the
+    board, so the board runs dry only if the host is ~0.1 s late to refill; shorter moves
+    (a millisecond on FAST) underflow, by design a job fault, on a loaded test machine."""
+    return [f"G1 X{(i % 2) * 40} Y{i % 9} F{feed}" for i in range(count)]
+
+
 @dataclass
 class Recorder:
     """Every event an engine told (a rig's) or a machine published (a bench's), in order."""

@@ -12,11 +12,11 @@ from hostd.machine.machine import NoSuchFile, setting_lines
 from hostd.machine.supervisor import Refused
 from hostd.machine.supervisor import State as Sup
 from hostd.protocol.states import MachineState as S
-from tests.machine.conftest import Bench, bench_for
+from tests.machine.conftest import Bench, bench_for, long_moves
 
 pytestmark = pytest.mark.asyncio
 
-MOVES = "".join(f"G1 X{(i % 8) * 5} Y{i % 9} F3000\n" for i in range(60))
+MOVES = "".join(f"{line}\n" for line in long_moves(60))  # long enough not to underflow
 PROGRAM = "%\n(part)\nG21 G90\n\n" + MOVES
 PROGRAM += "M30\n%\n"
 
@@ -66,7 +66,7 @@ async def test_missing_file_is_1004(bench: Bench) -> None:
 
 
 async def test_operations_start_only_from_idle(bench: Bench) -> None:
-    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(200)))
     job = await bench.machine.start_make("slow.gcode")
     with pytest.raises(Refused) as err:
         await bench.machine.start_make("slow.gcode")
@@ -79,7 +79,7 @@ async def test_operations_start_only_from_idle(bench: Bench) -> None:
 
 
 async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
-    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F1200\n" for i in range(60)))
+    bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(30)))
     job = await bench.machine.start_make("slow.gcode")
     await bench.sim.wait_state(S.RUN)
     paused = bench.machine.pause()
@@ -97,7 +97,7 @@ async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
 
 
 async def test_cancel_kills_the_job_on_the_board(bench: Bench) -> None:
-    bench.write("slow.gcode", "".join(f"G1 X{i % 20} F600\n" for i in range(200)))
+    bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(200)))
     await bench.machine.start_make("slow.gcode")
     await bench.sim.wait_state(S.RUN)
     ended = await bench.machine.cancel()
@@ -153,7 +153,8 @@ async def test_unplug_mid_job_interrupts_it_and_replug_brings_the_machine_back(
     tmp_path: Path,
 ) -> None:
     async with bench_for(tmp_path, auto_connect=True) as bench:
-        bench.write("long.gcode", "".join(f"G1 X{i % 20} F1200\n" for i in range(400)))
+        # Interrupted by the unplug, never failed before it by an underflow: long moves.
+        bench.write("long.gcode", "".join(f"{line}\n" for line in long_moves(400)))
         job = await bench.machine.start_make("long.gcode")
         await bench.sim.wait_for(lambda: len(bench.sim.received) > 30)
         await bench.sim.unplug()
@@ -171,7 +172,7 @@ async def test_two_machines_are_independent(tmp_path: Path) -> None:
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     async with bench_for(tmp_path / "a", "a") as a, bench_for(tmp_path / "b", "b") as b:
-        text = "".join(f"G1 X{(i % 2) * 10} F3000\n" for i in range(150))
+        text = "".join(f"{line}\n" for line in long_moves(40))  # b's must complete
         a.write("a.gcode", text)
         b.write("b.gcode", text)
         job_a = await a.machine.start_make("a.gcode")

@@ -20,7 +20,7 @@ from hostd.protocol.states import MachineState as S
 from hostd.protocol.status import Status, message
 from hostd.protocol.vocabulary import StreamEnd
 from hostd.sim.callsites import CALL_SITES, CallSite
-from tests.machine.conftest import Bench, Rig
+from tests.machine.conftest import Bench, Rig, long_moves
 
 pytestmark = pytest.mark.asyncio
 
@@ -84,7 +84,7 @@ async def test_a_job_that_probes_runs_on_after_the_probe(rig: Rig) -> None:
 async def test_a_report_the_firmware_prints_nan_in_does_not_stop_a_job(
     rig: Rig, value: float
 ) -> None:
-    stream = rig.job(moves(40))
+    stream = rig.job(long_moves(40))  # a job that completes: moves too long to underflow
     await rig.recorder.wait_for(running_job)
     rig.sim.glitch("vel", value)
     await rig.recorder.wait_for(
@@ -156,7 +156,7 @@ async def test_an_answer_too_long_for_the_board_fails_only_its_own_line(rig: Rig
     assert lost.value.status == Status.JSON_OUTPUT_TOO_LONG
     assert (await rig.engine.send("{xvm:n}")).body == {"xvm": 6000}
     rig.sim.set_output_buffer(512)
-    stream = rig.job(moves(20))
+    stream = rig.job(long_moves(20))
     assert await finished(stream) is StreamEnd.COMPLETED
     assert faults(rig) == []
 

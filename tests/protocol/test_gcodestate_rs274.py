@@ -10,7 +10,10 @@ unknown home), and is counted.
 
 from __future__ import annotations
 
+import fcntl
 import math
+import os
+import pickle
 from pathlib import Path
 
 import pytest
@@ -50,14 +53,25 @@ def _wcs(code: float) -> str:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[Path, tuple[rs274.Run, set[int]]]:
+    """rs274's runs of FILES, made once per test run: under pytest-xdist the first worker
+    to get here runs them (several seconds of CPU) and the others read its results."""
     rs274.binary()  # fails, with how to install it, when it is missing
-    out = {}
-    for path, _, every in FILES:
-        assert path.exists(), f"{path}: {rs274.INSTALL}"
-        count = len(path.read_text().splitlines())
-        probes = set(range(1, count + 1, every)) | {count - 1, count}
-        out[path] = (rs274.run(path, probes, tmp_path_factory.mktemp(path.stem)), probes)
-    return out
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # this run's
+    with open(shared / "rs274-runs.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        done = shared / "rs274-runs.pickle"
+        if done.exists():
+            kept: dict[Path, tuple[rs274.Run, set[int]]] = pickle.loads(done.read_bytes())
+            return kept
+        out = {}
+        for path, _, every in FILES:
+            assert path.exists(), f"{path}: {rs274.INSTALL}"
+            count = len(path.read_text().splitlines())
+            probes = set(range(1, count + 1, every)) | {count - 1, count}
+            out[path] = (rs274.run(path, probes, tmp_path_factory.mktemp(path.stem)), probes)
+        done.write_bytes(pickle.dumps(out))
+        return out
 
 
 def _differences(state: ModalState, probe: rs274.Probe) -> list[str]:

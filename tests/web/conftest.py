@@ -149,8 +149,7 @@ TIMEOUT = 10_000  # ms: the longest any step waits for the page
 playwright.expect.set_options(timeout=TIMEOUT)
 
 
-@pytest.fixture
-def chromium() -> str:
+def chromium_path() -> str:
     """The page is tested in a real browser or not at all: a missing one is a failure."""
     if not os.path.exists(CHROMIUM):
         pytest.fail(
@@ -159,21 +158,33 @@ def chromium() -> str:
     return CHROMIUM
 
 
-@pytest_asyncio.fixture
-async def browser(tmp_path: Path, chromium: str) -> AsyncIterator[playwright.BrowserContext]:
+# One chromium per test process, on the session's event loop: launching it (and
+# Playwright's driver) for each test cost seconds of the two cores' time per test.
+# Each test still gets a context of its own, as fresh as a new profile (no cookies,
+# no storage, no cache), closed with its pages when the test ends. A test that uses
+# `browser` runs on the session's loop: `pytest.mark.asyncio(loop_scope="session")`.
+@pytest_asyncio.fixture(scope="session", loop_scope="session")
+async def shared_chromium() -> AsyncIterator[playwright.Browser]:
     async with playwright.async_playwright() as p:
-        context = await p.chromium.launch_persistent_context(
-            tmp_path / "chromium-profile",
-            executable_path=chromium,
-            headless=True,
-            args=FLAGS,
-            viewport={"width": 1280, "height": 900},
+        launched = await p.chromium.launch(
+            executable_path=chromium_path(), headless=True, args=FLAGS
         )
-        context.set_default_timeout(TIMEOUT)
         try:
-            yield context
+            yield launched
         finally:
-            await context.close()
+            await launched.close()
+
+
+@pytest_asyncio.fixture(loop_scope="session")
+async def browser(
+    shared_chromium: playwright.Browser,
+) -> AsyncIterator[playwright.BrowserContext]:
+    context = await shared_chromium.new_context(viewport={"width": 1280, "height": 900})
+    context.set_default_timeout(TIMEOUT)
+    try:
+        yield context
+    finally:
+        await context.close()
 
 
 async def screenshot(page: playwright.Page, tmp_path: Path, name: str) -> None:

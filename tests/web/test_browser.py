@@ -20,7 +20,7 @@ SIGNALS = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
 PROGRESS_OVER = "(least) => document.getElementById('job-progress').value > least"
 
-pytestmark = pytest.mark.asyncio
+pytestmark = pytest.mark.asyncio(loop_scope="session")  # `browser` (conftest)
 
 
 async def test_log_in_upload_start_hold_resume_and_see_a_fault(

@@ -15,7 +15,7 @@ from hostd import daemon
 from tests.daemon.conftest import Rpc, RpcFailure
 from tests.web.conftest import log_in, running_web, screenshot
 
-pytestmark = pytest.mark.asyncio
+pytestmark = pytest.mark.asyncio(loop_scope="session")  # `browser` (conftest)
 expect = playwright.expect
 
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))

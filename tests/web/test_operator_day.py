@@ -17,7 +17,7 @@ from hostd.sim.probing import TouchPlate
 from tests.web.conftest import log_in, running_web, screenshot
 from tests.web.test_operator import ARCS, LONG, PROGRESS_OVER, upload
 
-pytestmark = pytest.mark.asyncio
+pytestmark = pytest.mark.asyncio(loop_scope="session")  # `browser` (conftest)
 expect = playwright.expect
 
 PLATE_TOP = -3.0  # machine Z of the plate's top, 3 mm under the bit where the sim starts
