@@ -57,11 +57,14 @@ class Recorder:
         self._arrived.set()
 
     async def wait_for(
-        self, predicate: Callable[[Event | EngineEvent], bool]
+        self, predicate: Callable[[Event | EngineEvent], bool], timeout: float = 5.0
     ) -> Event | EngineEvent:
-        """The first event, past or future, that satisfies the predicate."""
+        """The first event, past or future, that satisfies the predicate.
+
+        `timeout` bounds a wait that would otherwise hang; it is no timing check.
+        """
         seen = 0
-        async with asyncio.timeout(5):
+        async with asyncio.timeout(timeout):
             while True:
                 for event in self.events[seen:]:
                     if predicate(event):
@@ -176,7 +179,8 @@ class Bench:
                 return False
             return e.job["state"] not in ("running", "paused")
 
-        await self.recorder.wait_for(ended)
+        # A whole job: thousands of lines take longer than one event on a loaded machine.
+        await self.recorder.wait_for(ended, timeout=45)
         row = await self.store.get(job_id)
         assert row is not None
         return row
