@@ -18,11 +18,13 @@ swollen worker can be killed without failing the others' work:
   daemon's own loop goes first.
 
 Workers start with the forkserver method (never a fork of the daemon's
-threads and loop) and are killed when the daemon stops (`close`). A new
-worker costs about a second and a half of CPU on a small machine (a fresh
-interpreter importing the G-code readers): the daemon starts one as soon as
-it serves (`prewarm`), so that the first `job.start` or `file.analyze` does
-not wait for it (docs/performance.md, issue 30); later ones start on use.
+threads and loop) and are killed when the daemon stops (`close`). The first
+worker costs about a second and a half of CPU on a small machine: the
+forkserver starts and imports the G-code readers (its preload). The daemon
+starts it as soon as it serves (`prewarm`), so that the first `job.start` or
+`file.analyze` does not wait for it (docs/performance.md, issue 30); every
+later worker (one replacing a worker killed at a limit) is a fork of the
+preloaded server, in milliseconds.
 """
 
 from __future__ import annotations
@@ -165,9 +167,14 @@ class WorkerPool:
 
     async def _start(self, module: str) -> ProcessPoolExecutor:
         """A new worker, started and ready (its imports done)."""
+        context = multiprocessing.get_context("forkserver")
+        # The forkserver imports the module once, when it starts (the first worker):
+        # every later worker is a fork of it, started in milliseconds, not another
+        # second and a half of imports. Set after the server started, it changes nothing.
+        context.set_forkserver_preload([module])
         executor = ProcessPoolExecutor(
             max_workers=1,
-            mp_context=multiprocessing.get_context("forkserver"),
+            mp_context=context,
             initializer=_limit,
             initargs=(self.memory, self.nice),
         )
