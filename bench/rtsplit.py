@@ -16,7 +16,7 @@ first stamps of the daemons' traces after its write, and split:
 - and, beside them, written -> callback done: what the daemon did after the
   write in the same callback (the job's state published, and the like).
 
-Printed as p50/p90/p99/max in microseconds.
+Printed as p50/p90/p99/max in microseconds (p99 as the bench takes it, `run.pct`).
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import bisect
 import json
 import sys
 from pathlib import Path
+
+from bench.run import pct
 
 LEGS = [
     ("client write -> daemon read", None, "read"),
@@ -35,16 +37,11 @@ LEGS = [
 ]
 
 
-def _pct(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
-
-
 def _line(title: str, values: list[float]) -> str:
     us = [v * 1e6 for v in values]
     return (
-        f"  {title:<30} p50 {_pct(us, 0.5):7.0f}  p90 {_pct(us, 0.9):7.0f}  "
-        f"p99 {_pct(us, 0.99):7.0f}  max {max(us):7.0f} us"
+        f"  {title:<30} p50 {pct(us, 0.5):7.0f}  p90 {pct(us, 0.9):7.0f}  "
+        f"p99 {pct(us, 0.99):7.0f}  max {max(us):7.0f} us"
     )
 
 
