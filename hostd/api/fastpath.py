@@ -176,19 +176,20 @@ _KEYS = frozenset((b'"jsonrpc"', b'"id"', b'"method"', b'"params"'))
 
 
 class Shape:
-    """A realtime request of one exact shape, read without the JSON parser or pydantic.
+    """A realtime request of one exact shape, read without the JSON parser.
 
     Why: on a busy daemon the fast path runs with its code and data out of the
     CPU's caches (the job's lines and the fan-out evicted them), and there the
-    JSON decoder, the request checks and the params model cost about 200 us
-    before the `!` is written (docs/performance.md, 2026-11-27 "realtime
-    path"). A regular expression reads the common request in a tenth of that.
+    JSON decoder, the request checks and the params model cost about 130 us
+    of the 200 from the request's read to the Machine (docs/performance.md,
+    "The realtime path under load"). This regular expression, and the params
+    validated once a machine (`FastPath`), bring the 200 to about 65.
 
     The shape: one JSON object on one line with exactly the four members
     "jsonrpc": "2.0", "id" (an integer of at most 15 digits or a string of
     `[A-Za-z0-9_.-]`), "method" naming one of `methods` (immediate methods
     whose params are `MachineParams`), and "params": {"machine": id}, in any
-    order, with any JSON whitespace. Every request it reads is valid, and
+    order, with JSON's blanks but the newline. Every request it reads is valid, and
     reads as the parser and `MachineParams` would read it (the id pattern and
     length are MachineId's); anything else, however valid, is None here and
     goes the general way.
