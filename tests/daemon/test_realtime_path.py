@@ -64,8 +64,8 @@ async def test_a_feedhold_pauses_the_streaming_job_and_no_job_line_follows_its_b
 
 async def test_the_same_on_a_grbl_board(both: tuple[Running, Rpc]) -> None:
     # grbl drops a cycle start that comes while its hold still decelerates (gnea/grbl
-    # protocol.c, EXEC_CYCLE_START: "Cycle start only when IDLE or when a hold is complete"),
-    # so the operator's resume here waits for the board's Hold:0, as an operator would.
+    # grbl/protocol.c:348, "Cycle start only when IDLE or when a hold is complete"), so the
+    # resume here waits for the board's Hold:0, as an operator would.
     hostd, rpc = both
     sim = hostd.daemon.sims[GRBL]
     await _hold_and_resume(hostd, rpc, GRBL, held=lambda: sim.state == "Hold:0")
