@@ -160,7 +160,7 @@ def _requests(draw: st.DrawFn) -> bytes:
     return f"{draw(blank)}{{{draw(blank)}{body}{draw(blank)}}}{draw(blank)}\n".encode()
 
 
-@settings(max_examples=2000, deadline=None)
+@settings(max_examples=300, deadline=None)
 @given(_requests())
 def test_whatever_it_reads_the_parser_and_the_model_read_alike(line: bytes) -> None:
     read = _read(line)
@@ -168,7 +168,7 @@ def test_whatever_it_reads_the_parser_and_the_model_read_alike(line: bytes) -> N
         assert read == _general(line)
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=200))
 def test_garbage_is_never_read_as_a_request(data: bytes) -> None:
     read = _read(data)
