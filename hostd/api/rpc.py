@@ -282,17 +282,19 @@ def _parse(line: bytes) -> Any:
     except UnicodeDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: not UTF-8 at byte {e.start}") from None
     try:
-        return json.loads(
-            text,
-            parse_constant=_reject_constant,
-            parse_int=_parse_int,
-            parse_float=_parse_float,
-        )
+        return _DECODER.decode(text)
     except json.JSONDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: {e.msg} at column {e.colno}") from None
     except (ValueError, RecursionError) as e:
         # NaN/Infinity, nesting too deep for the parser.
         raise RpcError(PARSE_ERROR, f"parse error: {e}") from None
+
+
+# Made once: `json.loads` with any option builds a JSONDecoder and its scanner every call
+# (the same decoder, so the same values and errors).
+_DECODER = json.JSONDecoder(
+    parse_constant=_reject_constant, parse_int=_parse_int, parse_float=_parse_float
+)
 
 
 def _valid_id(value: Any) -> bool:
@@ -416,23 +418,54 @@ async def _call(request: _Request, methods: Mapping[str, Method], context: objec
         if method is None:
             raise RpcError(METHOD_NOT_FOUND, f"method not found: {request.method}")
         args = _bind_params(request.method, method, request.params)
+    except Exception as exc:
+        return _failed(exc, request.method, request.id, request.notification)
+    return await _run(method, args, request.method, request.id, request.notification, context)
+
+
+async def call_bound(
+    method: Method, args: tuple[Any, ...], name: str, id: Id, context: object
+) -> bytes:
+    """A request whose parameters the caller has already bound: run it, its response.
+
+    For the realtime fast path (fastpath.py), which reads a realtime request
+    of one exact shape itself; everything after the reading is `_call`'s.
+    """
+    answer = await _run(method, args, name, id, False, context)
+    assert answer is not None  # not a notification
+    return answer
+
+
+async def _run(
+    method: Method,
+    args: tuple[Any, ...],
+    name: str,
+    id: Id,
+    notification: bool,
+    context: object,
+) -> bytes | None:
+    try:
         token = _context.set(context)
         try:
             result = await method.handler(*args)
         finally:
             _context.reset(token)
     except Exception as exc:
-        error = _as_rpc_error(exc)
-        if error is None:
-            log.exception("internal error", method=request.method, id=request.id)
-            error = RpcError(INTERNAL_ERROR, "internal error")
-        if request.notification:
-            log.debug("notification failed", method=request.method, code=error.code)
-            return None
-        return _encode_failure(error, request.id, request.method)
-    if request.notification:
+        return _failed(exc, name, id, notification)
+    if notification:
         return None
-    return _encode_result(result, request.id, request.method)
+    return _encode_result(result, id, name)
+
+
+def _failed(exc: Exception, name: str, id: Id, notification: bool) -> bytes | None:
+    error = _as_rpc_error(exc)
+    if error is None:
+        log.exception("internal error", method=name, id=id)
+        error = RpcError(INTERNAL_ERROR, "internal error")
+    if notification:
+        log.debug("notification failed", method=name, code=error.code)
+        return None
+    return _encode_failure(error, id, name)
 
 
 async def _one(obj: Any, methods: Mapping[str, Method], context: object) -> bytes | None:
