@@ -626,7 +626,10 @@ class Bench:
                     daemon.wait_idle(machine=machine)
                     controller.expect(self.s.long_job)
                     controller.dump()
-                jobs = {m: _start_job(client, m, "p6.gcode") for m in ids}
+                # The machine the holds are on starts last: each `job.start` checks the
+                # file on the analysis worker (niced, beside seven streaming machines:
+                # seconds each), and a job started first could end before the holds.
+                jobs = {m: _start_job(client, m, "p6.gcode") for m in reversed(ids)}
                 time.sleep(0.5)  # every machine streaming at full rate
                 acked0 = self._acked(client, jobs)
                 cpu0, t0 = daemon.cpu_seconds(), time.monotonic()
