@@ -132,6 +132,26 @@ async def test_hold_and_resume_a_grbl_job(tmp_path: Path) -> None:
         assert done.state == "completed" and done.lines_acked == 60
 
 
+async def test_a_resume_given_while_the_hold_still_decelerates_runs_the_job_on(
+    tmp_path: Path,
+) -> None:
+    """grbl drops a `~` read with its `!` or while the hold decelerates (protocol.c,
+    EXEC_CYCLE_START): the host keeps it until a report shows Hold:0, so a quick
+    resume is not lost, with the board held while the host says the job runs."""
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.3)
+    async with grbl_bench(tmp_path, slow) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(40)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.machine.pause()
+        bench.machine.resume()  # at once: the board has not even read the `!` yet
+        assert bench.machine.current_job().state == "running"  # type: ignore[union-attr]
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 40
+        read = b"".join(r.data for r in bench.board.received)  # the raw bytes, as read
+        assert read.count(b"~") == 1  # one `~`, written once the hold was complete
+
+
 async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(
     tmp_path: Path,
 ) -> None:

@@ -286,6 +286,63 @@ def test_no_line_is_run_inside_a_hold() -> None:
         grbl.session.send("G0 X0", object())
 
 
+def test_a_resume_before_the_hold_completes_waits_for_hold_0() -> None:
+    """grbl drops a `~` read with its `!` or while the hold decelerates
+    (gnea/grbl protocol.c, EXEC_CYCLE_START): the `~` goes once a report says Hold:0."""
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(50)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.session.resume_stream()
+    grbl.pump()
+    assert b"~" not in grbl.realtime() and grbl.realtime()[-2:] == [b"!", b"?"]
+    grbl.feed("<Run|MPos:1.100,0.000,0.000|FS:1000,0>")  # read before the `!` took effect
+    grbl.feed("<Hold:1|MPos:1.500,0.000,0.000|FS:500,0>")
+    assert b"~" not in grbl.realtime()
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    assert grbl.realtime()[-1] == b"~" and grbl.realtime().count(b"~") == 1
+    grbl.feed("<Run|MPos:1.700,0.000,0.000|FS:1000,0>")
+    assert grbl.realtime().count(b"~") == 1
+
+
+def test_a_resume_after_the_hold_completed_goes_at_once_and_a_new_hold_voids_a_kept_one() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.start_stream(moves(50))
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.pump()
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    grbl.session.resume_stream()
+    grbl.pump()
+    assert grbl.realtime()[-1] == b"~"  # the hold was complete: no wait
+    grbl.feed("<Run|MPos:1.700,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.session.resume_stream()
+    grbl.session.pause_stream()  # held again before the kept `~` went: it never goes
+    grbl.pump()
+    grbl.feed("<Hold:0|MPos:1.900,0.000,0.000|FS:0,0>")
+    assert grbl.realtime().count(b"~") == 1
+
+
+def test_a_kept_resume_is_dropped_when_the_board_reports_a_door_instead() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.start_stream(moves(50))
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.session.resume_stream()
+    grbl.pump()
+    grbl.feed("<Door:2|MPos:1.500,0.000,0.000|FS:0,0>")  # the door opened meanwhile
+    grbl.feed("<Door:0|MPos:1.500,0.000,0.000|FS:0,0>")  # closed: the operator resumes
+    assert b"~" not in grbl.realtime()
+
+
 def test_cancel_holds_then_resets_once_motion_rests() -> None:
     grbl = Grbl()
     grbl.connect()

@@ -187,6 +187,10 @@ class GrblSession(SessionBase):
         self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
         self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
+        # A `!` of ours written, and no report since shows its hold complete (Hold:0) or
+        # the board out of motion: a `~` now would be dropped (`_realtime`).
+        self._hold_settling = False
+        self._start_pending = False  # a `~` kept back until the hold completes
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
@@ -494,6 +498,7 @@ class GrblSession(SessionBase):
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
         self._held = None
+        self._hold_settling = self._start_pending = False
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -648,6 +653,8 @@ class GrblSession(SessionBase):
         self._await_report = False
         if changed is not None:
             self._on_state(changed, before)
+        if self._hold_settling:
+            self._hold_settled(report)
         self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
@@ -659,6 +666,20 @@ class GrblSession(SessionBase):
             self._check_stream_complete(reported=True)
         if self._first_report:
             self._ready()
+
+    def _hold_settled(self, report: codec.StatusReport) -> None:
+        """A report after our `!`: once it shows no motion still stopping, a `~` kept
+        back goes (Hold:0, Idle), or is dropped (a door, an alarm: the operator decides
+        again there). A report of Run may predate the `!` (read in the same pass)."""
+        if report.state in ("Run", "Jog", "Home") or (report.state == "Hold" and report.sub == 1):
+            return
+        self._hold_settling = False
+        if self._start_pending:
+            self._start_pending = False
+            if report.state in ("Hold", "Idle"):
+                self._out.append((Lane.REALTIME, codec.CYCLE_START))
+            else:
+                self._job_log().warning("resume dropped", board_state=self.model.board_state)
 
     def _track_executed(self, fields: dict[str, Any]) -> None:
         """Which file line runs: `Ln:`, else what the planner can still hold.
@@ -725,6 +746,7 @@ class GrblSession(SessionBase):
         self._needs_reset = None
         self._stopping = None
         self._held = None
+        self._hold_settling = self._start_pending = False
         if self.stream is not None and not self.stream.done:
             self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
@@ -911,6 +933,7 @@ class GrblSession(SessionBase):
         if self._resetting:
             return
         self._out.append((Lane.REALTIME, codec.FEEDHOLD))
+        self._start_pending = False  # a stop: no resume of before it may follow
         self._stopping = self.clock() + STOP_TIMEOUT
         self._ask_report()
 
@@ -928,6 +951,7 @@ class GrblSession(SessionBase):
     def _reset_now(self) -> None:
         self._stopping = None
         self._held = None
+        self._hold_settling = self._start_pending = False
         self._resetting = True
         self._out.append((Lane.REALTIME, codec.RESET))
 
@@ -1012,11 +1036,22 @@ class GrblSession(SessionBase):
 
     def _realtime(self, command: Realtime) -> None:
         if command is Realtime.FEEDHOLD:
+            self._hold_settling = True
+            self._start_pending = False  # a newer hold: a resume asked before it is void
             self._out.append((Lane.REALTIME, codec.FEEDHOLD))
         elif command is Realtime.CYCLE_START:
             if self._held is not None:
                 # The stopped job's moves are still in the board: `~` would run them.
                 raise Busy(self._held)
+            if self._hold_settling:
+                # grbl takes a cycle start only in Idle or a completed hold, and drops
+                # one read with the hold or while it decelerates (gnea/grbl protocol.c:348,
+                # protocol_exec_rt_system's EXEC_CYCLE_START): the board would stay
+                # held while the host says the job runs. Kept until a report shows
+                # the hold complete (`_on_report`), asked for now.
+                self._start_pending = True
+                self._ask_report()
+                return
             self._out.append((Lane.REALTIME, codec.CYCLE_START))
         elif command is Realtime.ENQUIRY:
             self._ask_report()
