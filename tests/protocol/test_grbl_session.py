@@ -286,15 +286,20 @@ def test_no_line_is_run_inside_a_hold() -> None:
         grbl.session.send("G0 X0", object())
 
 
+def streaming() -> Grbl:
+    """A grbl board running a job of 50 moves, its first line answered."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.start_stream(moves(50))
+    grbl.pump()
+    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    return grbl
+
+
 def test_a_resume_before_the_hold_completes_waits_for_hold_0() -> None:
     """grbl drops a `~` read with its `!` or while the hold decelerates
     (gnea/grbl protocol.c, EXEC_CYCLE_START): the `~` goes once a report says Hold:0."""
-    grbl = Grbl()
-    grbl.connect()
-    stream = moves(50)
-    grbl.session.start_stream(stream)
-    grbl.pump()
-    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl = streaming()
     grbl.session.pause_stream()
     grbl.session.resume_stream()
     grbl.pump()
@@ -309,11 +314,7 @@ def test_a_resume_before_the_hold_completes_waits_for_hold_0() -> None:
 
 
 def test_a_resume_after_the_hold_completed_goes_at_once_and_a_new_hold_voids_a_kept_one() -> None:
-    grbl = Grbl()
-    grbl.connect()
-    grbl.session.start_stream(moves(50))
-    grbl.pump()
-    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl = streaming()
     grbl.session.pause_stream()
     grbl.pump()
     grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
@@ -330,11 +331,7 @@ def test_a_resume_after_the_hold_completed_goes_at_once_and_a_new_hold_voids_a_k
 
 
 def test_a_kept_resume_is_dropped_when_the_board_reports_a_door_instead() -> None:
-    grbl = Grbl()
-    grbl.connect()
-    grbl.session.start_stream(moves(50))
-    grbl.pump()
-    grbl.feed("ok", "<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl = streaming()
     grbl.session.pause_stream()
     grbl.session.resume_stream()
     grbl.pump()
