@@ -74,24 +74,24 @@ async def action(c: Client, args: argparse.Namespace, out: Output) -> int:
     return OK
 
 
-async def cancel(c: Client, args: argparse.Namespace, out: Output) -> int:
-    """job.cancel returns once the job has ended: show the row it ended with."""
-    job = await c.call("job.cancel", machine=args.machine)
+async def _job_call(c: Client, method: str, args: argparse.Namespace, out: Output) -> int:
+    """A job method that answers the job's row: shown as `hostd jobs` shows one."""
+    job = await c.call(method, machine=args.machine)
     if out.json:
         out.print_json(job)
     else:
         render.jobs(out.out, [job])
     return OK
+
+
+async def cancel(c: Client, args: argparse.Namespace, out: Output) -> int:
+    """job.cancel returns once the job has ended: show the row it ended with."""
+    return await _job_call(c, "job.cancel", args, out)
 
 
 async def tool_change_done(c: Client, args: argparse.Namespace, out: Output) -> int:
     """job.tool_change_done: the tool is changed; the waiting job goes on."""
-    job = await c.call("job.tool_change_done", machine=args.machine)
-    if out.json:
-        out.print_json(job)
-    else:
-        render.jobs(out.out, [job])
-    return OK
+    return await _job_call(c, "job.tool_change_done", args, out)
 
 
 # -- watch ---------------------------------------------------------------------------
