@@ -67,11 +67,13 @@ class Rpc:
             raise RpcFailure(msg["error"])
         return msg["result"]
 
-    async def notification(self, predicate: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
+    async def notification(
+        self, predicate: Callable[[dict[str, Any]], bool], timeout: float = 30
+    ) -> dict[str, Any]:
         # A bound for a test that would otherwise hang, not a timing check: generous, since
         # a job's first line waits for its file check on a worker process (seconds when
         # six test workers share two cores).
-        async with asyncio.timeout(30):
+        async with asyncio.timeout(timeout):
             while True:
                 msg = await self.notifications.get()
                 if predicate(msg):

@@ -17,7 +17,10 @@ import pytest
 
 from tests.daemon.conftest import Rpc, RpcFailure, config_data
 
-pytestmark = pytest.mark.asyncio
+# Each test starts the daemon as a process, twice in some: its imports, its first worker
+# and the job's file check take tens of seconds when the suite's longest tests all start
+# together on two cores (a bound against a hang, not a timing check).
+pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(180)]
 
 SERVE = [sys.executable, "-m", "hostd.service"]
 
@@ -52,7 +55,7 @@ class Process:
         """Notify datagrams up to and including the one that contains `want`."""
         loop = asyncio.get_running_loop()
         seen = []
-        async with asyncio.timeout(20):
+        async with asyncio.timeout(60):  # a hang bound: see pytestmark
             while True:
                 datagram = await loop.sock_recv(self.notify, 4096)
                 seen.append(datagram)
@@ -97,7 +100,8 @@ async def follow_until_acked(rpc: Rpc, job_id: int, lines: int) -> dict[str, obj
             n["method"] == "job"
             and n["params"]["job"]["id"] == job_id
             and n["params"]["job"]["lines_acked"] >= lines
-        )
+        ),
+        timeout=90,  # a daemon process just started: see pytestmark
     )
     job: dict[str, object] = note["params"]["job"]
     return job
@@ -118,7 +122,7 @@ async def ready_client(process: Process) -> Rpc:
     rpc = await Rpc.open(process.socket_path)
     # Subscribed before looking: a change between the look and the subscription is not missed.
     await rpc.call("subscribe", topics=["supervisor"], machine="sim1")
-    async with asyncio.timeout(10):
+    async with asyncio.timeout(30):
         if (await rpc.call("machine.status", machine="sim1"))["supervisor"] != "idle":
             await rpc.notification(lambda n: n["params"].get("to") == "idle")
     return rpc
