@@ -310,10 +310,17 @@ class Machine:
         return session.board_offsets([response.body for response in answers])
 
     def safe_height(self, limits: MachineLimits | None) -> float | None:
-        """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates)."""
+        """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates).
+
+        The travel's top is a place only once the machine is homed: before, machine
+        coordinates count from wherever the board was switched on, and `G53 G0 Z<top>`
+        could drive Z down to that height, or up into its end stop. Unhomed and without
+        `safe_z`, the safe height is unknown (None), and whoever needs it refuses.
+        """
         if self.config.safe_z is not None:
             return self.config.safe_z
-        if limits is not None and "z" in limits.travel:
+        homed = self.snapshot().get("homed") is True
+        if homed and limits is not None and "z" in limits.travel:
             return limits.travel["z"][1]
         return None
 

@@ -350,10 +350,7 @@ async def frame(
             )
     laser = machine.is_laser()
     homed = machine.snapshot().get("homed") is True
-    # The Z travel's top is a place only once the machine is homed: before, machine
-    # coordinates count from wherever the board was switched on (g2core applies no
-    # soft limit either), and `G53 G0 Z<top>` would drive Z up into its end stop.
-    safe_z = None if laser else machine.safe_height(limits if homed else None)
+    safe_z = None if laser else machine.safe_height(limits)  # unhomed: safe_z or none
     if not laser and safe_z is None:
         raise InvalidCommand(
             Refusal.UNREADABLE,

@@ -300,7 +300,10 @@ class ToolChanger:
         session = engine.session
         safe = machine.safe_height(await _limits(machine))
         if safe is None:
-            raise Busy(f"{machine.id}: no safe height known (set safe_z) to reach the tool sensor")
+            raise Busy(
+                f"{machine.id}: no safe height known to reach the tool sensor: set safe_z, "
+                "or home the machine (the Z travel's top means nothing before)"
+            )
         start = self._machine_position()
         sensor = config.tool_sensor
         await self._run(

@@ -60,7 +60,9 @@ def _modal(sim: GrblSimController) -> dict[str, Any]:
 
 @pytest_asyncio.fixture
 async def grbl(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
-    async with running_daemon(tmp_path, dialect="grbl", spindle_dwell=0.05) as hostd:
+    # grbl's top of Z travel (machine 0) as the safe height, set by hand: the board is
+    # power-cycled and never homed, and only a homed machine's travel says where it is.
+    async with running_daemon(tmp_path, dialect="grbl", spindle_dwell=0.05, safe_z=0.0) as hostd:
         rpc = await hostd.client()
         await hostd.idle(rpc)
         yield hostd, rpc
@@ -314,6 +316,27 @@ async def test_file_analyze_without_a_machine_estimates_with_defaults_and_says_s
     on_board = await rpc.call("file.analyze", file="line.nc", machine="sim1")
     assert isinstance(on_board["duration_s"], float)
     assert not any("default limits" in text for text in on_board["warnings"])
+
+
+async def test_the_top_of_the_travel_is_a_safe_height_only_once_homed(tmp_path: Path) -> None:
+    """No `safe_z`: a resume climbs to the Z travel's top, which is a place only on a
+    homed machine. Before, machine coordinates count from where the board was switched
+    on, and `G53 G0 Z<top>` could drive Z down to it, or up into its end stop."""
+    async with running_daemon(tmp_path) as hostd:
+        rpc = await hostd.client()
+        await hostd.idle(rpc)
+        await rpc.call("file.upload", name="mill.nc", data=_MILL)
+        with pytest.raises(RpcFailure) as refused:
+            await rpc.call("job.recovery", machine="sim1", file="mill.nc", line=9)
+        assert refused.value.code == 1011
+        assert "safe_z" in refused.value.message and "home" in refused.value.message
+        await rpc.call("machine.home", machine="sim1")
+        await hostd.idle(rpc)
+        assert (await rpc.call("machine.status", machine="sim1"))["homed"] is True
+        plan = await rpc.call("job.recovery", machine="sim1", file="mill.nc", line=9)
+        top = await rpc.call("settings.get", machine="sim1", keys=["ztm"])
+        assert f"G53 G0 Z{top['ztm']:g}" in " ".join(plan["approach"]), plan
+        await rpc.close()
 
 
 async def test_without_the_boards_offsets_no_resume_is_planned(g2: tuple[Running, Rpc]) -> None:

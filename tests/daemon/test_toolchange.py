@@ -43,7 +43,9 @@ async def _daemon(tmp_path: Path, policy: str, **extra: Any) -> AsyncIterator[tu
 
 @pytest_asyncio.fixture
 async def paused(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
-    async with _daemon(tmp_path, "pause") as both:
+    # A safe height of their own: these boards are never homed, and a recovery plans
+    # from it (Machine.safe_height: the Z travel's top counts only on a homed machine).
+    async with _daemon(tmp_path, "pause", safe_z=0.0) as both:
         yield both
 
 
@@ -192,12 +194,12 @@ async def test_a_job_whose_link_was_lost_at_a_tool_change_is_recovered_as_any_ot
 
 
 async def test_a_daemon_stopped_while_waiting_leaves_a_recoverable_job(tmp_path: Path) -> None:
-    async with _daemon(tmp_path, "pause") as (_, rpc):
+    async with _daemon(tmp_path, "pause", safe_z=0.0) as (_, rpc):
         job_id = await _start(rpc, GRBL, "two.nc", TWO_TOOLS)
         await _waiting(rpc, GRBL, job_id, 3)
         await rpc.call("job.tool_change_done", machine=GRBL)
         await _waiting(rpc, GRBL, job_id, 6, changes=1)
-    async with _daemon(tmp_path, "pause") as (_, rpc):
+    async with _daemon(tmp_path, "pause", safe_z=0.0) as (_, rpc):
         job = await rpc.call("job.get", job=job_id)
         assert job["state"] == "interrupted"
         assert [(c["tool"], c["line"]) for c in job["tool_changes"]] == [(1, 3)]
@@ -302,6 +304,30 @@ async def test_probe_measures_each_tool_and_offsets_the_longer_one(
         # job's X and feed went on where they were (back over X2, then X3 at its F).
         assert end["machine_position"]["z"] == pytest.approx(-2.0, abs=0.01)
         assert end["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_probe_on_an_unhomed_machine_without_safe_z_moves_nothing(
+    tmp_path: Path, machine: str
+) -> None:
+    """The way to the sensor starts at the safe height. Unhomed, the Z travel's top is
+    no place (machine coordinates count from where the board was switched on) and
+    `G53 G0 Z<top>` could go down, or into the end stop: without `safe_z` the answer
+    is refused, nothing is written, and the job still waits for it."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    async with _daemon(tmp_path, "probe", probe=probe) as (running, rpc):
+        sim = running.daemon.sims[machine]
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "probed.nc", PROBED)
+        before = await _waiting(rpc, machine, job_id, 3)
+        with pytest.raises(RpcFailure) as refused:
+            await rpc.call("job.tool_change_done", machine=machine)
+        assert "safe_z" in refused.value.message and "home" in refused.value.message
+        now = await rpc.call("machine.status", machine=machine)
+        assert now["machine_position"] == before["machine_position"]
+        assert now["tool_change"] == {"tool": 1, "line": 3}
+        assert (await rpc.call("job.get", job=job_id))["state"] == "paused"
+        await rpc.call("job.cancel", machine=machine)
 
 
 @pytest.mark.parametrize("machine", MACHINES)

@@ -309,6 +309,12 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         page = await browser.new_page()
         await log_in(page, web)
         rpc = await web.hostd.client()
+        # Homed first, as an operator does: a resume climbs to the Z travel's top, which
+        # is a place only on a homed machine (this one has no safe_z). Homed, the travel
+        # check runs: the work's Z zero is put mid-travel, where the file's Z-1 fits.
+        await page.click("#home")
+        await expect(page.locator("#homed")).to_have_text("yes")
+        await rpc.call("machine.send", machine="sim1", line="G10 L2 P1 X10 Y10 Z50")
         await upload(page, tmp_path, "pocket.nc", program)
         await page.fill("#from-line-number", "5")
         await page.click("#from-line button")

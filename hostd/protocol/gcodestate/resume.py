@@ -167,7 +167,10 @@ def plan_resume(
     preamble = [_supported(text, dialect) for text in off.preamble("M6" not in dialect.unsupported)]
     preamble = [text for text in preamble if text]
     if safe_z is None:
-        raise ResumeError("no safe height: set the machine's safe_z, or read its travel")
+        raise ResumeError(
+            "no safe height: set the machine's safe_z, or home it so that the top of "
+            "its Z travel is known"
+        )
     target = _target(state, line)
     scale = state.scale
     places = 6 if state.units == "G20" else 4  # a micron either way
