@@ -862,7 +862,12 @@ async function onLink(up) {
   select.replaceChildren(...info.machines.map((id) => new Option(id, id)));
   view.machine = info.machines.includes(view.machine) ? view.machine : info.machines[0] || null;
   select.value = view.machine || "";
-  await act("subscribe", { topics: ["status", "supervisor", "fault", "job", "console", "exception"] });
+  // job_lines: false: a running job's own lines and their plain `ok`s stay out of the console
+  // (a laser sends 1,000-2,000 a second, two messages each); the job row shows its progress.
+  await act("subscribe", {
+    topics: ["status", "supervisor", "fault", "job", "console", "exception"],
+    job_lines: false,
+  });
   if (view.machine) { await refreshMachine(); await refreshHistory(); await refreshMacros(); }
   await refreshFiles();
 }
