@@ -14,6 +14,16 @@ report is one read). The figure is the daemon side's CPU (`time.process_time`:
 the Python, the `send` syscalls) per notification, all subscribers included,
 the best of `--repeats` runs. `--profile` prints cProfile's top functions
 instead.
+
+    python -m bench.fanout --console all|but-job|off [--dialect grbl|g2core] [--lines N]
+
+The console's own cost a job line, as bench/perline.py measures the line's
+path (a real engine and session, an in-process board, no I/O), with the
+engine publishing its console as a subscriber asks: `all` (api.md's
+default: every line and answer an event, each encoded as the notification),
+`but-job` (`job_lines: false`: a running job's own lines and their plain
+answers not made into events) or `off` (nobody listens). CPU a line, the
+best of `--repeats` jobs.
 """
 
 from __future__ import annotations
@@ -109,6 +119,44 @@ async def run(subscribers: int, notifications: int, per_pass: int, profile: bool
             return spent / notifications
 
 
+async def console_job(dialect: str, lines: int, console: str) -> float:
+    """bench.perline's job, its engine's console as `console` says; CPU seconds."""
+    from bench.client import program
+    from bench.perline import Board, _connect, config
+    from hostd.api.methods.subscriptions import console_notification
+    from hostd.link import Channel
+    from hostd.machine.engine import Engine
+    from hostd.machine.events import Console, EngineEvent
+    from hostd.machine.stream import JobStream
+    from hostd.protocol.program import program_lines
+
+    sent: list[int] = [0]
+
+    def listener(event: EngineEvent) -> None:
+        if isinstance(event, Console):
+            sent[0] += len(console_notification(event))
+
+    engine = Engine(config(dialect), listener)
+    board = Board(dialect)
+    await _connect(engine, board)
+    engine.console = console == "all"
+    engine.console_but_job = console != "off"
+    stream = JobStream(iter(program_lines(program(lines).splitlines())), 1, numbered=True)
+    board.expected = lines
+    cpu0 = time.process_time()
+    engine.start_stream(stream)
+    while not stream.done:
+        answers = board.read()
+        if not answers:
+            engine.query_status()
+            continue
+        engine.link_lines(Channel.DATA, answers)
+    cpu = time.process_time() - cpu0
+    if stream.acked != lines:
+        raise RuntimeError(f"{dialect}: {stream.acked} of {lines} acked")
+    return cpu
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bench.fanout", description=__doc__.split("\n")[0])
     parser.add_argument("--subscribers", type=int, default=20)
@@ -117,8 +165,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--event-loop", choices=("uvloop", "asyncio"), default="uvloop")
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--console", choices=("all", "but-job", "off"))
+    parser.add_argument("--dialect", choices=("g2core", "grbl"), default="grbl")
+    parser.add_argument("--lines", type=int, default=20_000)
     args = parser.parse_args(argv)
     configure_logging("warning")
+    if args.console is not None:
+        runs = [
+            asyncio.run(console_job(args.dialect, args.lines, args.console))
+            for _ in range(args.repeats)
+        ]
+        sys.stdout.write(
+            f"{args.dialect}, console {args.console}: "
+            f"{min(runs) / args.lines * 1e6:.2f} us CPU a line (best of {args.repeats})\n"
+        )
+        return 0
     loop_factory = asyncio.new_event_loop
     if args.event_loop == "uvloop":
         import uvloop
