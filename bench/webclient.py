@@ -28,7 +28,9 @@ from collections.abc import Mapping
 import aiohttp
 
 TOPICS = ["status", "supervisor", "fault", "job", "console", "exception"]
-SUBSCRIBE = {"topics": TOPICS, "job_lines": False}  # as app.js asks
+# The page's traffic: app.js makes the console its own subscription (job_lines false unless
+# its "job lines" box is ticked); one subscription of them all gets the same messages.
+SUBSCRIBE = {"topics": TOPICS, "job_lines": False}
 
 
 async def run(url: str, token: str) -> dict[str, int | bool]:

@@ -397,6 +397,19 @@ async def test_the_laser_console_leaves_out_a_jobs_own_lines_and_their_oks(
         assert not [line for line in sent if "G1 X" in line or "G21 G90" in line]
         # Each `ok` shown answers a line shown: none of the job's 21 is there.
         assert sum(line == "← ok" for line in lines) <= len(sent)
+
+        # Asked for (the "job lines" box), the next job's lines are shown, with their oks.
+        await page.check("#console-job")
+        await expect(page.locator("#console-job")).to_have_attribute("data-subscribed", "true")
+        again = await rpc.call("job.start", machine="sim1", file="raster.nc")
+        await rpc.notification(
+            lambda n: (
+                n["params"]["job"]["id"] == again["job"]
+                and n["params"]["job"]["state"] == "completed"
+            )
+        )
+        await expect(page.locator("#console")).to_contain_text(f"→ N21 {moves[-1]}")
+        await expect(page.locator("#console")).to_contain_text("← ok")
         await rpc.close()
 
 
