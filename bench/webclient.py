@@ -6,8 +6,10 @@ What the page does when it opens (hostd/web/static/app.js, `onLink`): it
 connects to `/api` with its session (here the same token as a Bearer
 header, which the server takes as it takes the login cookie, hostd/api/web.py
 `_token`), asks `daemon.info`, and subscribes to `status`, `supervisor`,
-`fault`, `job`, `console` and `exception` for every machine. The console
-topic is the costly one: every line written and read, on every machine.
+`fault`, `job`, `console` and `exception` for every machine, with
+`job_lines: false` (since issue 30: a running job's own lines and their
+plain answers are left out of its console; before, every line written and
+read on every machine was a message, two a line).
 The client reads every message as soon as it comes and counts them (no
 JSON parsing: a page that parses slowly is its own problem, not the
 daemon's); it prints `ready` once subscribed, and on `stop` (stdin) one
@@ -26,6 +28,9 @@ from collections.abc import Mapping
 import aiohttp
 
 TOPICS = ["status", "supervisor", "fault", "job", "console", "exception"]
+# The page's traffic: app.js makes the console its own subscription (job_lines false unless
+# its "job lines" box is ticked); one subscription of them all gets the same messages.
+SUBSCRIBE = {"topics": TOPICS, "job_lines": False}
 
 
 async def run(url: str, token: str) -> dict[str, int | bool]:
@@ -35,7 +40,7 @@ async def run(url: str, token: str) -> dict[str, int | bool]:
         session.ws_connect(f"{url}/api", max_msg_size=0) as ws,
     ):
         for msg_id, (method, params) in enumerate(
-            [("daemon.info", {}), ("subscribe", {"topics": TOPICS})], 1
+            [("daemon.info", {}), ("subscribe", SUBSCRIBE)], 1
         ):
             await _call(ws, msg_id, method, params)
         sys.stdout.write("ready\n")

@@ -163,6 +163,9 @@ class Client:
         self._writer_task: asyncio.Task[None] | None = None
         # Messages to write at the end of this loop pass, while the socket keeps up.
         self._staged: list[bytes] = []
+        # Looked up once, not once a message: a notification to 50 subscribers is 50 calls.
+        self._transport = writer.transport if writer is not None else None
+        self._flusher: _Flusher | None = None  # this loop's, from the first message staged
 
     @property
     def pid(self) -> int:
@@ -204,15 +207,21 @@ class Client:
         """
         if self._closed or self._ending:
             return False
-        if self._staged or self._keeps_up():
+        staged = self._staged
+        if staged:
             # The line itself: a notification's one encoding is shared by every subscriber.
-            self._staged.append(line)
-            if len(self._staged) == 1:
-                _flusher().add(self)
-            elif len(self._staged) > self._queue_size:
+            staged.append(line)
+            if len(staged) > self._queue_size:
                 self.log.warning("api client not reading; disconnected", bound=self._queue_size)
                 self.close(f"outbound queue over {self._queue_size} messages")
                 return False
+            return True
+        if self._keeps_up():
+            staged.append(line)
+            flusher = self._flusher
+            if flusher is None:
+                flusher = self._flusher = _flusher()
+            flusher.add(self)
             return True
         return self._enqueue(line)
 
@@ -228,10 +237,13 @@ class Client:
 
     def _direct_transport(self) -> asyncio.WriteTransport | None:
         """Where staged messages may be written straight, or None (always through the task)."""
-        return self._writer.transport if self._writer is not None else None
+        return self._transport
 
     def _write_staged(self, transport: asyncio.WriteTransport, messages: list[bytes]) -> None:
         """Messages as this connection frames them, in one write: a newline after each."""
+        if len(messages) == 1:  # the usual case: one notification this pass
+            transport.write(messages[0] + b"\n")
+            return
         messages.append(b"")  # the last message's newline
         transport.write(b"\n".join(messages))
 

@@ -98,6 +98,13 @@ class Engine:
         self.link: Link | None = None
         self.link_state = LinkState.DOWN
         self.console = False  # publish every line sent and received (someone listens)
+        # Publish every line but a running job's own and their plain answers (someone
+        # listens without them: `job_lines: false`). Without `console` those lines are not
+        # even decoded: at a laser's 1,000-2,000 lines/s they were two events a line.
+        self.console_but_job = False
+        # The job's `sent` count at the last write: the lines it wrote since are the job's.
+        self._sent_stream: object = None
+        self._sent_seen = 0
         self._restart_deadline: float | None = None  # a reset is under way until then
         self._delivering = False  # the delivery loop runs: a nested call leaves it the work
         self._handing_out = False  # events go up now: a command given meanwhile is queued
@@ -263,25 +270,48 @@ class Engine:
         """
         if self.link is None:
             return  # a read that raced the teardown
-        if self._traffic_logged or self.console:
+        if self._traffic_logged:
             for line in lines:
-                if self._traffic_logged:
-                    self._log.debug("rx", channel=channel.value, line=line)
-                if self.console:
-                    self._publish_console("rx", channel, line)
+                self._log.debug("rx", channel=channel.value, line=line)
         session = self.session
         receive = session.receive
-        for line in lines:
-            try:
-                receive(line)
-            except Exception as exc:  # a bug of ours: stop writing, keep reading
-                self._log.exception("engine invariant broken")
-                session.halt(f"{type(exc).__name__}: {exc}")
+        if self.console or self.console_but_job:
+            self._receive_published(channel, lines)
+        else:
+            for line in lines:
+                try:
+                    receive(line)
+                except Exception as exc:  # a bug of ours: stop writing, keep reading
+                    self._log.exception("engine invariant broken")
+                    session.halt(f"{type(exc).__name__}: {exc}")
         try:
             self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
+
+    def _receive_published(self, channel: Channel, lines: list[bytes]) -> None:
+        """`receive` for each line, each published as a console event after it is taken.
+
+        After, so that the job's count says whether the line was the plain answer
+        (status 0) to one of the job's lines: the stream's `acked` moved by one. The
+        event still goes out before any the line caused (those are handed out once
+        the whole read is taken).
+        """
+        session = self.session
+        receive = session.receive
+        for line in lines:
+            stream = session.stream
+            acked = stream.acked if stream is not None else 0
+            try:
+                receive(line)
+            except Exception as exc:  # a bug of ours: stop writing, keep reading
+                self._log.exception("engine invariant broken")
+                session.halt(f"{type(exc).__name__}: {exc}")
+            job = stream is not None and stream.acked == acked + 1
+            if job and not self.console:
+                continue
+            self._publish_console("rx", channel, line, job)
 
     def link_lost(self, reason: str) -> None:
         self._end(reason)
@@ -351,6 +381,7 @@ class Engine:
         if link is None:
             return
         ok = True
+        job = (self.console or self.console_but_job) and self._all_data_is_job(writes)
         batch: list[bytes] = []
         batch_lane: Lane | None = None
         for lane, data in writes:
@@ -358,7 +389,7 @@ class Engine:
                 batch.append(data)
                 continue
             if batch_lane is not None:
-                ok = self._write_batch(link, batch_lane, batch) and ok
+                ok = self._write_batch(link, batch_lane, batch, job) and ok
             if lane is Lane.REALTIME:
                 ok = link.write_realtime(data) and ok
                 self._tx(link, lane, [data])
@@ -366,18 +397,37 @@ class Engine:
             else:
                 batch, batch_lane = [data], lane
         if batch_lane is not None:
-            ok = self._write_batch(link, batch_lane, batch) and ok
+            ok = self._write_batch(link, batch_lane, batch, job) and ok
         # A failed write means the link is already gone: the lines stay booked,
         # and teardown accounts for them with every other unanswered line.
         self._write_failed = not ok
 
-    def _write_batch(self, link: Link, lane: Lane, lines: list[bytes]) -> bool:
+    def _all_data_is_job(self, writes: list[tuple[Lane, bytes]]) -> bool:
+        """Whether every data-lane line of these writes is a line of the running job.
+
+        The job's `sent` count moves when the session books a job line for writing,
+        so the lines it moved by since the last write are the job's. Only when they
+        are all the data lines here (no query admitted among them) are they called
+        the job's; otherwise all are shown: leaving out too little is harmless.
+        """
+        stream = self.session.stream
+        if stream is None:
+            self._sent_stream = None
+            return False
+        sent = stream.sent
+        before = self._sent_seen if self._sent_stream is stream else 0
+        self._sent_stream, self._sent_seen = stream, sent
+        if sent == before:
+            return False
+        return sent - before == sum(1 for lane, _ in writes if lane is Lane.DATA)
+
+    def _write_batch(self, link: Link, lane: Lane, lines: list[bytes], job: bool) -> bool:
         ok = link.write_lines(lines, control=lane is Lane.CONTROL)
-        self._tx(link, lane, lines)
+        self._tx(link, lane, lines, job and lane is Lane.DATA)
         return ok
 
-    def _tx(self, link: Link, lane: Lane, lines: list[bytes]) -> None:
-        if not (self._traffic_logged or self.console):
+    def _tx(self, link: Link, lane: Lane, lines: list[bytes], job: bool = False) -> None:
+        if not (self._traffic_logged or self.console or self.console_but_job):
             return
         if not self._traffic_logged:
             pass  # the console listens; no debug record is kept
@@ -386,10 +436,10 @@ class Engine:
         else:
             for line in lines:
                 self._log.debug("tx", lane=lane.value, line=line)
-        if self.console:
+        if self.console or (self.console_but_job and not job):
             channel = Channel.CONTROL if lane is not Lane.DATA and link.dual else Channel.DATA
             for line in lines:
-                self._publish_console("tx", channel, line)
+                self._publish_console("tx", channel, line, job)
 
     def _hand_out(self, events: list[Event]) -> None:
         self._handing_out = True
@@ -644,9 +694,11 @@ class Engine:
 
     # -- helpers -------------------------------------------------------------
 
-    def _publish_console(self, direction: str, channel: Channel, line: bytes) -> None:
+    def _publish_console(
+        self, direction: str, channel: Channel, line: bytes, job: bool = False
+    ) -> None:
         text = line.rstrip(b"\n").decode("utf-8", "backslashreplace")
-        self._up(Console(self.id, direction, str(channel), text))
+        self._up(Console(self.id, direction, str(channel), text, job))
 
     def _publish_link(self, up: bool, reason: str) -> None:
         self._up(LinkChanged(self.id, up, reason))

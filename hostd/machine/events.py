@@ -52,6 +52,9 @@ class Console:
     direction: str  # "tx" | "rx"
     channel: str  # "data" | "control"
     text: str
+    # A running job's own line, or a board's plain answer (status 0) to one: what a
+    # subscription with `job_lines: false` leaves out (docs/api.md).
+    job: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -378,6 +378,16 @@ class Machine:
     def console(self, listening: bool) -> None:
         self.engine.console = listening
 
+    @property
+    def console_but_job(self) -> bool:
+        """Whether the engine publishes every line but a running job's own and their plain
+        answers (someone listens to the console without them)."""
+        return self.engine.console_but_job
+
+    @console_but_job.setter
+    def console_but_job(self, listening: bool) -> None:
+        self.engine.console_but_job = listening
+
     async def send(self, line: str, timeout: float = 10.0) -> Response:
         """One line, through the same admission as any other; its answer.
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import base64
 import itertools
+import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -303,6 +305,59 @@ async def test_subscriptions_deliver_topics_and_stop_after_unsubscribe(rpc: Rpc)
     await fails(-32602, rpc.call("unsubscribe", subscription=sub["subscription"]))
     await fails(-32602, rpc.call("subscribe", topics=["weather"]))
     await fails(1001, rpc.call("subscribe", topics=["status"], machine="nope"))
+
+
+async def _drained(rpc: Rpc) -> list[dict[str, Any]]:
+    """The console notifications this client was sent until now, in order."""
+    await rpc.call("daemon.info")  # answers follow every notification queued before them
+    out = []
+    while not rpc.notifications.empty():
+        note = rpc.notifications.get_nowait()
+        if note["method"] == "console":
+            out.append(note["params"])
+    return out
+
+
+async def test_a_console_subscription_can_leave_out_a_jobs_own_lines(
+    hostd: Running, rpc: Rpc
+) -> None:
+    # Moves long enough for the simulated board, each line told apart by its X.
+    moves = [f"G1 X{i}.25 Y{i % 3} F3000" for i in range(1, 31)]
+    await rpc.call("file.upload", name="lines.gcode", data="G21 G90\n" + "\n".join(moves))
+    lean, watcher = await hostd.client(), await hostd.client()
+    try:
+        await rpc.call("subscribe", topics=["console"], machine="sim1")
+        await lean.call("subscribe", topics=["console"], machine="sim1", job_lines=False)
+        await fails(-32602, lean.call("subscribe", topics=["console"], job_lines="no"))
+        await watcher.call("subscribe", topics=["job"], machine="sim1")
+        started = await rpc.call("job.start", machine="sim1", file="lines.gcode")
+        assert (await job_end(watcher, started["job"]))["state"] == "completed"
+        await rpc.call("machine.send", machine="sim1", line="{yvm:n}")  # the operator's own
+        full = await _drained(rpc)
+        kept = await _drained(lean)
+    finally:
+        await lean.close()
+        await watcher.close()
+
+    # The default, as api.md says: every job line written, and an answer for each.
+    sent = [n["text"] for n in full if n["direction"] == "tx"]
+    for move in moves:
+        assert sum(move in text for text in sent) == 1, move
+    # Without the job's lines: what is left is the rest of the same stream, in its order.
+    rest = iter(full)
+    assert all(any(n == m for m in rest) for n in kept), "not a subsequence of the full console"
+    left_out = list(full)
+    for n in kept:
+        left_out.remove(n)
+    tx_out = [n["text"] for n in left_out if n["direction"] == "tx"]
+    rx_out = [n["text"] for n in left_out if n["direction"] == "rx"]
+    assert len(tx_out) == len(moves) + 1  # the job's lines, its `G21 G90` too
+    assert all(move in text for move, text in zip(moves, tx_out[1:], strict=True))
+    assert len(rx_out) == len(tx_out)  # one plain answer each, nothing else
+    assert all(json.loads(text)["f"][1] == 0 for text in rx_out)  # status 0 every one
+    # The operator's line and its answer still come.
+    assert any(n["direction"] == "tx" and "yvm" in n["text"] for n in kept)
+    assert any(n["direction"] == "rx" and "yvm" in n["text"] for n in kept)
 
 
 async def test_a_client_cannot_end_another_clients_subscription(hostd: Running, rpc: Rpc) -> None:

@@ -371,6 +371,54 @@ async def test_the_laser_console_leaves_out_the_status_polls(
         await expect(page.locator("#console")).to_contain_text("<Idle")
 
 
+async def test_the_laser_console_leaves_out_a_jobs_own_lines_and_their_oks(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    # The page subscribes with job_lines false: a raster's lines, 1,000 a second and an
+    # `ok` each, are not an operator's console; the job row shows the progress.
+    moves = [f"G1 X{i}.5 Y{i % 4} F600" for i in range(1, 21)]
+    async with running_web(tmp_path, machine=GRBL) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#console-hidden")).to_contain_text("hidden")
+        rpc = await web.hostd.client()
+        await rpc.call("subscribe", topics=["job"], machine="sim1")
+        await rpc.call("file.upload", name="raster.nc", data="G21 G90\n" + "\n".join(moves))
+        started = await rpc.call("job.start", machine="sim1", file="raster.nc")
+        end = await rpc.notification(
+            lambda n: (
+                n["params"]["job"]["id"] == started["job"]
+                and n["params"]["job"]["state"] not in ("running", "paused")
+            )
+        )
+        assert end["params"]["job"]["state"] == "completed"
+        await expect(page.locator("#history tbody tr").first).to_contain_text("completed")
+        await page.fill("#send-line", "$G")  # the operator's own line, and its answer
+        await page.click("#send button")
+        await expect(page.locator("#console")).to_contain_text("→ $G")
+        await expect(page.locator("#console")).to_contain_text("← [GC:")
+        await expect(page.locator("#console")).to_contain_text("← ok")
+        lines = (await page.locator("#console").inner_text()).splitlines()
+        sent = [line for line in lines if line[:1] == "→"]
+        assert not [line for line in sent if "G1 X" in line or "G21 G90" in line]
+        # Each `ok` shown answers a line shown: none of the job's 21 is there.
+        assert sum(line == "← ok" for line in lines) <= len(sent)
+
+        # Asked for (the "job lines" box), the next job's lines are shown, with their oks.
+        await page.check("#console-job")
+        await expect(page.locator("#console-job")).to_have_attribute("data-subscribed", "true")
+        again = await rpc.call("job.start", machine="sim1", file="raster.nc")
+        await rpc.notification(
+            lambda n: (
+                n["params"]["job"]["id"] == again["job"]
+                and n["params"]["job"]["state"] == "completed"
+            )
+        )
+        await expect(page.locator("#console")).to_contain_text(f"→ N21 {moves[-1]}")
+        await expect(page.locator("#console")).to_contain_text("← ok")
+        await rpc.close()
+
+
 async def test_the_position_fits_at_1280_and_the_panel_at_390(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:

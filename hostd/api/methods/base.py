@@ -20,7 +20,7 @@ import structlog
 
 from hostd.api.appends import Appends
 from hostd.api.files import JobsDir, NoSuchFileError
-from hostd.api.methods.subscriptions import Subscriptions, publish
+from hostd.api.methods.subscriptions import JOB_LINES, Subscriptions, publish
 from hostd.api.rpc import RpcError
 from hostd.daemon import Daemon
 from hostd.machine.machine import Machine
@@ -51,7 +51,10 @@ class Api:
     def _console_interest(self) -> None:
         """Engines publish their raw traffic only while someone listens to it."""
         for machine in self.daemon.machines.values():
-            machine.console = self.subscriptions.wants("console", machine.id)
+            # Every line for a subscription that keeps a job's lines (api.md's default);
+            # all but those for one that asked `job_lines: false`.
+            machine.console = self.subscriptions.wants(JOB_LINES, machine.id)
+            machine.console_but_job = self.subscriptions.wants("console", machine.id)
 
     def attach(self) -> None:
         """Listen to every machine (call once the daemon has built them)."""

@@ -38,9 +38,24 @@ TOPICS = ("status", "exception", "supervisor", "fault", "job", "console", "probe
 Topic = Literal["status", "exception", "supervisor", "fault", "job", "console", "probe"]
 
 
+# Where a running job's own console lines go: the `console` subscriptions that did not
+# ask to leave them out (`job_lines: false`). Not a topic a client names; a routing key.
+JOB_LINES = "console.job"
+
+
 class SubscribeParams(Params):
     topics: Annotated[list[Topic], Field(min_length=1)]
     machine: MachineId | None = None
+    # An addition to api.md's `subscribe` (optional, default as api.md says): false leaves a
+    # running job's own lines, and the board's plain answers to them, out of `console`.
+    job_lines: Annotated[
+        bool,
+        Field(
+            strict=True,
+            description="false: `console` leaves out a running job's own lines and the "
+            "board's plain answers to them (docs/api.md, Additions)",
+        ),
+    ] = True
 
 
 class UnsubscribeParams(Params):
@@ -99,8 +114,20 @@ class Subscriptions:
     def __len__(self) -> int:
         return len(self._subs)
 
-    def add(self, owner: object, send: Send, topics: list[str], machine: str | None) -> int:
-        """A new subscription's id. Raises RpcError(-32000) past either bound."""
+    def add(
+        self,
+        owner: object,
+        send: Send,
+        topics: list[str],
+        machine: str | None,
+        *,
+        job_lines: bool = True,
+    ) -> int:
+        """A new subscription's id. Raises RpcError(-32000) past either bound.
+
+        A `console` subscription gets a running job's own lines (the `JOB_LINES`
+        routing key) unless `job_lines` is False.
+        """
         if self._owned[id(owner)] >= self.max_per_client:
             why = f"subscription limit: {self.max_per_client} per client; unsubscribe first"
             raise RpcError(SUBSCRIPTIONS_FULL, why)
@@ -109,7 +136,10 @@ class Subscriptions:
         self._owned[id(owner)] += 1
         sub_id = self._next
         self._next += 1
-        sub = _Subscription(owner, send, frozenset(topics), machine)
+        keys = set(topics)
+        if job_lines and "console" in keys:
+            keys.add(JOB_LINES)
+        sub = _Subscription(owner, send, frozenset(keys), machine)
         self._subs[sub_id] = sub
         self._interest.update((topic, machine) for topic in sub.topics)
         self._changed()
@@ -207,8 +237,9 @@ def publish(subs: Subscriptions, machine: Machine, event: Event) -> None:
     """One machine event as the notification of its topic, to whoever wants it."""
     mid = machine.id
     if isinstance(event, Console):  # first: two a line while someone listens
-        if subs.wants("console", mid):
-            subs.deliver_line("console", mid, console_notification(event))
+        key = JOB_LINES if event.job else "console"
+        if subs.wants(key, mid):
+            subs.deliver_line(key, mid, console_notification(event))
     elif isinstance(event, StatusChanged):
         if subs.wants("status", mid):
             snapshot = machine.snapshot()
@@ -236,13 +267,24 @@ class SubscriptionMethods:
         self.api = api
 
     async def subscribe_client(self, p: SubscribeParams) -> dict[str, Any]:
-        """Topics for the calling client, delivered through its bounded queue until it leaves."""
+        """Topics for the calling client, delivered through its bounded queue until it leaves.
+
+        `job_lines` (optional, default true; an addition to api.md): false leaves a
+        running job's own lines, and the board's plain answers to them (status 0),
+        out of this subscription's `console` topic; every other line still comes
+        (the operator's commands, queries, errors, alarms, status traffic). A
+        dashboard follows the job by the `job` topic's progress instead: at a
+        laser's 1,000-2,000 lines a second, the job's lines were two console
+        notifications a line that nobody could read.
+        """
         if p.machine is not None:
             self.api.machine(p.machine)
         client = current_client()
         if not self.api.subscriptions.has(client):
             client.on_disconnect.append(partial(self.api.subscriptions.remove_all, client))
-        sub_id = self.api.subscriptions.add(client, client.send_line, list(p.topics), p.machine)
+        sub_id = self.api.subscriptions.add(
+            client, client.send_line, list(p.topics), p.machine, job_lines=p.job_lines
+        )
         if client.closed:  # it left while this request ran: its hooks may have run already
             self.api.subscriptions.remove_all(client)
         return {"subscription": sub_id}

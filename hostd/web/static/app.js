@@ -70,6 +70,7 @@ const view = {
   rate: null, // {acked, at, perSecond}
   console: [],
   consoleHidden: 0, // status polls and reports left out of the console
+  consoleSub: null, // this connection's console subscription (job lines or not, as the box says)
   macros: [],
   preview: { mode: "top", zoom: 1, panX: 0, panY: 0, toCanvas: null },
   keyJog: null, // the key whose continuous jog runs ("hold key" step)
@@ -855,16 +856,30 @@ async function refreshMachine() {
 async function onLink(up) {
   $("link").textContent = up ? "live" : "offline";
   $("link").className = up ? "link up" : "link down";
-  if (!up) { stopKeyJog(); view.snapshots.clear(); updateEnabled(); return; }
+  if (!up) { stopKeyJog(); view.snapshots.clear(); view.consoleSub = null; updateEnabled(); return; }
   const info = await act("daemon.info");
   if (!info) return;
   const select = $("machine");
   select.replaceChildren(...info.machines.map((id) => new Option(id, id)));
   view.machine = info.machines.includes(view.machine) ? view.machine : info.machines[0] || null;
   select.value = view.machine || "";
-  await act("subscribe", { topics: ["status", "supervisor", "fault", "job", "console", "exception"] });
+  await act("subscribe", { topics: ["status", "supervisor", "fault", "job", "exception"] });
+  await subscribeConsole();
   if (view.machine) { await refreshMachine(); await refreshHistory(); await refreshMacros(); }
   await refreshFiles();
+}
+
+// Unless the "job lines" box is ticked, a running job's own lines and their plain `ok`s stay
+// out of the console (job_lines: false, docs/api.md): a laser sends 1,000-2,000 a second, two
+// messages each, which no one reads; the job row shows the progress. The new subscription is
+// made before the old one ends: one client gets each notification once, so nothing is lost.
+async function subscribeConsole() {
+  const box = $("console-job");
+  const previous = view.consoleSub;
+  const sub = await act("subscribe", { topics: ["console"], job_lines: box.checked });
+  view.consoleSub = sub ? sub.subscription : previous;
+  if (sub && previous !== null) await act("unsubscribe", { subscription: previous });
+  if (sub) box.dataset.subscribed = String(box.checked); // what the daemon sends now
 }
 
 async function upload(event) {
@@ -1021,6 +1036,7 @@ function wire() {
     if (answer) { $("send-line").value = ""; showConsole({ machine: view.machine, direction: "rx", text: JSON.stringify(answer) }); }
   });
   $("console-polls").addEventListener("change", () => { view.consoleHidden = 0; $("console-hidden").textContent = ""; });
+  $("console-job").addEventListener("change", subscribeConsole);
   $("logout").addEventListener("click", async () => {
     await fetch("/logout", { method: "POST" });
     location.replace("/login");
