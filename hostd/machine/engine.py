@@ -271,12 +271,19 @@ class Engine:
                     self._publish_console("rx", channel, line)
         session = self.session
         receive = session.receive
-        for line in lines:
+        plain = session.receive_plain  # a run of plain job answers, in one pass
+        count = len(lines)
+        index = 0
+        while index < count:
+            at = index
             try:
-                receive(line)
+                at = plain(lines, index)
+                if at < count:
+                    receive(lines[at])  # anything else, read in full, at its place
             except Exception as exc:  # a bug of ours: stop writing, keep reading
                 self._log.exception("engine invariant broken")
                 session.halt(f"{type(exc).__name__}: {exc}")
+            index = at + 1
         try:
             self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
