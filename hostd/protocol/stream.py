@@ -46,6 +46,11 @@ from hostd.protocol.vocabulary import StreamEnd, StreamResult
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
 LOOK_AHEAD = 8  # lines fed and encoded ahead of the flow control's room
 _PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
+_DOLLAR = ord("$")
+# Bytes looked for as their values: `77 in line` is a byte search, where `b"M" in line`
+# first tries the bytes as an integer, and raises and clears a TypeError, each time
+# (CPython 3.11 `_Py_bytes_contains`): 20 ns against 230 ns, at every job line.
+_M, _m = ord("M"), ord("m")
 
 
 class Stream:
@@ -192,7 +197,7 @@ class Stream:
         entry = self._next
         assert entry is not None
         line = entry.line
-        if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
+        if (_M in line or _m in line) and _PROGRAM_PAUSE.search(line):
             self.program_pause_sent = True
         number = entry.file_line
         assert number is not None
@@ -223,13 +228,16 @@ class Stream:
             self._next = None
         taken: list[InFlight] = []
         append = taken.append
+        popleft = ahead.popleft
+        flight = InFlight
+        pause = _PROGRAM_PAUSE.search
         sent_line = self._sent_line
         while ahead and room > 0:
             entry = ahead[0]
-            if type(entry) is not InFlight or entry.control:
+            if type(entry) is not flight or entry.control:
                 break
             line = entry.line
-            if line[:1] == b"$" or (special is not None and special(line)):
+            if line[0] == _DOLLAR or (special is not None and special(line)):
                 break
             if by_bytes:
                 room -= len(line)
@@ -237,12 +245,11 @@ class Stream:
                     break
             else:
                 room -= 1
-            ahead.popleft()
+            popleft()
             append(entry)
-            if (b"M" in line or b"m" in line) and _PROGRAM_PAUSE.search(line):
+            if (_M in line or _m in line) and pause(line):
                 self.program_pause_sent = True
-            number = entry.file_line
-            assert number is not None
+            number: int = entry.file_line  # type: ignore[assignment]  # a job's line has one
             if number > sent_line:  # file lines only grow; a resume's preamble is line 0
                 if self._first_line is None:
                     self._first_line = number

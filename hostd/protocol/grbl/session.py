@@ -921,10 +921,10 @@ class GrblSession(SessionBase):
             # it left (a `$` line, one that may store, one that does not fit).
             taken = stream.take_run(room - self._rx_used, by_bytes=True, special=_MAY_STORE)
             if taken:
-                lines = [entry.line for entry in taken]
                 inflight.extend(taken)
-                self._rx_used += sum(map(len, lines))
-                out.extend([(data, line) for line in lines])
+                pairs = [(data, entry.line) for entry in taken]
+                out.extend(pairs)
+                self._rx_used += sum([len(line) for _, line in pairs])
         while True:
             entry = stream.peek()
             if entry is None:
