@@ -6,8 +6,8 @@ A read that holds only plain answers to a job's lines is taken in one pass
 count: here a real `Engine` with each dialect's real session streams random
 jobs twice, fast path on and off, against a board that answers the same
 way both times (the answers split into reads at random, error answers,
-status reports in the middle of a read, a pause and a resume, a feedhold
-between reads), and everything the two runs wrote, told and counted is
+status reports in the middle of a read, a pause (its `!`) and a resume
+between reads, hold points released), and everything the two runs wrote, told and counted is
 compared. Both runs also check, at every write, the rules that must never
 break: the window and the receive buffer are never exceeded, no job line is
 written while the job is paused, and a realtime byte leaves in the write of
@@ -55,6 +55,7 @@ SPECIAL = [
     "G1 X1e5",  # refused on the host: the job fails when its turn comes
     "$X",  # a `$` line in a job
     "M2",
+    "M6 T1",  # a hold point: the job holds before it until released
 ]
 G2_ONLY = ['{"sr":null}']  # a job's own JSON line: the control lane
 GRBL_ONLY = ["$N", "$G"]  # views whose `ok` the general path reads in full (`$N`: startup blocks)
@@ -215,7 +216,8 @@ async def _run(dialect: str, fast: bool, job: list[str], seed: int, error_rate: 
             engine.query_status()
     assert engine.ready
     board.writes.clear()
-    stream = JobStream(iter(program_lines(job)), 1, numbered=True)
+    holds = {number for number, text in enumerate(job, 1) if text.startswith("M6")}
+    stream = JobStream(iter(program_lines(job)), 1, numbered=True, holds=holds or None)
     engine.start_stream(stream)
     paused = False
     for _step in range(len(job) * 4 + 40):
@@ -231,6 +233,8 @@ async def _run(dialect: str, fast: bool, job: list[str], seed: int, error_rate: 
         elif roll < 0.10 and paused:
             paused = board.paused = False
             engine.resume_stream()
+        elif roll < 0.40 and stream.held is not None:
+            engine.release_stream()  # the tool change answered
         answers = board.read()
         written = len(board.writes)
         if answers:
