@@ -380,7 +380,8 @@ class Engine:
 
     def _write_batch(self, link: Link, lane: Lane, lines: list[bytes]) -> bool:
         ok = link.write_lines(lines, control=lane is Lane.CONTROL)
-        self._tx(link, lane, lines)
+        if self._traffic_logged or self.console:  # `_tx`'s own test: no call a write
+            self._tx(link, lane, lines)
         return ok
 
     def _tx(self, link: Link, lane: Lane, lines: list[bytes]) -> None:
