@@ -1,7 +1,7 @@
 """The per-line path alone: the engine, the session and the stream, with no I/O.
 
     python -m bench.perline [--lines 40000] [--dialect g2core|grbl|both] [--repeats 5]
-                            [--profile]
+                            [--profile] [--jobs N]
 
 P5 measures the whole daemon (the pty, serialx, the kernel) on a machine that
 is shared, so its figure moves 2x from run to run. This harness measures only
@@ -15,6 +15,16 @@ figure is CPU seconds (`time.process_time`) per 10,000 lines, the best of
 `--repeats` jobs; `--profile` prints cProfile's calls a line and the top
 functions instead. No syscall, no serialx, no event-loop wake-up is in it:
 it is what the code changes, not what a user's machine shows (P5 is that).
+
+On a shared machine CPU time moves 2x from run to run; instructions do not.
+`--jobs N` runs N jobs of one file and prints nothing, for valgrind:
+
+    valgrind --tool=cachegrind --cache-sim=no --cachegrind-out-file=/dev/null \
+        python -m bench.perline --dialect g2core --lines 5000 --jobs 3
+
+and the same with `--jobs 1`: the difference of the two `I refs`, divided by
+10,000, is the instructions a line of the job path (the board's included),
+the same to a few hundred from run to run.
 """
 
 from __future__ import annotations
@@ -146,12 +156,18 @@ async def _connect(engine: Engine, board: Board) -> None:
     raise RuntimeError(f"{board.dialect}: no handshake")
 
 
-async def run_job(dialect: str, lines: int, profiler: cProfile.Profile | None = None) -> float:
-    """One job of `lines` lines: CPU seconds from its start to its end."""
+async def run_job(
+    dialect: str,
+    lines: int,
+    profiler: cProfile.Profile | None = None,
+    text: list[str] | None = None,
+) -> float:
+    """One job of `lines` lines (of `text`, if given): CPU seconds from its start to its end."""
     engine = Engine(config(dialect))
     board = Board(dialect)
     await _connect(engine, board)
-    text = program(lines).splitlines()
+    if text is None:
+        text = program(lines).splitlines()
     stream = JobStream(iter(program_lines(text)), 1, numbered=True)
     board.expected = lines
     cpu0 = time.process_time()
@@ -179,9 +195,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dialect", choices=("g2core", "grbl", "both"), default="both")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=0,
+        help="run this many jobs of one file and print nothing: under valgrind, the "
+        "instructions of N jobs less those of one are the job path's alone",
+    )
     args = parser.parse_args(argv)
     configure_logging("info")  # as the daemon runs: no per-line debug record
     dialects = ("g2core", "grbl") if args.dialect == "both" else (args.dialect,)
+    if args.jobs:
+        text = program(args.lines).splitlines()
+        for dialect in dialects:
+            for _ in range(args.jobs):
+                asyncio.run(run_job(dialect, args.lines, text=text))
+        return 0
     for dialect in dialects:
         if args.profile:
             profiler = cProfile.Profile()

@@ -273,22 +273,33 @@ class Engine:
         if self._traffic_logged:
             for line in lines:
                 self._log.debug("rx", channel=channel.value, line=line)
-        session = self.session
-        receive = session.receive
         if self.console or self.console_but_job:
-            self._receive_published(channel, lines)
+            self._receive_published(channel, lines)  # line by line: each is published
         else:
-            for line in lines:
-                try:
-                    receive(line)
-                except Exception as exc:  # a bug of ours: stop writing, keep reading
-                    self._log.exception("engine invariant broken")
-                    session.halt(f"{type(exc).__name__}: {exc}")
+            self._receive(lines)
         try:
             self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
+
+    def _receive(self, lines: list[bytes]) -> None:
+        """The read's lines to the session: each run of plain job answers in one pass
+        (`receive_plain`), anything else in full at its place."""
+        session = self.session
+        receive, plain = session.receive, session.receive_plain
+        count = len(lines)
+        index = 0
+        while index < count:
+            at = index
+            try:
+                at = plain(lines, index)
+                if at < count:
+                    receive(lines[at])
+            except Exception as exc:  # a bug of ours: stop writing, keep reading
+                self._log.exception("engine invariant broken")
+                session.halt(f"{type(exc).__name__}: {exc}")
+            index = at + 1
 
     def _receive_published(self, channel: Channel, lines: list[bytes]) -> None:
         """`receive` for each line, each published as a console event after it is taken.
@@ -423,7 +434,8 @@ class Engine:
 
     def _write_batch(self, link: Link, lane: Lane, lines: list[bytes], job: bool) -> bool:
         ok = link.write_lines(lines, control=lane is Lane.CONTROL)
-        self._tx(link, lane, lines, job and lane is Lane.DATA)
+        if self._traffic_logged or self.console or self.console_but_job:  # `_tx`'s own test
+            self._tx(link, lane, lines, job and lane is Lane.DATA)
         return ok
 
     def _tx(self, link: Link, lane: Lane, lines: list[bytes], job: bool = False) -> None:

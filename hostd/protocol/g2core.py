@@ -310,6 +310,27 @@ class G2Session(SessionBase):
             self._log.debug("controller said", message=type(msg).__name__)
         self._lines_in += 1
 
+    def receive_plain(self, lines: list[bytes], start: int) -> int:
+        """`receive`'s first branch for a run of lines: plain answers (`{"r":{"n":N},
+        "f":[1,0,C]}`) to the job's oldest lines, booked together. Not at the job's
+        end (its input ended, or a refused line's turn came: each answer then checks
+        whether the job is complete), nor while a control line waits for its answer."""
+        stream = self.stream
+        if (
+            stream is None
+            or stream.done
+            or stream.input_ended
+            or stream.refused is not None
+            or not self.fast_path
+        ):
+            return start
+        index, answered = self.sender.pop_job_answers(lines, start, stream)
+        if answered:
+            self._last_rx = self.clock()
+            self._lines_in += len(answered)
+            stream.acknowledged_run(answered)
+        return index
+
     def _on_response(self, response: Response) -> None:
         if response.count < 2:
             # No line of ours is answered with fewer than 2 (a data line of L >= 1
@@ -749,6 +770,15 @@ class G2Session(SessionBase):
             return
         out = self._out
         data = Lane.DATA
+        if self.fast_path:
+            # The steady state: the plain lines ahead that the window has room for, taken
+            # and booked together; the loop below goes on from the first line it left.
+            room = sender.window - sender.data_in_flight
+            if room > 0:
+                taken = stream.take_run(room)
+                if taken:
+                    sender.book_run(taken)
+                    out.extend([(data, entry.line) for entry in taken])
         book = sender.book
         while True:
             entry = stream.peek()

@@ -30,6 +30,7 @@ from collections import deque
 from typing import Any
 
 from hostd.protocol.messages import Response
+from hostd.protocol.parser import plain_answer
 
 
 class SenderError(Exception):
@@ -166,6 +167,40 @@ class LineModeSender:
             return None
         data.popleft()
         return entry
+
+    def book_run(self, entries: list[InFlight]) -> None:
+        """Record job data lines written together; the caller took no more than `window`
+        leaves room for (`Stream.take_run` with that room)."""
+        data = self._data
+        if len(data) + len(entries) > self.window:
+            raise SenderError(f"window of {self.window} exceeded")
+        data.extend(entries)
+
+    def pop_job_answers(self, lines: list[bytes], start: int, job: object) -> tuple[int, list[int]]:
+        """`pop_job_answer` for each line from `start` on while each is the plain answer
+        (`{"r":{"n":N},"f":[1,0,C]}`, status 0) of the oldest data line, a line of `job`:
+        the index of the first line it did not take, and the file lines it answered.
+
+        The steady state of a job, a read at a time: it stops, nothing changed for that
+        line, at anything else (a report, an error, an answer with a control line
+        waiting, a count that fits no line), which the caller reads in full.
+        """
+        if self._control:
+            return start, []
+        data = self._data
+        answered: list[int] = []
+        index = start
+        for line in lines[start:] if start else lines:
+            plain = plain_answer(line)
+            if plain is None or plain[2] != b"0" or not data:
+                break
+            entry = data[0]
+            if entry.source is not job or entry.count != int(plain[3]):
+                break
+            data.popleft()
+            answered.append(entry.file_line)  # type: ignore[arg-type]  # a job's line has one
+            index += 1
+        return index, answered
 
     def oldest_control(self) -> InFlight | None:
         """The control line the board is answering now, if any: the first unanswered one."""

@@ -52,8 +52,9 @@ def program_lines(lines: Iterable[str], start_line: int = 1) -> Iterator[tuple[i
 
 # The leads `number_line` does not simply put `N<number> ` in front of: every other line
 # (almost every job line) becomes f"N{number} {text}" when 0 <= number <= MAX_LINE_NUMBER.
-# The dialects' `encode_job_line` test this first, to skip the general path.
-NOT_PREFIXED = ("", "$", "{", "?", "n", "N")
+# The dialects' `encode_job_line` test this first, to skip the general path. A set: one
+# hash lookup a line, where a tuple compared the lead with each in turn.
+NOT_PREFIXED = frozenset(("", "$", "{", "?", "n", "N"))
 
 
 def number_line(text: str, number: int) -> str:

@@ -563,6 +563,48 @@ class GrblSession(SessionBase):
             self._said.append(msg.text)
         self._lines_in += 1
 
+    def receive_plain(self, lines: list[bytes], start: int) -> int:
+        """`receive`'s `_job_ok` for a run of `ok`s, each the answer to the job's oldest
+        line, booked together. Not at the job's end (its input ended, or a refused
+        line's turn came: each answer then checks whether the job is complete), nor
+        while a line writes EEPROM or homes; a `$` line's `ok` is read in full."""
+        stream = self.stream
+        if (
+            stream is None
+            or stream.done
+            or stream.input_ended
+            or stream.refused is not None
+            or self._storing is not None
+            or self._homing_lines
+            or not self.fast_path
+        ):
+            return start
+        inflight = self._inflight
+        answered: list[int] = []
+        freed = 0
+        index = start
+        for line in lines[start:] if start else lines:
+            if line != b"ok" or not inflight:
+                break
+            entry = inflight[0]
+            encoded = entry.line
+            if entry.source is not stream or encoded[:1] == b"$":
+                break
+            inflight.popleft()
+            freed += len(encoded)
+            answered.append(entry.file_line)  # type: ignore[arg-type]  # a job's line has one
+            index += 1
+        if answered:
+            self._heard_at = self.clock()  # `receive`'s first steps, once for the run
+            if self._silent_asks:
+                self._silent_asks.clear()
+            self._rx_used -= freed
+            if self._said:
+                self._said = []
+            self._lines_in += len(answered)
+            stream.acknowledged_run(answered)
+        return index
+
     def _job_ok(self) -> bool:
         """An `ok` for the oldest line, a job's plain line: what `_answered` would do
         with it, without its message and its Response; False, and nothing done, for
@@ -873,6 +915,16 @@ class GrblSession(SessionBase):
         inflight = self._inflight
         out = self._out
         data = Lane.DATA
+        if self.fast_path:
+            # The steady state: the plain lines ahead that the receive buffer has room
+            # for, taken and booked together; the loop below goes on from the first line
+            # it left (a `$` line, one that may store, one that does not fit).
+            taken = stream.take_run(room - self._rx_used, by_bytes=True, special=_MAY_STORE)
+            if taken:
+                inflight.extend(taken)
+                pairs = [(data, entry.line) for entry in taken]
+                out.extend(pairs)
+                self._rx_used += sum([len(line) for _, line in pairs])
         while True:
             entry = stream.peek()
             if entry is None:

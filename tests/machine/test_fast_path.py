@@ -1,0 +1,319 @@
+"""The steady state's fast path (issue 30) does exactly what the general path does.
+
+A read that holds only plain answers to a job's lines is taken in one pass
+(`receive_plain`), and the job's plain lines are taken and booked together
+(`Stream.take_run`). Neither may change a byte written, an event, or a
+count: here a real `Engine` with each dialect's real session streams random
+jobs twice, fast path on and off, against a board that answers the same
+way both times (the answers split into reads at random, error answers,
+status reports in the middle of a read, a pause (its `!`) and a resume
+between reads, hold points released), and everything the two runs wrote, told and counted is
+compared. Both runs also check, at every write, the rules that must never
+break: the window and the receive buffer are never exceeded, no job line is
+written while the job is paused, and a realtime byte leaves in the write of
+its own call, ahead of any line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+import re
+from collections import deque
+from typing import Any
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from hostd.link import Channel
+from hostd.machine.config import MachineConfig
+from hostd.machine.engine import Engine, LinkState
+from hostd.machine.events import EngineEvent
+from hostd.machine.stream import JobStream
+from hostd.protocol.program import program_lines
+
+G2_BANNER = b'{"r":{"fv":0.99,"fb":101.03,"hp":3,"hv":0,"id":"t","msg":"SYSTEM READY"},"f":[1,0,0]}'
+GRBL_HANDSHAKE = {
+    b"$I": [b"[VER:1.1h.20190830:]", b"[OPT:V,15,128]", b"ok"],
+    b"$$": [b"$32=0", b"ok"],
+    b"$N": [b"$N0=", b"$N1=", b"ok"],
+    b"$G": [b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", b"ok"],
+}
+_NUMBER = re.compile(rb"N(\d+)")
+WINDOW = 4
+RX = 128
+
+# Job lines: mostly plain moves, and every kind the fast path must leave to the general one.
+PLAIN = ["G1 X1 Y2 F3000", "G0 X10", "G1 X1.5 Y-2.25 S100", "M3 S500", "G1 Z-0.1"]
+SPECIAL = [
+    "M0",  # a program pause: `program_pause_sent`
+    "M1",
+    "G10 L20 P1 X0",  # grbl: may store (send-response)
+    "G28.1",
+    "G4 P0",
+    "G1 X1e5",  # refused on the host: the job fails when its turn comes
+    "$X",  # a `$` line in a job
+    "M2",
+    "M6 T1",  # a hold point: the job holds before it until released
+]
+G2_ONLY = ['{"sr":null}']  # a job's own JSON line: the control lane
+GRBL_ONLY = ["$N", "$G"]  # views whose `ok` the general path reads in full (`$N`: startup blocks)
+
+
+class Board:
+    """Answers what the engine writes, with choices drawn from `rng` (the same both runs)."""
+
+    def __init__(self, dialect: str, rng: random.Random, error_rate: float) -> None:
+        self.dialect = dialect
+        self.rng = rng
+        self.error_rate = error_rate
+        self.owed: deque[bytes] = deque()
+        self.writes: list[tuple[str, bytes]] = []
+        self.stat = 3
+        self.paused = False  # the harness's pause: no job line may be written meanwhile
+        self.data_unanswered = 0  # g2core: data lines written, not answered
+        self.rx_used: deque[int] = deque()  # grbl: bytes of lines not answered
+        self.dual = False
+
+    # the Link's writing side
+    def write_lines(self, lines: list[bytes], *, control: bool = False) -> bool:
+        data = b"".join(lines)
+        self.writes.append(("lines", data))
+        for line in lines:
+            assert line.endswith(b"\n") and b"\n" not in line[:-1]
+            self._line(line[:-1])
+        return True
+
+    def write_realtime(self, data: bytes) -> bool:
+        self.writes.append(("realtime", data))
+        byte = data[:1]
+        if self.dialect == "grbl":
+            if byte == b"?":
+                state = b"Run" if self.rx_used else b"Idle"
+                free = 15 - min(len(self.rx_used), 15)
+                self.owed.append(b"<%s|MPos:0.000,0.000,0.000|Bf:%d,127|FS:0,0>" % (state, free))
+            elif byte == b"\x18":
+                self.owed.clear()
+                self.rx_used.clear()
+                self.owed.extend([b"", b"Grbl 1.1h ['$' for help]"])
+        elif byte == b"!":
+            self.stat = 6
+            self.owed.append(b'{"sr":{"stat":6}}')
+        elif byte == b"~":
+            self.stat = 5
+            self.owed.append(b'{"sr":{"stat":5}}')
+        elif byte in (b"\x04", b"%"):
+            self.owed.clear()
+            self.data_unanswered = 0
+            self.stat = 4
+            if byte == b"\x04":
+                self.owed.append(b'{"er":{"fb":101.03,"st":207,"msg":"Job killed"}}')
+            self.owed.append(b'{"sr":{"stat":4}}')
+        return True
+
+    def _line(self, line: bytes) -> None:
+        rng = self.rng
+        if self.dialect == "grbl":
+            if line in GRBL_HANDSHAKE:
+                self.owed.extend(GRBL_HANDSHAKE[line])
+                return
+            self.rx_used.append(len(line) + 1)
+            assert sum(self.rx_used) <= RX - 1, "grbl's receive buffer overfilled"
+            fail = line[:1] == b"N" and rng.random() < self.error_rate
+            self.owed.append(b"error:20" if fail else b"ok")
+            return
+        if line[:1] == b"{":
+            obj = json.loads(line)
+            if "sr" in obj and self.stat == 5 and not self.data_unanswered:
+                self.stat = 3  # everything answered: the board has come to rest
+            body = {
+                k: ({"stat": self.stat} if k == "sr" else (0 if v is None else v))
+                for k, v in obj.items()
+            }
+            self.owed.append(json.dumps({"r": body, "f": [1, 0, len(line) + 2]}).encode())
+            return
+        self.data_unanswered += 1
+        if self.stat == 3:
+            self.stat = 5
+            self.owed.append(b'{"sr":{"stat":5}}')
+        assert self.data_unanswered <= WINDOW + 1, "g2core's window exceeded"
+        numbered = _NUMBER.match(line)
+        echo = b'"n":%s' % numbered[1] if numbered and int(numbered[1]) else b""
+        status = 108 if numbered and rng.random() < self.error_rate else 0
+        self.owed.append(b'{"r":{%s},"f":[1,%d,%d]}' % (echo, status, len(line) + 1))
+
+    def read(self) -> list[bytes]:
+        """Some of what the board owes, as one read: split, and with reports between."""
+        rng = self.rng
+        take = rng.randint(1, max(1, len(self.owed)))
+        lines = [self.owed.popleft() for _ in range(min(take, len(self.owed)))]
+        for line in lines:
+            if self.dialect == "grbl":
+                if line in (b"ok", b"error:20") and self.rx_used:
+                    self.rx_used.popleft()
+            elif (line.startswith(b'{"r":{') and b'"n"' in line) or line.startswith(b'{"r":{}'):
+                self.data_unanswered = max(0, self.data_unanswered - 1)
+        if lines and rng.random() < 0.3:  # a report in the middle of a read
+            report = (
+                b"<Run|MPos:1.000,0.000,0.000|Bf:10,100|FS:0,0>"
+                if self.dialect == "grbl"
+                else b'{"sr":{"stat":%d,"line":%d}}' % (self.stat, rng.randint(0, 40))
+            )
+            lines.insert(rng.randint(0, len(lines)), report)
+        return lines
+
+
+def _config(dialect: str) -> MachineConfig:
+    return MachineConfig.model_validate(
+        {
+            "id": "t",
+            "dialect": dialect,
+            "data_port": "/dev/null",
+            "auto_connect": False,
+            "heartbeat": 1000.0,
+            "status_interval": 1000.0,
+        }
+    )
+
+
+async def _run(dialect: str, fast: bool, job: list[str], seed: int, error_rate: float) -> Any:
+    rng = random.Random(seed)
+    events: list[str] = []
+
+    def heard(event: EngineEvent) -> None:
+        events.append(repr(event))
+
+    engine = Engine(_config(dialect), heard)
+    session = engine.session
+    session.fast_path = fast
+    taken = 0
+    plain = session.receive_plain
+
+    def counted(lines: list[bytes], start: int) -> int:
+        nonlocal taken
+        index = plain(lines, start)
+        taken += index - start
+        return index
+
+    session.receive_plain = counted  # type: ignore[method-assign]
+    board = Board(dialect, rng, error_rate)
+    engine.link = board  # type: ignore[assignment]
+    engine.link_state = LinkState.HANDSHAKE
+    engine.session.open()
+    engine._deliver()
+    if dialect == "g2core":
+        board.owed.append(G2_BANNER)
+    else:
+        board.owed.extend([b"", b"Grbl 1.1h ['$' for help]"])
+    for _ in range(100):
+        if engine.ready:
+            break
+        answers = board.read()
+        if answers:
+            engine.link_lines(Channel.DATA, answers)
+        else:
+            engine.query_status()
+    assert engine.ready
+    board.writes.clear()
+    holds = {number for number, text in enumerate(job, 1) if text.startswith("M6")}
+    stream = JobStream(iter(program_lines(job)), 1, numbered=True, holds=holds or None)
+    engine.start_stream(stream)
+    paused = False
+    for _step in range(len(job) * 4 + 40):
+        if stream.done:
+            break
+        roll = rng.random()
+        if roll < 0.05 and not paused:
+            before = len(board.writes)
+            engine.pause_stream()
+            paused = board.paused = True
+            assert board.writes[before:] and board.writes[before][0] == "realtime"
+            assert all(kind == "realtime" for kind, _ in board.writes[before:])
+        elif roll < 0.10 and paused:
+            paused = board.paused = False
+            engine.resume_stream()
+        elif roll < 0.40 and stream.held is not None:
+            engine.release_stream()  # the tool change answered
+        answers = board.read()
+        written = len(board.writes)
+        if answers:
+            engine.link_lines(Channel.DATA, answers)
+        else:
+            engine.query_status()
+        if paused:  # not a job line while the job is paused
+            assert not any(
+                b"N" in data[:1] for kind, data in board.writes[written:] if kind == "lines"
+            )
+    position = stream.position
+    return {
+        "taken": taken,
+        "writes": board.writes,
+        "events": events,
+        "counts": (
+            position.sent,
+            position.acked,
+            position.rejected,
+            position.discarded,
+            position.last_acked_line,
+            position.line_executed,
+            position.program_pause_sent,
+            position.done,
+            str(position.result),
+            session._lines_in,  # type: ignore[attr-defined]
+            session.unanswered(),
+            getattr(session, "_rx_used", None),
+        ),
+    }
+
+
+def _jobs(extra: list[str]) -> st.SearchStrategy[list[str]]:
+    plain = st.sampled_from(PLAIN)
+    return st.lists(
+        st.one_of(plain, plain, plain, st.sampled_from(SPECIAL + extra)), min_size=1, max_size=40
+    )
+
+
+def _compare(dialect: str, job: list[str], seed: int, error_rate: float) -> None:
+    fast = asyncio.run(_run(dialect, True, job, seed, error_rate))
+    slow = asyncio.run(_run(dialect, False, job, seed, error_rate))
+    assert slow["taken"] == 0
+    assert fast["writes"] == slow["writes"]
+    assert fast["events"] == slow["events"]
+    assert fast["counts"] == slow["counts"]
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    job=_jobs(G2_ONLY),
+    seed=st.integers(0, 2**32),
+    error_rate=st.sampled_from([0.0, 0.0, 0.02, 0.2]),
+)
+def test_g2core_fast_path_writes_tells_and_counts_as_the_general_path(
+    job: list[str], seed: int, error_rate: float
+) -> None:
+    _compare("g2core", job, seed, error_rate)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    job=_jobs(GRBL_ONLY),
+    seed=st.integers(0, 2**32),
+    error_rate=st.sampled_from([0.0, 0.0, 0.02, 0.2]),
+)
+def test_grbl_fast_path_writes_tells_and_counts_as_the_general_path(
+    job: list[str], seed: int, error_rate: float
+) -> None:
+    _compare("grbl", job, seed, error_rate)
+
+
+def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:
+    """The comparison above would pass with a fast path never taken: here it is taken."""
+    job = [PLAIN[i % len(PLAIN)] for i in range(200)]
+    for dialect in ("g2core", "grbl"):
+        run = asyncio.run(_run(dialect, True, job, 7, 0.0))
+        sent, acked = run["counts"][:2]
+        assert (sent, acked) == (200, 200)
+        assert "completed" in run["counts"][8]
+        # All but the job's last look-ahead, answered once its input ended.
+        assert run["taken"] >= 150
