@@ -28,7 +28,13 @@ import pytest
 from hostd.cli.client import Client
 
 MACHINE = "sim1"
-START_TIMEOUT = 15.0
+# Bounds against a hang, not timing checks. On a loaded two-core machine (load average
+# 12-16) `python -m hostd serve` took over 15 s to import and listen, and its exit
+# on SIGTERM waits for the first analysis worker if that is still starting (the
+# forkserver's imports; ProcessPoolExecutor.shutdown waits for a submit in progress):
+# 9 s once, past the 10 s allowed with Python's own exit.
+START_TIMEOUT = 45.0
+STOP_TIMEOUT = 45.0
 CLI_TIMEOUT = 30.0
 
 
@@ -231,7 +237,7 @@ def daemon(
         if process.poll() is None:
             process.send_signal(signal.SIGTERM)
         try:
-            status = process.wait(timeout=10)
+            status = process.wait(timeout=STOP_TIMEOUT)
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()

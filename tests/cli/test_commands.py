@@ -21,7 +21,11 @@ SMALL = "G21 G90\nG0 X1 Y1\n(a comment, not counted)\nG1 X2 F3000\n\nG1 Y2\nM2\n
 REJECTED = "G21 G90\nG0 X1\nG99 (the simulated g2core does not know it)\nG0 X2\nM2\n"
 # Sixteen 20 mm moves at 600 mm/min: about 3 s on the daemon's 10x simulated board,
 # long enough to be interrupted and short enough to let finish.
-LONG = "G21 G90\nG1 F600\n" + "G1 X20\nG1 X0\n" * 8 + "M2\n"
+LONG = "G21 G90\nG1 F600\n" + "G1 X20\nG1 X0\n" * 8 + "M2\n"  # ~3 s on the x10 board
+# For a job the test cancels in the end (so its length costs nothing): it must outlast
+# the CLI processes the test starts meanwhile, seconds each on a loaded machine (the
+# 3 s LONG ended before `hostd cancel` connected, at load average 17).
+ENDLESS = "G21 G90\nG1 F600\n" + "G1 X20\nG1 X0\n" * 150 + "M2\n"  # ~60 s
 
 
 @pytest.fixture(scope="module")
@@ -146,10 +150,10 @@ def test_run_on_an_unknown_machine_uploads_nothing(idle: Daemon, tmp_path: Path)
     assert "never.gcode" not in [f["name"] for f in idle.call("file.list")]
 
 
-def start_long_job(daemon: Daemon, tmp_path: Path) -> Spawned:
+def start_long_job(daemon: Daemon, tmp_path: Path, program: str = LONG) -> Spawned:
     """`hostd run` of LONG, once the job has started (Ctrl-C is then a question)."""
     path = tmp_path / "long.gcode"
-    path.write_text(LONG, encoding="utf-8")
+    path.write_text(program, encoding="utf-8")
     cli = daemon.spawn("run", str(path), "--machine", MACHINE)
     cli.expect("started on")
     return cli
@@ -172,7 +176,7 @@ def test_ctrl_c_during_run_pauses_then_resumes(idle: Daemon, tmp_path: Path) -> 
 
 
 def test_ctrl_c_during_run_cancels(idle: Daemon, tmp_path: Path) -> None:
-    cli = start_long_job(idle, tmp_path)
+    cli = start_long_job(idle, tmp_path, ENDLESS)
 
     cli.interrupt()
     cli.expect("[p/c/Enter]")
@@ -186,7 +190,7 @@ def test_ctrl_c_during_run_cancels(idle: Daemon, tmp_path: Path) -> None:
 def test_ctrl_c_with_no_one_to_answer_stops_following_and_leaves_the_job(
     idle: Daemon, tmp_path: Path
 ) -> None:
-    cli = start_long_job(idle, tmp_path)
+    cli = start_long_job(idle, tmp_path, ENDLESS)
     assert cli.process.stdin is not None
     cli.process.stdin.close()
 
@@ -233,9 +237,9 @@ def test_faults_of_a_healthy_machine_is_an_empty_list(idle: Daemon) -> None:
 
 
 def test_hold_stops_a_move_and_resume_finishes_it(idle: Daemon) -> None:
-    # ~2.4 s here: long enough that the hold's own process start (most of a second on a
-    # loaded machine) cannot outlast the move.
-    assert idle.cli("send", MACHINE, "G90 G1 X60 F150").returncode == 0
+    # ~6 s here: long enough that the hold's own process start cannot outlast the move
+    # (2.4 s did not at load average 17: the move had ended when `hostd hold` connected).
+    assert idle.cli("send", MACHINE, "G90 G1 X60 F60").returncode == 0
 
     held = idle.cli("hold", MACHINE)
     assert held.returncode == 0, held.stderr

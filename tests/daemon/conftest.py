@@ -61,7 +61,10 @@ class Rpc:
         if params:
             request["params"] = params
         self.writer.write(json.dumps(request).encode() + b"\n")
-        async with asyncio.timeout(15):
+        # A bound for a test that would otherwise hang, not a timing check: job.start and
+        # file.analyze wait on a worker process (its start, a 60,000-line file), which took
+        # past 15 s with the suite's four workers and other load on two cores.
+        async with asyncio.timeout(30):
             msg = await future
         if "error" in msg:
             raise RpcFailure(msg["error"])

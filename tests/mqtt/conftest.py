@@ -35,7 +35,10 @@ from tests.daemon.conftest import Running, running_daemon
 
 MOSQUITTO = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/sbin")
 REQUEST_IDS = itertools.count(1)
-WAIT = 15.0  # seconds any one expected message may take before the test fails
+# Seconds any one expected message may take before the test fails: a bound against a hang.
+# A daemon process's first "online" waits for its start (imports, then the broker): past
+# 15 s on a loaded two-core machine (load average 12-16).
+WAIT = 30.0
 
 
 def free_port() -> int:

@@ -20,7 +20,11 @@ expect = playwright.expect
 
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
 # Long too, and every line's position known from the file (Z set first): resumable anywhere.
-DEEP = "G21 G90\nG0 Z5\nG0 X0 Y0\nG1 Z-1 F300\n" + LONG + "G0 Z5\n"
+# Its plunge is slow (1.2 s on the simulated board), its feed set before it (a resume there
+# goes down at it): a job starts with only the window's four lines on the board, and a
+# plunge of 0.12 s ran out before a loaded test machine sent the fifth (CI: the job ended
+# `failed`, an underflow after line 4, before its cancel).
+DEEP = "G21 G90 F30\nG0 Z5\nG0 X0 Y0\nG1 Z-1\n" + LONG + "G0 Z5\n"
 # A full circle (start = end, centre by I J), a half circle by R, and plunges in Z.
 ARCS = """G21 G90
 G0 X10 Y0 Z5
@@ -335,6 +339,8 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         # A cancelled job's row offers its own resume: job.recovery {job}, the same plan.
         await upload(page, tmp_path, "deep.nc", DEEP)
         await page.click("#start")
+        # The bar still shows the last job's progress until this one's first report.
+        await expect(page.locator("#job-title")).to_contain_text("deep.nc · running")
         await page.wait_for_function(PROGRESS_OVER, arg=0.05)
         await page.click("[data-action=cancel]")
         await page.click("#confirm-yes")
