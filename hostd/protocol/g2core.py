@@ -753,6 +753,12 @@ class G2Session(SessionBase):
                 return  # an exception report: actions wait for the next status report
             if head.cls is CommandClass.CLEAR and not self.no_data_in_flight():
                 return  # a stale line must not run after the clear
+            if head.cls is CommandClass.CLEAR and self._alarm_kill_due:
+                # A 101.05+ alarm's hold still runs: the board is in ALARM only once it
+                # holds and has killed the job (cycle_feedhold.cpp:353-361, `_run_alarm`),
+                # and `cm_clear` does nothing before (alarm.cpp:83-95). Written now, the
+                # clear would be answered OK and lost; it goes after the board's 207.
+                return
             queued = self._outbox.popleft()
             if self._admissible(queued, state, context):
                 # A clear goes on the data port, behind the lines it ends (g2core.md 9).
