@@ -10,7 +10,7 @@ import signal
 import socket
 import sys
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -54,14 +54,22 @@ class Process:
     proc: asyncio.subprocess.Process
     notify: socket.socket
     socket_path: str
+    datagrams: asyncio.Queue[bytes] = field(default_factory=asyncio.Queue)
+
+    async def read_notify(self) -> None:
+        """Read every datagram as it comes, as systemd does. Left unread, Linux queues 10
+        (net.unix.max_dgram_qlen): the watchdog's pings (5 a second here) fill that in
+        two seconds, and the daemon's STOPPING=1 is then refused (EAGAIN) and lost."""
+        loop = asyncio.get_running_loop()
+        while True:
+            self.datagrams.put_nowait(await loop.sock_recv(self.notify, 4096))
 
     async def message(self, want: bytes) -> list[bytes]:
         """Notify datagrams up to and including the one that contains `want`."""
-        loop = asyncio.get_running_loop()
         seen = []
         async with asyncio.timeout(60):  # a hang bound: see pytestmark
             while True:
-                datagram = await loop.sock_recv(self.notify, 4096)
+                datagram = await self.datagrams.get()
                 seen.append(datagram)
                 if want in datagram:
                     return seen
@@ -89,12 +97,16 @@ async def daemon_process(
         stderr=asyncio.subprocess.PIPE,
     )
     process = Process(proc, notify, str(tmp_path / "hostd.sock"))
+    reader = asyncio.create_task(process.read_notify())
     try:
         yield process
     finally:
         if proc.returncode is None:
             proc.kill()
         await proc.wait()
+        reader.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await reader
         notify.close()
 
 
