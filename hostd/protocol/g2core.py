@@ -315,14 +315,8 @@ class G2Session(SessionBase):
         "f":[1,0,C]}`) to the job's oldest lines, booked together. Not at the job's
         end (its input ended, or a refused line's turn came: each answer then checks
         whether the job is complete), nor while a control line waits for its answer."""
-        stream = self.stream
-        if (
-            stream is None
-            or stream.done
-            or stream.input_ended
-            or stream.refused is not None
-            or not self.fast_path
-        ):
+        stream = self._steady_stream()
+        if stream is None:
             return start
         index, answered = self.sender.pop_job_answers(lines, start, stream)
         if answered:

@@ -172,6 +172,21 @@ class SessionBase:
         without this fast path takes none."""
         return start
 
+    def _steady_stream(self) -> Stream | None:
+        """The running job, if its answers may take the fast path: not at its end (its
+        input ended, or a refused line's turn came: each answer then checks whether the
+        job is complete)."""
+        stream = self.stream
+        if (
+            stream is None
+            or stream.done
+            or stream.input_ended
+            or stream.refused is not None
+            or not self.fast_path
+        ):
+            return None
+        return stream
+
     def tick(self) -> None:
         """A deadline passed (or the engine woke early: nothing is due then)."""
         raise NotImplementedError

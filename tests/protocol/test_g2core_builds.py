@@ -319,11 +319,8 @@ def test_101_03_an_m30_that_the_board_ran_ends_hostds_lockout() -> None:
     assert wire.session.model.state is S.PROGRAM_END
 
 
-def test_101_06_a_clear_asked_during_the_alarms_hold_waits_for_the_alarm_then_ends_it() -> None:
-    """cm_clear finds no ALARM while the alarm's hold runs (alarm.cpp:83): written then,
-    it would be answered OK and do nothing, and the board enter ALARM after it. The
-    clear waits for the board's own job kill, after which it is in ALARM
-    (cycle_feedhold.cpp `_run_alarm`), and then ends the lockout."""
+def _clear_asked_in_the_alarms_hold() -> Wire:
+    """A 101.06 board decelerating in a limit alarm's hold, asked to clear: not written."""
     wire = ready(101.06)
     wire.feed(LIMIT % 101.06)
     wire.answer_all()
@@ -331,6 +328,15 @@ def test_101_06_a_clear_asked_during_the_alarms_hold_waits_for_the_alarm_then_en
     assert wire.session.clear(object())
     wire.pump()
     assert CLEAR not in [x for _, x in wire.written]  # kept back: the hold still runs
+    return wire
+
+
+def test_101_06_a_clear_asked_during_the_alarms_hold_waits_for_the_alarm_then_ends_it() -> None:
+    """cm_clear finds no ALARM while the alarm's hold runs (alarm.cpp:83): written then,
+    it would be answered OK and do nothing, and the board enter ALARM after it. The
+    clear waits for the board's own job kill, after which it is in ALARM
+    (cycle_feedhold.cpp `_run_alarm`), and then ends the lockout."""
+    wire = _clear_asked_in_the_alarms_hold()
     wire.report(stat=6, hold=10)
     wire.pump()
     assert CLEAR not in [x for _, x in wire.written]
@@ -345,13 +351,7 @@ def test_101_06_a_clear_asked_during_the_alarms_hold_waits_for_the_alarm_then_en
 
 def test_101_06_a_clear_waiting_for_the_alarm_goes_when_a_report_shows_it() -> None:
     """The board's ALARM in a report is proof enough, whether or not its 207 was read."""
-    wire = ready(101.06)
-    wire.feed(LIMIT % 101.06)
-    wire.answer_all()
-    wire.report(stat=6, hold=4)
-    assert wire.session.clear(object())
-    wire.pump()
-    assert CLEAR not in [x for _, x in wire.written]
+    wire = _clear_asked_in_the_alarms_hold()
     wire.report(stat=2, hold=0)
     wire.pump()
     assert CLEAR in [x for _, x in wire.written]

@@ -568,16 +568,8 @@ class GrblSession(SessionBase):
         line, booked together. Not at the job's end (its input ended, or a refused
         line's turn came: each answer then checks whether the job is complete), nor
         while a line writes EEPROM or homes; a `$` line's `ok` is read in full."""
-        stream = self.stream
-        if (
-            stream is None
-            or stream.done
-            or stream.input_ended
-            or stream.refused is not None
-            or self._storing is not None
-            or self._homing_lines
-            or not self.fast_path
-        ):
+        stream = self._steady_stream()
+        if stream is None or self._storing is not None or self._homing_lines:
             return start
         inflight = self._inflight
         answered: list[int] = []
