@@ -82,6 +82,8 @@ class Observer:
     _locked: bool = False
     _lockouts: int = 0
     _in_hold: bool = False
+    _stat: int | None = None  # the last `stat` read
+    _hold: int = 0  # the last `hold` read (g2core's hold state; 0: none)
     _holds_ended: int = 0
     _operations: int = 0
     _op_job: int | None = None  # the job row of the operation that runs now
@@ -123,6 +125,7 @@ class Observer:
             self._status(event.report)
         elif isinstance(event, LinkChanged):
             self._locked = False
+            self._stat, self._hold = None, 0
             self._end_hold()
             self._data_out = self._answers = 0
         elif isinstance(event, SupervisorChanged):
@@ -135,14 +138,21 @@ class Observer:
                 self.fail("daemon", f"internal fault: {fault['message']}")
 
     def _status(self, report: dict[str, Any]) -> None:
-        stat = report.get("stat")
-        if not isinstance(stat, int):
+        # Reports carry only what changed: `stat` and `hold` are each kept from the last
+        # report that had it. A `!` at rest on 101.05+ leaves `stat` as it was and shows
+        # the hold in `hold` alone; the host takes that for a hold too (gc2 lines go).
+        stat, hold = report.get("stat"), report.get("hold")
+        if isinstance(hold, int):
+            self._hold = hold
+        if isinstance(stat, int):
+            self._stat = stat
+            locked = stat in LOCKOUT
+            if locked and not self._locked:
+                self._lockouts += 1
+            self._locked = locked
+        elif not isinstance(hold, int):
             return
-        locked = stat in LOCKOUT
-        if locked and not self._locked:
-            self._lockouts += 1
-        self._locked = locked
-        if stat == MachineState.HOLD:
+        if self._stat == MachineState.HOLD or (self._hold and not self._locked):
             self._in_hold = True
         else:
             self._end_hold()
