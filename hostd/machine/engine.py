@@ -61,6 +61,7 @@ from hostd.protocol.errors import (
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.session import SessionBase
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
     Detected,
@@ -103,7 +104,7 @@ class Engine:
         # even decoded: at a laser's 1,000-2,000 lines/s they were two events a line.
         self.console_but_job = False
         # The job's `sent` count at the last write: the lines it wrote since are the job's.
-        self._sent_stream: object = None
+        self._sent_stream: Stream | None = None
         self._sent_seen = 0
         self._restart_deadline: float | None = None  # a reset is under way until then
         self._delivering = False  # the delivery loop runs: a nested call leaves it the work
@@ -441,13 +442,12 @@ class Engine:
     def _tx(self, link: Link, lane: Lane, lines: list[bytes], job: bool = False) -> None:
         if not (self._traffic_logged or self.console or self.console_but_job):
             return
-        if not self._traffic_logged:
-            pass  # the console listens; no debug record is kept
-        elif lane is Lane.DATA and len(lines) > 1:
-            self._log.debug("tx", lane=lane.value, lines=len(lines))  # a job's window
-        else:
-            for line in lines:
-                self._log.debug("tx", lane=lane.value, line=line)
+        if self._traffic_logged:  # else only the console listens: no debug record is kept
+            if lane is Lane.DATA and len(lines) > 1:
+                self._log.debug("tx", lane=lane.value, lines=len(lines))  # a job's window
+            else:
+                for line in lines:
+                    self._log.debug("tx", lane=lane.value, line=line)
         if self.console or (self.console_but_job and not job):
             channel = Channel.CONTROL if lane is not Lane.DATA and link.dual else Channel.DATA
             for line in lines:

@@ -139,26 +139,11 @@ class LineModeSender:
                     break
         return queue.popleft(), skipped
 
-    def data_answered_by(self, count: int) -> InFlight | None:
-        """The oldest data line, if an answer of `count` can only be its answer; else None.
-
-        `answered` in one look, for the common case: no control line waits (so
-        the answer is a data line's) and the count fits the oldest. It stays
-        on the books until `pop_data`.
-        """
-        data = self._data
-        if self._control or not data or data[0].count != count:
-            return None
-        return data[0]
-
-    def pop_data(self) -> None:
-        self._data.popleft()
-
     def pop_job_answer(self, count: int) -> InFlight | None:
-        """`data_answered_by` and `pop_data` in one call, for a job's line only: the
-        oldest data line, taken off the books, if an answer of `count` can only be
-        its answer and it is a job's line (it has a file line); else None, nothing
-        changed."""
+        """`answered` in one look, for the common case: the oldest data line, taken off
+        the books, if an answer of `count` can only be its answer (no control line
+        waits, and the count fits the oldest) and it is a job's line (it has a file
+        line); else None, nothing changed."""
         data = self._data
         if self._control or not data:
             return None

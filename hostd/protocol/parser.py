@@ -37,14 +37,8 @@ _PLAIN_ANSWER = re.compile(rb'\{"r":\{(?:"n":(\d{1,10}))?\},"f":\[1,(\d{1,3}),(\
 
 
 # The match itself, for the session's per-line path: groups 2 and 3 are the footer's
-# status and count (`plain_ok_count` says it in one call more).
+# status and count, group 1 the echoed N.
 plain_answer = _PLAIN_ANSWER.fullmatch
-
-
-def plain_ok_count(raw: bytes) -> int | None:
-    """C of `{"r":{},"f":[1,0,C]}` or `{"r":{"n":N},"f":[1,0,C]}`, a job line's answer."""
-    plain = _PLAIN_ANSWER.fullmatch(raw)
-    return None if plain is None or plain[2] != b"0" else int(plain[3])
 
 
 def parse_line(raw: bytes) -> Message:

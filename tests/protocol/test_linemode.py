@@ -147,12 +147,14 @@ def test_a_plain_answer_is_the_oldest_data_lines_only_when_nothing_else_can_take
     sender = LineModeSender(window=4)
     sender.sent(data("G1 X1", 1))  # answered with 6
     sender.sent(data("G1 X22", 2))
-    assert sender.data_answered_by(7) is None  # fits the second, not the oldest
+    assert sender.pop_job_answer(7) is None  # fits the second, not the oldest
     sender.sent(control('{"sr":n}'))
-    assert sender.data_answered_by(6) is None  # a control line waits: read it in full
+    assert sender.pop_job_answer(6) is None  # a control line waits: read it in full
     assert sender.answered(answer(10, {"sr": {}}))[0].control
-    oldest = sender.data_answered_by(6)
+    assert len(sender) == 2  # nothing taken by the refusals
+    oldest = sender.pop_job_answer(6)
     assert oldest is not None and oldest.file_line == 1
-    assert len(sender) == 2  # still on the books until popped
-    sender.pop_data()
+    assert len(sender) == 1  # taken off the books
     assert [sender.answered(answer(7))[0].file_line] == [2]
+    sender.sent(data("G1 X1"))  # a client's data line, no file line: read in full
+    assert sender.pop_job_answer(6) is None and len(sender) == 1

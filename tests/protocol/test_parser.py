@@ -16,7 +16,7 @@ from hostd.protocol.messages import (
     TextLine,
     Unparseable,
 )
-from hostd.protocol.parser import parse_line, plain_ok_count
+from hostd.protocol.parser import parse_line, plain_answer
 
 BANNER_100_26 = (
     b'{"r":{"fv":0.99,"fb":100.26,"fbs":"100.26","fbc":"settings_test.h","hp":3,"hv":0,'
@@ -215,11 +215,15 @@ def test_the_plain_answer_fast_path_agrees_with_the_json_parser() -> None:
         assert (fast.body, fast.status, fast.count) == (slow.body, slow.status, slow.count)
 
 
-def test_a_job_lines_ok_is_read_for_its_count_alone() -> None:
-    assert plain_ok_count(b'{"r":{"n":120},"f":[1,0,18]}') == 18
-    assert plain_ok_count(b'{"r":{},"f":[1,0,5]}') == 5
-    assert plain_ok_count(b'{"r":{"n":120},"f":[1,20,18]}') is None  # not OK: read in full
-    assert plain_ok_count(b'{"r":{"xvm":1},"f":[1,0,13]}') is None
+def test_a_job_lines_answer_is_read_for_its_status_and_count_alone() -> None:
+    def status_and_count(raw: bytes) -> tuple[bytes, bytes] | None:
+        plain = plain_answer(raw)
+        return None if plain is None else (plain[2], plain[3])
+
+    assert status_and_count(b'{"r":{"n":120},"f":[1,0,18]}') == (b"0", b"18")
+    assert status_and_count(b'{"r":{},"f":[1,0,5]}') == (b"0", b"5")
+    assert status_and_count(b'{"r":{"n":120},"f":[1,20,18]}') == (b"20", b"18")  # not OK
+    assert status_and_count(b'{"r":{"xvm":1},"f":[1,0,13]}') is None  # a body: read in full
 
 
 # Forms real boards print that strict JSON refuses (issue 12, item 5). A float that
