@@ -274,19 +274,24 @@ class Engine:
         if self._traffic_logged:
             for line in lines:
                 self._log.debug("rx", channel=channel.value, line=line)
-        if self.console or self.console_but_job:
+        if self.console:
             self._receive_published(channel, lines)  # line by line: each is published
         else:
-            self._receive(lines)
+            self._receive(lines, channel if self.console_but_job else None)
         try:
             self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
 
-    def _receive(self, lines: list[bytes]) -> None:
+    def _receive(self, lines: list[bytes], published: Channel | None = None) -> None:
         """The read's lines to the session: each run of plain job answers in one pass
-        (`receive_plain`), anything else in full at its place."""
+        (`receive_plain`), anything else in full at its place.
+
+        With `published` (someone listens to the console without the job's lines)
+        each line taken in full is published as it is, unless it answered a job
+        line; the plain answers taken in one pass are the job's, and never are.
+        """
         session = self.session
         receive, plain = session.receive, session.receive_plain
         count = len(lines)
@@ -296,34 +301,38 @@ class Engine:
             try:
                 at = plain(lines, index)
                 if at < count:
-                    receive(lines[at])
+                    if published is None:
+                        receive(lines[at])
+                    else:
+                        self._receive_one(published, lines[at])
             except Exception as exc:  # a bug of ours: stop writing, keep reading
                 self._log.exception("engine invariant broken")
                 session.halt(f"{type(exc).__name__}: {exc}")
             index = at + 1
 
     def _receive_published(self, channel: Channel, lines: list[bytes]) -> None:
-        """`receive` for each line, each published as a console event after it is taken.
-
-        After, so that the job's count says whether the line was the plain answer
-        (status 0) to one of the job's lines: the stream's `acked` moved by one. The
-        event still goes out before any the line caused (those are handed out once
-        the whole read is taken).
-        """
-        session = self.session
-        receive = session.receive
+        """`receive` for each line, each published as a console event after it is taken."""
         for line in lines:
-            stream = session.stream
-            acked = stream.acked if stream is not None else 0
-            try:
-                receive(line)
-            except Exception as exc:  # a bug of ours: stop writing, keep reading
-                self._log.exception("engine invariant broken")
-                session.halt(f"{type(exc).__name__}: {exc}")
-            job = stream is not None and stream.acked == acked + 1
-            if job and not self.console:
-                continue
-            self._publish_console("rx", channel, line, job)
+            self._receive_one(channel, line)
+
+    def _receive_one(self, channel: Channel, line: bytes) -> None:
+        """`receive` for one line, then its console event: after, so that the job's
+        count says whether the line was the plain answer (status 0) to one of the
+        job's lines (the stream's `acked` moved by one). The event still goes out
+        before any the line caused (those are handed out once the whole read is
+        taken)."""
+        session = self.session
+        stream = session.stream
+        acked = stream.acked if stream is not None else 0
+        try:
+            session.receive(line)
+        except Exception as exc:  # a bug of ours: stop writing, keep reading
+            self._log.exception("engine invariant broken")
+            session.halt(f"{type(exc).__name__}: {exc}")
+        job = stream is not None and stream.acked == acked + 1
+        if job and not self.console:
+            return
+        self._publish_console("rx", channel, line, job)
 
     def link_lost(self, reason: str) -> None:
         self._end(reason)

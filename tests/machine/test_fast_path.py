@@ -17,6 +17,7 @@ its own call, ahead of any line.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import random
 import re
@@ -177,7 +178,9 @@ def _config(dialect: str) -> MachineConfig:
     )
 
 
-async def _run(dialect: str, fast: bool, job: list[str], seed: int, error_rate: float) -> Any:
+async def _run(
+    dialect: str, fast: bool, job: list[str], seed: int, error_rate: float, listening: bool = False
+) -> Any:
     rng = random.Random(seed)
     events: list[str] = []
 
@@ -187,6 +190,11 @@ async def _run(dialect: str, fast: bool, job: list[str], seed: int, error_rate: 
     engine = Engine(_config(dialect), heard)
     session = engine.session
     session.fast_path = fast
+    # A console listener without the job's lines (the dashboard's `job_lines: false`):
+    # every other line read or written is published, in order, among the events.
+    engine.console_but_job = listening
+    if listening and not fast:  # the reference: each line taken, then published, one by one
+        engine._receive = lambda lines, channel: engine._receive_published(channel, lines)  # type: ignore[method-assign,assignment,misc]
     taken = 0
     plain = session.receive_plain
 
@@ -274,9 +282,9 @@ def _jobs(extra: list[str]) -> st.SearchStrategy[list[str]]:
     )
 
 
-def _compare(dialect: str, job: list[str], seed: int, error_rate: float) -> None:
-    fast = asyncio.run(_run(dialect, True, job, seed, error_rate))
-    slow = asyncio.run(_run(dialect, False, job, seed, error_rate))
+def _compare(dialect: str, job: list[str], seed: int, error_rate: float, listening: bool) -> None:
+    fast = asyncio.run(_run(dialect, True, job, seed, error_rate, listening))
+    slow = asyncio.run(_run(dialect, False, job, seed, error_rate, listening))
     assert slow["taken"] == 0
     assert fast["writes"] == slow["writes"]
     assert fast["events"] == slow["events"]
@@ -288,11 +296,12 @@ def _compare(dialect: str, job: list[str], seed: int, error_rate: float) -> None
     job=_jobs(G2_ONLY),
     seed=st.integers(0, 2**32),
     error_rate=st.sampled_from([0.0, 0.0, 0.02, 0.2]),
+    listening=st.booleans(),
 )
 def test_g2core_fast_path_writes_tells_and_counts_as_the_general_path(
-    job: list[str], seed: int, error_rate: float
+    job: list[str], seed: int, error_rate: float, listening: bool
 ) -> None:
-    _compare("g2core", job, seed, error_rate)
+    _compare("g2core", job, seed, error_rate, listening)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -300,20 +309,25 @@ def test_g2core_fast_path_writes_tells_and_counts_as_the_general_path(
     job=_jobs(GRBL_ONLY),
     seed=st.integers(0, 2**32),
     error_rate=st.sampled_from([0.0, 0.0, 0.02, 0.2]),
+    listening=st.booleans(),
 )
 def test_grbl_fast_path_writes_tells_and_counts_as_the_general_path(
-    job: list[str], seed: int, error_rate: float
+    job: list[str], seed: int, error_rate: float, listening: bool
 ) -> None:
-    _compare("grbl", job, seed, error_rate)
+    _compare("grbl", job, seed, error_rate, listening)
 
 
 def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:
     """The comparison above would pass with a fast path never taken: here it is taken."""
     job = [PLAIN[i % len(PLAIN)] for i in range(200)]
-    for dialect in ("g2core", "grbl"):
-        run = asyncio.run(_run(dialect, True, job, 7, 0.0))
+    for dialect, listening in itertools.product(("g2core", "grbl"), (False, True)):
+        run = asyncio.run(_run(dialect, True, job, 7, 0.0, listening))
         sent, acked = run["counts"][:2]
         assert (sent, acked) == (200, 200)
         assert "completed" in run["counts"][8]
-        # All but the job's last look-ahead, answered once its input ended.
+        # All but the job's last look-ahead, answered once its input ended; with a
+        # console listener that leaves the job's lines out (the dashboard) as well.
         assert run["taken"] >= 150
+        if listening:  # what it was told: the reports and the queries, no job line
+            console = [e for e in run["events"] if e.startswith("Console(")]
+            assert console and not any("job=True" in e for e in console)
