@@ -208,6 +208,12 @@ class Controller:
             free = self.planner.next_free_wall(now)
             if free is not None:
                 deadlines.append(free)
+            elif self.planner.held_since is None:
+                # A block freed since `_timers` planned what it could (its `now` is a little
+                # older than this one): plan the waiting lines now. Without this the process
+                # slept until its next input, which the host, its window full of these very
+                # lines, never sent: a stall of seconds, counted as starvation (P8 g2core).
+                deadlines.append(now)
         return deadlines
 
     def _timeout(self) -> float | None:

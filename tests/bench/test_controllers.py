@@ -135,3 +135,31 @@ def test_a_rastering_grbl_answers_as_its_planner_takes_the_lines(tmp_path: Path)
     finally:
         os.close(port.fd)
         board.close()
+
+
+def test_a_rastering_g2core_never_leaves_a_host_with_a_full_window_waiting(
+    tmp_path: Path,
+) -> None:
+    """A host keeping 4 lines unanswered gets every answer as the planner takes its line,
+    with no input of its own to wake the board. (The board slept until its next input when a
+    block freed between its planning and its choice of how long to sleep: the host, its
+    window full of the lines waiting, sent none, and P8 counted a second's stall as the
+    host's starvation.) 3,000 lines at 2,000 a second met that race about every 1,000."""
+    board = ControllerProcess(str(tmp_path / "ttyR"), "g2core", rate=2000.0)
+    port = Port(board.link)
+    try:
+        port.until(b"SYSTEM READY")
+        port.until(b"\n")
+        total = 3000
+        board.expect(total)
+        sent = answered = 0
+        while answered < total:
+            while sent < total and sent - answered < 4:
+                sent += 1
+                port.write(b"N%d G1 X%d\n" % (sent, sent % 10))
+            answered += 1
+            port.until(b'{"r":{"n":%d}' % answered, timeout=2.0)
+        assert board.dump()["job"]["lines"] == total
+    finally:
+        os.close(port.fd)
+        board.close()
