@@ -108,6 +108,9 @@ class Engine:
         # listens without them: `job_lines: false`). Without `console` those lines are not
         # even decoded: at a laser's 1,000-2,000 lines/s they were two events a line.
         self.console_but_job = False
+        # Publish status polls and reports among those lines (someone listens with them:
+        # `status_traffic`, the default). Off, they are not even decoded.
+        self.console_status = True
         # The job's `sent` count at the last write: the lines it wrote since are the job's.
         self._sent_stream: Stream | None = None
         self._sent_seen = 0
@@ -758,8 +761,11 @@ class Engine:
     def _publish_console(
         self, direction: str, channel: Channel, line: bytes, job: bool = False
     ) -> None:
+        status = not job and self.session.status_traffic(line, direction == "tx")
+        if status and not self.console_status:
+            return
         text = line.rstrip(b"\n").decode("utf-8", "backslashreplace")
-        self._up(Console(self.id, direction, str(channel), text, job))
+        self._up(Console(self.id, direction, str(channel), text, job, status))
 
     def _publish_link(self, up: bool, reason: str) -> None:
         self._up(LinkChanged(self.id, up, reason))

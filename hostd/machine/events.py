@@ -55,6 +55,9 @@ class Console:
     # A running job's own line, or a board's plain answer (status 0) to one: what a
     # subscription with `job_lines: false` leaves out (docs/api.md).
     job: bool = False
+    # A status poll or report (`SessionBase.status_traffic`): what a subscription with
+    # `status_traffic: false` leaves out.
+    status: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -388,6 +388,16 @@ class Machine:
     def console_but_job(self, listening: bool) -> None:
         self.engine.console_but_job = listening
 
+    @property
+    def console_status(self) -> bool:
+        """Whether the engine publishes status polls and reports among the console's
+        lines (someone listens with them)."""
+        return self.engine.console_status
+
+    @console_status.setter
+    def console_status(self, listening: bool) -> None:
+        self.engine.console_status = listening
+
     async def send(self, line: str, timeout: float = 10.0) -> Response:
         """One line, through the same admission as any other; its answer.
 

@@ -1037,6 +1037,14 @@ class G2Session(SessionBase):
     def flushing(self) -> bool:
         return self._flush is not None
 
+    def status_traffic(self, line: bytes, written: bool) -> bool:
+        """The session's `{"sr":null}` poll, its answer `{"r":{"sr":{...}},...}`, and the
+        `{"sr":{...}}` reports the board sends on its own (g2core/report.cpp
+        sr_status_report_callback)."""
+        if written:
+            return line.strip() == _STATUS_POLL
+        return line.startswith((b'{"sr":', b'{"r":{"sr":'))
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         if number is not None:
             if text[:1] not in NOT_PREFIXED and 0 <= number <= MAX_LINE_NUMBER:
@@ -1193,6 +1201,7 @@ class G2Session(SessionBase):
 _LIMIT_AXES = ("x", "y", "z")
 _OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 _CLEAR = encode_clear()
+_STATUS_POLL = encode_get("sr").strip()
 _LOCKOUT_OF = {
     Status.COMMAND_REJECTED_BY_ALARM: MachineState.ALARM,
     Status.COMMAND_REJECTED_BY_SHUTDOWN: MachineState.SHUTDOWN,

@@ -189,6 +189,13 @@ class SessionBase:
             return None
         return stream
 
+    def status_traffic(self, line: bytes, written: bool) -> bool:
+        """Whether a line written (`written`) or read is status traffic: the host's own
+        status poll, or a status report. Several a second on every machine, and read from
+        the `status` topic's snapshots rather than the console: a `console` subscription
+        with `status_traffic: false` leaves them out (docs/api.md)."""
+        return False
+
     def paceable(self) -> bool:
         """Whether a read may wait a little for the next answers (the engine's pacing):
         a job streams in its steady state, not paused, on a board that reports motion

@@ -179,7 +179,13 @@ def _config(dialect: str) -> MachineConfig:
 
 
 async def _run(
-    dialect: str, fast: bool, job: list[str], seed: int, error_rate: float, listening: bool = False
+    dialect: str,
+    fast: bool,
+    job: list[str],
+    seed: int,
+    error_rate: float,
+    listening: bool = False,
+    status_traffic: bool = True,
 ) -> Any:
     rng = random.Random(seed)
     events: list[str] = []
@@ -193,6 +199,7 @@ async def _run(
     # A console listener without the job's lines (the dashboard's `job_lines: false`):
     # every other line read or written is published, in order, among the events.
     engine.console_but_job = listening
+    engine.console_status = status_traffic
     if listening and not fast:  # the reference: each line taken, then published, one by one
         engine._receive = lambda lines, channel: engine._receive_published(channel, lines)  # type: ignore[method-assign,assignment,misc]
     taken = 0
@@ -331,3 +338,22 @@ def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:
         if listening:  # what it was told: the reports and the queries, no job line
             console = [e for e in run["events"] if e.startswith("Console(")]
             assert console and not any("job=True" in e for e in console)
+
+
+def test_status_traffic_stays_out_of_a_console_that_does_not_want_it() -> None:
+    """`status_traffic: false` (the dashboard unless its *polls* box is ticked): the
+    host's status polls and the reports stay out of the console, and nothing else does."""
+    job = [PLAIN[i % len(PLAIN)] for i in range(60)]
+    for dialect in ("g2core", "grbl"):
+        heard = asyncio.run(_run(dialect, True, job, 3, 0.0, listening=True))
+        quiet = asyncio.run(_run(dialect, True, job, 3, 0.0, True, status_traffic=False))
+
+        def console(run: Any) -> list[str]:
+            return [e for e in run["events"] if e.startswith("Console(")]
+
+        polls = [e for e in console(heard) if "status=True" in e]
+        assert any("'tx'" in e for e in polls) and any("'rx'" in e for e in polls), polls
+        assert [e for e in console(heard) if "status=False" in e] == console(quiet)
+        assert not any("status=True" in e for e in console(quiet))
+        assert any("status=False" in e for e in console(quiet))  # e.g. the handshake's
+        assert (heard["writes"], heard["counts"]) == (quiet["writes"], quiet["counts"])

@@ -220,6 +220,13 @@ class GrblSession(GrblWords, SessionBase):
             return False
         return not self._outbox and not self._job_running() and not self.flushing()
 
+    def status_traffic(self, line: bytes, written: bool) -> bool:
+        """`?` (grbl.h CMD_STATUS_REPORT) and the `<...>` report that answers it
+        (report.c report_realtime_status)."""
+        if written:
+            return line.strip() == codec.STATUS
+        return line[:1] == b"<" and line.rstrip()[-1:] == b">"
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
         if number is not None:
             if (
