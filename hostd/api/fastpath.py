@@ -55,7 +55,7 @@ from hostd.api import rpc
 from hostd.api.lines import LineReader
 
 if TYPE_CHECKING:
-    from hostd.api.server import Client
+    from hostd.api.client import Client
 
 
 class FastPath:

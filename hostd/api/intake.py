@@ -28,7 +28,7 @@ from hostd.api import rpc
 
 
 class Sender(Protocol):
-    """Where answers go: the client (server.Client, web.WebClient)."""
+    """Where answers go: the client (client.Client, web.WebClient)."""
 
     log: Any
 

@@ -12,7 +12,7 @@ How a handler learns who called it: `dispatch` takes a `context` (the server
 passes its `Client`) and makes it available, for the duration of each handler
 call, through `current_context()` (a contextvar, so concurrent requests each
 see their own caller). Handlers keep a one-argument signature and only the few
-that care (subscriptions) ask; `hostd.api.server.current_client()` is the typed
+that care (subscriptions) ask; `hostd.api.client.current_client()` is the typed
 way to do so. A task a handler spawns inherits the value as it was at spawn
 time; it must not rely on it later.
 

@@ -5,7 +5,7 @@ streamed request bodies, so nothing here parses HTTP or frames WebSockets.
 
 One API. The WebSocket at `/api` carries the same JSON-RPC 2.0 as the Unix
 socket, one message a WebSocket text frame, answered by the same method
-table through `rpc.answer`. Its peer is a `WebClient`, a `server.Client`
+table through `rpc.answer`. Its peer is a `WebClient`, a `client.Client`
 with the WebSocket for a stream, so subscriptions, the bounded outbound
 queue (full: the client is dropped) and the disconnect hooks are the Unix
 socket's own. `POST /files/<name>` streams a request body into the jobs
@@ -51,10 +51,11 @@ from aiohttp import WSMsgType, web
 from aiohttp.web_protocol import RequestHandler
 
 from hostd.api import rpc
+from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client
 from hostd.api.files import FileNameError, JobsDir, NoSuchFileError, check_name
 from hostd.api.intake import Intake
 from hostd.api.peer import PeerCred
-from hostd.api.server import MAX_INFLIGHT, MAX_LINE, QUEUE_SIZE, WRITE_TIMEOUT, Client
+from hostd.api.server import MAX_INFLIGHT, MAX_LINE
 from hostd.api.tokens import Sessions, TokenStore
 from hostd.api.uploads import NoSuchUpload, StorageError
 from hostd.api.webconfig import WebConfig

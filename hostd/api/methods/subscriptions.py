@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import Field
 
+from hostd.api.client import current_client
 from hostd.api.methods.params import Id, MachineId, Params
 from hostd.api.rpc import Methods, RpcError, encode_notification
-from hostd.api.server import current_client
 from hostd.machine.events import (
     Console,
     Event,
