@@ -2,7 +2,7 @@
 
 A `Client` is also the `context` handlers can ask for with `current_client()`.
 The Unix socket (server.py) makes one per admitted peer, the web API's
-WebSocket (web.py) one per browser tab; both read requests through
+WebSocket (web/websocket.py) one per browser tab; both read requests through
 `intake.py` and answer through the client.
 
 Everything sent to the client (answers and notifications) goes out in the
@@ -91,7 +91,7 @@ class Client:
     again once its last request is done); one appended from elsewhere after
     `closed` became true does not.
 
-    Another transport (the web API's WebSocket, hostd/api/web.py) passes no
+    Another transport (the web API's WebSocket, hostd/api/web/websocket.py) passes no
     stream `writer` and overrides `_abort` and `_write_loop`.
     """
 
