@@ -24,7 +24,7 @@ from __future__ import annotations
 import asyncio
 import enum
 import weakref
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, Final
 
 import structlog
@@ -228,6 +228,25 @@ class Client:
             self.close(f"outbound queue over {self._queue_size} messages")
             return False
         return True
+
+    async def serve(self, read: Callable[[asyncio.TaskGroup], Awaitable[None]]) -> None:
+        """The connection's life, whichever transport: the writer task and `read(tg)` in
+        one task group (`read` starts each request as a task of `tg`).
+
+        Returns once the writer and every request have ended; cancelled (the server
+        closing), the client is closed first. Either way the disconnect hooks run
+        before this returns.
+        """
+        try:
+            async with asyncio.TaskGroup() as tg:
+                self._writer_task = tg.create_task(self._write_loop())
+                await read(tg)
+        except asyncio.CancelledError:
+            self.close("server closing")
+            raise
+        finally:
+            self.close("connection ended")
+            self._run_hooks()
 
     def close(self, reason: str = "closed") -> None:
         """Drop the connection now, discarding anything not yet sent. Idempotent."""

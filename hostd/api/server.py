@@ -47,6 +47,7 @@ import contextlib
 import itertools
 import os
 from collections.abc import Mapping
+from functools import partial
 from types import TracebackType
 from typing import Final, Self, cast
 
@@ -252,15 +253,8 @@ class ApiServer:
         client.log.info("api client connected", gid=peer.gid)
         transport.resume_reading()
         try:
-            async with asyncio.TaskGroup() as tg:
-                client._writer_task = tg.create_task(client._write_loop())
-                await self._read_loop(client, reader, tg)
-        except asyncio.CancelledError:
-            client.close("server closing")
-            raise
+            await client.serve(partial(self._read_loop, client, reader))
         finally:
-            client.close("connection ended")
-            client._run_hooks()
             self._clients.discard(client)
 
     async def _turn_away(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 from collections.abc import Mapping
+from functools import partial
 from typing import Final
 
 import structlog
@@ -166,17 +167,8 @@ class WebSockets:
         self._clients.add(client)
         client.log.info("web client connected")
         try:
-            async with asyncio.TaskGroup() as tg:
-                client._writer_task = tg.create_task(client._write_loop())
-                await self._read_loop(client, ws, tg)
-                # The peer is gone: answers still running are dropped once they finish.
-                client.close("connection ended")
-        except asyncio.CancelledError:
-            client.close("server closing")
-            raise
+            await client.serve(partial(self._read_loop, client, ws))
         finally:
-            client.close("connection ended")
-            client._run_hooks()
             self._clients.discard(client)
         return ws
 
@@ -192,3 +184,5 @@ class WebSockets:
                 client.send_line(rpc.encode_error(rpc.INVALID_REQUEST, "text frames only"))
                 continue
             await intake.take(message.data.encode())
+        # The peer is gone: answers still running are dropped once they finish.
+        client.close("connection ended")
