@@ -63,6 +63,9 @@ INVALID_REQUEST: Final = -32600
 METHOD_NOT_FOUND: Final = -32601
 INVALID_PARAMS: Final = -32602
 INTERNAL_ERROR: Final = -32603
+# JSON-RPC leaves -32000 to -32099 to the server. hostd's one: a limit is reached (the
+# daemon's max_clients, a subscription limit, MQTT's commands running; docs/api.md).
+SERVER_FULL: Final = -32000
 
 # Batch elements run concurrently: a cap keeps one line from starting an
 # unbounded number of handlers. The server passes its per-client limit instead.

@@ -34,7 +34,7 @@ closed.
 Connections: at most `max_clients` admitted clients at once. A connection
 counts from its admission until its last request has finished, even when its
 peer has already gone (its requests still hold the daemon's resources). An
-allowed peer past the cap is told so in one line (error `SERVER_FULL`, id
+allowed peer past the cap is told so in one line (error `rpc.SERVER_FULL`, id
 null) and closed; nothing it sent is run. At most `max_clients` more
 connections may be in admission or being turned away at once; past that a
 new connection is closed at once, unread.
@@ -67,8 +67,6 @@ MAX_CLIENTS: Final = 128
 LINE_TIMEOUT: Final = 10.0
 # How long a client turned away (the daemon full) gets to read why before it is dropped.
 TURN_AWAY_LINGER: Final = 1.0
-# JSON-RPC leaves -32000 to -32099 to the server: the daemon has max_clients connected.
-SERVER_FULL: Final = -32000
 
 
 class ApiServer:
@@ -276,7 +274,7 @@ class ApiServer:
         transport = cast(asyncio.Transport, writer.transport)
         with contextlib.suppress(TimeoutError, OSError):
             async with asyncio.timeout(TURN_AWAY_LINGER):
-                writer.write(rpc.encode_error(SERVER_FULL, message) + b"\n")
+                writer.write(rpc.encode_error(rpc.SERVER_FULL, message) + b"\n")
                 writer.write_eof()
                 transport.resume_reading()
                 await writer.drain()

@@ -33,9 +33,8 @@ from hostd.api.mqtt import topics
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.mqtt.outbox import Outbox
 
-# Commands running at once; one more is answered SERVER_FULL and does not run.
+# Commands running at once; one more is answered rpc.SERVER_FULL and does not run.
 MAX_COMMANDS: Final = 16
-SERVER_FULL: Final = -32000
 # Past the command rate; a command too old, from the future, or already run.
 RATE_LIMITED: Final = -32001
 STALE: Final = -32002
@@ -158,7 +157,7 @@ class Commands:
                 f"payload over {config.max_payload} bytes ([mqtt] max_payload)",
             )
         return self._stale(user) or (
-            (SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later")
+            (rpc.SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later")
             if len(self.running) >= MAX_COMMANDS
             else None
         )
