@@ -4,8 +4,8 @@
 
 What the page does when it opens (hostd/web/static/app.js, `onLink`): it
 connects to `/api` with its session (here the same token as a Bearer
-header, which the server takes as it takes the login cookie, hostd/api/web.py
-`_token`), asks `daemon.info`, and subscribes to `status`, `supervisor`,
+header, which the server takes as it takes the login cookie, hostd/api/web/auth.py
+`_token_id`), asks `daemon.info`, and subscribes to `status`, `supervisor`,
 `fault`, `job`, `console` and `exception` for every machine, with
 `job_lines: false` (since issue 30: a running job's own lines and their
 plain answers are left out of its console; before, every line written and

@@ -28,7 +28,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Final
 
-from hostd.api.server import Client
+from hostd.api.client import Client
 from hostd.api.uploads import Version
 
 MAX_NAMES: Final = 64  # names one connection is remembered to have published

@@ -38,7 +38,7 @@ StreamReader, none its LineReader has not yet returned as a line), since
 those would be requests sent before this one, and the connection not to be
 closed. Anything else reaches the reader task as usual.
 
-The WebSocket transport (web.py) has no read callback of its own to hook:
+The WebSocket transport (web/websocket.py) has no read callback of its own to hook:
 it has only the reader-task way, under the same rule (the same `Intake`).
 """
 
@@ -55,7 +55,7 @@ from hostd.api import rpc
 from hostd.api.lines import LineReader
 
 if TYPE_CHECKING:
-    from hostd.api.server import Client
+    from hostd.api.client import Client
 
 
 class FastPath:

@@ -1,6 +1,6 @@
 """A client's requests as its transport reads them, the same on every transport.
 
-The Unix socket (server.py) and the WebSocket (web.py) each read whole
+The Unix socket (server.py) and the WebSocket (web/websocket.py) each read whole
 messages and hand every one to their client's `Intake`:
 
 - A message that is not a request, or a batch that cannot run, is answered
@@ -28,7 +28,7 @@ from hostd.api import rpc
 
 
 class Sender(Protocol):
-    """Where answers go: the client (server.Client, web.WebClient)."""
+    """Where answers go: the client (client.Client, web.WebClient)."""
 
     log: Any
 

@@ -12,7 +12,7 @@ How a handler learns who called it: `dispatch` takes a `context` (the server
 passes its `Client`) and makes it available, for the duration of each handler
 call, through `current_context()` (a contextvar, so concurrent requests each
 see their own caller). Handlers keep a one-argument signature and only the few
-that care (subscriptions) ask; `hostd.api.server.current_client()` is the typed
+that care (subscriptions) ask; `hostd.api.client.current_client()` is the typed
 way to do so. A task a handler spawns inherits the value as it was at spawn
 time; it must not rely on it later.
 
@@ -63,6 +63,9 @@ INVALID_REQUEST: Final = -32600
 METHOD_NOT_FOUND: Final = -32601
 INVALID_PARAMS: Final = -32602
 INTERNAL_ERROR: Final = -32603
+# JSON-RPC leaves -32000 to -32099 to the server. hostd's one: a limit is reached (the
+# daemon's max_clients, a subscription limit, MQTT's commands running; docs/api.md).
+SERVER_FULL: Final = -32000
 
 # Batch elements run concurrently: a cap keeps one line from starting an
 # unbounded number of handlers. The server passes its per-client limit instead.

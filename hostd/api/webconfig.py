@@ -12,7 +12,7 @@ class _Strict(BaseModel):
 
 
 class WebConfig(_Strict):
-    """The dashboard's HTTP server (hostd/api/web.py); docs/web.md."""
+    """The dashboard's HTTP server (hostd/api/web/); docs/web.md."""
 
     # "host:port", "[v6 address]:port"; port 0 picks a free one (tests).
     listen: str

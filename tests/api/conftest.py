@@ -13,8 +13,9 @@ from typing import Any, cast
 import pytest_asyncio
 from pydantic import BaseModel, ConfigDict
 
+from hostd.api.client import current_client
 from hostd.api.rpc import Methods
-from hostd.api.server import ApiServer, current_client
+from hostd.api.server import ApiServer
 
 TIMEOUT = 5.0
 

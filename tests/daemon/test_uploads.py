@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 
 from hostd.api.appends import Chain
+from hostd.api.client import Client
 from hostd.api.methods import UploadParams
 from hostd.api.rpc import RpcError
-from hostd.api.server import Client
 from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
 
 pytestmark = pytest.mark.asyncio

@@ -29,10 +29,10 @@ import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
 
+from hostd.api.client import Client
 from hostd.api.methods import Api, build_methods
 from hostd.api.peer import PeerCred
 from hostd.api.rpc import Methods, dispatch
-from hostd.api.server import Client
 from hostd.config import parse_config
 from hostd.daemon import Daemon
 from hostd.machine.jobstore import JobStore

@@ -17,10 +17,10 @@ import structlog
 from pydantic import Field
 
 from hostd.api.appends import Chain
+from hostd.api.client import Client, current_client
 from hostd.api.files import InvalidData, NoSuchFileError, decode
 from hostd.api.methods.params import JobFile, MachineId, Params
 from hostd.api.rpc import Methods, RpcError
-from hostd.api.server import Client, current_client
 from hostd.api.uploads import ChunkError, NoSuchUpload, StorageError
 from hostd.machine.preflight import analyze_for
 

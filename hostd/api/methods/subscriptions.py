@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import Field
 
+from hostd.api.client import current_client
 from hostd.api.methods.params import Id, MachineId, Params
-from hostd.api.rpc import Methods, RpcError, encode_notification
-from hostd.api.server import current_client
+from hostd.api.rpc import SERVER_FULL, Methods, RpcError, encode_notification
 from hostd.machine.events import (
     Console,
     Event,
@@ -78,9 +78,6 @@ class _Subscription:
 MAX_SUBSCRIPTIONS_PER_CLIENT = 32
 MAX_SUBSCRIPTIONS = 4096
 
-
-SUBSCRIPTIONS_FULL = -32000  # the server's range: as a daemon full of clients
-
 # A str as a JSON string, non-ASCII kept (the C encoder rpc.encode's ensure_ascii=False uses).
 _json_string: Callable[[str], str] = json.encoder.encode_basestring
 
@@ -130,9 +127,9 @@ class Subscriptions:
         """
         if self._owned[id(owner)] >= self.max_per_client:
             why = f"subscription limit: {self.max_per_client} per client; unsubscribe first"
-            raise RpcError(SUBSCRIPTIONS_FULL, why)
+            raise RpcError(SERVER_FULL, why)
         if len(self._subs) >= self.max_total:
-            raise RpcError(SUBSCRIPTIONS_FULL, f"subscription limit: {self.max_total} in all")
+            raise RpcError(SERVER_FULL, f"subscription limit: {self.max_total} in all")
         self._owned[id(owner)] += 1
         sub_id = self._next
         self._next += 1
