@@ -42,6 +42,7 @@ does not answer within as long again is gone.
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -1042,7 +1043,7 @@ class G2Session(SessionBase):
         `{"sr":{...}}` reports the board sends on its own (g2core/report.cpp
         sr_status_report_callback)."""
         if written:
-            return line.strip() == _STATUS_POLL
+            return _STATUS_POLL(line.strip()) is not None
         return line.startswith((b'{"sr":', b'{"r":{"sr":'))
 
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
@@ -1201,7 +1202,8 @@ class G2Session(SessionBase):
 _LIMIT_AXES = ("x", "y", "z")
 _OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 _CLEAR = encode_clear()
-_STATUS_POLL = encode_get("sr").strip()
+# `{"sr":null}` as the session writes it, or as an operator may (`{sr:n}`, `{"sr":""}`).
+_STATUS_POLL = re.compile(rb'\{\s*"?sr"?\s*:\s*(?:n|null|"")\s*\}', re.IGNORECASE).fullmatch
 _LOCKOUT_OF = {
     Status.COMMAND_REJECTED_BY_ALARM: MachineState.ALARM,
     Status.COMMAND_REJECTED_BY_SHUTDOWN: MachineState.SHUTDOWN,

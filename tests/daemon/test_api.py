@@ -6,6 +6,7 @@ import asyncio
 import base64
 import itertools
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -360,6 +361,40 @@ async def test_a_console_subscription_can_leave_out_a_jobs_own_lines(
     # The operator's line and its answer still come.
     assert any(n["direction"] == "tx" and "yvm" in n["text"] for n in kept)
     assert any(n["direction"] == "rx" and "yvm" in n["text"] for n in kept)
+
+
+def _status_traffic(note: dict[str, Any]) -> bool:
+    """The dashboard's own test (app.js isStatusTraffic): a status poll or report."""
+    text = note["text"].strip()
+    if note["direction"] == "tx":
+        return re.fullmatch(r'\{\s*"?sr"?\s*:\s*(n|null|"")\s*\}', text, re.I) is not None
+    return text.startswith(('{"sr":', '{"r":{"sr":'))
+
+
+async def test_a_console_subscription_can_leave_out_status_traffic(
+    hostd: Running, rpc: Rpc
+) -> None:
+    quiet = await hostd.client()
+    try:
+        await rpc.call("subscribe", topics=["console"], machine="sim1")
+        await quiet.call("subscribe", topics=["console"], machine="sim1", status_traffic=False)
+        await fails(-32602, quiet.call("subscribe", topics=["console"], status_traffic="no"))
+        await rpc.call("machine.send", machine="sim1", line="G1 X5 F3000")  # reported moving
+        await rpc.call("machine.send", machine="sim1", line="{sr:n}")  # the operator's poll
+        await rpc.call("machine.send", machine="sim1", line="{yvm:n}")
+        full = await _drained(rpc)
+        kept = await _drained(quiet)
+    finally:
+        await quiet.close()
+    polls = [n for n in full if _status_traffic(n)]
+    assert any(n["direction"] == "tx" for n in polls) and any(
+        n["direction"] == "rx" for n in polls
+    ), full
+    # Exactly the status traffic is gone; the rest is the same stream in the same order.
+    assert kept == [n for n in full if not _status_traffic(n)]
+    texts = [n["text"] for n in kept]
+    assert "G1 X5 F3000" in texts and '{"yvm":null}' in texts  # as written: strict JSON
+    assert any("yvm" in text for text in texts if text.startswith('{"r":'))  # its answer
 
 
 async def test_a_client_cannot_end_another_clients_subscription(hostd: Running, rpc: Rpc) -> None:

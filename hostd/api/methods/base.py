@@ -20,7 +20,7 @@ import structlog
 
 from hostd.api.appends import Appends
 from hostd.api.files import JobsDir, NoSuchFileError
-from hostd.api.methods.subscriptions import JOB_LINES, Subscriptions, publish
+from hostd.api.methods.subscriptions import JOB_LINES, STATUS_LINES, Subscriptions, publish
 from hostd.api.rpc import RpcError
 from hostd.daemon import Daemon
 from hostd.machine.machine import Machine
@@ -55,6 +55,8 @@ class Api:
             # all but those for one that asked `job_lines: false`.
             machine.console = self.subscriptions.wants(JOB_LINES, machine.id)
             machine.console_but_job = self.subscriptions.wants("console", machine.id)
+            # Status polls and reports for a subscription that did not ask to leave them out.
+            machine.console_status = self.subscriptions.wants(STATUS_LINES, machine.id)
 
     def attach(self) -> None:
         """Listen to every machine (call once the daemon has built them)."""

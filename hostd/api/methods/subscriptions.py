@@ -41,6 +41,9 @@ Topic = Literal["status", "exception", "supervisor", "fault", "job", "console", 
 # Where a running job's own console lines go: the `console` subscriptions that did not
 # ask to leave them out (`job_lines: false`). Not a topic a client names; a routing key.
 JOB_LINES = "console.job"
+# Where the host's status polls and the board's status reports go among console lines: the
+# `console` subscriptions that did not ask to leave them out (`status_traffic: false`).
+STATUS_LINES = "console.status"
 
 
 class SubscribeParams(Params):
@@ -54,6 +57,16 @@ class SubscribeParams(Params):
             strict=True,
             description="false: `console` leaves out a running job's own lines and the "
             "board's plain answers to them (docs/api.md, Additions)",
+        ),
+    ] = True
+    # Another addition (optional, default as api.md says): false leaves the host's status
+    # polls and the board's status reports out of `console`.
+    status_traffic: Annotated[
+        bool,
+        Field(
+            strict=True,
+            description="false: `console` leaves out the host's status polls and the "
+            "board's status reports, which the `status` topic carries (docs/api.md, Additions)",
         ),
     ] = True
 
@@ -119,11 +132,13 @@ class Subscriptions:
         machine: str | None,
         *,
         job_lines: bool = True,
+        status_traffic: bool = True,
     ) -> int:
         """A new subscription's id. Raises RpcError(-32000) past either bound.
 
         A `console` subscription gets a running job's own lines (the `JOB_LINES`
-        routing key) unless `job_lines` is False.
+        routing key) unless `job_lines` is False, and the status polls and reports
+        (`STATUS_LINES`) unless `status_traffic` is False.
         """
         if self._owned[id(owner)] >= self.max_per_client:
             why = f"subscription limit: {self.max_per_client} per client; unsubscribe first"
@@ -136,6 +151,8 @@ class Subscriptions:
         keys = set(topics)
         if job_lines and "console" in keys:
             keys.add(JOB_LINES)
+        if status_traffic and "console" in keys:
+            keys.add(STATUS_LINES)
         sub = _Subscription(owner, send, frozenset(keys), machine)
         self._subs[sub_id] = sub
         self._interest.update((topic, machine) for topic in sub.topics)
@@ -234,7 +251,7 @@ def publish(subs: Subscriptions, machine: Machine, event: Event) -> None:
     """One machine event as the notification of its topic, to whoever wants it."""
     mid = machine.id
     if isinstance(event, Console):  # first: two a line while someone listens
-        key = JOB_LINES if event.job else "console"
+        key = JOB_LINES if event.job else STATUS_LINES if event.status else "console"
         if subs.wants(key, mid):
             subs.deliver_line(key, mid, console_notification(event))
     elif isinstance(event, StatusChanged):
@@ -273,6 +290,12 @@ class SubscriptionMethods:
         dashboard follows the job by the `job` topic's progress instead: at a
         laser's 1,000-2,000 lines a second, the job's lines were two console
         notifications a line that nobody could read.
+
+        `status_traffic` (optional, default true; another addition): false leaves
+        the host's status polls and the board's status reports out of `console`;
+        the `status` topic carries what they say. The dashboard hid them in the
+        browser, several a second on every machine, after the daemon had made and
+        sent each one.
         """
         if p.machine is not None:
             self.api.machine(p.machine)
@@ -280,7 +303,12 @@ class SubscriptionMethods:
         if not self.api.subscriptions.has(client):
             client.on_disconnect.append(partial(self.api.subscriptions.remove_all, client))
         sub_id = self.api.subscriptions.add(
-            client, client.send_line, list(p.topics), p.machine, job_lines=p.job_lines
+            client,
+            client.send_line,
+            list(p.topics),
+            p.machine,
+            job_lines=p.job_lines,
+            status_traffic=p.status_traffic,
         )
         if client.closed:  # it left while this request ran: its hooks may have run already
             self.api.subscriptions.remove_all(client)

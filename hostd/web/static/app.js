@@ -69,7 +69,6 @@ const view = {
   analyzed: null, // what it was asked for: "file|machine|homed"
   rate: null, // {acked, at, perSecond}
   console: [],
-  consoleHidden: 0, // status polls and reports left out of the console
   consoleSub: null, // this connection's console subscription (job lines or not, as the box says)
   macros: [],
   preview: { mode: "top", zoom: 1, panX: 0, panY: 0, toCanvas: null },
@@ -667,21 +666,8 @@ async function refreshHistory() {
   updateEnabled();
 }
 
-// Status polls and reports (grbl's `?` and `<...>`, g2core's `{sr:n}` and `{"sr":...}`)
-// come several times a second: left out of the console unless asked for.
-function isStatusTraffic(params) {
-  const text = params.text.trim();
-  if (params.direction === "tx") return text === "?" || /^\{\s*"?sr"?\s*:\s*(n|null|"")\s*\}$/i.test(text);
-  return /^<[^<>]*>$/.test(text) || /^\{\s*"sr"\s*:/.test(text) || /^\{\s*"r"\s*:\s*\{\s*"sr"\s*:/.test(text);
-}
-
 function showConsole(params) {
   if (params.machine !== view.machine) return;
-  if (!$("console-polls").checked && isStatusTraffic(params)) {
-    view.consoleHidden += 1;
-    $("console-hidden").textContent = `(${view.consoleHidden} hidden)`;
-    return;
-  }
   view.console.push(`${params.direction === "tx" ? "→" : "←"} ${params.text}`);
   if (view.console.length > 300) view.console.splice(0, view.console.length - 300);
   const pre = $("console");
@@ -871,15 +857,25 @@ async function onLink(up) {
 
 // Unless the "job lines" box is ticked, a running job's own lines and their plain `ok`s stay
 // out of the console (job_lines: false, docs/api.md): a laser sends 1,000-2,000 a second, two
-// messages each, which no one reads; the job row shows the progress. The new subscription is
-// made before the old one ends: one client gets each notification once, so nothing is lost.
+// messages each, which no one reads; the job row shows the progress. Unless the "status
+// reports" box is ticked, so do the status polls and reports (grbl's `?` and `<...>`, g2core's
+// `{"sr":null}` and `{"sr":...}`, several a second: status_traffic: false); the status panel
+// shows what they say. The daemon leaves them out: it no longer makes and sends what the page
+// would throw away. The new subscription is made before the old one ends: one client gets
+// each notification once, so nothing is lost.
 async function subscribeConsole() {
-  const box = $("console-job");
+  const jobs = $("console-job");
+  const polls = $("console-polls");
   const previous = view.consoleSub;
-  const sub = await act("subscribe", { topics: ["console"], job_lines: box.checked });
+  const sub = await act("subscribe", {
+    topics: ["console"], job_lines: jobs.checked, status_traffic: polls.checked,
+  });
   view.consoleSub = sub ? sub.subscription : previous;
   if (sub && previous !== null) await act("unsubscribe", { subscription: previous });
-  if (sub) box.dataset.subscribed = String(box.checked); // what the daemon sends now
+  if (!sub) return;
+  jobs.dataset.subscribed = String(jobs.checked); // what the daemon sends now
+  polls.dataset.subscribed = String(polls.checked);
+  $("console-hidden").textContent = polls.checked ? "" : "(hidden)";
 }
 
 async function upload(event) {
@@ -1014,7 +1010,6 @@ function wire() {
     stopKeyJog();
     view.machine = $("machine").value;
     view.console = [];
-    view.consoleHidden = 0;
     view.analyzed = null;
     refreshMachine();
     refreshHistory();
@@ -1035,7 +1030,7 @@ function wire() {
     const answer = await act("machine.send", { machine: view.machine, line });
     if (answer) { $("send-line").value = ""; showConsole({ machine: view.machine, direction: "rx", text: JSON.stringify(answer) }); }
   });
-  $("console-polls").addEventListener("change", () => { view.consoleHidden = 0; $("console-hidden").textContent = ""; });
+  $("console-polls").addEventListener("change", subscribeConsole);
   $("console-job").addEventListener("change", subscribeConsole);
   $("logout").addEventListener("click", async () => {
     await fetch("/logout", { method: "POST" });
