@@ -7,9 +7,10 @@ connects to `/api` with its session (here the same token as a Bearer
 header, which the server takes as it takes the login cookie, hostd/api/web/auth.py
 `_token_id`), asks `daemon.info`, and subscribes to `status`, `supervisor`,
 `fault`, `job`, `console` and `exception` for every machine, with
-`job_lines: false` (since issue 30: a running job's own lines and their
-plain answers are left out of its console; before, every line written and
-read on every machine was a message, two a line).
+`job_lines: false` and `status_traffic: false` (since issue 30: a running
+job's own lines and their plain answers, and the status polls and reports,
+are left out of its console; before, every line written and read on every
+machine was a message, two a line, and the page hid the polls itself).
 The client reads every message as soon as it comes and counts them (no
 JSON parsing: a page that parses slowly is its own problem, not the
 daemon's); it prints `ready` once subscribed, and on `stop` (stdin) one
@@ -28,9 +29,10 @@ from collections.abc import Mapping
 import aiohttp
 
 TOPICS = ["status", "supervisor", "fault", "job", "console", "exception"]
-# The page's traffic: app.js makes the console its own subscription (job_lines false unless
-# its "job lines" box is ticked); one subscription of them all gets the same messages.
-SUBSCRIBE = {"topics": TOPICS, "job_lines": False}
+# The page's traffic: app.js makes the console its own subscription (job_lines and
+# status_traffic false unless its "job lines" and "status reports" boxes are ticked); one
+# subscription of them all gets the same messages.
+SUBSCRIBE = {"topics": TOPICS, "job_lines": False, "status_traffic": False}
 
 
 async def run(url: str, token: str) -> dict[str, int | bool]:
