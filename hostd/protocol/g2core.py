@@ -15,11 +15,16 @@ the write:
 - an exception report stops job lines until a status report says where the
   board is (an `er` may announce an alarm before its status report does);
 - after `%` or 0x04 no data line is written until the board shows the flush
-  happened (stat 3/4, or `er` 207 for each port the ^D went on): until then
-  its answers to lines read before the flush still arrive and are matched;
-  then the rest, which it discarded, are dropped from the books and
-  accounted. Before 101.02 a ^D is an ALARM that flushes nothing: each line
-  is answered 204, and the session clears the ALARM afterwards;
+  happened: until then its answers to lines read before the flush still
+  arrive and are matched; then the rest, which it discarded, are dropped
+  from the books and accounted. A `%` is shown by a stop (stat 3/4). A ^D
+  (0x04) is shown by its fences: `$stat` written right behind the ^D on the
+  data port, which the board reads only after that ^D has thrown away the
+  port's unread lines and the kill has run (and on two ports a `{"stat":null}`
+  behind the control port's ^D); not by counting `er` 207s, since kills that
+  meet merge into one report (docs/protocol.md, "A kill's fence"). Before 101.02
+  a ^D is an ALARM that flushes nothing: each line is answered 204, and the
+  session clears the ALARM afterwards;
 - a lockout announced by an exception report stands until a report shows
   it or a clear succeeds (a board passes through a hold first, or on
   101.02-101.04 never gets there: then the session stops it itself);
@@ -164,6 +169,7 @@ class _Own(OwnLine, Enum):
     QUERY = auto()  # a status report asked for (after an `er`, at a job's end)
     REAPPLY = auto()  # a setting sent again once a lockout ended
     CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
+    FENCE = auto()  # `{"stat":null}` behind a ^D on the control port: that ^D was read
     OVERRIDES = auto()  # the override factors, read or written (g2builds.py override_keys)
 
 
@@ -200,7 +206,11 @@ class G2Session(SessionBase):
         self._flush: Realtime | None = None  # QUEUE_FLUSH or JOB_KILL, awaiting its proof
         self._flush_out = False  # the flush's byte has been handed to the engine to write
         self._flush_deadline: float | None = None
-        self._kills_unseen = 0  # ^D written whose `er` 207 has not been read yet
+        # ^D written whose `er` 207 may still come: a 207 of ours is no new exception.
+        # Kills that meet merge into one 207, so this only recognises them; the fence
+        # behind each ^D (`_write_fence`) is what shows its flush.
+        self._kills_unseen = 0
+        self._control_fences = 0  # `_Own.FENCE` lines unanswered (two ports)
         self._kill_alarm = False  # a 100.x ^D written: its `er` 207 is an ALARM of ours
         # A lockout an exception report announced: it stands until a report shows the
         # board in it (2, 12, 13) or a clear succeeds, whatever stat a hold shows meanwhile.
@@ -257,7 +267,7 @@ class G2Session(SessionBase):
         """The link is gone: settle every line and request it carried."""
         self.phase = Phase.CLOSED
         self._flush = None
-        self._kills_unseen = 0
+        self._kills_unseen = self._control_fences = 0
         self._kill_alarm = self._alarm_kill_due = False
         self._held = None
         self._banner_deadline = self._handshake_deadline = None
@@ -333,6 +343,13 @@ class G2Session(SessionBase):
             # messages, status 15; cycle_homing.cpp's failed homing, status 240).
             self._unbooked(response)
             return
+        if self.sender.fences:
+            fenced = self.sender.fence_answered(response)
+            if fenced is not None:
+                for entry in fenced[1]:  # thrown away unread by the ^D ahead of the fence
+                    self._settle_unanswered(entry, _discarded(Realtime.JOB_KILL))
+                self._kill_fenced()
+                return
         try:
             entry, skipped = self.sender.answered(response)
         except SenderError:
@@ -508,7 +525,10 @@ class G2Session(SessionBase):
         - In a lockout a 207 tells nothing new either: the reason stays.
         - Before 101.02 our ^D is an ALARM ("EOT Received"): a lockout of ours,
           which we clear once its lines are answered.
-        - Otherwise it shows one of our ^D ran (a flush to the command on its port).
+        - Otherwise it may be one of our ^D's (or several that merged: one
+          `_run_job_kill` clears every request made before it, cycle_feedhold.cpp
+          :523,553). It is told as an exception; the fence behind the ^D, not
+          this report, shows what the kill discarded.
         """
         if self._alarm_kill_due:
             self._alarm_kill_due = False
@@ -528,12 +548,11 @@ class G2Session(SessionBase):
             self._await_report = True
             self._query_status()
             return True
-        if self._flush is Realtime.JOB_KILL and self._kills_unseen > 0:
+        if self._kills_unseen > 0:
             self._kills_unseen -= 1
             if self._held is None and not (self.model.state and self.model.state.is_lockout):
                 self.model.apply_exception(report)
                 self._events.append(Excepted(report.fields))
-            self._confirm_flush(kill_seen=True)
             return True
         if locked:
             self._job_log().info("a job kill in a lockout", msg=report.message)
@@ -638,7 +657,9 @@ class G2Session(SessionBase):
             self._banner_deadline = None
             self._ask_own(encode_get("fv", "fb"), _Own.VERSION)
         if self._flush_deadline is not None and now >= self._flush_deadline:
-            # The board did not flush (not in a hold): its lines will be answered as usual.
+            # A `%` outside a hold flushes nothing: its lines will be answered as usual.
+            # A kill's fence still unread (the board does not read its data port): data
+            # lines may go again, behind it; its answer still settles the lines before it.
             self._log.warning("flush not confirmed by the controller")
             self._flush = self._flush_deadline = None
             self._kills_unseen = 0
@@ -698,6 +719,9 @@ class G2Session(SessionBase):
             self._overrides_answered(response)
         elif own is _Own.HEARTBEAT:
             self._heartbeat_deadline = None
+        elif own is _Own.FENCE:
+            self._control_fences = max(0, self._control_fences - 1)
+            self._kill_fenced()
         elif own is _Own.CLEAR and not response.ok:
             self._log.error("controller refused the clear after a kill", status=response.status)
         elif own is _Own.REAPPLY and not response.ok:
@@ -786,9 +810,10 @@ class G2Session(SessionBase):
             if entry is None:
                 self._check_stream_complete()
                 return
-            if entry.control and sender.data_in_flight:
+            if entry.control and (sender.data_in_flight or sender.fences):
                 # The board reads a `{`-line ahead of data lines still waiting: a job's
                 # JSON line would run before the moves written before it (xio.cpp:789).
+                # A kill's fence is a data line still waiting.
                 return
             if not book(entry):  # a job may hold `{`-lines: they take the control lane
                 return
@@ -828,6 +853,7 @@ class G2Session(SessionBase):
             if self.dual:  # the data port's lines too: the ^D flushes its own port only
                 self._out.append((Lane.DATA, encode_realtime(command)))
                 self._kills_unseen += 1
+            self._write_fence()
         elif (
             command is Realtime.QUEUE_FLUSH and self.dual and not build.flush_reads_every_data_port
         ):
@@ -840,6 +866,56 @@ class G2Session(SessionBase):
             # report may not show yet: expect a flush, and let the confirmation
             # (or its absence) decide what happened to the lines in flight.
             self._begin_flush(command)
+
+    def _write_fence(self) -> None:
+        """The fences behind a ^D (docs/protocol.md, "A kill's fence").
+
+        On the data port (the only port, or the second) `$stat`, a data line: the
+        board reads that port's controls first, each in turn, and its data lines in
+        order (xio.cpp:643-827); the ^D it reads throws away the data lines it had
+        scanned, those written before the ^D (controller.cpp:282, xio.cpp:984-1017),
+        in any state; and no data line is read while a hold is on (cycle_feedhold.cpp
+        :325), so not before the kill's own hold has ended in its kill. When `$stat`
+        is answered, each data line written before it was answered already or is
+        gone, and the kill has run. A GET of a read-only status key (`_FENCE_KEYS`)
+        is answered in any state; as `$stat` it takes a form no other line does (a
+        client's query goes as strict JSON, `_as_json_query`, and a SET of a
+        read-only key is answered with an error).
+
+        On two ports also `{"stat":null}` behind the control port's ^D, in that
+        port's order: answered, that ^D was read, so no kill of hostd's can reach
+        the board later and stop what runs then.
+        """
+        if self.halted:
+            return  # nothing is written: the link is being torn down
+        # A fence still unanswered may be thrown away unread by this ^D: each asks for
+        # another key, so that its answer says which it is (LineModeSender.fence).
+        in_use = self.sender.fence_keys()
+        key = next((k for k in _FENCE_KEYS if frozenset((k,)) not in in_use), None)
+        if key is None:
+            # As many kills at once as keys (a board that read none of their fences):
+            # no fence. The timeout ends the wait; lines still booked stay booked until
+            # an earlier fence, if any is still read, settles them.
+            self._log.warning("no fence for a kill: too many kills at once", kills=len(in_use))
+        else:
+            fence = f"${key}\n".encode("ascii")
+            self.sender.fence(InFlight(fence, _Own.FENCE, None, True), frozenset((key,)))
+            self._out.append((Lane.DATA, fence))
+        if self.dual:
+            self._control_fences += 1
+            self._book(encode_get("stat"), _Own.FENCE, Lane.CONTROL, own=True)
+
+    def _kill_fenced(self) -> None:
+        """A fence was answered: with the last of every kill's, the kills' wait ends.
+
+        Every ^D was read by then and every kill it asked for has run: its `er`
+        207, if any, came first (`_run_job_kill` runs before the next line is read
+        at rest, and ends the hold the data port waits for in a cycle)."""
+        if self.sender.fences or self._control_fences:
+            return
+        self._kills_unseen = 0
+        if self._flush is Realtime.JOB_KILL:
+            self._flush = self._flush_deadline = None
 
     def _query_status(self) -> None:
         """Ask for a full status report, ahead of anything queued."""
@@ -855,29 +931,20 @@ class G2Session(SessionBase):
             reason = "job killed" if kind is Realtime.JOB_KILL else "queue flushed"
             self._end_stream(self.stream, StreamEnd.CANCELLED, None, reason)
 
-    def _confirm_flush(self, *, kill_seen: bool = False) -> None:
-        """The board shows the flush happened: the data lines it held are dropped from the books.
-
-        A job kill is shown only by its `er` 207, which `_run_job_kill`
-        (cycle_feedhold.cpp) prints once it has flushed; in a lockout it does
-        nothing and prints nothing, and the timeout ends the wait. A queue
-        flush is shown by a stop (stat 3 or 4), read after the `%` went out:
-        a report read before then (in the batch that decided the flush) says
-        nothing of it.
+    def _confirm_flush(self) -> None:
+        """A queue flush is shown by a stop (stat 3 or 4), read after the `%` went out (a
+        report read before then, in the batch that decided the flush, says nothing of
+        it): the data lines the board held are dropped from the books. A job kill is
+        shown by its fence (`_fence_answered`), not here.
         """
-        kind = self._flush
-        if kind is None:
-            return
-        if kind is Realtime.JOB_KILL and (not kill_seen or self._kills_unseen > 0):
-            return  # on two ports, each port's kill tells of its own flush
-        if kind is Realtime.QUEUE_FLUSH and not (
+        if self._flush is not Realtime.QUEUE_FLUSH or not (
             self._flush_out and self.model.state in _FLUSH_CONFIRMED
         ):
             return
         self._flush = self._flush_deadline = None
         self._kills_unseen = 0
         for entry in self.sender.dropped():
-            self._settle_unanswered(entry, _discarded(kind))
+            self._settle_unanswered(entry, _discarded(Realtime.QUEUE_FLUSH))
 
     def _settle_unanswered(self, entry: InFlight, error: MachineError) -> None:
         source = entry.source
@@ -1204,6 +1271,11 @@ _OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 _CLEAR = encode_clear()
 # `{"sr":null}` as the session writes it, or as an operator may (`{sr:n}`, `{"sr":""}`).
 _STATUS_POLL = re.compile(rb'\{\s*"?sr"?\s*:\s*(?:n|null|"")\s*\}', re.IGNORECASE).fullmatch
+# A kill's fence on the data port (`_write_fence`): `$<key>`, a text-mode GET answered
+# in JSON (`{"r":{"stat":N},"f":[1,0,6]}`: text_parser.cpp:84-96; `__TEXT_MODE` is on,
+# g2core.h:42) of read-only status keys, another for each fence unanswered at once
+# (edge-preview canonical_machine.cpp:2409-2420, :2510; 101.03 config_app.cpp:117-153).
+_FENCE_KEYS = ("stat", "line", "unit", "vel", "feed", "posx", "posy", "posz")
 _LOCKOUT_OF = {
     Status.COMMAND_REJECTED_BY_ALARM: MachineState.ALARM,
     Status.COMMAND_REJECTED_BY_SHUTDOWN: MachineState.SHUTDOWN,

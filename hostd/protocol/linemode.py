@@ -22,6 +22,16 @@ the only non-empty one; when both wait, the footer count decides (a data line
 of L bytes is answered with L+1, a control line with L+2: its LF counts), and
 if that is ambiguous, the body does (at jv 4 a data line's body holds nothing
 but `n`).
+
+A fence is a line written on the data port right behind a 0x04 (`fence`):
+the board reads it only after that 0x04, which threw away every data line
+written before it that was not read yet (docs/protocol.md, "A kill's
+fence"). It is booked apart from both queues, outside their budgets: its
+answer is known by its own count and body (`fence_answered`), and with it
+the data lines booked before it that are still unanswered are known to be
+discarded. Fences unanswered at once differ in their body (the caller asks
+each for another key): a later 0x04 throws away an earlier fence still
+unread, so an answer must say which fence it is.
 """
 
 from __future__ import annotations
@@ -73,9 +83,11 @@ class LineModeSender:
         self.control_window = control_window
         self._data: deque[InFlight] = deque()
         self._control: deque[InFlight] = deque()
+        # Each fence, the body keys its answer holds, and the data lines booked before it.
+        self._fences: deque[tuple[InFlight, frozenset[str], tuple[InFlight, ...]]] = deque()
 
     def __len__(self) -> int:
-        return len(self._data) + len(self._control)
+        return len(self._data) + len(self._control) + len(self._fences)
 
     @property
     def has_room(self) -> bool:
@@ -187,6 +199,55 @@ class LineModeSender:
             index += 1
         return index, answered
 
+    def fence(self, entry: InFlight, keys: frozenset[str]) -> None:
+        """Book a fence written behind a 0x04 on the data port; its answer's body holds
+        exactly `keys`, which no other fence unanswered holds. Outside both budgets:
+        the daemon's own, one a kill."""
+        self._fences.append((entry, keys, tuple(self._data)))
+
+    @property
+    def fences(self) -> int:
+        """Fences written and not yet answered."""
+        return len(self._fences)
+
+    def fence_keys(self) -> set[frozenset[str]]:
+        """The answer bodies' keys of the fences not yet answered."""
+        return {keys for _, keys, _ in self._fences}
+
+    def fence_answered(self, response: Response) -> tuple[InFlight, list[InFlight]] | None:
+        """If this `{r}` answers a fence: that fence, and the data lines booked before it
+        that are still unanswered (the 0x04 ahead of it discarded them), taken off the
+        books with the fences before it. None, nothing changed, for any other answer.
+
+        The answer is a fence's when its count and body keys are that fence's and it
+        says OK; the caller picks fences no other line of its own or of a client's can
+        be mistaken for (g2core.py `_write_fence`).
+        """
+        if not self._fences or response.status:
+            return None
+        fences = self._fences
+        found = next(
+            (
+                index
+                for index, (entry, keys, _) in enumerate(fences)
+                if response.count == entry.count and response.body.keys() == keys
+            ),
+            None,
+        )
+        if found is None:
+            return None
+        entry, _, before = fences[found]
+        # The fences before it were thrown away unread by the 0x04 ahead of this one:
+        # one read would have been answered first (a port's data lines keep order).
+        for _ in range(found + 1):
+            fences.popleft()
+        data = self._data
+        discarded: list[InFlight] = []
+        # Booked before the fence, they are the oldest: answered ones are gone already.
+        while data and any(line is data[0] for line in before):
+            discarded.append(data.popleft())
+        return entry, discarded
+
     def oldest_control(self) -> InFlight | None:
         """The control line the board is answering now, if any: the first unanswered one."""
         return self._control.popleft() if self._control else None
@@ -202,12 +263,13 @@ class LineModeSender:
 
     def pending(self) -> list[InFlight]:
         """Everything unanswered, for accounting when the link is lost."""
-        return [*self._data, *self._control]
+        return [*self._data, *self._control, *(fence for fence, _, _ in self._fences)]
 
     def clear(self) -> list[InFlight]:
         lost = self.pending()
         self._data.clear()
         self._control.clear()
+        self._fences.clear()
         return lost
 
     def _queue_for(self, response: Response) -> deque[InFlight]:

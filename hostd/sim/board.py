@@ -69,6 +69,9 @@ class Board(Commands):
         self.rx = {}
         self._rx_bytes = {}
         self._control_last = {}
+        self._rx_in = {}
+        self._rx_out = {}
+        self._flush_mark = {}
         self.rx_controls = {}
         self.output_blocked = False  # the host stopped reading; the main loop stalls
         self.ack_delay = 0.0
@@ -150,12 +153,15 @@ class Board(Commands):
         self.rx[port] = deque()
         self._rx_bytes[port] = 0
         self._control_last[port] = False
+        self._rx_in[port] = self._rx_out[port] = self._flush_mark[port] = 0
         self.rx_controls[port] = deque()
 
     def close_rx(self, port: str) -> None:
         self.rx.pop(port, None)
         self._rx_bytes.pop(port, None)
         self._control_last.pop(port, None)
+        for counts in (self._rx_in, self._rx_out, self._flush_mark):
+            counts.pop(port, None)
         self.rx_controls.pop(port, None)
 
     def rx_bytes(self, port: str) -> int:
@@ -167,13 +173,14 @@ class Board(Commands):
         if queue is not None:
             queue.append(line)
             self._rx_bytes[port] += line.size
+            self._rx_in[port] += 1
 
     def queue_control(self, port: str, event: Realtime | ControlLine) -> None:
         """A control that came in on a data-only port: it waits until the board reads
         that port (`_dispatch_command`), and is then read ahead of the port's data lines."""
         queue = self.rx_controls.get(port)
         if queue is not None:
-            queue.append(event)
+            queue.append((event, self._rx_in[port]))  # the data lines that came before it
 
     def control(self, text: bytes, linelen: int, port: str = "") -> None:
         """A `{...}` control line, run ahead of queued data lines [7.1]."""

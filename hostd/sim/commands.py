@@ -36,25 +36,26 @@ class Commands(Planner):
             return False
         for port, controls in self.rx_controls.items():
             if controls:  # readline returns a port's controls ahead of its data lines
-                event = controls.popleft()
+                event, mark = controls.popleft()
                 if isinstance(event, Realtime):
-                    self.realtime(port, event.char)
+                    self.realtime(port, event.char, mark)
                 else:
-                    self._control_line(event.text, event.linelen, port)
+                    self._control_line(event.text, event.linelen, port, mark)
                 return True
         for port, queue in self.rx.items():
             if queue:
                 line = queue.popleft()
                 self._rx_bytes[port] -= line.size
+                self._rx_out[port] += 1
                 self._control_last[port] = False
                 self._data_line(line.text.decode("latin-1"))
                 return True
         return False
 
-    def _control_line(self, text: bytes, linelen: int, port: str) -> None:
-        """A `{...}` line read as a control: run at once, and its port's last read a control."""
-        if port in self._control_last:
-            self._control_last[port] = True
+    def _control_line(self, text: bytes, linelen: int, port: str, mark: int | None = None) -> None:
+        """A `{...}` line read as a control: run at once, and its port's last read a control.
+        `mark`: the port's data lines that came in before it (None: all there are)."""
+        self._control_read(port, mark)
         self._json(text.decode("latin-1"), linelen, data=False)
         self._flush_sr()
 

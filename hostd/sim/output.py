@@ -71,10 +71,16 @@ class Output:
     rx: dict[str, deque[DataLine]]
     _rx_bytes: dict[str, int]
     # Per port: its last line read was a control (xio.cpp `_last_returned_a_control`),
-    # so the next `xio_flush_to_command` flushes it.
+    # so the next `xio_flush_to_command` flushes it, up to that control: the data lines
+    # that came in before it (`_flush_mark`, counted as `_rx_in`), not those behind it,
+    # which the board's scan had not reached (xio.cpp:795-804, :1004).
     _control_last: dict[str, bool]
-    # Controls that came in on a data-only port, read when that port is (board.py).
-    rx_controls: dict[str, deque[Realtime | ControlLine]]
+    _rx_in: dict[str, int]  # data lines ever queued on the port
+    _rx_out: dict[str, int]  # of those, read or discarded
+    _flush_mark: dict[str, int]  # `_rx_in` when the port's last control came in
+    # Controls that came in on a data-only port, each with `_rx_in` as it came in,
+    # read when that port is (board.py).
+    rx_controls: dict[str, deque[tuple[Realtime | ControlLine, int]]]
     build: Build  # the rules of the firmware build this board is (g2builds.py)
     output_blocked: bool
     ack_delay: float

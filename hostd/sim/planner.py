@@ -271,18 +271,26 @@ class Planner(Output):
         command (`controls=False`) keeps the controls that came after it."""
         for name in [port] if port is not None else list(self.rx):
             if name in self.rx:
+                self._rx_out[name] += len(self.rx[name])
                 self.rx[name].clear()
                 self._rx_bytes[name] = 0
             if controls and name in self.rx_controls:
                 self.rx_controls[name].clear()
 
-    # --- feedhold, resume, flush, kill [8, seed 002]
-
-    def realtime(self, port: str, char: int) -> None:
-        """A single-character control [8], as controller.cpp `_dispatch_kernel` runs it."""
-        now = self._clock()
+    def _control_read(self, port: str, mark: int | None) -> None:
+        """`readline` returned a control from `port`: a flush to the command now drops the
+        data lines that came in before it (`mark`; None: every one queued so far)."""
         if port in self._control_last:
             self._control_last[port] = True
+            self._flush_mark[port] = self._rx_in[port] if mark is None else mark
+
+    # --- feedhold, resume, flush, kill [8, seed 002]
+
+    def realtime(self, port: str, char: int, mark: int | None = None) -> None:
+        """A single-character control [8], as controller.cpp `_dispatch_kernel` runs it.
+        `mark`: the port's data lines that came in before it (None: all there are)."""
+        now = self._clock()
+        self._control_read(port, mark)
         if char == ord("!"):
             self._feedhold(now)
         elif char == ord("~"):
@@ -305,15 +313,21 @@ class Planner(Output):
 
     def _flush_to_command(self) -> None:
         """`xio_flush_to_command`: every port whose last line read was a control drops the
-        data lines it holds (xio.cpp `LineRXBuffer::flushToCommand`); the others keep theirs.
+        data lines that came in before that control (xio.cpp:984-1017, `flushToCommand`:
+        the read pointer moves to where the scan stopped, just past the control, :1004);
+        the lines behind it, and the other ports' lines, stay.
 
-        On a two-port link that is the control port alone: the data port's lines
-        are read and run after a ^D that came in on the control port.
+        On a two-port link a ^D on the control port flushes that port alone: the
+        data port's lines are read and run after it, up to the data port's own ^D.
         """
         for port, last in self._control_last.items():
-            if last:
-                self.discard_rx(port, controls=False)
-                self._control_last[port] = False
+            if not last:
+                continue
+            self._control_last[port] = False
+            queue, mark = self.rx[port], self._flush_mark[port]
+            while queue and self._rx_out[port] < mark:
+                self._rx_bytes[port] -= queue.popleft().size
+                self._rx_out[port] += 1
 
     def _feedhold(self, now: float) -> None:
         active = self.active
@@ -394,6 +408,14 @@ class Planner(Output):
         self._set_state(MachineState.PROGRAM_STOP)
 
     def _job_kill(self, now: float) -> None:
+        """A ^D read: `_start_job_kill` (edge-preview cycle_feedhold.cpp:559-581).
+
+        Nothing in a lockout (case 0). In a moving cycle a hold first, the kill
+        pending until it stands (2a, 2b); a ^D read meanwhile, on either port, finds
+        the kill pending and adds nothing: `cm_request_job_kill` only sets a flag
+        (:523) and the one `_run_job_kill` prints one `er` 207 (:551-553). The
+        caller flushes the port's input whatever happens here (controller.cpp:282).
+        """
         if self.state.is_lockout or self._pending_exit in _LOCKOUT_EXITS:
             return
         if self.hold == Hold.DECEL:

@@ -94,6 +94,38 @@ async def test_a_cancel_leaves_nothing_to_run_and_accounts_every_line(
         assert rig.sim.position == stopped_at  # nothing ran after the cancel
 
 
+@pytest.mark.parametrize("fb", [101.03, 101.06])
+async def test_kills_that_merge_leave_the_books_empty_and_the_next_job_runs_whole(
+    tmp_path: Path, fb: float
+) -> None:
+    """Two cancels at once on two ports: four ^Ds, and the two on the control port merge
+    into one kill and one `er` 207 (cm_request_job_kill sets a flag, cycle_feedhold.cpp:523;
+    the hold's end runs one `_run_job_kill`, :551-553). The data port's lines the ^Ds
+    threw away are known by the fence behind each ^D, not by counting reports."""
+    async with rig_for(tmp_path, fb, dual=True) as rig:
+        stream = JobStream(program_lines(JOB))
+        await moving(rig, stream)
+        assert rig.engine.session.unanswered() > 0  # lines wait in the board's input
+        rig.engine.realtime(Realtime.JOB_KILL)
+        rig.engine.realtime(Realtime.JOB_KILL)  # both reach the board while it decelerates
+        assert await result(stream) is StreamEnd.CANCELLED
+        async with asyncio.timeout(10):
+            await rig.engine.wait_for(lambda: not rig.engine.session.flushing())
+        kills = [r.port for r in rig.sim.received if r.data == b"\x04"]
+        reports = [s for s in rig.sim.sent if b'"st":207' in s.data]
+        assert sorted(kills) == ["control", "control", "data", "data"]
+        assert len(reports) == 3  # the control port's two kills merged
+        assert rig.engine.session.unanswered() == 0  # nothing left on the books
+        assert stream.acked + stream.rejected + stream.discarded == stream.sent
+        assert stream.discarded > 0 and faults(rig) == []
+        # The window is free and the answers are the new job's own.
+        again = JobStream(program_lines(JOB[:20]))
+        rig.engine.start_stream(again)
+        assert await result(again) is StreamEnd.COMPLETED
+        assert again.acked == again.sent == 20
+        assert faults(rig) == []
+
+
 # -- item 5: before 101.02 a cancel is an ALARM, settled by its 204s, then cleared -------
 
 

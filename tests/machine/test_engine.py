@@ -282,6 +282,8 @@ async def test_job_kill_cancels_and_frees_the_window(rig: Rig) -> None:
     await finished(stream)
     assert stream.result.result().end is StreamEnd.CANCELLED
     await state(rig, S.PROGRAM_END)
+    async with asyncio.timeout(5):  # the kill's fence, read after it, is answered
+        await rig.engine.wait_for(lambda: not rig.engine.session.flushing())
     assert len(rig.engine.session.sender) == 0
     assert (await rig.engine.send("G0 X1")).ok
 

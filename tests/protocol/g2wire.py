@@ -116,11 +116,16 @@ def _single(data: bytes) -> bool:
 
 
 # What a GET of these reads on a fresh board: homed, the newest build, overrides 1.0.
-_GOT = {"home": 1, "fb": 101.06} | dict.fromkeys(("fro", "tro", "spo", "mfo", "mto", "sso"), 1.0)
+_GOT = {"home": 1, "fb": 101.06, "stat": 4} | dict.fromkeys(
+    ("fro", "tro", "spo", "mfo", "mto", "sso"), 1.0
+)
 
 
 def _echo(line: bytes, report: dict[str, Any] | None = None) -> dict[str, Any]:
     """What g2core puts in an answer's body: the pairs of the line, with GETs filled in."""
+    if line.startswith(b"$") and b"=" not in line:  # a text GET (`$stat`), answered in JSON
+        key = line[1:].strip().decode()
+        return {key: _GOT.get(key, 0)}
     if not line.startswith(b"{"):
         return {}
     body: dict[str, Any] = json.loads(line)

@@ -20,6 +20,8 @@ from hostd.protocol.vocabulary import Detected, Excepted, Lane, StreamEnd
 from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire, banner
 
 KILL = b"\x04\n"
+FENCE = b"$stat\n"  # behind each ^D on the data port (g2core.py `_write_fence`)
+CONTROL_FENCE = b'{"stat":null}\n'  # behind the control port's ^D, on two ports
 CLEAR = b'{"clear":null}\n'
 LIMIT = '{"er":{"fb":%s,"st":203,"msg":"Limit hit - input 1"}}'
 
@@ -40,18 +42,25 @@ def kill_report(fb: float) -> str:
 
 
 def data_lines(wire: Wire) -> list[bytes]:
-    return [x for x in wire.unanswered if not x.startswith(b"{")]
+    return [x for x in wire.unanswered if not x.startswith((b"{", b"$"))]  # `$`: fences
 
 
 def faults(wire: Wire) -> list[Detected]:
     return wire.of(Detected)
 
 
-# -- item 1: a kill on two ports goes on both, and is settled by both reports ----------
+def fenced(wire: Wire) -> None:
+    """The board reads a kill's fences: the control port's first, then the data port's."""
+    if CONTROL_FENCE in wire.unanswered:
+        wire.answer(CONTROL_FENCE, {"stat": 4})
+    wire.answer(FENCE, {"stat": 4})
+
+
+# -- item 1: a kill on two ports goes on both, and is settled by the data port's fence ----
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
-def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_both_reports(
+def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_the_data_ports_fence(
     fb: float,
 ) -> None:
     wire = ready(fb, dual=True)
@@ -62,28 +71,175 @@ def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_both_reports(
     assert len(sent) == 4
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
-    assert (Lane.REALTIME, KILL) in wire.written and (Lane.DATA, KILL) in wire.written
+    assert wire.written[-4:] == [
+        (Lane.REALTIME, KILL),
+        (Lane.DATA, KILL),
+        (Lane.DATA, FENCE),
+        (Lane.CONTROL, CONTROL_FENCE),
+    ]
     wire.feed(kill_report(fb))  # the control port's kill: the data port was not flushed
+    wire.answer(CONTROL_FENCE, {"stat": 4})  # the control port's ^D was read
     assert stream.discarded == 0 and wire.session.flushing()
     wire.answer(sent[0], {})  # read from the data port before its own ^D: matched
-    wire.feed(kill_report(fb))  # the data port's kill: the rest never will be answered
+    wire.feed(kill_report(fb))  # the data port's kill
+    assert wire.session.flushing() and stream.discarded == 0  # its fence is not read yet
+    wire.answer(FENCE, {"stat": 4})  # read after the ^D: the rest were thrown away
     assert not wire.session.flushing()
     assert stream.acked == 1 and stream.discarded == 3
     assert stream.result.end is StreamEnd.CANCELLED
+    assert wire.session.unanswered() == 0
     assert faults(wire) == []
 
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
-def test_a_kill_on_one_port_is_written_once_and_settled_by_its_report(fb: float) -> None:
+def test_a_kill_on_one_port_is_written_once_and_settled_by_its_fence(fb: float) -> None:
     wire = ready(fb)
     stream = moves(20)
     wire.session.start_stream(stream)
     wire.pump()
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
-    assert [d for lane, d in wire.written if d == KILL] == [KILL]
+    assert wire.written[-2:] == [(Lane.REALTIME, KILL), (Lane.DATA, FENCE)]
     wire.feed(kill_report(fb))
+    assert wire.session.flushing()
+    fenced(wire)
     assert not wire.session.flushing() and stream.discarded == 4
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+@pytest.mark.parametrize("dual", [False, True], ids=["one-port", "two-ports"])
+def test_kills_that_merge_into_one_report_leave_nothing_on_the_books(fb: float, dual: bool) -> None:
+    """cm_request_job_kill only sets a flag (cycle_feedhold.cpp:523) and one `_run_job_kill`
+    clears it with one 207 (:551-553): a ^D read before the kill ran adds no report. The
+    ^Ds still threw away what each port held unread (controller.cpp:282)."""
+    wire = ready(fb, dual=dual)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    sent = data_lines(wire)
+    wire.answer(sent[0], {})  # read before the kill
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.session.realtime(Realtime.JOB_KILL)  # a second cancel while the first one holds
+    wire.pump()
+    assert [x for x in wire.unanswered if x.startswith(b"$")] == [FENCE, b"$line\n"]
+    wire.feed(kill_report(fb))  # every ^D read before the hold ended: one report
+    for line in [*data_lines(wire), FENCE]:
+        # Thrown away unread: the job's lines by the first ^D, the first kill's fence by
+        # the second ^D, read ahead of it (controls first) once the hold has ended.
+        wire.unanswered.remove(line)
+    while CONTROL_FENCE in wire.unanswered:
+        wire.answer(CONTROL_FENCE, {"stat": 4})
+    assert wire.session.flushing()
+    wire.answer(b"$line\n", {"line": 0})  # the second kill's fence, another key
+    wire.at(FLUSH_CONFIRM_TIMEOUT + 1)  # no other report comes
+    wire.answer_all(data=False)  # the heartbeat's query, a silent board being asked
+    assert not wire.session.flushing()
+    assert stream.sent == 5 and stream.acked == 1 and stream.discarded == 4
+    assert wire.session.unanswered() == 0  # nothing left on the books
+    assert faults(wire) == []
+    # The window is free: a new job's lines go out, and each answer is its own.
+    wire.report(stat=4)
+    again = moves(6)
+    wire.session.start_stream(again)
+    wire.pump()
+    assert len(data_lines(wire)) == 4
+    wire.answer_all()
+    wire.answer_all()
+    wire.report(stat=4)
+    assert again.acked == 6 and again.result.end is StreamEnd.COMPLETED
+    assert faults(wire) == []
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+def test_two_kills_fences_are_told_apart_and_the_last_ends_the_wait(fb: float) -> None:
+    """The first kill's fence may be read before the second ^D comes in, or be thrown
+    away by it: each asks for another key, and only the last one's answer ends it."""
+    wire = ready(fb)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.pump()
+    assert [d for _, d in wire.written if d.startswith(b"$")] == [FENCE, b"$line\n"]
+    wire.feed(kill_report(fb))
+    wire.answer(FENCE, {"stat": 4})  # read before the second ^D came in
+    assert stream.discarded == 4 and wire.session.flushing()
+    wire.feed(kill_report(fb))  # the second kill, at rest
+    wire.answer(b"$line\n", {"line": 0})
+    assert not wire.session.flushing() and wire.session.unanswered() == 0
+    assert faults(wire) == []
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+def test_a_line_the_data_port_reads_after_the_kill_and_the_timeout_is_still_its_own(
+    fb: float,
+) -> None:
+    """The control port's ^D can be read, and its kill run, before the data port's ^D has
+    reached the board: until the fence behind that ^D is answered, a line written before
+    it may yet be read and answered, so none is booked discarded before then, the flush's
+    timeout passing or not."""
+    wire = ready(fb, dual=True)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    sent = data_lines(wire)
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.pump()
+    wire.feed(kill_report(fb))  # the control port's kill
+    wire.at(FLUSH_CONFIRM_TIMEOUT + 1)
+    wire.answer(b'{"sr":null}\n')  # the heartbeat's query, a silent board being asked
+    assert stream.discarded == 0 and wire.session.unanswered() == 5
+    wire.answer(sent[0], {})  # read before the data port's ^D came in
+    wire.answer(sent[1], {})
+    assert stream.acked == 2 and stream.discarded == 0
+    wire.feed(kill_report(fb))  # the data port's kill
+    fenced(wire)
+    assert stream.acked == 2 and stream.discarded == 2
+    assert wire.session.unanswered() == 0 and faults(wire) == []
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+def test_a_kill_in_a_lockout_is_settled_by_its_fence_with_no_report(fb: float) -> None:
+    """In ALARM, SHUTDOWN or PANIC a ^D kills nothing and prints nothing
+    (cycle_feedhold.cpp:561-565), but it still throws away what its port holds unread."""
+    wire = ready(fb, dual=True)
+    token = object()
+    wire.session.send("G0 X1", token)
+    wire.pump()
+    wire.report(stat=2)
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.pump()
+    fenced(wire)
+    assert not wire.session.flushing() and wire.session.unanswered() == 0
+    settled = wire.settled(token)
+    assert settled is not None and "discarded" in str(settled.outcome)
+
+
+@pytest.mark.parametrize("fb", JOB_KILLERS)
+def test_a_query_of_stat_during_a_kill_is_its_clients_and_no_fence(fb: float) -> None:
+    """The control port is read on every pass, the data port only between holds: a
+    client's `{stat:n}` is answered while the data port's fence waits, and is not taken
+    for it (its answer's count is its own)."""
+    wire = ready(fb, dual=True)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.session.realtime(Realtime.JOB_KILL)
+    wire.pump()
+    token = object()
+    wire.session.send("{stat:n}", token)  # a client's query of the same key
+    wire.pump()
+    assert wire.written[-1] == (Lane.CONTROL, CONTROL_FENCE)  # sent as strict JSON
+    wire.answer(CONTROL_FENCE, {"stat": 6})  # the control port's fence, then the query
+    wire.answer(CONTROL_FENCE, {"stat": 6})
+    settled = wire.settled(token)
+    assert settled is not None and settled.outcome.body == {"stat": 6}  # type: ignore[union-attr]
+    assert wire.session.flushing() and stream.discarded == 0
+    wire.feed(kill_report(fb), kill_report(fb))
+    wire.answer(FENCE, {"stat": 4})
+    assert not wire.session.flushing() and stream.discarded == 4
+    assert faults(wire) == []
 
 
 @pytest.mark.parametrize("fb", [100.26, 101.03])
@@ -188,7 +344,8 @@ def test_101_03_an_alarm_is_stopped_by_hostd_and_held_until_a_clear() -> None:
     wire.feed(LIMIT % 101.03)
     assert (Lane.REALTIME, KILL) in wire.written  # the board would run the next line read
     assert stream.result.code == 204
-    wire.feed(kill_report(101.03))  # our kill ran: what it flushed is dropped
+    wire.feed(kill_report(101.03))  # our kill ran
+    fenced(wire)  # read after it: what it flushed is dropped
     assert not wire.session.flushing() and stream.discarded == 4
     wire.report(stat=4, hold=0)  # the board shows no alarm: hostd's lockout stands
     assert wire.session.model.state is S.ALARM
@@ -386,6 +543,7 @@ def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> 
     wire.feed(kill_report(fb))
     assert wire.session.flushing()  # the data port's kill is still to come
     wire.feed(kill_report(fb))
+    fenced(wire)
     assert stream.discarded == len(rest) and faults(wire) == []
 
 

@@ -361,6 +361,7 @@ def test_a_clear_waits_until_no_data_line_is_unanswered(fb: float) -> None:
         wire.answer(b"G0 X1\n", {}, status=204)
     else:  # a board that never alarms was killed by hostd: the kill dropped G0 X1
         wire.feed('{"er":{"fb":101.03,"st":207,"msg":"Kill job - Job killed by ^d"}}')
+        wire.answer(b"$stat\n", {"stat": 4})  # the kill's fence, read after it
     wire.pump()
     assert wire.lines()[-1] == b'{"clear":null}\n'
 
@@ -390,9 +391,11 @@ def test_after_a_job_kill_no_data_line_goes_until_the_board_shows_the_flush(
     wire.session.set_operation(False)
     wire.pump()
     assert wire.settled(token) is None and b'{"xvm":null}\n' in wire.lines()
-    wire.report(stat=4)  # a stop is no proof of a kill: only its er 207 is
+    wire.report(stat=4)  # a stop is no proof of a kill
     assert stream.discarded == 0 and wire.session.flushing()
     wire.feed('{"er":{"fb":101.06,"st":207,"msg":"Kill job - Job killed by ^d"}}')
+    assert stream.discarded == 0 and wire.session.flushing()  # nor is its er 207 alone
+    wire.answer(b"$stat\n", {"stat": 4})  # the fence behind the ^D: read after it
     assert stream.discarded == 4  # the four lines in flight were discarded
     assert not wire.session.flushing()
 

@@ -77,6 +77,26 @@ async def test_a_kill_on_both_ports_flushes_both_and_is_told_twice(
         assert sim.position["y"] == 0
 
 
+@pytest.mark.parametrize("fb", [101.03, 101.06])
+async def test_a_data_ports_kill_keeps_the_line_written_right_behind_it(
+    tmp_path: Path, fb: float
+) -> None:
+    """The scan stops at each control (xio.cpp:795-804) and a ^D's flush drops only what
+    was scanned before it (`flushToCommand`, `_read_offset = _scan_offset`, :1004): a
+    line that came in behind the ^D, even in the same packet, is read after it."""
+    async with dual(tmp_path, replace(TIMED, fb=fb)) as (sim, control, data):
+        await control.ask(b"{sr:{stat:t,posy:t}}\n")
+        data.write(LONG_MOVE + b"".join(w + b"\n" for w in WAITING))
+        await sim.wait_for(lambda: sim.planner_len == sim.config.planner_depth)
+        control.send(b"\x04")
+        data.write(b"\x04\n$stat\n")  # one write: the ^D and the line behind it
+        await control.until(lambda m: kills([m]) == 1)  # the control port's kill
+        after = await control.until(lambda m: "r" in m and "stat" in m["r"])
+        assert [m["f"] for m in after if "f" in m] == [[1, 0, 6]]  # nothing else was read
+        assert after[-1]["r"]["stat"] == int(MachineState.PROGRAM_END)
+        assert kills(after) == 1 and sim.position["y"] == 0  # the data port's kill, first
+
+
 async def test_a_kill_on_one_port_flushes_the_lines_before_it(tmp_path: Path) -> None:
     async with single(tmp_path, replace(TIMED, fb=101.06)) as (sim, host):
         host.send(LONG_MOVE + b"".join(w + b"\n" for w in WAITING))
