@@ -63,7 +63,6 @@ class Link:
         self._wakeup = asyncio.Event()
         self._channels: dict[Channel, SerialChannel] = {}
         self._paused = False
-        self._resting: asyncio.TimerHandle | None = None  # `rest`: reading resumes then
         self.lost: LinkLost | None = None
 
     @classmethod
@@ -144,25 +143,6 @@ class Link:
         for ch in self._channels.values():
             ch.set_reading(on)
 
-    def rest(self, seconds: float) -> None:
-        """Read nothing for `seconds`, then everything that came meanwhile, in one read.
-
-        For a receiver whose board answers at the pace of its motion: one wake-up
-        for several answers instead of one each (the engine's pacing). Writing is
-        not affected: realtime bytes and lines still leave at once.
-        """
-        if self._resting is not None or self.lost is not None:
-            return
-        for ch in self._channels.values():
-            ch.set_reading(False)
-        self._resting = asyncio.get_running_loop().call_later(seconds, self._wake)
-
-    def _wake(self) -> None:
-        self._resting = None
-        if not self._paused:
-            for ch in self._channels.values():
-                ch.set_reading(True)
-
     # writing
 
     def write_line(self, data: bytes) -> bool:
@@ -207,9 +187,6 @@ class Link:
 
     async def close(self) -> None:
         """Release every port (data first, the reverse of opening)."""
-        if self._resting is not None:
-            self._resting.cancel()
-            self._resting = None
         for name in (Channel.DATA, Channel.CONTROL):
             if name in self._channels:
                 await self._channels[name].close()

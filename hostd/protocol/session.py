@@ -44,8 +44,6 @@ from hostd.protocol.vocabulary import (
 
 log = structlog.get_logger(__name__)
 
-_MOVING = frozenset({MachineState.RUN, MachineState.CYCLE})  # what `paceable` asks for
-
 
 class SessionBase:
     """The rules of behaviour.md that hold over every dialect; a dialect fills in the rest.
@@ -195,23 +193,6 @@ class SessionBase:
         the `status` topic's snapshots rather than the console: a `console` subscription
         with `status_traffic: false` leaves them out (docs/api.md)."""
         return False
-
-    def paceable(self) -> bool:
-        """Whether a read may wait a little for the next answers (the engine's pacing):
-        a job streams in its steady state, not paused, on a board that reports motion
-        and no hold. Any other time (a job's start or end, a hold, a flush, a lockout,
-        an operator's command) every read is taken as it comes."""
-        stream = self.stream
-        return (
-            stream is not None
-            and not stream.done
-            and not stream.paused
-            and not stream.input_ended
-            and stream.refused is None
-            and self.model.state in _MOVING
-            and self._context() is Context.JOB
-            and not self.flushing()
-        )
 
     def tick(self) -> None:
         """A deadline passed (or the engine woke early: nothing is due then)."""

@@ -267,39 +267,3 @@ async def test_a_realtime_byte_overtakes_every_line_the_device_has_not_taken(
         assert got.replace(b"!\n", b"", 1) == line * 200  # the lines themselves, intact
     finally:
         await link.close()
-
-
-async def test_a_resting_link_reads_nothing_until_the_rest_ends_then_all_in_one_read(
-    peers: Iterator[PtyPeer],
-) -> None:
-    """The engine's pacing (`Link.rest`): answers that come meanwhile wait in the kernel
-    and are read together; writing, a realtime byte above all, never waits for it."""
-    data, control = next(peers), next(peers)
-    reads: list[tuple[Channel, list[bytes]]] = []
-    read = asyncio.Event()
-
-    class Receiver:
-        def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
-            reads.append((channel, lines))
-            read.set()
-
-        def link_lost(self, reason: str) -> None:
-            raise AssertionError(reason)
-
-    loop = asyncio.get_running_loop()
-    link = await Link.open(str(data.path), str(control.path), receiver=Receiver())
-    control.start_reading()
-    try:
-        began = loop.time()
-        link.rest(0.3)
-        for _ in range(3):
-            control.write(b'{"r":{},"f":[1,0,4]}\n')
-        assert link.write_realtime(encode_realtime(Realtime.FEEDHOLD))
-        await control.wait_received(b"!\n")  # out at once, the link resting or not
-        async with asyncio.timeout(5):
-            await read.wait()
-        assert loop.time() - began >= 0.25  # not before the rest's end (a timer never fires early)
-        assert reads == [(Channel.CONTROL, [b'{"r":{},"f":[1,0,4]}'] * 3)]
-        link.rest(0.3)
-    finally:
-        await link.close()  # a rest under way ends with the link: no reading is resumed
