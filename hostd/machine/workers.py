@@ -25,18 +25,33 @@ starts it as soon as it serves (`prewarm`), so that the first `job.start` or
 `file.analyze` does not wait for it (docs/performance.md, issue 30); every
 later worker (one replacing a worker killed at a limit) is a fork of the
 preloaded server, in milliseconds.
+
+A worker's start blocks: `ProcessPoolExecutor.submit` forks it through the
+forkserver, waiting for the server's imports the first time, and holds the
+executor's lock meanwhile, the lock `shutdown` takes. So the start runs in a
+thread of its own, a daemon thread (the interpreter's exit does not join it,
+as it joins `asyncio.to_thread`'s), and an executor killed while it starts is
+shut down by that thread once `submit` has returned, never by the loop. A
+daemon stopped then (SIGTERM, or a failed bind while the prewarm starts) kills
+the forkserver, which ends the `submit` at once (docs/performance.md, "Flaky
+tests under load"): it does not wait seconds for the server's imports, nor
+leave it and a worker behind.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib
 import multiprocessing
 import os
 import resource
+import signal
+import threading
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import forkserver
 from typing import Any, TypeVar
 
 import structlog
@@ -95,6 +110,12 @@ class WorkerPool:
         self._slots: asyncio.Semaphore | None = None
         self._closed = False
         self._warming: asyncio.Task[None] | None = None
+        # Executors whose start (`_submit`, in its thread) has not come back to the loop:
+        # `_kill` leaves them to it. `_forking`, under `_lock`: those in `submit`, waiting
+        # for the forkserver, which `close` kills to end the wait.
+        self._starting: set[ProcessPoolExecutor] = set()
+        self._forking: set[ProcessPoolExecutor] = set()
+        self._lock = threading.Lock()  # held for a few statements, by the loop or a start
 
     async def prewarm(self, module: str) -> None:
         """Start one worker (importing `module`) now, for the first request to take.
@@ -108,7 +129,8 @@ class WorkerPool:
         try:
             executor = await self._start(module)
         except Exception as exc:
-            log.warning("worker not started ahead of use", error=str(exc))
+            if not self._closed:
+                log.warning("worker not started ahead of use", error=str(exc))
             return
         finally:
             self._warming = None
@@ -179,28 +201,124 @@ class WorkerPool:
             initargs=(self.memory, self.nice),
         )
         self._all.add(executor)
+        loop = asyncio.get_running_loop()
+        submitted: asyncio.Future[Future[None]] = loop.create_future()
+        self._starting.add(executor)
+        thread = threading.Thread(
+            target=self._submit,
+            args=(executor, module, loop, submitted),
+            name="hostd-worker-start",
+            daemon=True,
+        )
         try:
-            # The first submit starts the process, and waits for the forkserver to fork
-            # it (to start the forkserver too, the first time): in a thread, not the loop.
-            ready = await asyncio.to_thread(executor.submit, _ready, module)
-            await asyncio.wait_for(asyncio.wrap_future(ready), START_TIMEOUT)
+            thread.start()
+        except BaseException:
+            self._starting.discard(executor)
+            self._kill(executor)
+            raise
+        try:
+            async with asyncio.timeout(START_TIMEOUT):
+                ready = await submitted
+                await asyncio.wrap_future(ready)
         except BaseException:
             self._kill(executor)
             raise
         return executor
 
+    def _submit(
+        self,
+        executor: ProcessPoolExecutor,
+        module: str,
+        loop: asyncio.AbstractEventLoop,
+        submitted: asyncio.Future[Future[None]],
+    ) -> None:
+        """In the start's own thread: the first `submit`, which starts the worker process.
+
+        It waits for the forkserver to fork the process (to start, and import, the
+        first time) while it holds the executor's lock. Its outcome goes back to the
+        loop (`_submitted`); with the loop gone, this thread stops the worker itself.
+        """
+        outcome: Future[None] | BaseException
+        try:
+            # The server started here, not inside `submit`: once this start is booked
+            # in `_forking`, `close` knows which process to kill to end the wait.
+            forkserver.ensure_running()
+            with self._lock:
+                if self._closed:
+                    raise AnalysisLimit("the daemon is stopping")
+                self._forking.add(executor)
+            try:
+                outcome = executor.submit(_ready, module)
+            finally:
+                with self._lock:
+                    self._forking.discard(executor)
+        except BaseException as exc:  # handed to the loop, which raises it in `_start`
+            outcome = exc
+        try:
+            loop.call_soon_threadsafe(self._submitted, executor, submitted, outcome)
+        except RuntimeError:  # the loop is closed: nobody takes this worker
+            _stop(executor)
+
+    def _submitted(
+        self,
+        executor: ProcessPoolExecutor,
+        submitted: asyncio.Future[Future[None]],
+        outcome: Future[None] | BaseException,
+    ) -> None:
+        """On the loop: a start's `submit` came back; its lock is free again."""
+        self._starting.discard(executor)
+        if executor not in self._all:  # killed while it started (`close`, a cancelled start)
+            _stop(executor)
+            outcome = AnalysisLimit("the daemon is stopping")
+        if submitted.done():  # cancelled, or past START_TIMEOUT: nobody waits
+            return
+        if isinstance(outcome, BaseException):
+            submitted.set_exception(outcome)
+        else:
+            submitted.set_result(outcome)
+
     def _kill(self, executor: ProcessPoolExecutor) -> None:
-        """Stop a worker now, whatever it is doing."""
+        """Stop a worker now, whatever it is doing; never blocks the loop."""
+        if executor not in self._all:
+            return  # stopped already
         self._all.discard(executor)
-        processes = getattr(executor, "_processes", None) or {}
-        for process in list(processes.values()):
-            if process.is_alive():
-                process.kill()
-        executor.shutdown(wait=False, cancel_futures=True)
+        if executor in self._starting:
+            # Its start's thread holds the lock `shutdown` takes: that thread's
+            # outcome, back on the loop, stops it (`_submitted`).
+            return
+        _stop(executor)
 
     def close(self) -> None:
         """Kill every worker (the daemon stops); later calls are refused."""
-        self._closed = True
+        with self._lock:
+            self._closed = True
+            forking = bool(self._forking)
+        if forking:
+            # A start waits in `submit` for the forkserver (its imports, the first
+            # time): killed, the server answers that wait at once, with an error.
+            _kill_forkserver()
         self._idle.clear()
         for executor in list(self._all):
             self._kill(executor)
+
+
+def _stop(executor: ProcessPoolExecutor) -> None:
+    """Kill an executor's process and shut it down: only while no `submit` holds its lock."""
+    processes = getattr(executor, "_processes", None) or {}
+    for process in list(processes.values()):
+        if process.is_alive():
+            process.kill()
+    executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _kill_forkserver() -> None:
+    """Kill the forkserver the workers are forked from (a new one starts on next use).
+
+    Its pid is multiprocessing's own (`ForkServer._forkserver_pid`, private): there
+    is no public way to stop it. `ensure_running` reaps it, and starts another.
+    """
+    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+    if isinstance(pid, int):
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+        log.warning("analysis worker's start stopped: its forkserver killed", pid=pid)
