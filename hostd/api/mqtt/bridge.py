@@ -18,7 +18,9 @@ outlives the connection it came on: a dropped broker never cancels a cancel
 half-way (its reply waits in the outbox for the next connection).
 
 Connection: reconnects with back-off (`reconnect_min` doubling to
-`reconnect_max`); each new connection republishes every retained topic.
+`reconnect_max`); each new connection subscribes to the command topics
+first, then republishes every retained topic, `online` first: a caller
+that has seen `online` is heard.
 The broker keeps `<prefix>/online` = `offline` as our last will; a clean
 stop publishes it ourselves.
 """
@@ -285,6 +287,11 @@ class MqttBridge:
     async def _session(self, commands: asyncio.TaskGroup) -> None:
         tls = await asyncio.to_thread(self._tls_context)
         async with self._client(tls) as client:
+            # Subscribed (the broker's SUBACK) before anything is published: a caller who
+            # sees `online` and commands at once is heard. A broker drops, without a word,
+            # a message that no subscription matches; `online` published first (the
+            # publisher and the receiver used to start together) let one be lost so.
+            await self._subscribe(client)
             self.connections += 1
             self.disconnected.clear()
             self.connected.set()
@@ -351,11 +358,13 @@ class MqttBridge:
 
     # --- in: commands ---------------------------------------------------------
 
-    async def _receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
+    async def _subscribe(self, client: aiomqtt.Client) -> None:
         # Retain as published: a retained command is seen as retained even when it arrives
         # live, so that none is ever run (it would run again on every reconnect).
         options = SubscribeOptions(qos=1, retainAsPublished=True)
         await client.subscribe(topics.command_filter(self.prefix), options=options)
+
+    async def _receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
         async for message in client.messages:
             try:
                 self._command(message, commands)
