@@ -115,7 +115,9 @@ class WorkerPool:
         # for the forkserver, which `close` kills to end the wait.
         self._starting: set[ProcessPoolExecutor] = set()
         self._forking: set[ProcessPoolExecutor] = set()
-        self._lock = threading.Lock()  # held for a few statements, by the loop or a start
+        # Held by `close` (on the loop) and by a start's thread, for a few statements or
+        # a spawn of the forkserver: never across a wait for a worker.
+        self._lock = threading.Lock()
 
     async def prewarm(self, module: str) -> None:
         """Start one worker (importing `module`) now, for the first request to take.
@@ -194,6 +196,7 @@ class WorkerPool:
         # every later worker is a fork of it, started in milliseconds, not another
         # second and a half of imports. Set after the server started, it changes nothing.
         context.set_forkserver_preload([module])
+        _forget_killed_forkserver()
         executor = ProcessPoolExecutor(
             max_workers=1,
             mp_context=context,
@@ -240,12 +243,14 @@ class WorkerPool:
         """
         outcome: Future[None] | BaseException
         try:
-            # The server started here, not inside `submit`: once this start is booked
-            # in `_forking`, `close` knows which process to kill to end the wait.
-            forkserver.ensure_running()
             with self._lock:
                 if self._closed:
                     raise AnalysisLimit("the daemon is stopping")
+                # The server started here (a spawn, milliseconds: its imports are not
+                # waited for), not inside `submit`, and under the lock: `close`, which
+                # takes it too, then finds this start in `_forking` with the server's pid
+                # known, or finds it not begun (`_closed` then stops it above).
+                forkserver.ensure_running()
                 self._forking.add(executor)
             try:
                 outcome = executor.submit(_ready, module)
@@ -311,14 +316,43 @@ def _stop(executor: ProcessPoolExecutor) -> None:
     executor.shutdown(wait=False, cancel_futures=True)
 
 
-def _kill_forkserver() -> None:
-    """Kill the forkserver the workers are forked from (a new one starts on next use).
+# Forkservers `_kill_forkserver` killed and reaped, by pid, until `_forget_killed_forkserver`.
+_reaped: set[int] = set()
 
-    Its pid is multiprocessing's own (`ForkServer._forkserver_pid`, private): there
-    is no public way to stop it. `ensure_running` reaps it, and starts another.
+
+def _kill_forkserver() -> None:
+    """Kill the forkserver the workers are forked from, and reap it, so that no start of
+    this daemon's gets another one started.
+
+    multiprocessing has no public way to stop it: this reads its pid and takes its lock
+    (`ForkServer._forkserver_pid`, `_lock`, private). Under that lock a `submit` on its
+    way to the server either reached it (its wait then ends, the pipe closed) or finds
+    it reaped (`ensure_running`'s `waitpid` raises ChildProcessError) where, had the
+    server only died, it would start another and wait seconds for its imports.
     """
-    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
-    if isinstance(pid, int):
+    server: Any = forkserver._forkserver
+    with server._lock:
+        pid = server._forkserver_pid
+        if not isinstance(pid, int) or pid in _reaped:
+            return
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
-        log.warning("analysis worker's start stopped: its forkserver killed", pid=pid)
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(pid, 0)  # SIGKILL: it is gone in a moment
+        _reaped.add(pid)
+    log.warning("analysis worker's start stopped: its forkserver killed", pid=pid)
+
+
+def _forget_killed_forkserver() -> None:
+    """Forget a forkserver `_kill_forkserver` reaped, as `ensure_running` forgets one that
+    died, so that the next worker starts a new one (a pool closed, another started: tests)."""
+    server: Any = forkserver._forkserver
+    with server._lock:
+        pid = server._forkserver_pid
+        if pid not in _reaped:
+            return
+        _reaped.discard(pid)
+        os.close(server._forkserver_alive_fd)
+        server._forkserver_address = None
+        server._forkserver_alive_fd = None
+        server._forkserver_pid = None
