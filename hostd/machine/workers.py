@@ -46,6 +46,7 @@ import importlib
 import multiprocessing
 import os
 import resource
+import select
 import signal
 import threading
 from collections.abc import Callable
@@ -82,12 +83,37 @@ def _ready(module: str) -> None:
     importlib.import_module(module)
 
 
-def _limit(memory: int, nice: int) -> None:
-    """Worker initializer: cap the address space, and yield the CPU to the daemon."""
+def _limit(memory: int, nice: int, daemon: int) -> None:
+    """Worker initializer: cap the address space, yield the CPU to the daemon, and go
+    with the daemon (pid `daemon`)."""
     if memory > 0:
         resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     if nice:
         os.nice(nice)
+    _follow(daemon)
+
+
+def _follow(daemon: int) -> None:
+    """Exit this worker when the daemon has exited, however (SIGKILL, a crash).
+
+    Nothing else would tell it: it waits on its call queue, whose both ends it holds,
+    and it holds the forkserver's `alive` pipe open, so that server stays too (two
+    processes left for good per killed daemon). A pidfd turns readable when the daemon
+    exits; a thread waits on it (a daemon thread: a worker stopped as usual does not
+    wait for it).
+    """
+    try:
+        pidfd = os.pidfd_open(daemon)
+    except ProcessLookupError:
+        os._exit(1)  # gone already
+    except OSError:
+        return  # no pidfd here (Linux before 5.3): the worker is left as it was
+
+    def wait() -> None:
+        select.select([pidfd], [], [])
+        os._exit(1)
+
+    threading.Thread(target=wait, name="hostd-follow-daemon", daemon=True).start()
 
 
 class WorkerPool:
@@ -201,7 +227,7 @@ class WorkerPool:
             max_workers=1,
             mp_context=context,
             initializer=_limit,
-            initargs=(self.memory, self.nice),
+            initargs=(self.memory, self.nice, os.getpid()),
         )
         self._all.add(executor)
         loop = asyncio.get_running_loop()

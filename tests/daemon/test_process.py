@@ -257,14 +257,62 @@ async def test_sigterm_while_the_first_analysis_worker_starts_exits_at_once(
         assert "hostd stopped" in [r["event"] for r in logs]
 
 
+def descendants(pid: int) -> set[int]:
+    """Every process below `pid` (its children, theirs, ...), read from /proc."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:  # gone meanwhile
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    found: set[int] = set()
+    below = {pid}
+    while below:
+        below = {child for child, parent in parents.items() if parent in below} - found
+        found |= below
+    return found
+
+
+def _settle(done: asyncio.Future[None]) -> None:
+    if not done.done():
+        done.set_result(None)
+
+
+async def exited(pids: set[int]) -> None:
+    """Until every process of `pids` has exited: a pidfd each turns readable then."""
+    loop = asyncio.get_running_loop()
+    waits: list[tuple[int, asyncio.Future[None]]] = []
+    for pid in pids:
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            continue  # gone already
+        done: asyncio.Future[None] = loop.create_future()
+        loop.add_reader(fd, _settle, done)
+        waits.append((fd, done))
+    try:
+        await asyncio.gather(*(done for _, done in waits))
+    finally:
+        for fd, _ in waits:
+            loop.remove_reader(fd)
+            os.close(fd)
+
+
 async def test_sigkill_mid_job_then_restart_shows_it_interrupted(tmp_path: Path) -> None:
     config = write_config(tmp_path)
     async with daemon_process(tmp_path, config) as process:
         rpc = await ready_client(process)
         job_id = await start_long_job(rpc)
         seen = await follow_until_acked(rpc, job_id, 250)
+        # Its analysis worker (the job's file was checked there), the forkserver it was
+        # forked from, multiprocessing's resource tracker: none outlives the daemon.
+        below = await asyncio.to_thread(descendants, process.proc.pid)
+        assert len(below) >= 2, below
         process.proc.kill()
         await process.proc.wait()
+        async with asyncio.timeout(EXIT_WAIT):  # a hang bound: before, they never exited
+            await exited(below)
         await rpc.close()
         assert await asyncio.to_thread(os.path.exists, process.socket_path)  # left stale
 
