@@ -110,7 +110,9 @@ def _follow(daemon: int) -> None:
         return  # no pidfd here (Linux before 5.3): the worker is left as it was
 
     def wait() -> None:
-        select.select([pidfd], [], [])
+        waiting = select.poll()  # not select(): no FD_SETSIZE limit on the descriptor
+        waiting.register(pidfd, select.POLLIN)
+        waiting.poll()
         os._exit(1)
 
     threading.Thread(target=wait, name="hostd-follow-daemon", daemon=True).start()
