@@ -22,8 +22,7 @@ from tests.daemon.conftest import Rpc, RpcFailure, config_data
 # together on two cores (a bound against a hang, not a timing check).
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(180)]
 # A daemon's exit on SIGTERM, bounded against a hang: it took past 20 s once at load
-# average 12 on two cores; a daemon stopped while its first analysis worker starts waits
-# for the forkserver's imports (docs/performance.md, "Flaky tests under load").
+# average 12 on two cores (docs/performance.md, "Flaky tests under load").
 EXIT_WAIT = 45
 
 SERVE = [sys.executable, "-m", "hostd.service"]
@@ -77,14 +76,23 @@ class Process:
 
 @contextlib.asynccontextmanager
 async def daemon_process(
-    tmp_path: Path, config: Path, wrapper: tuple[str, ...] = ()
+    tmp_path: Path,
+    config: Path,
+    wrapper: tuple[str, ...] = (),
+    env: dict[str, str] | None = None,
 ) -> AsyncIterator[Process]:
-    """`hostd serve` with `config`; `wrapper` runs it (e.g. prlimit with its options)."""
+    """`hostd serve` with `config`; `wrapper` runs it (e.g. prlimit with its options);
+    `env`: more environment."""
     notify_path = tmp_path / f"notify-{os.getpid()}-{len(os.listdir(tmp_path))}"
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(notify_path))
     notify.setblocking(False)
-    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "400000"}
+    env = {
+        **os.environ,
+        **(env or {}),
+        "NOTIFY_SOCKET": str(notify_path),
+        "WATCHDOG_USEC": "400000",
+    }
     proc = await asyncio.create_subprocess_exec(
         *wrapper,
         *SERVE,
@@ -170,14 +178,141 @@ async def test_sigterm_mid_job_interrupts_it_and_removes_the_socket(tmp_path: Pa
             assert await process.proc.wait() == 0
 
 
+# Put first on a daemon's PYTHONPATH: the analysis workers' forkserver, a new interpreter
+# the daemon starts (`python -c "from multiprocessing.forkserver import main; ..."`),
+# connects to HOSTD_TEST_HOLD's socket and waits there before its imports: a first
+# worker's start that cannot end while the test holds it. The connection ends when the
+# server does.
+HOLD_FORKSERVER = """\
+import os, socket, sys
+
+if any("multiprocessing.forkserver import main" in arg for arg in sys.orig_argv):
+    held = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    held.connect(os.environ["HOSTD_TEST_HOLD"])
+    held.sendall(b"held")
+    held.recv(1)  # until the test lets go
+"""
+
+
+@dataclass
+class Held:
+    env: dict[str, str]  # for the daemon: its forkserver is held
+    started: asyncio.Future[None]  # the forkserver is running, held before its imports
+    ended: asyncio.Future[None]  # and has exited
+
+
+@contextlib.asynccontextmanager
+async def held_forkserver(tmp_path: Path) -> AsyncIterator[Held]:
+    site = tmp_path / "hold-site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(HOLD_FORKSERVER)
+    loop = asyncio.get_running_loop()
+    started: asyncio.Future[None] = loop.create_future()
+    ended: asyncio.Future[None] = loop.create_future()
+    writers: list[asyncio.StreamWriter] = []
+
+    async def hold(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writers.append(writer)
+        if await reader.readexactly(4) == b"held" and not started.done():
+            started.set_result(None)
+            await reader.read()  # its end: nothing more is sent
+            ended.set_result(None)
+
+    path = tmp_path / "hold.sock"
+    server = await asyncio.start_unix_server(hold, str(path))
+    python_path = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH")) if p)
+    env = {"PYTHONPATH": python_path, "HOSTD_TEST_HOLD": str(path)}
+    try:
+        yield Held(env, started, ended)
+    finally:
+        server.close()
+        for writer in writers:
+            writer.close()
+
+
+async def test_sigterm_while_the_first_analysis_worker_starts_exits_at_once(
+    tmp_path: Path,
+) -> None:
+    """The worker's start is a `submit` holding the executor's lock until the forkserver has
+    done its imports; a stop then must neither block the loop on that lock nor wait for
+    the imports on the way out (docs/performance.md, "Flaky tests under load")."""
+    config = write_config(tmp_path)  # prewarm_workers: the default
+    async with (
+        held_forkserver(tmp_path) as forkserver,
+        daemon_process(tmp_path, config, env=forkserver.env) as process,
+    ):
+        async with asyncio.timeout(60):  # a hang bound: see pytestmark
+            await forkserver.started
+        await process.message(b"READY=1")
+        process.proc.send_signal(signal.SIGTERM)
+        await process.message(b"STOPPING=1")
+        # Held, the forkserver never forks the worker: before, the stop never ended.
+        async with asyncio.timeout(EXIT_WAIT):
+            assert await process.proc.wait() == 0
+            # Killed by the daemon, not left to do its imports and fork a worker for nobody.
+            await forkserver.ended
+        assert not await asyncio.to_thread(os.path.exists, process.socket_path)
+        assert process.proc.stderr is not None
+        logs = [json.loads(line) for line in (await process.proc.stderr.read()).splitlines()]
+        assert "hostd stopped" in [r["event"] for r in logs]
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below `pid` (its children, theirs, ...), read from /proc."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:  # gone meanwhile
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    found: set[int] = set()
+    below = {pid}
+    while below:
+        below = {child for child, parent in parents.items() if parent in below} - found
+        found |= below
+    return found
+
+
+def _settle(done: asyncio.Future[None]) -> None:
+    if not done.done():
+        done.set_result(None)
+
+
+async def exited(pids: set[int]) -> None:
+    """Until every process of `pids` has exited: a pidfd each turns readable then."""
+    loop = asyncio.get_running_loop()
+    waits: list[tuple[int, asyncio.Future[None]]] = []
+    for pid in pids:
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            continue  # gone already
+        done: asyncio.Future[None] = loop.create_future()
+        loop.add_reader(fd, _settle, done)
+        waits.append((fd, done))
+    try:
+        await asyncio.gather(*(done for _, done in waits))
+    finally:
+        for fd, _ in waits:
+            loop.remove_reader(fd)
+            os.close(fd)
+
+
 async def test_sigkill_mid_job_then_restart_shows_it_interrupted(tmp_path: Path) -> None:
     config = write_config(tmp_path)
     async with daemon_process(tmp_path, config) as process:
         rpc = await ready_client(process)
         job_id = await start_long_job(rpc)
         seen = await follow_until_acked(rpc, job_id, 250)
+        # Its analysis worker (the job's file was checked there), the forkserver it was
+        # forked from, multiprocessing's resource tracker: none outlives the daemon.
+        below = await asyncio.to_thread(descendants, process.proc.pid)
+        assert len(below) >= 2, below
         process.proc.kill()
         await process.proc.wait()
+        async with asyncio.timeout(EXIT_WAIT):  # a hang bound: before, they never exited
+            await exited(below)
         await rpc.close()
         assert await asyncio.to_thread(os.path.exists, process.socket_path)  # left stale
 

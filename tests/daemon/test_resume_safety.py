@@ -42,9 +42,17 @@ STEP = 0.25  # mm between the points checked along a move
 NEAR = 1  # cells of 1 mm around a point that count as "that XY"
 SPEED = "S12000"  # what the operator sets by hand for a file whose M3 has no S
 # The board's stored offsets before the first run (mm), and where the operator parks
-# the machine before a job: the top of Z, then the machine's XY origin.
+# the machine before a job: the top of Z, then a corner of the table. On g2core the
+# far corner: the resume's approach then crosses 300 mm and more (0.3 s on the x10
+# board) before its spindle's dwell and plunge. Parked at the origin it crossed ~30 mm,
+# 30 ms, with a 5 ms dwell: a test host late by that much under load let the board
+# run out of moves there, an underflow (a job fault, as it must be: behaviour.md),
+# and the resumed job failed before its first line (docs/performance.md).
 SETUP = {
-    "g2core": (["G10 L2 P1 X20 Y20 Z40", "G10 L2 P2 X60 Y20 Z40"], ["G53 G0 Z90", "G53 G0 X0 Y0"]),
+    "g2core": (
+        ["G10 L2 P1 X20 Y20 Z40", "G10 L2 P2 X60 Y20 Z40"],
+        ["G21 G53 G0 Z90", "G53 G0 X250 Y250"],  # mm: the inch file leaves the board in G20
+    ),
     "grbl": (
         ["G10 L2 P1 X-40 Y-40 Z-20", "G10 L2 P2 X-80 Y-40 Z-20"],
         ["G53 G0 Z0", "G53 G0 X0 Y0"],
@@ -66,7 +74,9 @@ async def daemon(tmp_path: Path, request: pytest.FixtureRequest) -> AsyncIterato
     # The safe height in machine coordinates. The top of the Z travel would do only on a
     # homed machine (Machine.safe_height): these boards are power-cycled, never homed.
     extra = {"safe_z": 90.0 if dialect == "g2core" else 0.0}
-    async with running_daemon(tmp_path, dialect=dialect, spindle_dwell=0.05, **extra) as hostd:
+    # The spindle's dwell: the daemon's 2 s (0.2 s on the x10 board), which also covers
+    # the host's writing the plunge after it.
+    async with running_daemon(tmp_path, dialect=dialect, **extra) as hostd:
         yield hostd
 
 

@@ -56,6 +56,8 @@ class Broker:
     port: int = field(default_factory=free_port)
     # Keep retained messages across a restart (saved at stop), as a production broker does.
     persistence: bool = False
+    # Log every packet (mosquitto's `log_type debug`): what the broker received, in order.
+    debug: bool = False
     log: list[str] = field(default_factory=list)
     _proc: asyncio.subprocess.Process | None = None
     _drain: asyncio.Task[None] | None = None
@@ -76,6 +78,7 @@ class Broker:
             f"user {pwd.getpwuid(os.geteuid()).pw_name}\n"
             "log_dest stderr\n"
             "log_type error\nlog_type warning\nlog_type notice\nlog_type information\n"
+            + ("log_type debug\n" if self.debug else "")
         )
         self._proc = await asyncio.create_subprocess_exec(
             MOSQUITTO,

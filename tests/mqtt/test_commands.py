@@ -187,6 +187,10 @@ async def test_a_flood_past_the_rate_is_refused_out_loud_never_dropped(
     with logs() as captured:
         async with bridged(tmp_path, broker, **settings) as b:
             async with watching(broker, "test/h1/online") as caller:
+                # A caller waits for `online`: before the bridge subscribes, the broker drops
+                # a command (no subscriber) and nothing can answer it. The flood went out as
+                # the bridge started, and under load its first command was lost so, once.
+                await caller.state("test/h1/online", lambda payload: payload == "online")
                 topic = "test/h1/sim1/cmd/daemon.info"
                 sent = 300
                 replies = "test/h1/replies/flood"
@@ -201,6 +205,33 @@ async def test_a_flood_past_the_rate_is_refused_out_loud_never_dropped(
     assert 5 <= len(ran) < sent // 2
     assert "commands/s" in limited[0]["error"]["message"]
     assert sum(1 for e in captured if refused(-32001)(e)) == len(limited)
+
+
+async def test_online_is_said_once_commands_are_heard(tmp_path: Path) -> None:
+    """The bridge subscribes to its command topics before it publishes `online` (on every
+    connection, the same code): a caller that sees `online` and commands at once is
+    answered, where a broker drops a message no subscription matches, without a word."""
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    broker = Broker(directory, debug=True)  # every packet it receives, logged in order
+    await broker.start()
+    try:
+        async with (
+            watching(broker, "test/h1/online") as caller,  # before the bridge is
+            bridged(tmp_path, broker, commands=True, allow=["daemon.info"]),
+        ):
+            await caller.state("test/h1/online", lambda payload: payload == "online")
+            answer = await caller.request("test/h1/sim1/cmd/daemon.info", {}, b"now")
+            assert "result" in answer, answer
+    finally:
+        await broker.stop()  # its log read to the end
+    ours = [line for line in broker.log if "Received " in line and "from hostd-test-h1" in line]
+    received = [
+        "subscribe" if "SUBSCRIBE" in line else "online"
+        for line in ours
+        if "SUBSCRIBE" in line or "'test/h1/online'" in line
+    ]
+    assert received[:2] == ["subscribe", "online"], received
 
 
 async def replies_to(caller: Watcher, topic: str, n: int) -> dict[bytes, Any]:

@@ -7,7 +7,9 @@ through the outbox to retained topics and events. In (`commands.py`, with
 request against the same method table as the socket.
 
 Connection: reconnects with back-off (`reconnect_min` doubling to
-`reconnect_max`); each new connection republishes every retained topic.
+`reconnect_max`); each new connection subscribes to the command topics
+first, then republishes every retained topic, `online` first: a caller
+that has seen `online` is heard.
 The broker keeps `<prefix>/online` = `offline` as our last will; a clean
 stop publishes it ourselves.
 """
@@ -175,6 +177,11 @@ class MqttBridge:
     async def _session(self, commands: asyncio.TaskGroup) -> None:
         tls = await asyncio.to_thread(self._tls_context)
         async with self._client(tls) as client:
+            # Subscribed (the broker's SUBACK) before anything is published: a caller who
+            # sees `online` and commands at once is heard. A broker drops, without a word,
+            # a message that no subscription matches; `online` published first (the
+            # publisher and the receiver used to start together) let one be lost so.
+            await self._in.subscribe(client)
             self.connections += 1
             self.disconnected.clear()
             self.connected.set()

@@ -85,11 +85,14 @@ class Commands:
         for task in self.running:
             task.cancel()
 
-    async def receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
+    async def subscribe(self, client: aiomqtt.Client) -> None:
         # Retain as published: a retained command is seen as retained even when it arrives
         # live, so that none is ever run (it would run again on every reconnect).
         options = SubscribeOptions(qos=1, retainAsPublished=True)
         await client.subscribe(topics.command_filter(self.prefix), options=options)
+
+    async def receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
+        """The commands, once `subscribe` has been answered."""
         async for message in client.messages:
             try:
                 self._command(message, commands)
