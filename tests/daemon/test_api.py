@@ -310,15 +310,21 @@ async def test_subscriptions_deliver_topics_and_stop_after_unsubscribe(rpc: Rpc)
     await fails(1001, rpc.call("subscribe", topics=["status"], machine="nope"))
 
 
-async def _drained(rpc: Rpc) -> list[dict[str, Any]]:
-    """The console notifications this client was sent until now, in order."""
-    await rpc.call("daemon.info")  # answers follow every notification queued before them
+async def _drained(rpc: Rpc, until: str = "fbc") -> list[dict[str, Any]]:
+    """The console notifications this client was sent, in order, up to the board's answer
+    to the operator's last line (it names `until`). Every subscriber is sent the same
+    stream in the same order, so clients drained so are cut at the same line: drained
+    "until now" instead, a report that came between two clients' drains was in one list
+    and not the other."""
     out = []
-    while not rpc.notifications.empty():
-        note = rpc.notifications.get_nowait()
-        if note["method"] == "console":
-            out.append(note["params"])
-    return out
+    async with asyncio.timeout(30):
+        while True:
+            note = await rpc.notifications.get()
+            if note["method"] == "console":
+                out.append(note["params"])
+                params = note["params"]
+                if params["direction"] == "rx" and until in params["text"]:
+                    return out
 
 
 async def test_a_console_subscription_can_leave_out_a_jobs_own_lines(
@@ -335,7 +341,7 @@ async def test_a_console_subscription_can_leave_out_a_jobs_own_lines(
         await watcher.call("subscribe", topics=["job"], machine="sim1")
         started = await rpc.call("job.start", machine="sim1", file="lines.gcode")
         assert (await job_end(watcher, started["job"]))["state"] == "completed"
-        await rpc.call("machine.send", machine="sim1", line="{yvm:n}")  # the operator's own
+        await rpc.call("machine.send", machine="sim1", line="{fbc:n}")  # the operator's own
         full = await _drained(rpc)
         kept = await _drained(lean)
     finally:
@@ -359,8 +365,8 @@ async def test_a_console_subscription_can_leave_out_a_jobs_own_lines(
     assert len(rx_out) == len(tx_out)  # one plain answer each, nothing else
     assert all(json.loads(text)["f"][1] == 0 for text in rx_out)  # status 0 every one
     # The operator's line and its answer still come.
-    assert any(n["direction"] == "tx" and "yvm" in n["text"] for n in kept)
-    assert any(n["direction"] == "rx" and "yvm" in n["text"] for n in kept)
+    assert any(n["direction"] == "tx" and "fbc" in n["text"] for n in kept)
+    assert any(n["direction"] == "rx" and "fbc" in n["text"] for n in kept)
 
 
 def _status_traffic(note: dict[str, Any]) -> bool:
@@ -381,7 +387,7 @@ async def test_a_console_subscription_can_leave_out_status_traffic(
         await fails(-32602, quiet.call("subscribe", topics=["console"], status_traffic="no"))
         await rpc.call("machine.send", machine="sim1", line="G1 X5 F3000")  # reported moving
         await rpc.call("machine.send", machine="sim1", line="{sr:n}")  # the operator's poll
-        await rpc.call("machine.send", machine="sim1", line="{yvm:n}")
+        await rpc.call("machine.send", machine="sim1", line="{fbc:n}")
         full = await _drained(rpc)
         kept = await _drained(quiet)
     finally:
@@ -393,8 +399,8 @@ async def test_a_console_subscription_can_leave_out_status_traffic(
     # Exactly the status traffic is gone; the rest is the same stream in the same order.
     assert kept == [n for n in full if not _status_traffic(n)]
     texts = [n["text"] for n in kept]
-    assert "G1 X5 F3000" in texts and '{"yvm":null}' in texts  # as written: strict JSON
-    assert any("yvm" in text for text in texts if text.startswith('{"r":'))  # its answer
+    assert "G1 X5 F3000" in texts and '{"fbc":null}' in texts  # as written: strict JSON
+    assert any("fbc" in text for text in texts if text.startswith('{"r":'))  # its answer
 
 
 async def test_a_client_cannot_end_another_clients_subscription(hostd: Running, rpc: Rpc) -> None:
