@@ -516,6 +516,16 @@ class SimController(SimShell[Board, MachineState]):
                 port.plug()
         self._kick()
 
+    def _read_waiting(self) -> None:
+        # Not while an open is under way: its tcflush arrives as status packets whose
+        # bits the kernel may set again as it finishes the flush, and read at once they
+        # looked like a second open (`port_flushed`). The opening is the event loop's.
+        if self._banner != "done":
+            return
+        for name, port in self._ports.items():
+            if name in self._active:
+                port.read_waiting()
+
     def _update_reading(self) -> None:
         """Read from each open port as much as its RX budget allows (0 = stop)."""
         budget = self.config.rx_budget

@@ -187,6 +187,22 @@ class PtyPort:
             return
         self._refresh()
 
+    def read_waiting(self) -> None:
+        """Take now what the host has written and this port has not read yet.
+
+        A board's receive interrupt takes bytes as they arrive, whatever its main
+        loop is doing; this port's reader runs only when the event loop gets round
+        to it. The board's loop calls this before it runs what is due, so that a
+        board whose move ended never finds its planner empty, and stops, with the
+        host's next lines already written to it (a host on time taken for a late one:
+        an underflow that no real board would have).
+        """
+        poller = self._poller
+        if poller is None or not self._reader_on:
+            return
+        if any(events & select.POLLIN for _, events in poller.poll(0)):
+            self._on_readable()
+
     def _on_readable(self) -> None:
         fd = self._fd
         if fd is None:

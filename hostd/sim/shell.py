@@ -132,6 +132,11 @@ class SimShell(ABC, Generic[BoardT, StateT]):
         """Whether the loop must neither tick nor wake for deadlines now."""
 
     @abstractmethod
+    def _read_waiting(self) -> None:
+        """Take what the host has written to each port and the port has not read yet
+        (`PtyPort.read_waiting`): called before every round of ticks."""
+
+    @abstractmethod
     def _update_reading(self) -> None:
         """Re-plan how much each port may read; called on every kick and after ticking."""
 
@@ -200,6 +205,7 @@ class SimShell(ABC, Generic[BoardT, StateT]):
             steps = 0
             halted = self._halted()
             if not halted:
+                self._read_waiting()  # as a receive interrupt would have, by now
                 while steps < MAX_STEPS and board.tick():
                     steps += 1
             if steps:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import select
 import signal
 import sys
 import termios
@@ -13,6 +14,7 @@ import pytest
 
 from hostd.protocol.states import MachineState
 from hostd.sim import Received, SimConfig, SimController
+from hostd.sim.ptyport import PtyPort
 
 from .conftest import INSTANT, Host, RawHost, dual, is_link
 
@@ -311,3 +313,48 @@ async def test_a_fallback_banner_the_flush_threw_away_is_sent_again(sim: SimCont
         assert banners(sim) == 2
     finally:
         raw.close()
+
+
+async def test_a_port_takes_what_was_written_when_the_board_asks_not_when_the_loop_gets_round(
+    tmp_path: Path,
+) -> None:
+    """A board's receive interrupt takes bytes as they come; the board's loop asks its
+    ports for what is waiting before it runs what is due (`read_waiting`), so a move
+    that ends while the event loop is busy elsewhere never finds the planner empty with
+    the host's next line already written (a host on time seen as late: an underflow)."""
+
+    class Listener:
+        def __init__(self) -> None:
+            self.data = b""
+            self.attached = asyncio.Event()
+
+        def port_attached(self, port: PtyPort) -> None:
+            self.attached.set()
+
+        def port_detached(self, port: PtyPort) -> None:
+            pass
+
+        def port_data(self, port: PtyPort, data: bytes) -> None:
+            self.data += data
+
+        def port_flushed(self, port: PtyPort) -> None:
+            pass
+
+    listener = Listener()
+    port = PtyPort("data", str(tmp_path / "tty"), listener)
+    port.plug()
+    host = os.open(port.path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        async with asyncio.timeout(5):
+            await listener.attached.wait()
+        port.set_read_limit(0)  # the board's buffer full: nothing may be taken
+        os.write(host, b"G1 X1\n")
+        assert select.select([port._fd], [], [], 5)[0]  # at the master, not yet read
+        port.read_waiting()
+        assert listener.data == b""
+        port.set_read_limit(64)  # room again; no loop iteration in between
+        port.read_waiting()
+        assert listener.data == b"G1 X1\n"
+    finally:
+        os.close(host)
+        port.unplug()

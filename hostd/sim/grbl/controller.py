@@ -264,6 +264,10 @@ class GrblSimController(SimShell[GrblBoard, str]):
         """Only while `hang()` holds it; its resets run inside the board."""
         return self._hung
 
+    def _read_waiting(self) -> None:
+        if self._port is not None and not self._open_pending:  # an open: the loop's, as g2core's
+            self._port.read_waiting()
+
     def _update_reading(self) -> None:
         """Nothing to re-plan: the port reads all it can (port_attached, port_data) and
         the board's receive ring, not the pty, decides what is kept."""
