@@ -329,6 +329,11 @@ class Controller:
         if line[:1] == b"{":
             out.append(self._json(line))  # a control: ahead of data lines still waiting
             return
+        if line[:1] == b"$" and line[1:].isalnum():
+            # A text-mode GET (`$stat`: the daemon's fence behind a ^D) is answered in JSON
+            # in JSON mode, as g2core's text_parser.cpp:84-96 does: `{"r":{"stat":3},...}`.
+            out.append(self._json(b'{"%s":null}' % line[1:], len(line) + 1))
+            return
         self.last_line_at = now
         if self.stat not in (RUN, HOLD):
             self.stat = RUN
@@ -379,7 +384,7 @@ class Controller:
             if self.expected and self.received >= self.expected:
                 planner.end_job()
 
-    def _json(self, line: bytes) -> bytes:
+    def _json(self, line: bytes, size: int | None = None) -> bytes:
         try:
             obj = json.loads(line)
         except ValueError:
@@ -389,9 +394,11 @@ class Controller:
             for key, value in obj.items():
                 if key == "sr":
                     body["sr"] = {"stat": self.stat}
+                elif key == "stat":
+                    body["stat"] = self.stat
                 else:
                     body[key] = 0 if value is None else value
-        answer = {"r": body, "f": [1, 0, len(line) + 2]}
+        answer = {"r": body, "f": [1, 0, len(line) + 2 if size is None else size]}
         return json.dumps(answer, separators=(",", ":")).encode() + b"\n"
 
     def _realtime(self, char: int, now: float, out: list[bytes]) -> None:

@@ -114,6 +114,25 @@ def test_g2core_echoes_a_line_number_as_at_jv_4(tmp_path: Path) -> None:
         board.close()
 
 
+def test_g2core_answers_a_text_mode_get_in_json_as_the_daemons_kill_fence_needs(
+    tmp_path: Path,
+) -> None:
+    """`$stat` behind a ^D (docs/protocol.md, "A kill's fence"): g2core answers a text-mode
+    GET in JSON mode with the key's value (text_parser.cpp:84-96). Answered as a G-code
+    line instead, the daemon took it for an answer it could not place: the bench's P2
+    stopped on a `lexical` fault after P1's cancel."""
+    board = ControllerProcess(str(tmp_path / "ttyG2"))
+    port = Port(board.link)
+    try:
+        port.until(b"SYSTEM READY")
+        port.until(b"\n")
+        port.write(b"$stat\n")
+        assert port.until(b"\n") == b'{"r":{"stat":3},"f":[1,0,6]}\n'
+    finally:
+        os.close(port.fd)
+        board.close()
+
+
 def test_a_rastering_grbl_answers_as_its_planner_takes_the_lines(tmp_path: Path) -> None:
     """15 blocks at 50 a second: 20 lines sent at once are answered over about 0.1 s,
     and nothing is recorded as starving while the host keeps it fed."""
