@@ -7,6 +7,7 @@ stream and counts a host that overfills its 128-byte receive buffer.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import termios
@@ -45,16 +46,30 @@ class Port:
         os.write(self.fd, data)
 
 
-@pytest.fixture
-def grbl(tmp_path: Path) -> Iterator[tuple[ControllerProcess, Port]]:
-    board = ControllerProcess(str(tmp_path / "ttyGRBL"), "grbl")
+# What each board prints when the host opens it, up to the end of its banner.
+BANNERS = {"grbl": [b"Grbl 1.1h ['$' for help]\r\n"], "g2core": [b"SYSTEM READY", b"\n"]}
+
+
+@contextlib.contextmanager
+def opened(
+    path: Path, dialect: str = "g2core", rate: float = 0.0
+) -> Iterator[tuple[ControllerProcess, Port]]:
+    """A bench board at `path` and the host's side of its port, its banner read."""
+    board = ControllerProcess(str(path), dialect, rate=rate)
     port = Port(board.link)
     try:
-        port.until(b"Grbl 1.1h ['$' for help]\r\n")
+        for part in BANNERS[dialect]:
+            port.until(part)
         yield board, port
     finally:
         os.close(port.fd)
         board.close()
+
+
+@pytest.fixture
+def grbl(tmp_path: Path) -> Iterator[tuple[ControllerProcess, Port]]:
+    with opened(tmp_path / "ttyGRBL", "grbl") as pair:
+        yield pair
 
 
 def test_grbl_says_its_buffer_and_planner_and_answers_each_line_ok(
@@ -99,19 +114,12 @@ def test_grbl_counts_a_host_that_overfills_its_receive_buffer(
 
 
 def test_g2core_echoes_a_line_number_as_at_jv_4(tmp_path: Path) -> None:
-    board = ControllerProcess(str(tmp_path / "ttyG2"))
-    port = Port(board.link)
-    try:
-        port.until(b"SYSTEM READY")
-        port.until(b"\n")
+    with opened(tmp_path / "ttyG2") as (_, port):
         port.write(b"N7 G1 X1\nG1 X2\nN0 G1 X3\n")
         answers = port.until(b'{"r":{},"f":[1,0,9]}\n')  # the third line's: N0 is not echoed
         assert answers.endswith(
             b'{"r":{"n":7},"f":[1,0,9]}\n{"r":{},"f":[1,0,6]}\n{"r":{},"f":[1,0,9]}\n'
         )
-    finally:
-        os.close(port.fd)
-        board.close()
 
 
 def test_g2core_answers_a_text_mode_get_in_json_as_the_daemons_kill_fence_needs(
@@ -121,25 +129,15 @@ def test_g2core_answers_a_text_mode_get_in_json_as_the_daemons_kill_fence_needs(
     GET in JSON mode with the key's value (text_parser.cpp:84-96). Answered as a G-code
     line instead, the daemon took it for an answer it could not place: the bench's P2
     stopped on a `lexical` fault after P1's cancel."""
-    board = ControllerProcess(str(tmp_path / "ttyG2"))
-    port = Port(board.link)
-    try:
-        port.until(b"SYSTEM READY")
-        port.until(b"\n")
+    with opened(tmp_path / "ttyG2") as (_, port):
         port.write(b"$stat\n")
         assert port.until(b"\n") == b'{"r":{"stat":3},"f":[1,0,6]}\n'
-    finally:
-        os.close(port.fd)
-        board.close()
 
 
 def test_a_rastering_grbl_answers_as_its_planner_takes_the_lines(tmp_path: Path) -> None:
     """15 blocks at 50 a second: 20 lines sent at once are answered over about 0.1 s,
     and nothing is recorded as starving while the host keeps it fed."""
-    board = ControllerProcess(str(tmp_path / "ttyR"), "grbl", rate=50.0)
-    port = Port(board.link)
-    try:
-        port.until(b"['$' for help]\r\n")
+    with opened(tmp_path / "ttyR", "grbl", rate=50.0) as (board, port):
         board.expect(20)
         port.write(b"G1 X1\n" * 20)  # 120 bytes: fits the buffer
         first = port.until(b"ok\r\n" * 15)  # the planner's 15 blocks, at once
@@ -151,9 +149,6 @@ def test_a_rastering_grbl_answers_as_its_planner_takes_the_lines(tmp_path: Path)
         record = board.dump()
         assert record["job"]["lines"] == 20
         assert record["starved"] == []
-    finally:
-        os.close(port.fd)
-        board.close()
 
 
 def test_a_rastering_g2core_never_leaves_a_host_with_a_full_window_waiting(
@@ -164,11 +159,7 @@ def test_a_rastering_g2core_never_leaves_a_host_with_a_full_window_waiting(
     block freed between its planning and its choice of how long to sleep: the host, its
     window full of the lines waiting, sent none, and P8 counted a second's stall as the
     host's starvation.) 3,000 lines at 2,000 a second met that race about every 1,000."""
-    board = ControllerProcess(str(tmp_path / "ttyR"), "g2core", rate=2000.0)
-    port = Port(board.link)
-    try:
-        port.until(b"SYSTEM READY")
-        port.until(b"\n")
+    with opened(tmp_path / "ttyR", "g2core", rate=2000.0) as (board, port):
         total = 3000
         board.expect(total)
         sent = answered = 0
@@ -179,6 +170,3 @@ def test_a_rastering_g2core_never_leaves_a_host_with_a_full_window_waiting(
             answered += 1
             port.until(b'{"r":{"n":%d}' % answered, timeout=2.0)
         assert board.dump()["job"]["lines"] == total
-    finally:
-        os.close(port.fd)
-        board.close()
