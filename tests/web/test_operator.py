@@ -384,10 +384,14 @@ async def test_the_laser_console_leaves_out_a_jobs_own_lines_and_their_oks(
     # `ok` each, are not an operator's console; the job row shows the progress.
     moves = [f"G1 X{i}.5 Y{i % 4} F600" for i in range(1, 21)]
     async with running_web(tmp_path, machine=GRBL) as web:
+        rpc = await web.hostd.client()
+        # The page opens once the daemon's handshake is over: a console opened during it
+        # shows the `ok` of a handshake line written before it listened (rightly: it
+        # listens from then on), which the count of `ok`s below would take for a job's.
+        await web.hostd.idle(rpc)
         page = await browser.new_page()
         await log_in(page, web)
         await expect(page.locator("#console-hidden")).to_contain_text("hidden")
-        rpc = await web.hostd.client()
         await rpc.call("subscribe", topics=["job"], machine="sim1")
         await rpc.call("file.upload", name="raster.nc", data="G21 G90\n" + "\n".join(moves))
         started = await rpc.call("job.start", machine="sim1", file="raster.nc")
