@@ -49,9 +49,10 @@ def _is_job_line(data: bytes) -> bool:
 
 
 def _first(received: list[Received], byte: bytes) -> int | None:
-    """Where the board first took that realtime byte (a grbl board records it as read raw)."""
+    """Where the board first took that realtime byte (a grbl board records it as read raw,
+    with what came in the same read: the `?` the host writes behind its `~`)."""
     return next(
-        (i for i, r in enumerate(received) if r.kind in ("realtime", "raw") and r.data == byte),
+        (i for i, r in enumerate(received) if r.kind in ("realtime", "raw") and byte in r.data),
         None,
     )
 

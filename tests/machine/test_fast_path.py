@@ -264,10 +264,12 @@ async def _run(
                 b"N" in data[:1] for kind, data in board.writes[written:] if kind == "lines"
             )
     position = stream.position
+    # Copies: `asyncio.run` turns the loop once more on its way out, and a poll timer
+    # (a hold's settle poll, 20 ms on) that came due during a slow run would write then.
     return {
         "taken": taken,
-        "writes": board.writes,
-        "events": events,
+        "writes": list(board.writes),
+        "events": list(events),
         "counts": (
             position.sent,
             position.acked,

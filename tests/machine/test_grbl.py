@@ -52,7 +52,9 @@ async def grbl_bench(
     async with GrblSimController(path, config) as sim:
         machine = Machine(
             machine_config(
-                path, dialect="grbl", handshake_timeout=2.0, status_interval=0.1, **overrides
+                path,
+                dialect="grbl",
+                **{"handshake_timeout": 2.0, "status_interval": 0.1, **overrides},
             ),
             store,
             jobs,
@@ -130,6 +132,30 @@ async def test_hold_and_resume_a_grbl_job(tmp_path: Path) -> None:
         bench.machine.resume()
         done = await bench.job_ended(job.id)
         assert done.state == "completed" and done.lines_acked == 60
+
+
+async def test_a_resumed_job_runs_on_without_waiting_for_a_status_poll(tmp_path: Path) -> None:
+    """grbl reports a `?` read with the `~` before it resumes (protocol.c): the host asks
+    until a report shows the hold left, and the job's lines flow at once. Before, they
+    waited for the next poll (a minute here)."""
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow, status_interval=60.0) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(400)))
+        await bench.machine.start_make("job.nc")
+        board = bench.board
+        await board.wait_state("Run")  # (the host hears of it at its next poll)
+        bench.machine.pause()
+        await board.wait_state("Hold:0")
+        await state(bench, S.HOLD)  # a poll soon after the `!`, not a minute away
+
+        def job_lines() -> int:
+            return b"".join(r.data for r in board.received).count(b" G1 ")  # N<k> G1 ...
+
+        before = job_lines()
+        assert before < 400
+        bench.machine.resume()
+        await board.wait_for(lambda: job_lines() > before, timeout=20)  # the poll: 60 s
+        assert bench.machine.current_job().state == "running"  # type: ignore[union-attr]
 
 
 async def test_a_resume_given_while_the_hold_still_decelerates_runs_the_job_on(

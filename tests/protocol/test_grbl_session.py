@@ -308,9 +308,57 @@ def test_a_resume_before_the_hold_completes_waits_for_hold_0() -> None:
     grbl.feed("<Hold:1|MPos:1.500,0.000,0.000|FS:500,0>")
     assert b"~" not in grbl.realtime()
     grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
-    assert grbl.realtime()[-1] == b"~" and grbl.realtime().count(b"~") == 1
+    assert grbl.realtime()[-2:] == [b"~", b"?"] and grbl.realtime().count(b"~") == 1
     grbl.feed("<Run|MPos:1.700,0.000,0.000|FS:1000,0>")
     assert grbl.realtime().count(b"~") == 1
+
+
+def test_a_resumed_job_writes_its_lines_once_a_report_shows_the_hold_left() -> None:
+    """grbl reports a `?` read with the `~` before it acts on the `~` (protocol.c
+    protocol_exec_rt_system), so the host asks again while reports say Hold; the
+    job's lines go as soon as one does not, not at the next poll a `status_interval`
+    later, when a laser's planner has long run dry."""
+    grbl = Grbl(status_interval=10.0)
+    grbl.connect()
+    grbl.session.start_stream(moves(200))
+    grbl.pump()
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.pump()
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    for _ in range(4):  # the board's buffer, emptied
+        grbl.feed("ok")
+    written = len(grbl.lines())
+    grbl.session.resume_stream()
+    grbl.pump()
+    assert grbl.realtime()[-2:] == [b"~", b"?"]
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")  # read with the `~`: before it
+    assert grbl.realtime()[-1] == b"?" and len(grbl.lines()) == written
+    grbl.feed("<Run|MPos:1.600,0.000,0.000|FS:1000,0>")
+    assert len(grbl.lines()) > written  # at once, with the poll 10 s away
+    asks = grbl.realtime().count(b"?")
+    grbl.feed("<Run|MPos:1.700,0.000,0.000|FS:1000,0>")
+    assert grbl.realtime().count(b"?") == asks  # no more asking once it runs
+
+
+def test_a_resume_the_board_keeps_holding_is_asked_about_a_bounded_number_of_times() -> None:
+    """A `~` the board did not act on (it holds on): three asks, then the usual polls."""
+    grbl = Grbl(status_interval=10.0)
+    grbl.connect()
+    grbl.session.start_stream(moves(50))
+    grbl.pump()
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
+    grbl.session.pause_stream()
+    grbl.pump()
+    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    asks = grbl.realtime().count(b"?")
+    written = len(grbl.lines())
+    grbl.session.resume_stream()
+    grbl.pump()
+    for _ in range(5):
+        grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    assert grbl.realtime().count(b"?") == asks + 3
+    assert len(grbl.lines()) == written  # the job's lines wait while the board holds
 
 
 def test_a_resume_after_the_hold_completed_goes_at_once_and_a_new_hold_voids_a_kept_one() -> None:
@@ -320,7 +368,7 @@ def test_a_resume_after_the_hold_completed_goes_at_once_and_a_new_hold_voids_a_k
     grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
     grbl.session.resume_stream()
     grbl.pump()
-    assert grbl.realtime()[-1] == b"~"  # the hold was complete: no wait
+    assert grbl.realtime()[-2:] == [b"~", b"?"]  # the hold was complete: no wait
     grbl.feed("<Run|MPos:1.700,0.000,0.000|FS:1000,0>")
     grbl.session.pause_stream()
     grbl.session.resume_stream()

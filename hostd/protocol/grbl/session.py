@@ -110,6 +110,10 @@ __all__ = [
 ]
 
 BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints its banner
+# s from our `!` to the next `?`, and between `?`s until the hold is complete: a report
+# read with the `!` predates it (protocol.c), and a `~` kept back waits for Hold:0.
+SETTLE_POLL = 0.02
+RESUME_ASKS = 3  # `?`s after a `~` while reports still say Hold (`_cycle_start`)
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
 SILENT_QUERIES = 3  # `?`s unanswered in a silence before the link is given up
 # s of silence allowed on top of `link_silence` while a line writes EEPROM or flash: an
@@ -185,6 +189,7 @@ class GrblSession(GrblWords, SessionBase):
         # the board out of motion: a `~` now would be dropped (`_realtime`).
         self._hold_settling = False
         self._start_pending = False  # a `~` kept back until the hold completes
+        self._resume_asks = 0  # `?`s left to ask while reports say Hold after our `~`
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
@@ -338,6 +343,7 @@ class GrblSession(GrblWords, SessionBase):
         self._resetting = False
         self._held = None
         self._hold_settling = self._start_pending = False
+        self._resume_asks = 0
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -528,6 +534,10 @@ class GrblSession(GrblWords, SessionBase):
             self._on_state(changed, before)
         if self._hold_settling:
             self._hold_settled(report)
+            if self._hold_settling:  # still stopping: look again soon, not a poll away
+                self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
+        elif self._resume_asks:
+            self._resume_seen(report)
         self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
@@ -550,9 +560,32 @@ class GrblSession(GrblWords, SessionBase):
         if self._start_pending:
             self._start_pending = False
             if report.state in ("Hold", "Idle"):
-                self._out.append((Lane.REALTIME, codec.CYCLE_START))
+                self._cycle_start()
             else:
                 self._job_log().warning("resume dropped", board_state=self.model.board_state)
+
+    def _cycle_start(self) -> None:
+        """`~`, with a `?` behind it: a job's lines wait while the last report says Hold.
+
+        grbl answers a `?` read with the `~` before it acts on the `~` (protocol.c
+        protocol_exec_rt_system: EXEC_STATUS_REPORT is handled before EXEC_CYCLE_START;
+        grblHAL the same, reporting before `state_update`), so that report still says
+        Hold: `_on_report` asks again while one does, up to RESUME_ASKS times. Without
+        the asks the job's lines waited for the next poll, `status_interval` away, while
+        the board ran its planner dry (docs/dialects.md, the Holds row).
+        """
+        self._out.append((Lane.REALTIME, codec.CYCLE_START))
+        self._resume_asks = RESUME_ASKS
+        self._ask_report()
+
+    def _resume_seen(self, report: codec.StatusReport) -> None:
+        """A report after our `~`: one that still says Hold predates it; ask again."""
+        if report.state == "Hold":
+            self._resume_asks -= 1
+            if self._resume_asks:
+                self._ask_report()
+        else:
+            self._resume_asks = 0
 
     def _track_executed(self, fields: dict[str, Any]) -> None:
         """Which file line runs: `Ln:`, else what the planner can still hold.
@@ -620,6 +653,7 @@ class GrblSession(GrblWords, SessionBase):
         self._stopping = None
         self._held = None
         self._hold_settling = self._start_pending = False
+        self._resume_asks = 0
         if self.stream is not None and not self.stream.done:
             self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
@@ -835,6 +869,7 @@ class GrblSession(GrblWords, SessionBase):
         self._stopping = None
         self._held = None
         self._hold_settling = self._start_pending = False
+        self._resume_asks = 0
         self._resetting = True
         self._out.append((Lane.REALTIME, codec.RESET))
 
@@ -921,7 +956,11 @@ class GrblSession(GrblWords, SessionBase):
         if command is Realtime.FEEDHOLD:
             self._hold_settling = True
             self._start_pending = False  # a newer hold: a resume asked before it is void
+            self._resume_asks = 0
             self._out.append((Lane.REALTIME, codec.FEEDHOLD))
+            # A `?` read with the `!` would report before the hold (protocol.c): the next
+            # poll comes a little later, and soon again until the hold is seen complete.
+            self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
         elif command is Realtime.CYCLE_START:
             if self._held is not None:
                 # The stopped job's moves are still in the board: `~` would run them.
@@ -935,7 +974,7 @@ class GrblSession(GrblWords, SessionBase):
                 self._start_pending = True
                 self._ask_report()
                 return
-            self._out.append((Lane.REALTIME, codec.CYCLE_START))
+            self._cycle_start()
         elif command is Realtime.ENQUIRY:
             self._ask_report()
         elif command is Realtime.RESET:
