@@ -15,7 +15,9 @@ itself and the layers below it, and none overrides another:
     board.py     Board      construction, power and connection, the controller's
                             inputs and injections, the main loop
     commands.py  Commands   data lines, JSON and text commands, settings, G-code
-    planner.py   Planner    the planner and motion, probing, holds, flush, kill, lockouts
+    planner.py   Planner    the planner and motion, homing that fails, a probe's start
+    stops.py     Stops      realtime controls, holds, flush, kill, lockouts, a probe's end
+    intake.py    Intake     which data line is read next, and the flush to the command
     output.py    Output     the board's state, declared once; answers and reports
 
 probing.py holds the probe input's geometry, which needs none of the state.

@@ -13,7 +13,8 @@ No I/O and no asyncio here; the clock is injected.
 controller and the tests use. The rest of the firmware is in modules of
 functions that take the board, cut where the firmware's own files are:
 system.py (`$` commands, system.c), reports.py (`?`, `$G`, `$#`, `$I`,
-report.c), realtime.py (the realtime characters), motion_control.py (the
+report.c), realtime.py (the realtime characters), lines.py (a line read
+from the receive ring and run; protocol.c), motion_control.py (the
 planner's blocks, what a line waits for, homing's end, probing;
 motion_control.c) and settings.py (the `$n` defaults). They read and
 write the board's underscored attributes too: those are private to this
@@ -28,15 +29,6 @@ the modules above):
   full ring is dropped); grblHAL drivers' serial.c (`next_head == tail`:
   `rxbuf.overflow = On`, the byte is dropped). Realtime bytes never enter it
   (protocol_enqueue_realtime_command / serial.c ISR).
-- lines: protocol.c protocol_main_loop: CR or LF ends a line; an empty line
-  answers `ok`; HAL skips the second byte of a CR LF pair unless the line
-  before it failed (`eol = '\\0'`), classic answers it `ok` too. `$` lines go
-  to system_execute_line; other lines in Alarm/E-stop/Jog answer error:9.
-- HAL error latch (COMPATIBILITY_LEVEL 0): a G-code line runs only while
-  gc_state.last_error is OK; otherwise it answers that same error. It is
-  cleared by an empty line, by any `$` command (which sets it to its own
-  result), and by 0x18 (the CAN read from the stream); 0x85 also cancels
-  the read buffer, which inserts a CAN.
 - alarms: system_raise_alarm prints `ALARM:N`; critical ones (hard limit,
   soft limit, HAL e-stop; alarms.h alarm_is_critical) also print
   `[MSG:Reset to continue]` (HAL e-stop: its own message) and block until a
@@ -63,11 +55,10 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from functools import partial
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import motion_control, parser, realtime, reports, system
+from hostd.sim.grbl import lines, motion_control, realtime, reports, system
 from hostd.sim.grbl.codes import CRITICAL, Alarm, Error, Msg
 from hostd.sim.grbl.config import GrblConfig
 from hostd.sim.grbl.parser import Modal
@@ -75,8 +66,6 @@ from hostd.sim.grbl.reports import CLASSIC_VERSION, HAL_VERSION
 from hostd.sim.grbl.settings import DEFAULTS, HAL_REPORT_MASK
 from hostd.sim.motion import Active, Traversed
 from hostd.sim.probing import ToolSensor, TouchPlate, probe_input, sensor_surface
-
-CLASSIC_LINE, HAL_LINE = 80, 257  # LINE_BUFFER_SIZE (protocol.h), one byte the terminator
 
 
 class GrblBoard:
@@ -353,7 +342,7 @@ class GrblBoard:
         if motion_control.advance(self, now):
             return True
         if self.blocking:
-            return self.hal and self._read_line(critical=True)
+            return self.hal and lines.read_line(self, critical=True)
         if self._suspended():
             return False
         if self._wait is not None:
@@ -362,7 +351,7 @@ class GrblBoard:
             self._nvs_dirty = False
             self._deaf_until = now + self.config.storage_write
             return True
-        return self._read_line(critical=False)
+        return lines.read_line(self, critical=False)
 
     def _suspended(self) -> bool:
         """protocol_exec_rt_suspend holds the main loop: no line is read (see above)."""
@@ -393,101 +382,10 @@ class GrblBoard:
         self._deaf_until = until
         return None
 
-    # --- lines
-
-    def _read_line(self, *, critical: bool) -> bool:
-        """Take bytes from the ring up to one complete line and run it."""
-        if not self.rx:
-            return False
-        while self.rx:
-            c = self.rx.popleft()
-            if c in (0x0A, 0x0D):
-                if self.hal and not self._line and self._eol and self._eol != c:
-                    self._eol = 0  # the second half of a CR LF pair
-                    continue
-                self._eol = c
-                line = self._line.decode("latin-1")
-                overflow = self._overflow
-                self._line = bytearray()
-                self._overflow = False
-                self._run_line(line, overflow, critical=critical)
-                return True
-            if self.hal:
-                if c <= (0x1F if self._line else 0x20) and c != 0x08:
-                    continue  # control characters and leading blanks
-            elif c <= 0x20:
-                continue  # classic drops every blank and control character
-            limit = (HAL_LINE if self.hal else CLASSIC_LINE) - 1
-            if len(self._line) >= limit:
-                self._overflow = True
-            else:
-                self._line.append(c)
-        return True
-
-    def _run_line(self, line: str, overflow: bool, *, critical: bool) -> None:
-        if critical:  # HAL protocol_poll_cmd, inside the critical-event loop
-            if not line:
-                status = Error.OK
-            elif line.startswith("$"):
-                answer = system.execute_line(self, line)
-                status = Error.OK if answer is None else answer
-            else:
-                status = Error.SYSTEM_GC_LOCK
-            self.last_error = status
-            self._respond(status)
-            return
-        if overflow:
-            status = Error.OVERFLOW
-        elif not line:
-            status = Error.OK
-        elif line.startswith("$"):
-            answer = system.execute_line(self, line)
-            if answer is None:
-                return  # the answer comes later (homing, a jog waiting for room)
-            status = answer
-        elif self.state in ("Alarm", "EStop", "Jog"):
-            status = Error.SYSTEM_GC_LOCK
-        elif self.hal and self.last_error != Error.OK:
-            status = self.last_error  # the error latch
-        elif self.refuse_next is not None:
-            code, self.refuse_next = self.refuse_next, None
-            self._emit(f"error:{code}")  # nothing latched, nothing run: the test's code only
-            return
-        else:
-            result = self._gcode(line)
-            if result is None:
-                return
-            status = result
-            if status != Error.OK:
-                self._eol = 0
-        if self.hal:
-            self.last_error = status
-        self._respond(status)
+    # --- answers to lines (lines.py reads and runs them)
 
     def _respond(self, status: Error) -> None:
         self._emit("ok" if status == Error.OK else f"error:{int(status)}")
-
-    def _gcode(self, line: str) -> Error | None:
-        """gc_execute_block; None when the answer waits for the machine."""
-        result = parser.execute(self.modal, line, travel_ok=partial(system.in_travel, self))
-        if isinstance(result, Error):
-            return result
-        if result.offsets_changed:
-            self._report_flags.add("wco")
-            if not self.hal:  # classic: system_flag_wco_change (system.c): WCO next report
-                self._wco_counter = 0
-        if self.state == "Check":
-            return Error.OK  # parsed, nothing moves (the parser's position moved on)
-        for move in result.moves:
-            if self.settings[20] and not system.in_travel(self, move.target):
-                self._soft_limit()
-                return None
-        if result.moves or result.dwell is not None or result.probe or result.stop or result.stores:
-            sync = result.dwell is not None or result.stop or result.stores
-            kind = "room" if result.moves and not sync else "sync"
-            self._wait = motion_control.Wait(kind, line, result)
-            return None
-        return Error.OK
 
     def _done(self, status: Error = Error.OK) -> None:
         self._wait = None
