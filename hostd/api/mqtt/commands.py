@@ -12,6 +12,12 @@ bounded (`command_rate`, `command_burst`). A refused command is answered on
 its response topic, or else on `<prefix>/errors`: never silent. A command
 outlives the connection it came on: a dropped broker never cancels a cancel
 half-way (its reply waits in the outbox for the next connection).
+
+A command is acknowledged (PUBACK) once taken, run or refused, not as the client
+reads it: one read but still queued in the client when the connection drops is
+not acknowledged, and the broker sends it again on the next connection of the
+session (bridge.py). One taken whose acknowledgement was lost with the connection
+comes again too: its `request_id` is then refused as already run.
 """
 
 from __future__ import annotations
@@ -92,12 +98,17 @@ class Commands:
         await client.subscribe(topics.command_filter(self.prefix), options=options)
 
     async def receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
-        """The commands, once `subscribe` has been answered."""
+        """The commands, once `subscribe` has been answered; each acknowledged once taken."""
         async for message in client.messages:
             try:
                 self._command(message, commands)
             except Exception:  # one odd message must never stop the bridge
                 self._log.exception("mqtt message could not be handled", topic=str(message.topic))
+            finally:
+                # Taken: its request_id is seen (when it runs), so the broker may forget it.
+                # Always, even for one that failed: unacknowledged, it would hold one of the
+                # broker's in-flight places until the next connection, and come again there.
+                client._client.ack(message.mid, message.qos)
 
     def _command(self, message: aiomqtt.Message, commands: asyncio.TaskGroup) -> None:
         topic = str(message.topic)
@@ -283,6 +294,19 @@ class Commands:
             said.warning("mqtt command failed", code=error)
         if reply_to and answer is not None:
             self._answer(reply_to, answer, correlation)
+
+
+def acknowledge_when_taken(client: aiomqtt.Client) -> None:
+    """Have `client` acknowledge a message only when `receive_loop` has taken it.
+
+    paho acknowledges a QoS 1 message as it reads it, before aiomqtt's queue hands it
+    to us, and aiomqtt's message iterator ends at a disconnect with that queue not
+    empty: read, acknowledged, never taken, a command was lost with the client.
+    aiomqtt (2.5) has no manual acknowledgement of its own; its paho client (`_client`,
+    private) has: set before `connect`, since a resumed session's commands come
+    right after the CONNACK.
+    """
+    client._client.manual_ack_set(True)
 
 
 def _user_properties(properties: Properties | None) -> dict[str, str]:

@@ -1,0 +1,127 @@
+"""Commands across a dropped connection, over a real mosquitto that runs on throughout.
+
+The broker keeps the bridge's session (`command_max_age`) and sends again, on the next
+connection, every command it has not seen acknowledged; the bridge acknowledges a
+command only once it has taken it. So a command sent while the bridge is away, or read
+by it but not yet taken when the connection drops, is run on the next connection, once;
+one grown stale on the way is refused out loud, and one delivered again is not run again.
+A `Cable` (conftest.py) between the bridge and the broker is what drops the connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.mqtt.conftest import WAIT, Bridged, Broker, Cable, Watcher, bridged, cable, decoded
+from tests.mqtt.conftest import watching as watching_broker
+
+pytestmark = pytest.mark.asyncio
+
+SETTINGS: dict[str, Any] = {
+    "commands": True,
+    "allow": ["daemon.info"],
+    "command_rate": 1000,
+    "command_burst": 1000,
+    "max_events": 1000,
+}
+COMMAND = "test/h1/sim1/cmd/daemon.info"
+REPLIES = "test/h1/replies/away"
+
+
+async def away(b: Bridged, hop: Cable, caller: Watcher) -> None:
+    """Pull the cable: the bridge is disconnected and the broker has seen it go (its will)."""
+    await hop.unplug()
+    async with asyncio.timeout(WAIT):
+        await b.bridge.disconnected.wait()
+    await caller.state("test/h1/online", lambda payload: payload == "offline")
+
+
+async def every_reply(caller: Watcher) -> list[tuple[bytes, Any]]:
+    """Every reply on REPLIES, in order, up to that of a last command sent now: what was
+    delivered again was delivered before it (one session, in order), so nothing more of
+    it comes after."""
+    await caller.send(COMMAND, {}, b"last", reply_to=REPLIES)
+    found: list[tuple[bytes, Any]] = []
+    while not found or found[-1][0] != b"last":
+        message = await caller.next(lambda m: str(m.topic) == REPLIES)
+        found.append((getattr(message.properties, "CorrelationData", b""), decoded(message)))
+    return found
+
+
+def results(replies: list[tuple[bytes, Any]]) -> list[bytes]:
+    """The commands that ran (each run answers once with a result), by correlation data."""
+    return sorted(c for c, answer in replies if "result" in answer and c != b"last")
+
+
+def already_run(answer: Any) -> bool:
+    error = answer.get("error", {})
+    return bool(error.get("code") == -32002 and "already run" in error.get("message", ""))
+
+
+async def test_commands_sent_while_the_bridge_is_away_run_once_when_it_is_back(
+    tmp_path: Path, broker: Broker
+) -> None:
+    async with (
+        cable(broker) as hop,
+        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
+        watching_broker(broker, "test/h1/online") as caller,
+    ):
+        await caller.state("test/h1/online", lambda payload: payload == "online")
+        await caller.client.subscribe(REPLIES, qos=1)
+        await away(b, hop, caller)
+        # Published while the bridge is away (each one's PUBACK from the broker awaited):
+        # the broker holds them in the bridge's session.
+        sent = [f"c{i}".encode() for i in range(10)]
+        for correlation in sent:
+            await caller.send(COMMAND, {}, correlation, reply_to=REPLIES)
+        await caller.send(COMMAND, {}, b"stale", reply_to=REPLIES, sent_at=time.time() - 120)
+        await caller.send(COMMAND, {}, b"first", reply_to=REPLIES, request_id="twice")
+        await caller.send(COMMAND, {}, b"again", reply_to=REPLIES, request_id="twice")
+        await hop.plug()
+        replies = await every_reply(caller)
+        assert b.bridge.connections == 2
+    assert results(replies) == sorted([*sent, b"first"])  # each ran, once
+    answers = dict(replies)
+    assert len(answers) == len(replies)  # one answer each
+    stale = answers[b"stale"]["error"]
+    assert stale["code"] == -32002 and "s ago, over 30 s" in stale["message"], stale
+    assert already_run(answers[b"again"]), answers[b"again"]
+
+
+async def test_commands_read_but_not_taken_when_the_connection_drops_come_again(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """The connection drops just after the broker has had a few PUBACKs, with the other
+    commands read by the bridge's client (mosquitto sends 20 unacknowledged at once) but
+    not yet taken: those come again on the next connection. paho used to acknowledge each
+    as it read it, ahead of the bridge taking it: those were lost with the client."""
+    async with (
+        cable(broker) as hop,
+        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
+        watching_broker(broker, "test/h1/online") as caller,
+    ):
+        await caller.state("test/h1/online", lambda payload: payload == "online")
+        await caller.client.subscribe(REPLIES, qos=1)
+        await away(b, hop, caller)
+        sent = [f"c{i}".encode() for i in range(30)]
+        for correlation in sent:
+            await caller.send(COMMAND, {}, correlation, reply_to=REPLIES)
+        hop.cut_after_pubacks = hop.pubacks + 3
+        await hop.plug()  # the session's commands come at once; 3 PUBACKs, then the cut
+        async with asyncio.timeout(WAIT):
+            await hop.cut.wait()
+            await b.bridge.disconnected.wait()
+        await caller.state("test/h1/online", lambda payload: payload == "offline")
+        assert b.bridge.connections == 2
+        await hop.plug()
+        replies = await every_reply(caller)
+        assert b.bridge.connections == 3
+    assert results(replies) == sorted(sent)  # none lost, none run twice
+    # Taken but its PUBACK lost in the cut: delivered again, refused, answered.
+    again = [answer for c, answer in replies if "result" not in answer]
+    assert all(already_run(answer) for answer in again), again
