@@ -262,9 +262,14 @@ class Bridged:
 
 @contextlib.asynccontextmanager
 async def bridged(
-    tmp_path: Path, broker: Broker, prefix: str = "test/h1", **mqtt: Any
+    tmp_path: Path,
+    broker: Broker,
+    prefix: str = "test/h1",
+    wall: Callable[[], float] = time.time,
+    **mqtt: Any,
 ) -> AsyncIterator[Bridged]:
-    """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it."""
+    """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it;
+    `wall` the bridge's clock for a command's `sent_at`."""
     settings: dict[str, Any] = {
         "url": broker.url,
         "topic_prefix": prefix,
@@ -276,7 +281,7 @@ async def bridged(
     }
     config = MqttConfig.model_validate(settings)
     async with running_daemon(tmp_path) as running:
-        bridge = MqttBridge(config, running.api, build_methods(running.api))
+        bridge = MqttBridge(config, running.api, build_methods(running.api), wall=wall)
         bridge.attach()
         await bridge.load_last_jobs()
         task = asyncio.create_task(bridge.run())

@@ -15,8 +15,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import aiomqtt
 import pytest
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
 
+from hostd.api.mqtt import topics
 from tests.mqtt.conftest import WAIT, Bridged, Broker, Cable, Watcher, bridged, cable, decoded
 from tests.mqtt.conftest import watching as watching_broker
 
@@ -125,3 +129,54 @@ async def test_commands_read_but_not_taken_when_the_connection_drops_come_again(
     # Taken but its PUBACK lost in the cut: delivered again, refused, answered.
     again = [answer for c, answer in replies if "result" not in answer]
     assert all(already_run(answer) for answer in again), again
+
+
+async def test_a_new_daemon_does_not_run_commands_held_for_the_last_one(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """A daemon's first connection starts clean: the request ids the last process ran went
+    with it, so what its session held (sent to it or redelivered) must not run now."""
+    expiry = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
+    expiry.SessionExpiryInterval = 30
+    last = aiomqtt.Client(
+        "127.0.0.1",
+        broker.port,
+        identifier="hostd-test-h1",  # the bridge's, below
+        protocol=aiomqtt.ProtocolVersion.V5,
+        properties=expiry,
+        timeout=WAIT,
+    )
+    async with last:  # the last daemon: subscribed, then gone; the broker keeps its session
+        await last.subscribe(topics.command_filter("test/h1"), qos=1)
+    async with watching_broker(broker, "test/h1/online") as caller:
+        await caller.client.subscribe(REPLIES, qos=1)
+        await caller.send(COMMAND, {}, b"held", reply_to=REPLIES)
+        async with bridged(tmp_path, broker, **SETTINGS) as b:
+            await caller.state("test/h1/online", lambda payload: payload == "online")
+            replies = await every_reply(caller)
+            assert b.bridge.connections == 1
+    assert [c for c, _ in replies] == [b"last"]
+
+
+async def test_a_command_from_a_clock_ahead_is_not_run_again_when_it_comes_again_later(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """A command runs once for as long as a copy of it could pass the age check: until its
+    own `sent_at` + command_max_age, past max_age after it ran when the caller's clock is
+    ahead (a copy redelivered on a resumed session carries the same `sent_at`)."""
+    now = [time.time()]  # the bridge's wall clock, moved on by the test
+
+    async with (
+        bridged(tmp_path, broker, wall=lambda: now[0], command_max_age=5, **SETTINGS),
+        watching_broker(broker, "test/h1/online") as caller,
+    ):
+        await caller.state("test/h1/online", lambda payload: payload == "online")
+        ahead = {"request_id": "ahead", "sent_at": now[0] + 4}  # within the 5 s
+        first = await caller.request(COMMAND, {}, b"first", **ahead)
+        assert "result" in first, first
+        now[0] += 6  # past max_age since it ran; its sent_at only 2 s ago
+        again = await caller.request(COMMAND, {}, b"again", **ahead)
+        assert already_run(again), again
+        now[0] += 4  # 6 s past its sent_at: too old to run, whatever its id
+        late = await caller.request(COMMAND, {}, b"late", **ahead)
+        assert late["error"]["code"] == -32002 and "s ago" in late["error"]["message"], late

@@ -80,7 +80,8 @@ class Commands:
         self._ids = itertools.count(1)
         self._wall = wall
         self._bucket = TokenBucket(config.command_rate, config.command_burst, clock)
-        self._seen: dict[str, float] = {}  # request ids run within command_max_age
+        # Request ids run, each until no copy of its command could pass `_stale` (wall time).
+        self._seen: dict[str, float] = {}
         self._log = log
         unknown = sorted(set(config.allow) - set(methods))
         if unknown:
@@ -133,7 +134,10 @@ class Commands:
             self._refuse(said, topic, caller, request_id, reply_to, correlation, refusal)
             return
         assert isinstance(payload, bytes)
-        self._seen[request_id] = self._wall()
+        # A copy (a redelivery, a replay) passes the age check until `sent_at` + max_age: one
+        # sent from a clock ahead of ours, later than max_age after it ran.
+        sent = _sent_at(user)
+        self._seen[request_id] = max(self._wall(), sent) + self.config.command_max_age
         task = commands.create_task(
             self._run_command(caller, machine, method, payload, reply_to, correlation)
         )
@@ -183,10 +187,7 @@ class Commands:
         if not request_id or len(request_id) > MAX_REQUEST_ID:
             why = f"a command needs a {ID_PROPERTY} user property (1 to {MAX_REQUEST_ID} chars)"
             return (rpc.INVALID_REQUEST, why)
-        try:
-            sent = float(user.get(TIME_PROPERTY, ""))
-        except ValueError:
-            sent = math.nan
+        sent = _sent_at(user)
         if not math.isfinite(sent):
             why = f"a command needs a {TIME_PROPERTY} user property: Unix time in seconds"
             return (rpc.INVALID_REQUEST, why)
@@ -199,8 +200,9 @@ class Commands:
             )
         if age < -max_age:
             return (STALE, f"command sent {-age:.1f} s in the future: check the clocks")
-        # Ids of commands run within max_age: one delivered twice (QoS 1) runs once.
-        self._seen = {i: t for i, t in self._seen.items() if now - t <= max_age}
+        # Ids of commands run, while a copy could pass the checks above: one delivered twice
+        # (QoS 1, a session resumed) or replayed runs once.
+        self._seen = {i: until for i, until in self._seen.items() if until >= now}
         if request_id in self._seen:
             return (STALE, f"command {request_id} already run")
         return None
@@ -307,6 +309,14 @@ def acknowledge_when_taken(client: aiomqtt.Client) -> None:
     right after the CONNACK.
     """
     client._client.manual_ack_set(True)
+
+
+def _sent_at(user: Mapping[str, str]) -> float:
+    """The command's `sent_at` (Unix seconds), NaN when missing or not a number."""
+    try:
+        return float(user.get(TIME_PROPERTY, ""))
+    except ValueError:
+        return math.nan
 
 
 def _user_properties(properties: Properties | None) -> dict[str, str]:
