@@ -388,6 +388,10 @@ class Cable:
             writer.transport.abort()
             return
         up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream)
+        if self._server is None:  # unplugged while it connected on
+            writer.transport.abort()
+            up_writer.transport.abort()
+            return
         self.connections += 1
         self._open |= {writer, up_writer}
         acks = Packets(PUBACK)
