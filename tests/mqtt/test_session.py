@@ -190,3 +190,39 @@ async def test_a_command_from_a_clock_ahead_is_not_run_again_when_it_comes_again
         now[0] += 4  # 6 s past its sent_at: too old to run, whatever its id
         late = await caller.request(COMMAND, {}, b"late", **ahead)
         assert late["error"]["code"] == -32002 and "s ago" in late["error"]["message"], late
+
+
+async def test_commands_held_for_the_bridge_outlive_a_restart_of_a_persistent_broker(
+    tmp_path: Path,
+) -> None:
+    """A broker that saves its sessions (mosquitto `persistence true`) sends, after its
+    restart, the commands it held for the away bridge: they run once. mosquitto saves a
+    session only if its last connection did not start clean (src/persist_write.c,
+    `persist__client_save`), so the outage here comes on the bridge's second connection,
+    as any outage past the daemon's first does."""
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    broker = Broker(directory, persistence=True)
+    await broker.start()
+    try:
+        async with cable(broker) as hop, bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b:
+            async with watching_broker(broker, "test/h1/online") as caller:
+                await caller.state("test/h1/online", lambda payload: payload == "online")
+                await away(b, hop, caller)
+                await hop.plug()
+                await caller.state("test/h1/online", lambda payload: payload == "online")
+                assert b.bridge.connections == 2
+                await away(b, hop, caller)
+                sent = [f"c{i}".encode() for i in range(5)]
+                for correlation in sent:
+                    await caller.send(COMMAND, {}, correlation, reply_to=REPLIES)
+            await broker.stop()  # saves the bridge's session, its commands with it
+            await broker.start()
+            async with watching_broker(broker, "test/h1/online") as caller:
+                await caller.client.subscribe(REPLIES, qos=1)
+                await hop.plug()
+                replies = await every_reply(caller)
+            assert b.bridge.connections == 3
+    finally:
+        await broker.stop()
+    assert once(replies, sent), replies
