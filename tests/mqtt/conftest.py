@@ -262,9 +262,14 @@ class Bridged:
 
 @contextlib.asynccontextmanager
 async def bridged(
-    tmp_path: Path, broker: Broker, prefix: str = "test/h1", **mqtt: Any
+    tmp_path: Path,
+    broker: Broker,
+    prefix: str = "test/h1",
+    wall: Callable[[], float] = time.time,
+    **mqtt: Any,
 ) -> AsyncIterator[Bridged]:
-    """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it."""
+    """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it;
+    `wall` the bridge's clock for a command's `sent_at`."""
     settings: dict[str, Any] = {
         "url": broker.url,
         "topic_prefix": prefix,
@@ -276,7 +281,7 @@ async def bridged(
     }
     config = MqttConfig.model_validate(settings)
     async with running_daemon(tmp_path) as running:
-        bridge = MqttBridge(config, running.api, build_methods(running.api))
+        bridge = MqttBridge(config, running.api, build_methods(running.api), wall=wall)
         bridge.attach()
         await bridge.load_last_jobs()
         task = asyncio.create_task(bridge.run())
@@ -290,3 +295,140 @@ def program(lines: int, step: float = 0.1) -> str:
     """Moves of `step` mm back and forth at 50 mm/s: the simulated board (ten times as
     fast as a real one) takes about step/500 s for each."""
     return "".join(f"G1 X{(i % 2) * step:.3f} F3000\n" for i in range(lines))
+
+
+# MQTT control packet types (the high nibble of a packet's first byte).
+PUBACK = 4
+
+
+class Packets:
+    """Counts the MQTT packets of one type in a byte stream as it passes, in linear time:
+    only the fixed header (type, remaining length) of each packet is read."""
+
+    def __init__(self, kind: int) -> None:
+        self.kind = kind
+        self.count = 0
+        self._pending = bytearray()
+
+    def feed(self, data: bytes) -> None:
+        buf = self._pending
+        buf += data
+        at = 0
+        while (packet := self._packet(buf, at)) is not None:
+            if buf[at] >> 4 == self.kind:
+                self.count += 1
+            at = packet
+        del buf[:at]
+
+    @staticmethod
+    def _packet(buf: bytearray, at: int) -> int | None:
+        """Where the packet starting at `at` ends, or None: not all of it is here yet."""
+        length, header = 0, at + 1
+        for shift in (0, 7, 14, 21):  # the remaining length: 1 to 4 bytes
+            if header >= len(buf):
+                return None
+            byte = buf[header]
+            header += 1
+            length |= (byte & 0x7F) << shift
+            if not byte & 0x80:
+                end = header + length
+                return end if end <= len(buf) else None
+        raise AssertionError("a remaining length over 4 bytes: not MQTT")
+
+
+@dataclass
+class Cable:
+    """A TCP hop from the bridge to the broker that a test can pull and plug back, while the
+    broker runs on: `unplug()` drops the bridge's connection and refuses new ones (the
+    broker sees its client vanish, as at a network fault); `plug()` lets it reconnect.
+
+    `cut_after_pubacks` pulls it by itself once that many PUBACKs (the bridge acknowledging
+    commands) have passed on to the broker: the broker has them, and the bridge has what
+    else it had read."""
+
+    upstream: int  # the broker's port
+    port: int = field(default_factory=free_port)
+    cut_after_pubacks: int | None = None
+    pubacks: int = 0  # PUBACKs passed on, on every connection
+    connections: int = 0  # connections passed on
+    cut: asyncio.Event = field(default_factory=asyncio.Event)
+    _server: asyncio.Server | None = None
+    _open: set[asyncio.StreamWriter] = field(default_factory=set)
+    _pipes: set[asyncio.Task[None]] = field(default_factory=set)
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    async def plug(self) -> None:
+        assert self._server is None
+        self.cut.clear()
+        self._server = await asyncio.start_server(
+            self._connect, "127.0.0.1", self.port, reuse_address=True
+        )
+
+    async def unplug(self) -> None:
+        """Refuse new connections (ECONNREFUSED) and drop the open ones, both sides."""
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+        for writer in list(self._open):
+            writer.transport.abort()
+        self._open.clear()
+        self.cut.set()
+
+    async def close(self) -> None:
+        await self.unplug()
+        for pipe in list(self._pipes):
+            pipe.cancel()
+        await asyncio.gather(*self._pipes, return_exceptions=True)
+
+    async def _connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self._server is None:  # unplugged as this one came in
+            writer.transport.abort()
+            return
+        up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream)
+        if self._server is None:  # unplugged while it connected on
+            writer.transport.abort()
+            up_writer.transport.abort()
+            return
+        self.connections += 1
+        self._open |= {writer, up_writer}
+        acks = Packets(PUBACK)
+        for pipe in (self._pipe(reader, up_writer, acks), self._pipe(up_reader, writer, None)):
+            task = asyncio.create_task(pipe)
+            self._pipes.add(task)
+            task.add_done_callback(self._pipes.discard)
+
+    async def _pipe(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, acks: Packets | None
+    ) -> None:
+        with contextlib.suppress(ConnectionError):
+            while data := await reader.read(1 << 16):
+                if writer not in self._open:
+                    return  # unplugged: what comes after is lost, as on a dead network
+                writer.write(data)
+                await writer.drain()
+                if acks is None:
+                    continue
+                before = acks.count
+                acks.feed(data)
+                self.pubacks += acks.count - before
+                limit = self.cut_after_pubacks
+                if limit is not None and self.pubacks >= limit:
+                    self.cut_after_pubacks = None
+                    await self.unplug()
+                    return
+        if writer in self._open:  # one side closed: close the other, as TCP would
+            writer.close()
+
+
+@contextlib.asynccontextmanager
+async def cable(broker: Broker) -> AsyncIterator[Cable]:
+    """A `Cable` to `broker`, plugged in."""
+    hop = Cable(broker.port)
+    await hop.plug()
+    try:
+        yield hop
+    finally:
+        await hop.close()

@@ -12,12 +12,21 @@ first, then republishes every retained topic, `online` first: a caller
 that has seen `online` is heard.
 The broker keeps `<prefix>/online` = `offline` as our last will; a clean
 stop publishes it ourselves.
+
+A command outlives a dropped connection: the broker keeps the bridge's session
+for `command_max_age` after a drop (MQTT 5 Session Expiry Interval) and every
+reconnect resumes it (no clean start), so the broker sends again what it had
+not seen acknowledged; and a command is acknowledged only once the bridge has
+taken it (`commands.py`), never as the client reads it. The first connection
+of a daemon starts clean: a session the last process left is not its own to
+resume (its `request_id`s are gone with it).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import random
 import ssl
 import time
@@ -32,7 +41,7 @@ from paho.mqtt.properties import Properties
 from hostd.api import rpc
 from hostd.api.methods import Api
 from hostd.api.mqtt import topics
-from hostd.api.mqtt.commands import Commands
+from hostd.api.mqtt.commands import Commands, acknowledge_when_taken
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.mqtt.outbox import Outbox, Outgoing
 from hostd.api.mqtt.publishing import Publisher
@@ -40,7 +49,8 @@ from hostd.api.mqtt.publishing import Publisher
 log = structlog.get_logger(__name__)
 
 # Incoming messages the client holds for us. Each is refused or started at once, without
-# parsing, so the queue only fills if the loop is starved; past it the client drops (logged).
+# parsing. It is also our MQTT 5 Receive Maximum: the broker sends no more than that
+# unacknowledged, and we acknowledge a command only once taken, so the queue never fills.
 MAX_INCOMING: Final = 10_000
 # How long a clean stop may spend telling the broker `offline`.
 STOP_TIMEOUT: Final = 2.0
@@ -140,7 +150,7 @@ class MqttBridge:
     def _client(self, tls: ssl.SSLContext | None) -> aiomqtt.Client:
         config = self.config
         will = aiomqtt.Will(topics.online(self.prefix), topics.OFFLINE, qos=1, retain=True)
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             config.host,
             config.port,
             identifier=config.identifier,
@@ -154,13 +164,24 @@ class MqttBridge:
             tls_insecure=config.tls_insecure if tls is not None else None,
             max_queued_incoming_messages=MAX_INCOMING,
             properties=self._connect_properties(),
+            # A new client each connection: paho's default (clean on a client's first
+            # connect only) would start every one clean and drop the session the broker
+            # kept for us. The daemon's first connection is clean (module docstring).
+            clean_start=self.connections == 0,
         )
+        acknowledge_when_taken(client)
+        return client
 
     def _connect_properties(self) -> Properties:
         """MQTT 5 CONNECT: the broker sends us no packet over max_payload and its headroom
-        (it drops those for us), so a huge payload never reaches our memory at all."""
+        (it drops those for us), so a huge payload never reaches our memory at all; it keeps
+        our session (the commands for us it has not seen acknowledged) `command_max_age`
+        past a drop, no longer: an older command would be refused anyway; and it sends no
+        more than MAX_INCOMING unacknowledged, so aiomqtt's queue never drops one."""
         properties = Properties(PacketTypes.CONNECT)  # type: ignore[no-untyped-call]
         properties.MaximumPacketSize = self.config.max_payload + PACKET_HEADROOM
+        properties.SessionExpiryInterval = math.ceil(self.config.command_max_age)
+        properties.ReceiveMaximum = MAX_INCOMING
         return properties
 
     def _tls_context(self) -> ssl.SSLContext | None:

@@ -12,6 +12,12 @@ bounded (`command_rate`, `command_burst`). A refused command is answered on
 its response topic, or else on `<prefix>/errors`: never silent. A command
 outlives the connection it came on: a dropped broker never cancels a cancel
 half-way (its reply waits in the outbox for the next connection).
+
+A command is acknowledged (PUBACK) once taken, run or refused, not as the client
+reads it: one read but still queued in the client when the connection drops is
+not acknowledged, and the broker sends it again on the next connection of the
+session (bridge.py). One taken whose acknowledgement was lost with the connection
+comes again too: its `request_id` is then refused as already run.
 """
 
 from __future__ import annotations
@@ -74,7 +80,8 @@ class Commands:
         self._ids = itertools.count(1)
         self._wall = wall
         self._bucket = TokenBucket(config.command_rate, config.command_burst, clock)
-        self._seen: dict[str, float] = {}  # request ids run within command_max_age
+        # Request ids run, each until no copy of its command could pass `_stale` (wall time).
+        self._seen: dict[str, float] = {}
         self._log = log
         unknown = sorted(set(config.allow) - set(methods))
         if unknown:
@@ -92,12 +99,17 @@ class Commands:
         await client.subscribe(topics.command_filter(self.prefix), options=options)
 
     async def receive_loop(self, client: aiomqtt.Client, commands: asyncio.TaskGroup) -> None:
-        """The commands, once `subscribe` has been answered."""
+        """The commands, once `subscribe` has been answered; each acknowledged once taken."""
         async for message in client.messages:
             try:
                 self._command(message, commands)
             except Exception:  # one odd message must never stop the bridge
                 self._log.exception("mqtt message could not be handled", topic=str(message.topic))
+            finally:
+                # Taken: its request_id is seen (when it runs), so the broker may forget it.
+                # Always, even for one that failed: unacknowledged, it would hold one of the
+                # broker's in-flight places until the next connection, and come again there.
+                client._client.ack(message.mid, message.qos)
 
     def _command(self, message: aiomqtt.Message, commands: asyncio.TaskGroup) -> None:
         topic = str(message.topic)
@@ -122,7 +134,10 @@ class Commands:
             self._refuse(said, topic, caller, request_id, reply_to, correlation, refusal)
             return
         assert isinstance(payload, bytes)
-        self._seen[request_id] = self._wall()
+        # A copy (a redelivery, a replay) passes the age check until `sent_at` + max_age: one
+        # sent from a clock ahead of ours, later than max_age after it ran.
+        sent = _sent_at(user)
+        self._seen[request_id] = max(self._wall(), sent) + self.config.command_max_age
         task = commands.create_task(
             self._run_command(caller, machine, method, payload, reply_to, correlation)
         )
@@ -172,10 +187,7 @@ class Commands:
         if not request_id or len(request_id) > MAX_REQUEST_ID:
             why = f"a command needs a {ID_PROPERTY} user property (1 to {MAX_REQUEST_ID} chars)"
             return (rpc.INVALID_REQUEST, why)
-        try:
-            sent = float(user.get(TIME_PROPERTY, ""))
-        except ValueError:
-            sent = math.nan
+        sent = _sent_at(user)
         if not math.isfinite(sent):
             why = f"a command needs a {TIME_PROPERTY} user property: Unix time in seconds"
             return (rpc.INVALID_REQUEST, why)
@@ -188,8 +200,9 @@ class Commands:
             )
         if age < -max_age:
             return (STALE, f"command sent {-age:.1f} s in the future: check the clocks")
-        # Ids of commands run within max_age: one delivered twice (QoS 1) runs once.
-        self._seen = {i: t for i, t in self._seen.items() if now - t <= max_age}
+        # Ids of commands run, while a copy could pass the checks above: one delivered twice
+        # (QoS 1, a session resumed) or replayed runs once.
+        self._seen = {i: until for i, until in self._seen.items() if until >= now}
         if request_id in self._seen:
             return (STALE, f"command {request_id} already run")
         return None
@@ -283,6 +296,27 @@ class Commands:
             said.warning("mqtt command failed", code=error)
         if reply_to and answer is not None:
             self._answer(reply_to, answer, correlation)
+
+
+def acknowledge_when_taken(client: aiomqtt.Client) -> None:
+    """Have `client` acknowledge a message only when `receive_loop` has taken it.
+
+    paho acknowledges a QoS 1 message as it reads it, before aiomqtt's queue hands it
+    to us, and aiomqtt's message iterator ends at a disconnect with that queue not
+    empty: read, acknowledged, never taken, a command was lost with the client.
+    aiomqtt (2.5) has no manual acknowledgement of its own; its paho client (`_client`,
+    private) has: set before `connect`, since a resumed session's commands come
+    right after the CONNACK.
+    """
+    client._client.manual_ack_set(True)
+
+
+def _sent_at(user: Mapping[str, str]) -> float:
+    """The command's `sent_at` (Unix seconds), NaN when missing or not a number."""
+    try:
+        return float(user.get(TIME_PROPERTY, ""))
+    except ValueError:
+        return math.nan
 
 
 def _user_properties(properties: Properties | None) -> dict[str, str]:
