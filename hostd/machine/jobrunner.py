@@ -82,6 +82,8 @@ class JobRunner:
         self._group: asyncio.TaskGroup | None = None  # the Machine's, while it serves
         self._followers: set[asyncio.Task[None]] = set()
         self._unwritten: dict[str, Any] = {}  # changed in memory, for the follower to write
+        self._told: dict[str, Any] | None = None  # the job as last published, and when
+        self._told_at = 0.0
         self._log = log.bind(machine=machine_id)
 
     # -- ownership -------------------------------------------------------------
@@ -221,7 +223,10 @@ class JobRunner:
                         lines_sent=counts[0], lines_acked=counts[1], line_executed=counts[2]
                     )
                     persisted_at, persisted_acked = clock, counts[1]
-                self.publish()
+                # Progress at most every PUBLISH_EVERY: a pause or a resume woke this loop
+                # having told its change already (`change`), a moment ago.
+                if clock - self._told_at >= PUBLISH_EVERY:
+                    self.publish()
             stopped = stream.result.result().end is not StreamEnd.COMPLETED
             if stopped and if_stopped is not None:
                 await self._restore(if_stopped)
@@ -311,9 +316,21 @@ class JobRunner:
         return counts
 
     def publish(self) -> None:
+        """The job as it is now, to the `job` topic: only if it differs from the last told.
+
+        A pause or a resume is told at once (`change`); its follower, woken to write the
+        row, then told the job again, a notification to every subscriber a moment after
+        the last (two per hold and resume in P8's holds: docs/performance.md). It now
+        tells progress at most every PUBLISH_EVERY, and nothing that was told already.
+        """
         job = self.current()
-        if job is not None and self.hub.active:
-            self.hub.publish(JobChanged(self.id, job.model_dump(mode="json")))
+        if job is None or not self.hub.active:
+            return
+        told = job.model_dump(mode="json")
+        if told == self._told:
+            return
+        self._told, self._told_at = told, time.monotonic()
+        self.hub.publish(JobChanged(self.id, told))
 
 
 def _interrupted() -> StreamResult:

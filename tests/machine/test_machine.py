@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from hostd.machine.events import JobChanged
+from hostd.machine.jobrunner import PUBLISH_EVERY
 from hostd.machine.machine import NoSuchFile, setting_lines
 from hostd.machine.supervisor import Refused
 from hostd.machine.supervisor import State as Sup
@@ -79,6 +84,10 @@ async def test_operations_start_only_from_idle(bench: Bench) -> None:
 
 
 async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
+    told: list[tuple[float, dict[str, Any]]] = []  # every `job` event, when it was told
+    bench.machine.hub.subscribe(
+        lambda e: told.append((time.monotonic(), e.job)) if isinstance(e, JobChanged) else None
+    )
     bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(30)))
     job = await bench.machine.start_make("slow.gcode")
     await bench.sim.wait_state(S.RUN)
@@ -94,6 +103,14 @@ async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
     assert resumed.state == "running"
     assert bench.machine.supervisor.state is Sup.OPERATION
     assert (await bench.job_ended(job.id)).state == "completed"
+    # A change of state is told at once; progress at most every PUBLISH_EVERY after the
+    # last tell (the follower that wrote the pause's row did not tell it again at once),
+    # and never a job the same as the last told. (A bound the code keeps, not a timing.)
+    assert [job["state"] for _, job in told].count("paused") >= 1
+    for (at, before), (then, job) in itertools.pairwise(told):
+        assert job != before
+        if job["state"] == before["state"]:
+            assert then - at >= PUBLISH_EVERY - 0.005, (before, job)  # (stamped after)
 
 
 async def test_cancel_kills_the_job_on_the_board(bench: Bench) -> None:
