@@ -313,19 +313,25 @@ def test_a_resume_before_the_hold_completes_waits_for_hold_0() -> None:
     assert grbl.realtime().count(b"~") == 1
 
 
-def test_a_resumed_job_writes_its_lines_once_a_report_shows_the_hold_left() -> None:
-    """grbl reports a `?` read with the `~` before it acts on the `~` (protocol.c
-    protocol_exec_rt_system), so the host asks again while reports say Hold; the
-    job's lines go as soon as one does not, not at the next poll a `status_interval`
-    later, when a laser's planner has long run dry."""
+def held(lines: int) -> Grbl:
+    """A job of `lines` moves paused, its hold reported complete; polls 10 s apart."""
     grbl = Grbl(status_interval=10.0)
     grbl.connect()
-    grbl.session.start_stream(moves(200))
+    grbl.session.start_stream(moves(lines))
     grbl.pump()
     grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
     grbl.session.pause_stream()
     grbl.pump()
     grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    return grbl
+
+
+def test_a_resumed_job_writes_its_lines_once_a_report_shows_the_hold_left() -> None:
+    """grbl reports a `?` read with the `~` before it acts on the `~` (protocol.c
+    protocol_exec_rt_system), so the host asks again while reports say Hold; the
+    job's lines go as soon as one does not, not at the next poll a `status_interval`
+    later, when a laser's planner has long run dry."""
+    grbl = held(200)
     for _ in range(4):  # the board's buffer, emptied
         grbl.feed("ok")
     written = len(grbl.lines())
@@ -343,14 +349,7 @@ def test_a_resumed_job_writes_its_lines_once_a_report_shows_the_hold_left() -> N
 
 def test_a_resume_the_board_keeps_holding_is_asked_about_a_bounded_number_of_times() -> None:
     """A `~` the board did not act on (it holds on): three asks, then the usual polls."""
-    grbl = Grbl(status_interval=10.0)
-    grbl.connect()
-    grbl.session.start_stream(moves(50))
-    grbl.pump()
-    grbl.feed("<Run|MPos:1.000,0.000,0.000|FS:1000,0>")
-    grbl.session.pause_stream()
-    grbl.pump()
-    grbl.feed("<Hold:0|MPos:1.600,0.000,0.000|FS:0,0>")
+    grbl = held(50)
     asks = grbl.realtime().count(b"?")
     written = len(grbl.lines())
     grbl.session.resume_stream()
