@@ -42,10 +42,10 @@ LONGEST_FIRST = (
     "tests/daemon/test_process.py",
     "tests/test_demo.py",
     "tests/web/test_operator.py",
-    "tests/web/test_browser.py",
-    "tests/web/test_descriptors.py",
+    "tests/web/",
     "tests/daemon/test_resume_safety.py",
     "tests/fuzz/",
+    "tests/test_layers.py",
     "tests/mqtt/test_process.py",
 )
 
