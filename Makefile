@@ -37,9 +37,14 @@ typecheck: $(STAMP)
 # Most tests wait on simulated motion and real ptys rather than compute: spread over
 # processes (pytest-xdist). Four, not six: with six on two cores the browser tests and
 # the boards' real-time jobs starved each other (jobs underflowed, pages timed out).
+# Tests are handed out one at a time, longest first (tests/conftest.py, `OneAtATime`).
+# Bytecode caches are written even where the environment sets PYTHONDONTWRITEBYTECODE
+# (this machine's does): without them each worker rewrote every test module's asserts
+# again (8 of its 13 s of CPU to collect) and each daemon process compiled hostd again
+# (docs/performance.md, "The suite's own time"). They go to __pycache__ (.gitignore).
 TEST_WORKERS ?= 4
 unit: $(STAMP)
-	$(BIN)/pytest -n $(TEST_WORKERS)
+	PYTHONDONTWRITEBYTECODE= $(BIN)/pytest -n $(TEST_WORKERS)
 
 test: system-deps lint typecheck unit
 

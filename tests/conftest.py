@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 import uvloop
+from xdist.scheduler import LoadScopeScheduling
 
 from hostd.api import rpc
 from hostd.config import DaemonConfig
@@ -34,13 +35,23 @@ multiprocessing.set_forkserver_preload(["hostd.machine.preflight"])
 # The longest tests (tens of seconds of a simulated board's real time each), run first:
 # pytest-xdist hands tests out in collection order, and one of these handed out last kept
 # the whole suite waiting on a single worker while the others had nothing left to do.
+# Handed out one at a time (`pytest_xdist_make_scheduler`), so that each goes to the
+# next free worker.
 LONGEST_FIRST = (
     "tests/stateful/",
-    "tests/test_demo.py",
-    "tests/daemon/test_resume_safety.py",
     "tests/daemon/test_process.py",
-    "tests/fuzz/test_parser_fuzz.py",
+    "tests/test_demo.py",
+    "tests/web/test_operator.py",
+    "tests/web/",
+    "tests/daemon/test_resume_safety.py",
+    "tests/fuzz/",
+    "tests/test_layers.py",
+    "tests/mqtt/test_process.py",
 )
+
+# Each module here starts its own `hostd serve` for all its tests (tests/cli/conftest.py,
+# module-scoped `daemon`): its tests go to one worker, which starts it once.
+ONE_WORKER_PER_MODULE = "tests/cli/"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -51,6 +62,33 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         )
 
     items.sort(key=rank)  # stable: the rest keep their order
+
+
+class OneAtATime(LoadScopeScheduling):
+    """pytest-xdist's `--dist load` (the default), one test at a time, in collection order.
+
+    `load` gave each worker its first quarter of the tests in one block: LONGEST_FIRST
+    all went to the first worker, which ran them one after another (400 s of the whole
+    run's 450 at load average 7; docs/performance.md, "The suite's own time"). Here a
+    worker holds up to three units (a test; a module of ONE_WORKER_PER_MODULE) and takes
+    the next as it finishes one. Kept in collection order: not reordered by size.
+    """
+
+    def __init__(self, config: pytest.Config, log: Any = None) -> None:
+        super().__init__(config, log)
+        config.option.loadscopereorder = False
+
+    def _split_scope(self, nodeid: str) -> str:
+        if nodeid.startswith(ONE_WORKER_PER_MODULE):
+            return nodeid.partition("::")[0]
+        return nodeid
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """`OneAtATime` in place of the default `--dist load`; another `--dist` stays as asked."""
+    if config.getvalue("dist") != "load":
+        return None
+    return OneAtATime(config, log)
 
 
 def chosen_loop() -> str:
