@@ -98,7 +98,7 @@ def test_a_users_resume_never_carries_a_job_past_its_hold() -> None:
     grbl.feed("ok", "ok", "<Hold:0|MPos:2.000,0.000,0.000|FS:0,0>")
     grbl.session.resume_stream()  # `~`: the user's pause ends, the hold stays
     grbl.feed("<Idle|MPos:2.000,0.000,0.000|FS:0,0>")
-    assert grbl.realtime()[-1] == b"~" and len(grbl.lines()) == 2 and stream.held == 3
+    assert grbl.realtime()[-2:] == [b"~", b"?"] and len(grbl.lines()) == 2 and stream.held == 3
     with pytest.raises(Busy):
         grbl.session.resume_stream()  # not paused: no `~` to send
     grbl.session.release_stream()
