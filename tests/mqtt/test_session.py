@@ -11,7 +11,9 @@ A `Cable` (conftest.py) between the bridge and the broker is what drops the conn
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +45,22 @@ async def away(b: Bridged, hop: Cable, caller: Watcher) -> None:
     async with asyncio.timeout(WAIT):
         await b.bridge.disconnected.wait()
     await caller.state("test/h1/online", lambda payload: payload == "offline")
+
+
+@contextlib.asynccontextmanager
+async def bridge_away(
+    tmp_path: Path, broker: Broker
+) -> AsyncIterator[tuple[Cable, Bridged, Watcher]]:
+    """A bridge behind a cable, seen online, then away; a caller listening for replies."""
+    async with (
+        cable(broker) as hop,
+        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
+        watching_broker(broker, "test/h1/online") as caller,
+    ):
+        await caller.state("test/h1/online", lambda payload: payload == "online")
+        await caller.client.subscribe(REPLIES, qos=1)
+        await away(b, hop, caller)
+        yield hop, b, caller
 
 
 async def every_reply(caller: Watcher) -> list[tuple[bytes, Any]]:
@@ -81,14 +99,7 @@ def already_run(answer: Any) -> bool:
 async def test_commands_sent_while_the_bridge_is_away_run_once_when_it_is_back(
     tmp_path: Path, broker: Broker
 ) -> None:
-    async with (
-        cable(broker) as hop,
-        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
-        watching_broker(broker, "test/h1/online") as caller,
-    ):
-        await caller.state("test/h1/online", lambda payload: payload == "online")
-        await caller.client.subscribe(REPLIES, qos=1)
-        await away(b, hop, caller)
+    async with bridge_away(tmp_path, broker) as (hop, b, caller):
         # Published while the bridge is away (each one's PUBACK from the broker awaited):
         # the broker holds them in the bridge's session.
         sent = [f"c{i}".encode() for i in range(10)]
@@ -114,14 +125,7 @@ async def test_commands_read_but_not_taken_when_the_connection_drops_come_again(
     commands read by the bridge's client (mosquitto sends 20 unacknowledged at once) but
     not yet taken: those come again on the next connection. paho used to acknowledge each
     as it read it, ahead of the bridge taking it: those were lost with the client."""
-    async with (
-        cable(broker) as hop,
-        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
-        watching_broker(broker, "test/h1/online") as caller,
-    ):
-        await caller.state("test/h1/online", lambda payload: payload == "online")
-        await caller.client.subscribe(REPLIES, qos=1)
-        await away(b, hop, caller)
+    async with bridge_away(tmp_path, broker) as (hop, b, caller):
         sent = [f"c{i}".encode() for i in range(30)]
         for correlation in sent:
             await caller.send(COMMAND, {}, correlation, reply_to=REPLIES)
