@@ -35,7 +35,9 @@ from hostd.protocol.errors import MachineError
 from hostd.protocol.gcodestate import Analysis, analyze
 from hostd.protocol.gcodestate import Dialect as GcodeDialect
 from hostd.protocol.gcodestate.analysis import beyond_travel
-from hostd.protocol.gcodestate.model import DEFAULT_RAPID, ProgramError, unsupported_text
+from hostd.protocol.gcodestate.blocks import unsupported_text
+from hostd.protocol.gcodestate.figures import DEFAULT_RAPID
+from hostd.protocol.gcodestate.model import ProgramError
 from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.jobcheck import Findings, check_program

@@ -33,8 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from hostd.protocol.gcodestate.blocks import Blocks, unsupported_text
-from hostd.protocol.gcodestate.figures import DEFAULT_RAPID
+from hostd.protocol.gcodestate.blocks import Blocks
 from hostd.protocol.gcodewords import (
     INTEGER_DIGITS,
     not_a_number,
@@ -42,9 +41,6 @@ from hostd.protocol.gcodewords import (
     strip_comments,
     too_long,
 )
-
-# hostd/machine/preflight.py imports these two from here, as it did before the split.
-__all__ = ["DEFAULT_RAPID", "GcodeModel", "ProgramError", "unsupported_text"]
 
 
 class ProgramError(Exception):
