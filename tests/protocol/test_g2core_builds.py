@@ -36,6 +36,15 @@ def ready(fb: float, **options: object) -> Wire:
     return wire
 
 
+def streaming(fb: float, **options: object) -> tuple[Wire, Stream]:
+    """A board of build `fb` running a job of 20 moves, its first window written."""
+    wire = ready(fb, **options)
+    stream = moves(20)
+    wire.session.start_stream(stream)
+    wire.pump()
+    return wire, stream
+
+
 def kill_report(fb: float) -> str:
     msg = "Kill job - EOT Received" if fb < 101.02 else "Kill job - Job killed by ^d"
     return json.dumps({"er": {"fb": fb, "st": 207, "msg": msg}})
@@ -63,10 +72,7 @@ def fenced(wire: Wire) -> None:
 def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_the_data_ports_fence(
     fb: float,
 ) -> None:
-    wire = ready(fb, dual=True)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb, dual=True)
     sent = data_lines(wire)
     assert len(sent) == 4
     wire.session.realtime(Realtime.JOB_KILL)
@@ -93,10 +99,7 @@ def test_a_kill_on_two_ports_is_written_on_both_and_waits_for_the_data_ports_fen
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
 def test_a_kill_on_one_port_is_written_once_and_settled_by_its_fence(fb: float) -> None:
-    wire = ready(fb)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
     assert wire.written[-2:] == [(Lane.REALTIME, KILL), (Lane.DATA, FENCE)]
@@ -112,10 +115,7 @@ def test_kills_that_merge_into_one_report_leave_nothing_on_the_books(fb: float, 
     """cm_request_job_kill only sets a flag (cycle_feedhold.cpp:523) and one `_run_job_kill`
     clears it with one 207 (:551-553): a ^D read before the kill ran adds no report. The
     ^Ds still threw away what each port held unread (controller.cpp:282)."""
-    wire = ready(fb, dual=dual)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb, dual=dual)
     sent = data_lines(wire)
     wire.answer(sent[0], {})  # read before the kill
     wire.session.realtime(Realtime.JOB_KILL)
@@ -154,10 +154,7 @@ def test_kills_that_merge_into_one_report_leave_nothing_on_the_books(fb: float, 
 def test_two_kills_fences_are_told_apart_and_the_last_ends_the_wait(fb: float) -> None:
     """The first kill's fence may be read before the second ^D comes in, or be thrown
     away by it: each asks for another key, and only the last one's answer ends it."""
-    wire = ready(fb)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
@@ -179,10 +176,7 @@ def test_a_line_the_data_port_reads_after_the_kill_and_the_timeout_is_still_its_
     reached the board: until the fence behind that ^D is answered, a line written before
     it may yet be read and answered, so none is booked discarded before then, the flush's
     timeout passing or not."""
-    wire = ready(fb, dual=True)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb, dual=True)
     sent = data_lines(wire)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
@@ -221,10 +215,7 @@ def test_a_query_of_stat_during_a_kill_is_its_clients_and_no_fence(fb: float) ->
     """The control port is read on every pass, the data port only between holds: a
     client's `{stat:n}` is answered while the data port's fence waits, and is not taken
     for it (its answer's count is its own)."""
-    wire = ready(fb, dual=True)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb, dual=True)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
     token = object()
@@ -264,10 +255,7 @@ def test_a_flush_on_two_ports_on_101_06_goes_on_the_control_port_alone() -> None
 
 
 def test_before_101_02_a_cancel_is_settled_by_the_204s_then_cleared() -> None:
-    wire = ready(100.26, dual=True)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(100.26, dual=True)
     sent = data_lines(wire)
     wire.session.realtime(Realtime.JOB_KILL)
     wire.pump()
@@ -298,10 +286,7 @@ def test_before_101_02_no_g_code_runs_inside_a_hold() -> None:
 
 
 def test_101_06_the_lockout_stands_through_the_alarms_hold_and_keeps_its_reason() -> None:
-    wire = ready(101.06)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, _ = streaming(101.06)
     written = len(wire.written)
     wire.feed(LIMIT % 101.06)
     wire.report(stat=6, hold=4)  # the alarm's feedhold decelerates
@@ -321,10 +306,7 @@ def test_101_06_the_lockout_stands_through_the_alarms_hold_and_keeps_its_reason(
 
 
 def test_101_06_the_alarms_own_kill_does_not_settle_a_kill_of_ours() -> None:
-    wire = ready(101.06)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(101.06)
     wire.feed(LIMIT % 101.06)
     wire.session.realtime(Realtime.JOB_KILL)  # a kill in ALARM: the board ignores it
     wire.pump()
@@ -337,10 +319,7 @@ def test_101_06_the_alarms_own_kill_does_not_settle_a_kill_of_ours() -> None:
 
 
 def test_101_03_an_alarm_is_stopped_by_hostd_and_held_until_a_clear() -> None:
-    wire = ready(101.03)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(101.03)
     wire.feed(LIMIT % 101.03)
     assert (Lane.REALTIME, KILL) in wire.written  # the board would run the next line read
     assert stream.result.code == 204
@@ -435,10 +414,7 @@ def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> None:
 
 @pytest.mark.parametrize("fb", BUILDS)
 def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: float) -> None:
-    wire = ready(fb)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, _ = streaming(fb)
     wire.report(stat=5)
     for line in data_lines(wire)[:2]:
         wire.answer(line, {})
@@ -532,10 +508,7 @@ def test_status_92_is_a_panic_where_the_source_says_so(fb: float, detail: str, l
 
 @pytest.mark.parametrize("fb", JOB_KILLERS)
 def test_the_kill_after_a_refused_job_line_goes_on_both_ports_too(fb: float) -> None:
-    wire = ready(fb, dual=True)
-    stream = moves(20)
-    wire.session.start_stream(stream)
-    wire.pump()
+    wire, stream = streaming(fb, dual=True)
     first, *rest = data_lines(wire)
     wire.answer(first, {}, status=133)  # modal group violation: the job fails, the rest is killed
     assert stream.result.end is StreamEnd.FAILED
