@@ -342,8 +342,7 @@ class GrblSession(GrblWords, SessionBase):
         self._banner_deadline = self._handshake_deadline = self._stopping = None
         self._resetting = False
         self._held = None
-        self._hold_settling = self._start_pending = False
-        self._resume_asks = 0
+        self._forget_holds()
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -535,7 +534,7 @@ class GrblSession(GrblWords, SessionBase):
         if self._hold_settling:
             self._hold_settled(report)
             if self._hold_settling:  # still stopping: look again soon, not a poll away
-                self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
+                self._poll_soon()
         elif self._resume_asks:
             self._resume_seen(report)
         self._track_executed(fields)
@@ -577,6 +576,15 @@ class GrblSession(GrblWords, SessionBase):
         self._out.append((Lane.REALTIME, codec.CYCLE_START))
         self._resume_asks = RESUME_ASKS
         self._ask_report()
+
+    def _poll_soon(self) -> None:
+        """The next `?` within SETTLE_POLL, not a `status_interval` away."""
+        self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
+
+    def _forget_holds(self) -> None:
+        """A reset or a closed link: no hold of ours settles, no resume is kept."""
+        self._hold_settling = self._start_pending = False
+        self._resume_asks = 0
 
     def _resume_seen(self, report: codec.StatusReport) -> None:
         """A report after our `~`: one that still says Hold predates it; ask again."""
@@ -652,8 +660,7 @@ class GrblSession(GrblWords, SessionBase):
         self._needs_reset = None
         self._stopping = None
         self._held = None
-        self._hold_settling = self._start_pending = False
-        self._resume_asks = 0
+        self._forget_holds()
         if self.stream is not None and not self.stream.done:
             self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         what = "reset" if ours else "reset by itself"
@@ -868,8 +875,7 @@ class GrblSession(GrblWords, SessionBase):
     def _reset_now(self) -> None:
         self._stopping = None
         self._held = None
-        self._hold_settling = self._start_pending = False
-        self._resume_asks = 0
+        self._forget_holds()
         self._resetting = True
         self._out.append((Lane.REALTIME, codec.RESET))
 
@@ -960,7 +966,7 @@ class GrblSession(GrblWords, SessionBase):
             self._out.append((Lane.REALTIME, codec.FEEDHOLD))
             # A `?` read with the `!` would report before the hold (protocol.c): the next
             # poll comes a little later, and soon again until the hold is seen complete.
-            self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
+            self._poll_soon()
         elif command is Realtime.CYCLE_START:
             if self._held is not None:
                 # The stopped job's moves are still in the board: `~` would run them.
