@@ -151,6 +151,7 @@ _LOCKOUT_REJECTIONS = frozenset(
 )
 # States in which the board has run its flush (cycle ended, planner empty).
 _FLUSH_CONFIRMED = frozenset({MachineState.PROGRAM_STOP, MachineState.PROGRAM_END})
+_RESTING_STATES = frozenset({MachineState.READY, *_FLUSH_CONFIRMED})
 
 
 class _Own(OwnLine, Enum):
@@ -221,6 +222,10 @@ class G2Session(G2Words, SessionBase):
         self._identity: float | None = None
         self._to_set: deque[dict[str, Any]] = deque()
         self._heartbeat_deadline: float | None = None  # a heartbeat query is unanswered
+        # Where the board last rested (its machine position, or work position), and whether a report
+        # since showed it elsewhere or moving: a stop that moved nothing is no underflow.
+        self._rest_at: dict[str, float] | None = None
+        self._moved = False
 
     # -- outputs -------------------------------------------------------------
 
@@ -276,6 +281,7 @@ class G2Session(G2Words, SessionBase):
         self._end_stream_on_close(reason, restarted)
         self._await_report = self._awaiting_rest = False
         self._settings_pending = False
+        self._rest_at, self._moved = None, False
         self._to_set.clear()
         self._lines_in = 0
         self._out.clear()
@@ -449,10 +455,26 @@ class G2Session(G2Words, SessionBase):
             self._confirm_flush()
             if self._awaiting_rest:
                 self._check_stream_complete(reported=True)
+        self._track_motion()
         if changed is not None:
             self._on_state(changed, before)
+        if self._moved and self.model.state in _RESTING_STATES:
+            here = self.model.machine_position or self.model.position
+            self._rest_at, self._moved = dict(here), False  # at rest: moves count from here
         self._track_executed()
         self._events.append(Reported(fields, self.model.snapshot()))
+
+    def _track_motion(self) -> None:
+        """Whether the board moved since it last rested: a report away from there (its
+        machine position, or its work position where it reports no machine position),
+        or with a speed. A run with nothing to move starts and ends a cycle where it
+        stood: g2core drops a zero-length move and ends the cycle it started for it
+        (canonical_machine.cpp:1204-1211, 1360-1367), and a tool change, a dwell or an
+        M-code moves no axis."""
+        model = self.model
+        here = model.machine_position or model.position
+        if self._rest_at is None or (model.velocity or 0.0) > 0.0 or here != self._rest_at:
+            self._moved = True
 
     def _track_executed(self) -> None:
         """`line` is the runtime's N while the board moves (stat 5), and only then.
@@ -625,6 +647,7 @@ class G2Session(G2Words, SessionBase):
             and not self._await_report  # the host held the lines back: no starving
             and not self.model.hold  # a hold at rest (101.05+) is no starving either
             and stream.lines_on_host()  # but a `{`-line, which waits on purpose
+            and self._moved  # a run that moved nothing starved nothing (at rest, M6, G4)
         ):
             # The board ran out of moves while the job still had lines on the host:
             # reported with the file line it stopped after (behaviour.md, faults).

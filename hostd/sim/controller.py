@@ -63,7 +63,6 @@ class SimController(SimShell[Board, MachineState]):
         self._ports: dict[str, PtyPort] = {}
         self._scanners = {name: LineScanner(self._board.percent_is_control) for name in self._paths}
         self._active: set[str] = set()  # attached ports the board reads
-        self._flushed: dict[str, int] = {}  # flush bits each port's opener sent since attaching
         self._primary: str | None = None  # the port with the control role
         self._banner = "done"  # for the current open: pending, fallback or done
         self._banner_at = 0  # the control port's `written` count when its banner went out
@@ -343,7 +342,6 @@ class SimController(SimShell[Board, MachineState]):
 
     def port_attached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.open_rx(name)
         if not self._active:
@@ -364,7 +362,6 @@ class SimController(SimShell[Board, MachineState]):
 
     def port_detached(self, port: PtyPort) -> None:
         name = port.name
-        self._flushed.pop(name, None)
         self._scanners[name].reset()
         self._board.close_rx(name)
         self._active.discard(name)
@@ -381,28 +378,24 @@ class SimController(SimShell[Board, MachineState]):
         self._kick()
 
     def port_flushed(self, port: PtyPort) -> None:
-        """The opener's tcflush: it discarded what was written before, so now the banner."""
-        name, bits = port.name, port.flush_bits
-        if name not in self._active:
+        """The opener's tcflush: it discarded what was written before, so now the banner.
+
+        Only the first flush of an open brings it: a host may flush again whenever it
+        likes (a TCIOFLUSH read as two packets, `tty.setraw` then tcflush, a reset of
+        its input), and that is no new open; a reopen the port has already reported
+        (`PtyPort`, counting opens with inotify) before this flush.
+        """
+        if port.name not in self._active or port.name != self._primary:
             return
-        seen = self._flushed.get(name, 0)
-        if seen & bits:
-            # serialx flushes once per open (TCIOFLUSH: read as one packet, or as its
-            # two bits one after the other), so a bit seen again means the host closed
-            # and reopened faster than the hangup could be seen: a new open.
-            log.debug("sim port reopened by host", port=name)
-            self.port_detached(port)
-            self.port_attached(port)
-            seen = 0
-        self._flushed[name] = seen | bits
-        if name != self._primary or self._banner == "done":
+        if self._banner == "done":
             return
         self._cancel_banner()
         fallback = self._banner == "fallback"
         self._banner = "done"
         if fallback and port.unread() >= port.written - self._banner_at:
-            # The fallback banner went out after the flush (the timer ran before the
-            # flush was read here): the host still has it, and everything after it.
+            # The fallback banner went out before this flush was made (the timer took
+            # any flush made before it first, `_banner_fallback`, so this one came in
+            # the moment between that look and the write): the host still has it.
             return
         # No banner yet, or the flush threw the fallback one away: send it now.
         self._send_banner(port)
@@ -413,6 +406,10 @@ class SimController(SimShell[Board, MachineState]):
         if name not in self._active or self._resetting:
             return
         board = self._board
+        if name == self._primary and self._banner == "fallback":
+            # The host writes: its open is over. A flush from now on is its own business
+            # (it has read the banner, or flushes it away as it would a real board's).
+            self._banner = "done"
         # A data-only port (the second one opened) is read only when the board reads
         # data: its controls wait there, ahead of its data lines (xio.cpp readline).
         data_only = name != self._primary
@@ -472,10 +469,15 @@ class SimController(SimShell[Board, MachineState]):
         """An opener that does not flush (a plain open) still gets its banner."""
         self._banner_timer = None
         port = self._ports.get(self._primary) if self._primary is not None else None
-        if self._banner == "pending" and port is not None:
-            self._banner = "fallback"
-            self._send_banner(port)
-            self._kick()
+        if self._banner != "pending" or port is None:
+            return
+        if port.take_flush():
+            return  # the opener did flush, before now: `port_flushed` sent the banner
+        # Any flush read from here on was made after this look: it threw this banner
+        # away, unless made in the moment before the write (`port_flushed` asks the pty).
+        self._banner = "fallback"
+        self._send_banner(port)
+        self._kick()
 
     def _send_banner(self, port: PtyPort) -> None:
         """SYSTEM READY; after a UART board's boot, its boot messages (report.cpp)."""
@@ -517,11 +519,6 @@ class SimController(SimShell[Board, MachineState]):
         self._kick()
 
     def _read_waiting(self) -> None:
-        # Not while an open is under way: its tcflush arrives as status packets whose
-        # bits the kernel may set again as it finishes the flush, and read at once they
-        # looked like a second open (`port_flushed`). The opening is the event loop's.
-        if self._banner != "done":
-            return
         for name, port in self._ports.items():
             if name in self._active:
                 port.read_waiting()

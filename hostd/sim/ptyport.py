@@ -11,9 +11,20 @@ about Linux ptys (measured, see ../shared/notes/python-stack.md section 2):
   with TCIOFLUSH) arrives as a status byte with the flush bits set.
   TCIOFLUSH sets its two bits one after the other (FLUSHREAD: the host's
   input was discarded; then FLUSHWRITE: what it wrote and we did not read),
-  so a master that reads in between sees them as two packets.
+  so a master that reads in between sees them as two packets. The bits are
+  OR-ed into one status byte that a read clears: a bit comes again only
+  from another flush, which any host may make at any time (Python's
+  `tty.setraw` flushes with TCSAFLUSH, pyserial's reset_input_buffer): a
+  flush bit says nothing about opens.
+- Opens are counted with inotify on the slave device: each open(2) is an
+  IN_OPEN, each last close of it an IN_CLOSE_*, queued as the syscall runs.
+  The master cannot see a host that closed and opened again before it read
+  (no EIO in between), but the count went to zero and back: a reopen.
 - FIONREAD on a slave fd counts what the host has not read yet: a fd of our
   own, opened for a moment, tells whether bytes we wrote survived a flush.
+  What we write waits in the tty's flip buffer until a kernel worker moves
+  it to the read queue that FIONREAD counts; a poll on the slave moves it
+  at once (n_tty_poll), so we poll before we ask.
 - While no host has the slave open the master polls POLLHUP and reads EIO.
   Registering it with the event loop then would spin, so attachment is
   polled with a short timer, and the reader is added only once a host is
@@ -29,6 +40,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import errno
 import fcntl
 import os
@@ -45,6 +57,9 @@ log = structlog.get_logger(__name__)
 ATTACH_POLL = 0.005  # s between looks at the master while no reader is registered
 FLUSHREAD, FLUSHWRITE = 0x01, 0x02  # TIOCPKT_FLUSHREAD, TIOCPKT_FLUSHWRITE
 _FLUSH_BITS = FLUSHREAD | FLUSHWRITE
+IN_OPEN, IN_CLOSE_WRITE, IN_CLOSE_NOWRITE = 0x20, 0x08, 0x10  # <sys/inotify.h>
+_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
+_libc = ctypes.CDLL(None, use_errno=True)
 
 
 class PortListener(Protocol):
@@ -76,6 +91,10 @@ class PtyPort:
         self.written = 0  # bytes the pty has taken from us, ever
         self.flush_bits = 0  # the flush bits of the status packet last read
         self.attached = False
+        self._watch: int | None = None  # inotify on the slave: the host's opens and closes
+        self._opens = 0  # slave fds the hosts hold (ours not counted)
+        self._reopened = False  # that count went to 0 and back since we attached
+        self._own_opens = self._own_closes = 0  # our own (`unread`), not to be counted
 
     @property
     def plugged(self) -> bool:
@@ -95,17 +114,37 @@ class PtyPort:
         """Bytes the pty holds that the host has not read (its input queue)."""
         if self._tty is None:
             return 0
+        self._drain_watch()  # the hosts' events before ours, so that ours are ours
         try:
             fd = os.open(self._tty, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK)
         except OSError:
             return 0
+        self._own_opens += 1  # its IN_OPEN and IN_CLOSE_NOWRITE are not a host's
+        self._own_closes += 1
         try:
+            poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            poller.poll(0)  # moves what we wrote from the flip buffer to the read queue
             (count,) = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))
         except OSError:
             count = 0
         finally:
             os.close(fd)
         return int(count)
+
+    def take_flush(self) -> bool:
+        """Read a flush the host made and we have not read yet, now; True if there was one.
+
+        Status is polled as POLLPRI and read ahead of any data (n_tty_read), so
+        this never takes the host's bytes.
+        """
+        poller = self._poller
+        if poller is None or not self.attached:
+            return False
+        if not any(ev & select.POLLPRI for _, ev in poller.poll(0)):
+            return False
+        self._on_readable(status_only=True)
+        return True
 
     # --- plugging
 
@@ -127,8 +166,11 @@ class PtyPort:
             os.close(master)
             raise
         self._fd, self._tty = master, name
+        self._watch = _watch_opens(name)
+        self._opens = self._own_opens = self._own_closes = 0
+        self._reopened = False
         self._poller = select.poll()
-        self._poller.register(master, select.POLLIN)
+        self._poller.register(master, select.POLLIN | select.POLLPRI)
         self._refresh()
         log.debug("sim port plugged", port=self.name, path=self.path, tty=name)
 
@@ -143,6 +185,9 @@ class PtyPort:
         self._poller = None
         self.attached = False
         os.close(fd)
+        if self._watch is not None:
+            os.close(self._watch)
+            self._watch = None
         with contextlib.suppress(OSError):
             if os.readlink(self.path) == self._tty:
                 os.unlink(self.path)
@@ -179,6 +224,8 @@ class PtyPort:
             return
         hangup = any(ev & select.POLLHUP for _, ev in self._poller.poll(0))
         if not self.attached and not hangup:
+            self._drain_watch()  # the opens up to this one are this attachment
+            self._reopened = False
             self.attached = True
             log.debug("sim port opened by host", port=self.name)
             self._listener.port_attached(self)
@@ -203,12 +250,12 @@ class PtyPort:
         if any(events & select.POLLIN for _, events in poller.poll(0)):
             self._on_readable()
 
-    def _on_readable(self) -> None:
+    def _on_readable(self, status_only: bool = False) -> None:
         fd = self._fd
         if fd is None:
             return
         try:
-            packet = os.read(fd, self._read_limit + 1)
+            packet = os.read(fd, 1 if status_only else self._read_limit + 1)
         except BlockingIOError:
             return
         except OSError as exc:
@@ -224,11 +271,48 @@ class PtyPort:
                 self._read_limit = max(self._read_limit - (len(packet) - 1), 0)
                 self._listener.port_data(self, packet[1:])
         elif packet[0] & _FLUSH_BITS:
-            self.flush_bits = packet[0] & _FLUSH_BITS
-            self._listener.port_flushed(self)
+            # The opener flushes after its open(2), whose IN_OPEN is queued by then:
+            # a host that closed and opened again unseen is a new open before this flush.
+            self._drain_watch()
+            if self._reopened:
+                self._reopened = False
+                log.debug("sim port reopened by host", port=self.name)
+                self._listener.port_detached(self)
+                if self.attached:
+                    self._listener.port_attached(self)
+            if self.attached:
+                self.flush_bits = packet[0] & _FLUSH_BITS
+                self._listener.port_flushed(self)
+
+    def _drain_watch(self) -> None:
+        """Count the hosts' opens and closes queued so far; a count back from 0 is a reopen."""
+        watch = self._watch
+        while watch is not None:
+            try:
+                events = os.read(watch, 4096)
+            except BlockingIOError:
+                return
+            except OSError:
+                return
+            at = 0
+            while at + _EVENT.size <= len(events):
+                _, mask, _, length = _EVENT.unpack_from(events, at)
+                at += _EVENT.size + length
+                if mask & IN_OPEN and self._own_opens:
+                    self._own_opens -= 1
+                elif mask & IN_OPEN:
+                    self._opens += 1
+                    if self._opens == 1 and self.attached:
+                        self._reopened = True
+                elif mask & IN_CLOSE_NOWRITE and self._own_closes:
+                    self._own_closes -= 1
+                elif mask & (IN_CLOSE_WRITE | IN_CLOSE_NOWRITE):
+                    self._opens = max(self._opens - 1, 0)
 
     def _detach(self) -> None:
         self._stop_io()
+        self._drain_watch()
+        self._reopened = False
         self.attached = False
         log.debug("sim port closed by host", port=self.name)
         self._listener.port_detached(self)
@@ -285,6 +369,20 @@ class PtyPort:
             self._loop.remove_writer(fd)
         self._reader_on = self._writer_on = False
         self._backlog.clear()
+
+
+def _watch_opens(tty_path: str) -> int | None:
+    """An inotify fd reporting each open and last close of the slave (None if refused)."""
+    fd = int(_libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC))
+    if fd < 0:
+        log.warning("sim port cannot watch opens", error=os.strerror(ctypes.get_errno()))
+        return None
+    mask = IN_OPEN | IN_CLOSE_WRITE | IN_CLOSE_NOWRITE
+    if int(_libc.inotify_add_watch(fd, tty_path.encode(), mask)) < 0:
+        log.warning("sim port cannot watch opens", error=os.strerror(ctypes.get_errno()))
+        os.close(fd)
+        return None
+    return fd
 
 
 def _replace_symlink(target: str, path: str) -> None:

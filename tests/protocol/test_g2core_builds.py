@@ -415,12 +415,51 @@ def test_an_unconfirmed_kill_on_two_ports_gives_up_after_its_timeout() -> None:
 @pytest.mark.parametrize("fb", BUILDS)
 def test_a_planner_starved_mid_job_is_an_underflow_naming_the_line(fb: float) -> None:
     wire, _ = streaming(fb)
-    wire.report(stat=5)
+    wire.report(stat=5, mpox=0.5, vel=1000)
     for line in data_lines(wire)[:2]:
         wire.answer(line, {})
-    wire.report(stat=3)  # the board stopped with the job's lines still on the host
+    wire.report(stat=3, mpox=1, vel=0)  # the board stopped with the job's lines on the host
     assert [(d.fault, d.value) for d in faults(wire)] == [("underflow", 2)]
     assert "after file line 2" in faults(wire)[0].message
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_a_run_seen_moving_only_in_its_final_report_is_still_an_underflow(fb: float) -> None:
+    """A short run can end before any report in between: the stop's report (g2core's
+    final one, canonical_machine.cpp:1686) says where it went."""
+    wire, _ = streaming(fb)
+    wire.report(stat=5)
+    wire.answer(data_lines(wire)[0], {})
+    wire.report(stat=3, mpox=1)
+    assert [(d.fault, d.value) for d in faults(wire)] == [("underflow", 1)]
+
+
+@pytest.mark.parametrize("fb", BUILDS)
+def test_a_stop_where_nothing_moved_is_no_underflow_and_a_later_starving_one_is(
+    fb: float,
+) -> None:
+    """A job at rest whose first lines move nothing (a resume's preamble, its approach
+    to where the tool already is: g2core drops a zero-length move and ends the cycle
+    it started, canonical_machine.cpp:1204-1211) runs out of lines before the host's
+    next come: nothing starved, nothing to report. A run that moves and starves, later
+    in the same job, still is an underflow."""
+    wire = ready(fb)
+    wire.report(stat=1, mpox=5, mpoy=0, mpoz=0, vel=0)  # at rest, at X5
+    lines = ["G21 G90", "G0 X5 Y0 Z0", "G1 Z0 F300", "G1 X6 F1000", "G1 X7"]
+    stream = Stream()
+    stream.feed_many(enumerate(lines[:3], start=1))  # the rest not read from the file yet
+    wire.session.start_stream(stream)
+    wire.pump()
+    wire.report(stat=5)  # the zero-length moves start a cycle...
+    wire.answer_all()
+    wire.report(stat=3)  # ...and end it where it stood
+    assert faults(wire) == [] and not stream.done
+    stream.feed_many(enumerate(lines[3:], start=4))
+    wire.pump()
+    wire.report(stat=5, mpox=5.5, vel=1000)
+    wire.answer(data_lines(wire)[0], {})
+    wire.report(stat=3, mpox=6, vel=0)  # moved, and stopped with X7 on the host
+    assert [(d.fault, d.value) for d in faults(wire)] == [("underflow", 4)]
 
 
 @pytest.mark.parametrize("fb", BUILDS)

@@ -87,6 +87,29 @@ def test_g2core_holds_before_the_m6_line_and_takes_the_stop_for_no_underflow() -
     assert wire.lines(Lane.DATA)[2:] == [b"T2 M6\n", b"G1 X3\n"] and stream.held is None
 
 
+def test_g2core_resumed_at_an_m6_takes_a_stop_before_it_is_read_for_no_underflow() -> None:
+    """A job resumed at its M6 (job.recovery after a lost link): its preamble moves
+    nothing, so the board stops at once, maybe before the host has read the M6 line
+    from the file. No underflow: the board never moved (behaviour.md, faults)."""
+    wire = Wire(window=4)
+    wire.connect()
+    wire.report(stat=3, posx=0, posy=0, posz=0, mpox=0, mpoy=0, mpoz=0, vel=0)
+    stream = Stream()
+    for line in ("G21 G90", "G0 X0 Y0", "G1 Z0 F300"):
+        stream.feed(0, line)  # the preamble and approach: file line 0
+    wire.session.start_stream(stream)
+    wire.pump()
+    assert stream.lines_on_host()  # the M6 line not read yet: the host looks late
+    wire.report(stat=5)
+    wire.answer_all()
+    wire.report(stat=3)
+    assert wire.of(Detected) == [] and not stream.done
+    stream.feed(3, "T1 M6", hold=True)
+    stream.feed(4, "G0 X1")
+    wire.pump()
+    assert stream.held == 3
+
+
 def test_a_users_resume_never_carries_a_job_past_its_hold() -> None:
     grbl = Grbl()
     grbl.connect()

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import json
 import os
+import termios
 import tty
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -95,11 +96,15 @@ class Host:
 
 
 class RawHost:
-    """The slave opened with plain os.open: no tcflush, non-blocking, raw."""
+    """The slave opened with plain os.open: no tcflush, non-blocking, raw.
+
+    Raw mode is set with TCSANOW: `tty.setraw`'s default, TCSAFLUSH, flushes the
+    input, which the board sees as the opener's flush.
+    """
 
     def __init__(self, path: str) -> None:
         self.fd: int | None = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        tty.setraw(self.fd)
+        tty.setraw(self.fd, termios.TCSANOW)
         self._buf = bytearray()
 
     def write(self, data: bytes) -> int:
