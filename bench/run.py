@@ -37,9 +37,11 @@
   short `G1` lines a second (a board-sized receive buffer, character
   counting, a planner of 15 blocks run at that rate: bench/planner.py), 20
   subscribers and the dashboard's WebSocket; then two g2core machines at
-  2,000 lines a second each. Each machine's line rate, each board's planner
-  running empty mid-job (how often, how long), `!` on one machine, the
-  daemon's CPU.
+  2,000 lines a second each. Two windows over the same jobs, the lasers
+  streaming alone and then with feedhold/cycle-start pairs on the first:
+  in each, every machine's line rate, each board's planner running empty
+  mid-job (how often, how long) and the daemon's CPU; `!` on the first
+  machine in the second.
 
 Targets: P1 >= 0.8x raw, P5 <= 0.10 s and P6's `!` p99 < 2 ms are issue
 15's; the `!` p99 < 1 ms of P2 and P2f is issue 11's; P8's are issue 30's
