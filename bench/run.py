@@ -169,6 +169,9 @@ class Row:
     notes: list[str] = field(default_factory=list)
 
 
+STALLED_BOARD = 0.1  # s: a P8 board's process this late did not keep its own timers
+
+
 @dataclass
 class BudgetWindow:
     """One P8 window: what the boards recorded, and the daemon's CPU and throttling."""
@@ -192,6 +195,13 @@ class BudgetWindow:
             f"{r:,.0f}" + (" (holds)" if i == 0 and self.sent_at else "")
             for i, r in enumerate(rates)
         )
+        notes = []
+        if late > STALLED_BOARD:
+            notes.append(
+                f"a board's own process woke {late * 1e3:.0f} ms after a block freed (seen "
+                "rarely on a loaded machine, cause not found): its starvation, in this window "
+                "or the next, is the bench's, not the host's"
+            )
         return Row(
             figure,
             f"{per_machine} lines/s",
@@ -208,6 +218,7 @@ class BudgetWindow:
                 f"{self.throttled:.2f} s in all; receive-buffer overflows: {overflows}; the "
                 f"controllers' own lateness (a block freed to its line planned) up to "
                 f"{late * 1e3:.1f} ms",
+                *notes,
             ],
         )
 
