@@ -314,8 +314,8 @@ class JobRunner:
         """`current()` as JSON (`model_dump(mode="json")`), without a copy of the row.
 
         Why: every status report's snapshot and every progress tell carries the
-        job, and a pydantic copy and dump of it cost more than the rest of the
-        snapshot (docs/performance.md, "What a hold costs"). The row's own dump is
+        job; its pydantic copy and dump were about 40% of a snapshot's cost
+        (docs/performance.md, "The job told without a copy"). The row's own dump is
         made once a row (a change makes a new `Job`), and the live counts, plain
         integers, go over it. The dict is the caller's; what it holds is shared.
         """
