@@ -204,17 +204,23 @@ class Client:
         transport.write(b"\n".join(messages))
 
     def _flush(self) -> None:
-        """This pass's staged messages: in one write while the socket keeps up, else queued."""
+        """This pass's staged messages: in one write while the socket keeps up, else queued.
+
+        The first message was staged only because the socket kept up (`send_line`),
+        and while messages are staged nothing is queued and nothing of ours is
+        written: only whether the connection began to close meanwhile is asked
+        again (the queue and the write buffer were a third of a notification's
+        cost a subscriber, docs/performance.md).
+        """
         staged, self._staged = self._staged, []
         if self._closed or not staged:
             return
-        if not self._keeps_up():
+        transport = self._direct_transport()
+        if transport is None or transport.is_closing():
             for line in staged:
                 if not self._enqueue(line):
                     return
             return
-        transport = self._direct_transport()
-        assert transport is not None
         try:
             self._write_staged(transport, staged)
         except OSError as e:

@@ -560,14 +560,13 @@ class Machine:
             # A board that cannot say (g2core: its laser toolhead is chosen when the
             # firmware is built, HAS_LASER): the config's word.
             snap["laser_mode"] = True
-        job = self.current_job()
         snap.update(
             dialect=self.config.dialect,
             supervisor=self.supervisor.state.value,
             indicator=self.faults.indicator().value,
             lockout=self.engine.session.lockout(),
             faults=[f.to_json() for f in self.faults.active()],
-            job=None if job is None else job.model_dump(mode="json"),
+            job=self.jobs.current_json(),
             tool_change=self.tools.snapshot(),
         )
         return snap

@@ -85,9 +85,22 @@ async def test_operations_start_only_from_idle(bench: Bench) -> None:
 
 async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
     told: list[tuple[float, dict[str, Any]]] = []  # every `job` event, when it was told
-    bench.machine.hub.subscribe(
-        lambda e: told.append((time.monotonic(), e.job)) if isinstance(e, JobChanged) else None
-    )
+    unlike: list[tuple[dict[str, Any], dict[str, Any]]] = []  # a tell or snapshot gone stale
+
+    def heard(event: object) -> None:
+        if not isinstance(event, JobChanged):
+            return
+        told.append((time.monotonic(), event.job))
+        # The JSON told and snapshotted is made from a dump kept per row (current_json):
+        # it is the row as it stands, counts and all, at each tell.
+        current = bench.machine.current_job()
+        assert current is not None
+        now = current.model_dump(mode="json")
+        for seen in (event.job, bench.machine.snapshot()["job"]):
+            if seen != now:
+                unlike.append((seen, now))
+
+    bench.machine.hub.subscribe(heard)
     bench.write("slow.gcode", "".join(f"{line}\n" for line in long_moves(30)))
     job = await bench.machine.start_make("slow.gcode")
     await bench.sim.wait_state(S.RUN)
@@ -107,6 +120,7 @@ async def test_pause_and_resume_a_make_job(bench: Bench) -> None:
     # last tell (the follower that wrote the pause's row did not tell it again at once),
     # and never a job the same as the last told. (A bound the code keeps, not a timing.)
     assert [job["state"] for _, job in told].count("paused") >= 1
+    assert unlike == []
     for (at, before), (then, job) in itertools.pairwise(told):
         assert job != before
         if job["state"] == before["state"]:
