@@ -294,7 +294,7 @@ class GrblSession(GrblWords, SessionBase):
         if wanted is None:
             return
         now = self.model.overrides or {}
-        differ = {k: now.get(k) for k, v in wanted.items() if now.get(k) != v}
+        differ = any(now.get(k) != v for k, v in wanted.items())
         if differ and self._override_asks:
             self._override_asks -= 1  # this report may predate the bytes: ask again
             self._ask_report()
