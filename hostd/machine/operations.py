@@ -169,17 +169,18 @@ async def override(
 ) -> dict[str, float | None]:
     """Write the overrides (grbl: realtime bytes) and answer those now in force.
 
-    grbl reports its overrides (`Ov:`) in the report after any change (report.c:
-    the override counter is zeroed), so the answer waits for that report.
+    The session asks the board what is in force and says when it has answered
+    (`override_answers`): g2core answers the setting it stored; grbl reports
+    `Ov:`, asked again while a report (read with the bytes, before they acted)
+    does not show them yet, a bounded number of times. The answer is always the
+    board's last word, which may differ from what was asked (docs/dialects.md).
     """
     engine = machine.engine
-    model = engine.model
-    seen = model.override_reports
+    seen = engine.session.override_answers
     engine.override(feed, rapid, spindle_)
-    engine.query_status()
     try:
         async with asyncio.timeout(ANSWER_WAIT):
-            await engine.wait_for(lambda: model.override_reports > seen)
+            await engine.wait_for(lambda: engine.session.override_answers > seen)
     except TimeoutError:
         raise ControllerTimeout(f"{machine.id} did not report its overrides") from None
     return in_force(machine)

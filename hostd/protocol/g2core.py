@@ -1074,6 +1074,7 @@ class G2Session(G2Words, SessionBase):
         if now:
             self.model.overrides = now
         self.model.override_reports += 1
+        self.override_answers += 1  # the answer is what the board stored: no asking again
 
     def reset(self) -> None:
         """0x18: the board reboots; so do the session's books when it comes back."""

@@ -78,6 +78,9 @@ class SessionBase:
         self._resuming = False
         self._resumed_from: MachineState | None = None
         self._closing_reason: str | None = None  # asked to be closed: nothing more is due
+        # How many `override` requests the board has answered: machine.override waits
+        # for the next one, then answers `model.overrides` (the board's own values).
+        self.override_answers = 0
         self._log = log.bind(machine=machine_id)
 
     # -- what a dialect gives --------------------------------------------------
@@ -305,7 +308,11 @@ class SessionBase:
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
-        """Set the feed, rapid and spindle overrides (percent) now, in any state."""
+        """Set the feed, rapid and spindle overrides (percent) now, in any state.
+
+        The dialect then asks what is in force, and counts `override_answers` up once
+        the board has said (into `model.overrides`).
+        """
         raise InvalidCommand(
             Refusal.UNREADABLE, f"{self.id}: this controller's dialect has no realtime overrides"
         )

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from hostd.machine import operations
 from hostd.machine.events import Console, FaultChanged, LinkChanged, StatusChanged
 from hostd.machine.jobstore import JobStore
 from hostd.machine.machine import Machine
@@ -176,6 +177,23 @@ async def test_a_resume_given_while_the_hold_still_decelerates_runs_the_job_on(
         assert done.state == "completed" and done.lines_acked == 40
         read = b"".join(r.data for r in bench.board.received)  # the raw bytes, as read
         assert read.count(b"~") == 1  # one `~`, written once the hold was complete
+
+
+async def test_an_override_answers_the_new_values_though_grblhal_reports_first(
+    tmp_path: Path,
+) -> None:
+    """grblHAL over USB answers the `?` behind the override bytes before they act
+    (the simulator's `report_first`, its grblHAL default); that report carries the old
+    `Ov:` when the board's counter runs out there. The answer is the next one's."""
+    async with grbl_bench(tmp_path, HAL) as bench:
+        sim = bench.board
+        for feed, rapid, spindle in ((150, 25, 80), (60, 100, 120)):
+            sim.report_overrides_next()
+            got = await operations.override(bench.machine, feed, rapid, spindle)
+            assert got == {"feed": feed, "spindle": spindle, "rapid": rapid}
+            assert (sim.board.feed_ovr, sim.board.rapid_ovr) == (feed, rapid)
+        # The first report after the bytes showed the old values: it was asked again.
+        assert any(b"|Ov:100,100,100" in r.data for r in sim.sent)
 
 
 async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(

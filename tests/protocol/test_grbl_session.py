@@ -796,9 +796,66 @@ def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
             )
         ]
         + [(Lane.REALTIME, b"\x9d")] * 5
+        + [(Lane.REALTIME, b"?")]  # behind the bytes: what is in force now
     )
     grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:123,25,85>")
     assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}
+    assert grbl.session.override_answers == 1
+
+
+def test_an_override_report_read_before_the_bytes_acted_is_asked_again() -> None:
+    """grblHAL over USB answers a `?` that came in the bytes' packet before it acts on
+    them (protocol.c protocol_exec_rt_system): that `Ov:` shows the old values."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=150, spindle=80)
+    assert grbl.pump()[-1] == (Lane.REALTIME, b"?")
+    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>") == [
+        (Lane.REALTIME, b"?")
+    ]
+    assert grbl.session.override_answers == 0  # not the answer yet
+    # A report without `Ov:` says nothing about the overrides: no ask spent on it.
+    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0>") == []
+    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:150,100,80>") == []
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 150, "rapid": 100, "spindle": 80}
+    # Only the values asked are compared: rapid was not, and stays the board's.
+    grbl.session.override(rapid=25)
+    grbl.pump()
+    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:150,25,80>") == []
+    assert grbl.session.override_answers == 2
+
+
+def test_overrides_the_board_never_shows_are_asked_twice_then_answered_as_it_says() -> None:
+    """A board that keeps other values (a grblHAL built with MAX_FEED_RATE_OVERRIDE 120
+    clamps 150 to 120, grbl.h): two more `?`, then the answer is the board's 120."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=150)
+    grbl.pump()
+    asks = grbl.realtime().count(b"?")
+    clamped = "<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:120,100,100>"
+    for _ in range(2):
+        assert grbl.feed(clamped) == [(Lane.REALTIME, b"?")]
+        assert grbl.session.override_answers == 0
+    assert grbl.feed(clamped) == []  # the bound: no third ask
+    assert grbl.realtime().count(b"?") == asks + 2
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 120, "rapid": 100, "spindle": 100}
+    assert grbl.feed(clamped) == [] and grbl.session.override_answers == 1  # answered once
+
+
+def test_an_override_waiting_for_its_report_is_forgotten_with_the_link() -> None:
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=50)
+    grbl.pump()
+    grbl.session.close("unplugged")
+    grbl.pump()
+    grbl.connect()
+    for _ in range(3):  # the new connection's reports ask nothing about the old request
+        assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>") == []
+    assert grbl.session.override_answers == 0
 
 
 def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:

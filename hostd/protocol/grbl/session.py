@@ -114,6 +114,8 @@ BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints i
 # read with the `!` predates it (protocol.c), and a `~` kept back waits for Hold:0.
 SETTLE_POLL = 0.02
 RESUME_ASKS = 3  # `?`s after a `~` while reports still say Hold (`_cycle_start`)
+# `?`s more after an override while its `Ov:` reports do not show it yet (`override`)
+OVERRIDE_ASKS = 2
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
 SILENT_QUERIES = 3  # `?`s unanswered in a silence before the link is given up
 # s of silence allowed on top of `link_silence` while a line writes EEPROM or flash: an
@@ -190,6 +192,8 @@ class GrblSession(GrblWords, SessionBase):
         self._hold_settling = False
         self._start_pending = False  # a `~` kept back until the hold completes
         self._resume_asks = 0  # `?`s left to ask while reports say Hold after our `~`
+        self._override_wanted: dict[str, float] | None = None  # asked, not yet answered
+        self._override_asks = 0  # `?`s left to ask while `Ov:` does not show it
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
@@ -253,11 +257,22 @@ class GrblSession(GrblWords, SessionBase):
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
-        """The override bytes (grbl.h CMD_OVERRIDE_*): from 100%, in steps of 10 then 1.
+        """The override bytes (grbl.h CMD_OVERRIDE_*): from 100%, in steps of 10 then 1,
+        then a `?` whose answer, or one after it, says what is in force.
 
         grbl's overrides are relative steps; an absolute percentage is a reset
         to 100 then the steps to it, all realtime bytes, taken in any state.
-        Rapid has three settings: 100, 50 and 25.
+        Rapid has three settings: 100, 50 and 25; feed and spindle are refused
+        outside 10..200, the firmware's own bounds, so a board that takes the
+        bytes reports exactly the values asked.
+
+        A `?` read with the bytes is answered before they act (gnea/grbl protocol.c
+        protocol_exec_rt_system: the status report at :250-253, the overrides from
+        :405; grblHAL protocol.c: the report at :604-605, the overrides from :629),
+        which on grblHAL over USB, a packet at a time, is the rule: an `Ov:` that
+        does not show the values asked yet is asked again (`_override_seen`), up to
+        OVERRIDE_ASKS times. Then `override_answers` counts up, whatever the last
+        `Ov:` said: the answer is the board's, never the values asked.
         """
         self._require_open()
         out: list[bytes] = []
@@ -268,6 +283,26 @@ class GrblSession(GrblWords, SessionBase):
         if spindle is not None:
             out += codec.override_steps(spindle, "spindle")
         self._out += [(Lane.REALTIME, b) for b in out]
+        asked = {"feed": feed, "rapid": rapid, "spindle": spindle}
+        self._override_wanted = {k: float(v) for k, v in asked.items() if v is not None}
+        self._override_asks = OVERRIDE_ASKS
+        self._ask_report()
+
+    def _override_seen(self) -> None:
+        """A report with `Ov:` while an override waits for its answer (`override`)."""
+        wanted = self._override_wanted
+        if wanted is None:
+            return
+        now = self.model.overrides or {}
+        differ = any(now.get(k) != v for k, v in wanted.items())
+        if differ and self._override_asks:
+            self._override_asks -= 1  # this report may predate the bytes: ask again
+            self._ask_report()
+            return
+        if differ:
+            self._log.warning("overrides not as asked", asked=wanted, reported=now)
+        self._override_wanted = None
+        self.override_answers += 1
 
     def safety_door(self) -> None:
         """0x84 (protocol.c CMD_SAFETY_DOOR): the board enters Door as if its switch opened."""
@@ -343,6 +378,7 @@ class GrblSession(GrblWords, SessionBase):
         self._resetting = False
         self._held = None
         self._forget_holds()
+        self._override_wanted = None  # machine.override sees the link go down
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -523,6 +559,7 @@ class GrblSession(GrblWords, SessionBase):
             self._begin_stop()
 
     def _on_report(self, report: codec.StatusReport) -> None:
+        ov_reports = self.model.override_reports
         fields = self._reports.fields(report, self.model)
         before = self.model.state
         self.model.board_state = report.state + ("" if report.sub is None else f":{report.sub}")
@@ -537,6 +574,8 @@ class GrblSession(GrblWords, SessionBase):
                 self._poll_soon()
         elif self._resume_asks:
             self._resume_seen(report)
+        if self.model.override_reports != ov_reports:
+            self._override_seen()
         self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []

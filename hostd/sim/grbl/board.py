@@ -215,7 +215,8 @@ class GrblBoard:
     # --- input: the serial interrupt
 
     def receive(self, data: bytes) -> None:
-        """Bytes from the host: realtime ones act now, the rest queue or are lost."""
+        """Bytes from the host: realtime ones act now (or after the read's report:
+        `GrblConfig.report_first`), the rest queue or are lost."""
         if self._deaf_until is not None:
             if self.hal:
                 self._held += data  # USB: the host's bytes wait until the write is over
@@ -223,18 +224,36 @@ class GrblBoard:
                 self.lost_in_write += len(data)  # the RX interrupt is off: overrun
             return
         capacity = self.config.rx_capacity
+        # `GrblConfig.report_first`: the read's other realtime characters act after its
+        # `?` is answered, in the order they came; a reset or a jog cancel at once, after
+        # those before it.
+        later: list[int] | None = [] if self.config.reports_first else None
         for byte in data:
             if byte == realtime.STATUS and (self.status_lost or self.status_ignored):
                 self.status_lost = max(self.status_lost - 1, 0)
                 continue
             if byte in realtime.REALTIME:
-                self.realtime(byte)
+                if later is None or byte == realtime.STATUS:
+                    self.realtime(byte)
+                elif byte in (realtime.RESET, realtime.JOG_CANCEL):
+                    self._act_on(later)
+                    self.realtime(byte)
+                else:
+                    later.append(byte)
             elif byte >= 0x80 and self.hal:
                 continue  # protocol_enqueue_realtime_command drops other top-bit bytes
             elif len(self.rx) >= capacity:
                 self.rx_dropped += 1
             else:
                 self.rx.append(byte)
+        if later:
+            self._act_on(later)
+
+    def _act_on(self, later: list[int]) -> None:
+        """The realtime characters kept back in this read, now, and forgotten."""
+        for byte in later:
+            self.realtime(byte)
+        later.clear()
 
     @property
     def rx_free(self) -> int:

@@ -38,6 +38,18 @@ class GrblConfig:
     meanwhile are lost (eeprom.c eeprom_put_char's cli(); about 0.3 s for a
     `$x=`). grblHAL answers first and writes its settings to flash once idle
     (protocol.c nvs_buffer_sync_physical): bytes wait in the USB stack.
+
+    `report_first`: realtime characters that arrive in one read with a `?` act
+    after the report is printed, as the firmware's main loop takes them: the
+    receive interrupt only raises flags (gnea/grbl serial.c ISR(SERIAL_RX),
+    grblHAL protocol.c protocol_enqueue_realtime_command) and
+    protocol_exec_rt_system prints the status report before it runs a hold, a
+    cycle start, a door or an override (gnea/grbl protocol.c:250-253 then
+    :405-478; grblHAL protocol.c:604-605 then :624-735). None: True for
+    grblHAL, whose native USB hands the firmware a whole packet in one go;
+    False for grbl, whose UART brings a byte at a time (87 us apart at 115200
+    baud), so each is acted on as it arrives. Reset and jog cancel act at once
+    either way (mc_reset and cancel_read_buffer run in the interrupt).
     """
 
     flavour: Flavour = "grbl"
@@ -57,6 +69,7 @@ class GrblConfig:
     storage_write: float = 0.0
     feedhold_decel: float = 0.05  # s from `!` to standing still
     reset_on_open: bool | None = None
+    report_first: bool | None = None
     history: int | None = None  # entries kept in `received` / `sent`; None keeps all
 
     def __post_init__(self) -> None:
@@ -99,6 +112,10 @@ class GrblConfig:
         if self.planner_blocks is not None:
             return self.planner_blocks
         return HAL_BLOCKS if self.hal else CLASSIC_BLOCKS
+
+    @property
+    def reports_first(self) -> bool:
+        return self.hal if self.report_first is None else self.report_first
 
     @property
     def opens_with_reset(self) -> bool:

@@ -167,6 +167,11 @@ class GrblSimController(SimShell[GrblBoard, str]):
         """The wire loses the next `count` `?` bytes (line noise, a USB-serial adapter)."""
         self._board.status_lost += count
 
+    def report_overrides_next(self) -> None:
+        """The override counter runs out: the next report carries `Ov:`, as one in every
+        10 or 20 does (report.c report_realtime_status, sys.report_ovr_counter)."""
+        self._board._ovr_counter = 0
+
     def ignore_status_requests(self, ignored: bool = True) -> None:
         """`?` gets no report while lines still get their `ok` (reports stop, answers go on)."""
         self._board.status_ignored = ignored

@@ -430,11 +430,39 @@ async def test_status_is_not_answered_while_homing(tmp_path: Path) -> None:
         assert got[1:] == ["[MSG:]", "ok"]
 
 
-async def test_overrides_show_in_the_next_report(hal_host: GrblHost) -> None:
+async def test_grblhal_reports_before_the_overrides_read_with_the_request_act(
+    hal_host: GrblHost,
+) -> None:
+    """One USB packet: protocol_exec_rt_system prints the report, then runs the overrides."""
     await hal_host.status()
     await hal_host.status()
-    hal_host.send(b"\x91\x91\x96")
-    assert "|Ov:120,50,100" in await hal_host.status()
+    hal_host.send(b"\x91\x91\x96?")  # one write, one read
+    before = (await hal_host.until(lambda s: s.startswith("<")))[-1]
+    assert before.startswith("<Idle|") and "Ov:120" not in before
+    assert "|Ov:120,50,100" in await hal_host.status()  # the next report shows them
+
+
+async def test_classic_grbl_acts_on_overrides_as_they_arrive(classic_host: GrblHost) -> None:
+    """A UART brings a byte at a time: each is acted on before the `?` behind it."""
+    await classic_host.status()
+    classic_host.send(b"\x91\x91\x96?")
+    assert "|Ov:120,50,100" in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+
+
+async def test_grblhal_answers_a_request_read_with_its_resume_still_holding(
+    tmp_path: Path,
+) -> None:
+    """`~?` in one packet: the report says Hold (state_update runs after it), then the
+    board resumes; the host's session asks again (RESUME_ASKS)."""
+    async with Board(tmp_path, TIMED_HAL) as (sim, host):
+        assert await host.ask(b"G1 X-3 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        host.send(b"!")
+        await sim.wait_state("Hold:0")
+        host.send(b"~?")
+        assert (await host.until(lambda s: s.startswith("<")))[-1].startswith("<Hold:0|")
+        await sim.wait_state("Idle")
+        assert sim.position["x"] == -3
 
 
 # --- silence: homing, EEPROM and flash, lost and unanswered `?`
