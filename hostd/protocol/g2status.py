@@ -4,12 +4,13 @@ A layer of `G2Session` (g2core.py). A status report (`{"sr":...}`, or one in
 an answer) goes into the model (`_on_status`), but a lockout an exception
 report announced stands until a report shows it. A report with a `stat` ends
 the wait for a report, may prove a flush, and may complete a job. A change of
-state (`_on_state`) ends a homing's wait, puts the override factors back at a
-program end, tells an underflow, drains what a lockout refuses, and sends
-again the settings one refused. Here too: which line the board executes
-(`_track_executed`), a probe's result, the override factors (`override`),
-and which lines are the status poll and its reports (`status_traffic`). The
-status codes and the states themselves are in status.py and states.py.
+state (`_on_state`) asks for `home` when a homing cycle ends, puts the
+override factors back at a program end, tells an underflow, drains what a
+lockout refuses, and sends again the settings one refused. Here too: which
+line the board executes (`_track_executed`), a probe's result, the override
+factors (`override`), and which lines are the status poll and its reports
+(`status_traffic`). The status codes and the states themselves are in
+status.py and states.py.
 """
 
 from __future__ import annotations
