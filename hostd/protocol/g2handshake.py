@@ -1,6 +1,6 @@
 """g2core's handshake: what a board must be, what it is told, and how long it is given.
 
-G2Session (g2core.py) runs the steps (g2core.md section 10) on every open
+G2Session (g2connection.py) runs the steps (g2core.md section 10) on every open
 and after every reset: the SYSTEM READY banner, or after `BANNER_WAIT` on a
 link that prints none a version request; the firmware build checked
 (`check_firmware`); the protocol settings (`protocol_settings`), one at a

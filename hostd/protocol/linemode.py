@@ -221,7 +221,7 @@ class LineModeSender:
 
         The answer is a fence's when its count and body keys are that fence's and it
         says OK; the caller picks fences no other line of its own or of a client's can
-        be mistaken for (g2core.py `_write_fence`).
+        be mistaken for (g2kills.py `_write_fence`).
         """
         if not self._fences or response.status:
             return None

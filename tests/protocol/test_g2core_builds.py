@@ -13,14 +13,14 @@ import pytest
 
 from hostd.protocol.commands import InvalidCommand, Realtime
 from hostd.protocol.errors import Busy, Rejected
-from hostd.protocol.g2core import FLUSH_CONFIRM_TIMEOUT
+from hostd.protocol.g2kills import FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Detected, Excepted, Lane, StreamEnd
 from tests.protocol.g2wire import BUILDS, JOB_KILLERS, Wire, banner
 
 KILL = b"\x04\n"
-FENCE = b"$stat\n"  # behind each ^D on the data port (g2core.py `_write_fence`)
+FENCE = b"$stat\n"  # behind each ^D on the data port (g2kills.py `_write_fence`)
 CONTROL_FENCE = b'{"stat":null}\n'  # behind the control port's ^D, on two ports
 CLEAR = b'{"clear":null}\n'
 LIMIT = '{"er":{"fb":%s,"st":203,"msg":"Limit hit - input 1"}}'

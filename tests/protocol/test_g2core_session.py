@@ -13,7 +13,8 @@ import pytest
 from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, ControllerError, NotConnected, Rejected
 from hostd.protocol.g2builds import Build
-from hostd.protocol.g2core import BANNER_WAIT, FLUSH_CONFIRM_TIMEOUT
+from hostd.protocol.g2handshake import BANNER_WAIT
+from hostd.protocol.g2kills import FLUSH_CONFIRM_TIMEOUT
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.stream import Stream
