@@ -57,9 +57,9 @@ MAX_REQUEST_ID: Final = 128
 # Request ids refused for a passing reason, kept at most (the oldest forgotten first): a flood
 # is refused by the rate limit itself, so nothing else bounds them. A refused command comes
 # again (its PUBACK lost) among what was in flight to us unacknowledged when the connection
-# dropped, which the broker sends first on the next one (MQTT 5 4.4), so fewer than our
-# Receive Maximum (bridge.MAX_INCOMING, 10,000) other ids are refused in between. About 3 MB
-# at most (ids of 128 characters).
+# dropped, which the broker sends again, in order, before what it queued later (MQTT 5 4.4,
+# 4.6): fewer than our Receive Maximum (bridge.MAX_INCOMING, 10,000) other commands are
+# taken in between. About 3 MB at most (ids of 128 characters). docs/mqtt.md says more.
 MAX_REFUSED: Final = 10_000
 
 
