@@ -266,10 +266,12 @@ async def bridged(
     broker: Broker,
     prefix: str = "test/h1",
     wall: Callable[[], float] = time.time,
+    clock: Callable[[], float] = time.monotonic,
     **mqtt: Any,
 ) -> AsyncIterator[Bridged]:
     """A daemon (tests/daemon/conftest.py) with its MQTT bridge, wired as service.py wires it;
-    `wall` the bridge's clock for a command's `sent_at`."""
+    `wall` the bridge's clock for a command's `sent_at`, `clock` its clock for the command
+    rate (and the status interval)."""
     settings: dict[str, Any] = {
         "url": broker.url,
         "topic_prefix": prefix,
@@ -281,7 +283,8 @@ async def bridged(
     }
     config = MqttConfig.model_validate(settings)
     async with running_daemon(tmp_path) as running:
-        bridge = MqttBridge(config, running.api, build_methods(running.api), wall=wall)
+        methods = build_methods(running.api)
+        bridge = MqttBridge(config, running.api, methods, wall=wall, clock=clock)
         bridge.attach()
         await bridge.load_last_jobs()
         task = asyncio.create_task(bridge.run())
@@ -310,15 +313,20 @@ class Packets:
         self.count = 0
         self._pending = bytearray()
 
-    def feed(self, data: bytes) -> None:
+    def feed(self, data: bytes) -> list[int]:
+        """Where, in `data`, each packet of the kind that it completes ends."""
         buf = self._pending
+        before = len(buf)
         buf += data
         at = 0
+        ends: list[int] = []
         while (packet := self._packet(buf, at)) is not None:
             if buf[at] >> 4 == self.kind:
                 self.count += 1
+                ends.append(packet - before)
             at = packet
         del buf[:at]
+        return ends
 
     @staticmethod
     def _packet(buf: bytearray, at: int) -> int | None:
@@ -344,11 +352,13 @@ class Cable:
 
     `cut_after_pubacks` pulls it by itself once that many PUBACKs (the bridge acknowledging
     commands) have passed on to the broker: the broker has them, and the bridge has what
-    else it had read."""
+    else it had read. `lose_puback` pulls it just before the broker would have that PUBACK
+    (the n-th passed on, counted as `pubacks`): the broker never gets it, nor what follows."""
 
     upstream: int  # the broker's port
     port: int = field(default_factory=free_port)
     cut_after_pubacks: int | None = None
+    lose_puback: int | None = None
     pubacks: int = 0  # PUBACKs passed on, on every connection
     connections: int = 0  # connections passed on
     cut: asyncio.Event = field(default_factory=asyncio.Event)
@@ -407,13 +417,20 @@ class Cable:
             while data := await reader.read(1 << 16):
                 if writer not in self._open:
                     return  # unplugged: what comes after is lost, as on a dead network
+                ends = [] if acks is None else acks.feed(data)
+                lost = self.lose_puback
+                if lost is not None and self.pubacks < lost <= self.pubacks + len(ends):
+                    # Passed on short of the lost PUBACK's last byte: never a whole packet.
+                    writer.write(data[: ends[lost - self.pubacks - 1] - 1])
+                    await writer.drain()
+                    self.pubacks, self.lose_puback = lost - 1, None
+                    await self.unplug()
+                    return
                 writer.write(data)
                 await writer.drain()
                 if acks is None:
                     continue
-                before = acks.count
-                acks.feed(data)
-                self.pubacks += acks.count - before
+                self.pubacks += len(ends)
                 limit = self.cut_after_pubacks
                 if limit is not None and self.pubacks >= limit:
                     self.cut_after_pubacks = None

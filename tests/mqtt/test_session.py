@@ -36,6 +36,7 @@ SETTINGS: dict[str, Any] = {
     "max_events": 1000,
 }
 COMMAND = "test/h1/sim1/cmd/daemon.info"
+SEND = "test/h1/sim1/cmd/machine.send"
 REPLIES = "test/h1/replies/away"
 
 
@@ -49,12 +50,13 @@ async def away(b: Bridged, hop: Cable, caller: Watcher) -> None:
 
 @contextlib.asynccontextmanager
 async def bridge_away(
-    tmp_path: Path, broker: Broker
+    tmp_path: Path, broker: Broker, **mqtt: Any
 ) -> AsyncIterator[tuple[Cable, Bridged, Watcher]]:
-    """A bridge behind a cable, seen online, then away; a caller listening for replies."""
+    """A bridge behind a cable, seen online, then away; a caller listening for replies.
+    `mqtt`: settings over SETTINGS."""
     async with (
         cable(broker) as hop,
-        bridged(tmp_path, broker, url=hop.url, **SETTINGS) as b,
+        bridged(tmp_path, broker, url=hop.url, **{**SETTINGS, **mqtt}) as b,
         watching_broker(broker, "test/h1/online") as caller,
     ):
         await caller.state("test/h1/online", lambda payload: payload == "online")
@@ -89,6 +91,15 @@ def once(replies: list[tuple[bytes, Any]], commands: list[bytes]) -> bool:
     """Whether each of `commands`, and no other, ran exactly once."""
     ran = runs(replies)
     return sorted(ran) == sorted(commands) and all(len(ids) == 1 for ids in ran.values())
+
+
+def rate_limited(answer: Any) -> bool:
+    return bool(answer.get("error", {}).get("code") == -32001)
+
+
+def already_refused(answer: Any) -> bool:
+    error = answer.get("error", {})
+    return bool(error.get("code") == -32002 and "already refused" in error.get("message", ""))
 
 
 def already_run(answer: Any) -> bool:
@@ -143,6 +154,57 @@ async def test_commands_read_but_not_taken_when_the_connection_drops_come_again(
     # Taken but its PUBACK lost in the cut: delivered again, refused, answered.
     again = [answer for c, answer in replies if "result" not in answer]
     assert all(already_run(answer) for answer in again), again
+
+
+async def test_a_command_refused_for_the_rate_never_runs_when_it_comes_again(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """A command refused over the rate ("try again later") whose PUBACK is lost in a cut
+    comes again on the next connection, when the rate would let it pass: it is refused as
+    already refused, and the board gets its line once, from the caller's new try. It used
+    to run then: the machine moved twice."""
+    skipped = [0.0]  # moves the bridge's clock on, and so refills its command rate
+    settings = {"allow": ["daemon.info", "machine.send"], "command_rate": 0.001}
+    async with bridge_away(
+        tmp_path,
+        broker,
+        clock=lambda: time.monotonic() + skipped[0],
+        command_burst=2,
+        **settings,
+    ) as (hop, b, caller):
+        client = await b.running.client()
+        await b.running.idle(client)
+        await client.close()
+        move = {"line": "G0 X1.25"}
+        for correlation in (b"first", b"second"):  # the 2 commands of the burst
+            await caller.send(COMMAND, {}, correlation, reply_to=REPLIES)
+        await caller.send(SEND, move, b"limited", reply_to=REPLIES, request_id="limited")
+        hop.lose_puback = hop.pubacks + 3  # that of `limited`, refused over the rate
+        await hop.plug()
+        async with asyncio.timeout(WAIT):
+            await hop.cut.wait()
+            await b.bridge.disconnected.wait()
+        skipped[0] += 10_000.0  # the rate would let 2 more pass: `limited` again, `again`
+        # The caller, told to try again later, does: the same move under a new request_id.
+        await caller.send(SEND, move, b"again", reply_to=REPLIES, request_id="again")
+        await hop.plug()
+        answers: dict[bytes, list[Any]] = {b"limited": [], b"again": []}
+        while not (
+            any(rate_limited(answer) for answer in answers[b"limited"])
+            and any(not rate_limited(answer) for answer in answers[b"limited"])
+            and answers[b"again"]
+        ):
+            message = await caller.next(lambda m: str(m.topic) == REPLIES)
+            correlation = getattr(message.properties, "CorrelationData", b"")
+            answers.setdefault(correlation, []).append(decoded(message))
+        assert b.bridge.connections == 3
+        board = b.running.daemon.sims["sim1"].received
+        moves = [r.data for r in list(board) if b"X1.25" in r.data]
+    assert all("result" not in answer for answer in answers[b"limited"]), answers
+    again = [answer for answer in answers[b"limited"] if not rate_limited(answer)]
+    assert all(already_refused(answer) for answer in again), again
+    assert "result" in answers[b"again"][0], answers
+    assert len(moves) == 1, moves
 
 
 async def test_a_new_daemon_does_not_run_commands_held_for_the_last_one(

@@ -17,7 +17,10 @@ A command is acknowledged (PUBACK) once taken, run or refused, not as the client
 reads it: one read but still queued in the client when the connection drops is
 not acknowledged, and the broker sends it again on the next connection of the
 session (bridge.py). One taken whose acknowledgement was lost with the connection
-comes again too: its `request_id` is then refused as already run.
+comes again too: its `request_id` is then refused as already run, or as already
+refused when it was refused for a passing reason (the rate, 16 running, from the
+future): told "try again later", its caller may have sent it again under a new id,
+so the first copy must never run later, when it would pass.
 """
 
 from __future__ import annotations
@@ -26,9 +29,10 @@ import asyncio
 import itertools
 import json
 import math
+from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 import aiomqtt
 from paho.mqtt.properties import Properties
@@ -50,6 +54,22 @@ CALLER_PROPERTY: Final = "client_id"
 ID_PROPERTY: Final = "request_id"
 TIME_PROPERTY: Final = "sent_at"
 MAX_REQUEST_ID: Final = 128
+# Request ids refused for a passing reason, kept at most (the oldest forgotten first): a flood
+# is refused by the rate limit itself, so nothing else bounds them. A refused command comes
+# again (its PUBACK lost) among what was in flight to us unacknowledged when the connection
+# dropped, which the broker sends again, in order, before what it queued later (MQTT 5 4.4,
+# 4.6): fewer than our Receive Maximum (bridge.MAX_INCOMING, 10,000) other commands are
+# taken in between. About 3 MB at most (ids of 128 characters). docs/mqtt.md says more.
+MAX_REFUSED: Final = 10_000
+
+
+class Refusal(NamedTuple):
+    """Why a command does not run. `passing`: a copy of it could run later (over the rate,
+    too many running, sent from the future), so its request_id is kept as refused."""
+
+    code: int
+    message: str
+    passing: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,12 +100,20 @@ class Commands:
         self._ids = itertools.count(1)
         self._wall = wall
         self._bucket = TokenBucket(config.command_rate, config.command_burst, clock)
-        # Request ids run, each until no copy of its command could pass `_stale` (wall time).
-        self._seen: dict[str, float] = {}
+        # Request ids run, each until no copy of its command could pass `_stale` (wall time):
+        # never forgotten sooner, and bounded by the rate (runs in the last 2 command_max_age).
+        self._seen = RecentIds()
+        # Request ids refused for a passing reason, as long (MAX_REFUSED of them at most).
+        self._refused = RecentIds(MAX_REFUSED)
         self._log = log
         unknown = sorted(set(config.allow) - set(methods))
         if unknown:
             self._log.warning("mqtt allow names unknown methods; ignored", methods=unknown)
+
+    @property
+    def kept_refused(self) -> int:
+        """How many request ids are kept as refused (MAX_REFUSED at most)."""
+        return len(self._refused)
 
     def cancel_all(self) -> None:
         """The bridge is stopping: the daemon's machines are gone."""
@@ -102,16 +130,18 @@ class Commands:
         """The commands, once `subscribe` has been answered; each acknowledged once taken."""
         async for message in client.messages:
             try:
-                self._command(message, commands)
+                self.take(message, commands)
             except Exception:  # one odd message must never stop the bridge
                 self._log.exception("mqtt message could not be handled", topic=str(message.topic))
             finally:
-                # Taken: its request_id is seen (when it runs), so the broker may forget it.
+                # Taken: its request_id is remembered (run, or refused for a passing reason),
+                # so the broker may forget it.
                 # Always, even for one that failed: unacknowledged, it would hold one of the
                 # broker's in-flight places until the next connection, and come again there.
                 client._client.ack(message.mid, message.qos)
 
-    def _command(self, message: aiomqtt.Message, commands: asyncio.TaskGroup) -> None:
+    def take(self, message: aiomqtt.Message, commands: asyncio.TaskGroup) -> None:
+        """One command, as delivered: refused at once, or started as a task in `commands`."""
         topic = str(message.topic)
         parsed = topics.parse_command(self.prefix, topic)
         if parsed is None:
@@ -129,20 +159,29 @@ class Commands:
         payload = message.payload
         refusal = self._refusal(message, method, reply_to, user)
         if refusal is None and not isinstance(payload, bytes):
-            refusal = (rpc.INVALID_REQUEST, "payload is not bytes")
+            refusal = Refusal(rpc.INVALID_REQUEST, "payload is not bytes")
         if refusal is not None:
+            if refusal.passing:
+                self._remember(self._refused, user)
             self._refuse(said, topic, caller, request_id, reply_to, correlation, refusal)
             return
         assert isinstance(payload, bytes)
-        # A copy (a redelivery, a replay) passes the age check until `sent_at` + max_age: one
-        # sent from a clock ahead of ours, later than max_age after it ran.
-        sent = _sent_at(user)
-        self._seen[request_id] = max(self._wall(), sent) + self.config.command_max_age
+        self._remember(self._seen, user)
         task = commands.create_task(
             self._run_command(caller, machine, method, payload, reply_to, correlation)
         )
         self.running.add(task)
         task.add_done_callback(self.running.discard)
+
+    def _remember(self, ids: RecentIds, user: Mapping[str, str]) -> None:
+        """Keep the command's request_id in `ids` while a copy of it (a redelivery, a replay)
+        could pass the age check: until its `sent_at` + max_age, later than max_age from now
+        when sent from a clock ahead of ours. Not without a valid id and time: such a copy
+        is refused for lacking them."""
+        request_id = user.get(ID_PROPERTY, "")
+        sent = _sent_at(user)
+        if 0 < len(request_id) <= MAX_REQUEST_ID and math.isfinite(sent):
+            ids.add(request_id, max(self._wall(), sent) + self.config.command_max_age)
 
     def _refusal(
         self,
@@ -150,61 +189,73 @@ class Commands:
         method: str,
         reply_to: str | None,
         user: Mapping[str, str],
-    ) -> tuple[int, str] | None:
-        """Why this command does not run, or None: each check costs no parsing of the payload."""
+    ) -> Refusal | None:
+        """Why this command does not run, or None: each check costs no parsing of the payload.
+
+        The refusals that are not `passing` refuse any copy of the command for the same
+        reason (a copy is as retained, as large, as old or older, its method and response
+        topic the same, the config the same while the daemon runs): their ids are not kept."""
         config = self.config
         payload = message.payload
         if message.retain:
-            return (
+            return Refusal(
                 rpc.INVALID_REQUEST,
                 "retained commands are never run; clear the retained message",
             )
         if not self._bucket.take():
-            return (RATE_LIMITED, f"over {config.command_rate:g} commands/s; try again later")
+            why = f"over {config.command_rate:g} commands/s; try again later"
+            return Refusal(RATE_LIMITED, why, passing=True)
         if reply_to is not None:
             problem = topics.response_topic_problem(self.prefix, reply_to)
             if problem is not None:
-                return (rpc.INVALID_REQUEST, problem)
+                return Refusal(rpc.INVALID_REQUEST, problem)
         if not config.commands:
-            return (rpc.METHOD_NOT_FOUND, "commands are off on this daemon ([mqtt] commands)")
+            return Refusal(
+                rpc.METHOD_NOT_FOUND, "commands are off on this daemon ([mqtt] commands)"
+            )
         if method not in config.allow:
-            return (rpc.METHOD_NOT_FOUND, f"method not allowed over MQTT: {method}")
+            return Refusal(rpc.METHOD_NOT_FOUND, f"method not allowed over MQTT: {method}")
         if isinstance(payload, bytes | bytearray) and len(payload) > config.max_payload:
-            return (
+            return Refusal(
                 rpc.INVALID_REQUEST,
                 f"payload over {config.max_payload} bytes ([mqtt] max_payload)",
             )
         return self._stale(user) or (
-            (rpc.SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later")
+            Refusal(rpc.SERVER_FULL, f"{MAX_COMMANDS} commands running; try again later", True)
             if len(self.running) >= MAX_COMMANDS
             else None
         )
 
-    def _stale(self, user: Mapping[str, str]) -> tuple[int, str] | None:
-        """The command's id and time: missing, too old, from the future, or seen before."""
+    def _stale(self, user: Mapping[str, str]) -> Refusal | None:
+        """The command's id and time: missing, too old, from the future, or seen before
+        (run, or refused for a passing reason)."""
         max_age = self.config.command_max_age
         request_id = user.get(ID_PROPERTY)
         if not request_id or len(request_id) > MAX_REQUEST_ID:
             why = f"a command needs a {ID_PROPERTY} user property (1 to {MAX_REQUEST_ID} chars)"
-            return (rpc.INVALID_REQUEST, why)
+            return Refusal(rpc.INVALID_REQUEST, why)
         sent = _sent_at(user)
         if not math.isfinite(sent):
             why = f"a command needs a {TIME_PROPERTY} user property: Unix time in seconds"
-            return (rpc.INVALID_REQUEST, why)
+            return Refusal(rpc.INVALID_REQUEST, why)
         now = self._wall()
         age = now - sent
         if age > max_age:
-            return (
+            return Refusal(
                 STALE,
                 f"command sent {age:.1f} s ago, over {max_age:g} s ([mqtt] command_max_age)",
             )
         if age < -max_age:
-            return (STALE, f"command sent {-age:.1f} s in the future: check the clocks")
-        # Ids of commands run, while a copy could pass the checks above: one delivered twice
-        # (QoS 1, a session resumed) or replayed runs once.
-        self._seen = {i: until for i, until in self._seen.items() if until >= now}
-        if request_id in self._seen:
-            return (STALE, f"command {request_id} already run")
+            # Passing: a copy delivered once our clock has caught up would pass.
+            why = f"command sent {-age:.1f} s in the future: check the clocks"
+            return Refusal(STALE, why, passing=True)
+        # Ids of commands run, or refused for a passing reason, while a copy could pass the
+        # checks above: one delivered twice (QoS 1, a session resumed) or replayed runs once,
+        # and one refused, its caller told to try again later, never runs.
+        if self._seen.holds(request_id, now):
+            return Refusal(STALE, f"command {request_id} already run")
+        if self._refused.holds(request_id, now):
+            return Refusal(STALE, f"command {request_id} already refused")
         return None
 
     def _refuse(
@@ -215,11 +266,11 @@ class Commands:
         request_id: str,
         reply_to: str | None,
         correlation: bytes | None,
-        refusal: tuple[int, str],
+        refusal: Refusal,
     ) -> None:
         """Log it, and answer it: on its response topic when it has a usable one, else on
         `<prefix>/errors`. Never silent."""
-        code, why = refusal
+        code, why = refusal.code, refusal.message
         said.warning("mqtt command refused", code=code, reason=why, reply_to=reply_to)
         usable = (
             reply_to is not None and topics.response_topic_problem(self.prefix, reply_to) is None
@@ -326,6 +377,38 @@ def _user_properties(properties: Properties | None) -> dict[str, str]:
         if isinstance(pair, tuple) and len(pair) == 2:
             found.setdefault(str(pair[0]), str(pair[1]))
     return found
+
+
+class RecentIds:
+    """Request ids, each kept until a wall time; `bound` of them at most, the oldest added
+    forgotten first. In the order added, so that the expired ones at the front go as a
+    lookup passes (each id added is forgotten once: O(1) a call, amortized); an expired one
+    behind a later one stays until it comes to the front, but is not held."""
+
+    def __init__(self, bound: int | None = None) -> None:
+        self._bound = bound
+        self._until: OrderedDict[str, float] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._until)
+
+    def add(self, request_id: str, until: float) -> None:
+        """Keep `request_id` until `until` (or as long as it was kept), as the newest."""
+        kept = self._until.pop(request_id, until)
+        self._until[request_id] = max(kept, until)
+        if self._bound is not None and len(self._until) > self._bound:
+            self._until.popitem(last=False)
+
+    def holds(self, request_id: str, now: float) -> bool:
+        """Whether `request_id` is kept at `now`."""
+        ids = self._until
+        while ids:
+            first, until = next(iter(ids.items()))
+            if until >= now:
+                break
+            del ids[first]
+        kept = ids.get(request_id)
+        return kept is not None and kept >= now
 
 
 class TokenBucket:
