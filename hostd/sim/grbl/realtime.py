@@ -123,7 +123,7 @@ def overrides(board: GrblBoard, chars: list[int]) -> None:
     """The override bytes that reached the board within one main-loop pass, in order.
 
     Classic grbl's receive interrupt only sets a flag bit per kind (serial.c:167-181,
-    system.c:384-397) and protocol_exec_rt_system applies the flags once a pass
+    system.c:384-396) and protocol_exec_rt_system applies the flags once a pass
     (protocol.c:405-452): two "+10" in one pass are one. Its arithmetic is uint8_t,
     clamped after all the flags (protocol.c:411-417). grblHAL queues each byte in a
     ring of 15, feed and rapid sharing one, spindle and coolant one each
