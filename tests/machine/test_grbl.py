@@ -208,7 +208,8 @@ async def test_a_classic_grbl_override_reaches_the_value_though_alike_bytes_coun
     async with grbl_bench(tmp_path, slow) as bench:
         job = None
         if streaming:
-            bench.write("job.nc", "".join(f"G1 X{i % 20} F600\n" for i in range(100)))
+            # 10 mm moves (0.2 s each here): the planner never runs dry meanwhile.
+            bench.write("job.nc", "".join(f"G1 X{i % 2 * 10} F600\n" for i in range(100)))
             job = await bench.machine.start_make("job.nc")
             await bench.board.wait_state("Run")
         got = await operations.override(bench.machine, 150, None, 80)
@@ -219,6 +220,7 @@ async def test_a_classic_grbl_override_reaches_the_value_though_alike_bytes_coun
         assert got == {"feed": 11, "spindle": 199, "rapid": 50}
         assert (board.feed_ovr, board.rapid_ovr, board.spindle_ovr) == (11, 50, 199)
         if job is not None:
+            assert bench.machine.current_job().state == "running"  # type: ignore[union-attr]
             await bench.machine.cancel()
             done = await bench.job_ended(job.id)
             assert done.state == "cancelled"
