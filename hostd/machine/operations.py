@@ -170,10 +170,12 @@ async def override(
     """Write the overrides (grbl: realtime bytes) and answer those now in force.
 
     The session asks the board what is in force and says when it has answered
-    (`override_answers`): g2core answers the setting it stored; grbl reports
-    `Ov:`, asked again while a report (read with the bytes, before they acted)
-    does not show them yet, a bounded number of times. The answer is always the
-    board's last word, which may differ from what was asked (docs/dialects.md).
+    (`override_answers`): g2core answers the setting it stored; grbl takes its
+    steps in rounds, each what one pass of its main loop takes, each checked by a
+    report that follows its bytes, until `Ov:` shows the values asked, a round
+    brings none nearer, or the rounds' bound is reached (well within ANSWER_WAIT).
+    The answer is always the board's last word, which may differ from what was
+    asked (docs/dialects.md).
     """
     engine = machine.engine
     seen = engine.session.override_answers

@@ -196,6 +196,51 @@ async def test_an_override_answers_the_new_values_though_grblhal_reports_first(
         assert any(b"|Ov:100,100,100" in r.data for r in sim.sent)
 
 
+@pytest.mark.parametrize("streaming", [False, True], ids=["at-rest", "mid-job"])
+async def test_a_classic_grbl_override_reaches_the_value_though_alike_bytes_count_once(
+    tmp_path: Path, streaming: bool
+) -> None:
+    """Classic grbl keeps one flag bit per kind of override byte and applies them once a
+    main-loop pass (gnea/grbl serial.c:167-181, protocol.c:405-452): a reset and five
+    "+10" read together make 110, not 150. The host writes one byte of a kind a round
+    and asks, until the board shows what was asked, at rest or while a job streams."""
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow) as bench:
+        job = None
+        if streaming:
+            # 10 mm moves (0.2 s each here): the planner never runs dry meanwhile.
+            bench.write("job.nc", "".join(f"G1 X{i % 2 * 10} F600\n" for i in range(100)))
+            job = await bench.machine.start_make("job.nc")
+            await bench.board.wait_state("Run")
+        got = await operations.override(bench.machine, 150, None, 80)
+        assert got == {"feed": 150, "spindle": 80, "rapid": 100}
+        board = bench.board.board
+        assert (board.feed_ovr, board.rapid_ovr, board.spindle_ovr) == (150, 100, 80)
+        got = await operations.override(bench.machine, 11, 50, 199)  # the long ways
+        assert got == {"feed": 11, "spindle": 199, "rapid": 50}
+        assert (board.feed_ovr, board.rapid_ovr, board.spindle_ovr) == (11, 50, 199)
+        if job is not None:
+            assert bench.machine.current_job().state == "running"  # type: ignore[union-attr]
+            await bench.machine.cancel()
+            done = await bench.job_ended(job.id)
+            assert done.state == "cancelled"
+
+
+async def test_a_grblhal_override_of_many_steps_reaches_the_value_though_a_ring_holds_15(
+    tmp_path: Path,
+) -> None:
+    """grblHAL queues override bytes in rings of 16 slots (15 usable; feed and rapid share
+    one) and drops a byte that finds its ring full (override.c:35-43, protocol.c:941-960):
+    the 19 bytes of 100 to 199 or to 11, read in one USB packet, lost their last ones."""
+    async with grbl_bench(tmp_path, HAL) as bench:
+        board = bench.board.board
+        for feed, rapid, spindle in ((199, 25, 11), (11, 100, 199)):
+            got = await operations.override(bench.machine, feed, rapid, spindle)
+            assert got == {"feed": feed, "spindle": spindle, "rapid": rapid}
+            assert (board.feed_ovr, board.rapid_ovr, board.spindle_ovr) == (feed, rapid, spindle)
+        assert board.ovr_dropped == 0
+
+
 async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(
     tmp_path: Path,
 ) -> None:

@@ -16,6 +16,7 @@ from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.session import (
     BANNER_WAIT,
+    OVERRIDE_ROUNDS,
     STOP_TIMEOUT,
     STORAGE_QUIET,
     GrblSession,
@@ -76,10 +77,15 @@ class Grbl:
         report: str = "<Idle|MPos:0.000,0.000,0.000|FS:0,0>",
         settings: tuple[str, ...] = (),
         startup: tuple[str, str] = ("", ""),
+        hal: bool = False,
     ) -> None:
         self.session.open()
-        self.feed("", "Grbl 1.1h ['$' for help]")
-        self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
+        if hal:  # grblHAL on native USB: no banner; `$I` says what it is
+            self.at(self.now + BANNER_WAIT)
+            self.feed("[VER:1.1f.20240101:]", f"[OPT:{opt}]", "[FIRMWARE:grblHAL]", "ok")
+        else:
+            self.feed("", "Grbl 1.1h ['$' for help]")
+            self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
         self.feed("$32=1", "$110=500.000", "$130=300.000", *settings, "ok")
         self.feed(f"$N0={startup[0]}", f"$N1={startup[1]}", "ok")
         self.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
@@ -775,74 +781,153 @@ def test_the_homing_bound_needs_the_feeds_and_a_travel() -> None:
         assert bound is None or math.isfinite(bound)
 
 
-def test_an_override_is_a_reset_then_steps_of_ten_then_of_one() -> None:
-    grbl = Grbl()
-    grbl.connect()
-    grbl.session.override(feed=123, rapid=25, spindle=85)
-    assert (
-        grbl.pump()
-        == [
-            (Lane.REALTIME, b)
-            for b in (
-                b"\x90",
-                b"\x91",
-                b"\x91",
-                b"\x93",
-                b"\x93",
-                b"\x93",
-                b"\x97",
-                b"\x99",
-                b"\x9b",
-            )
-        ]
-        + [(Lane.REALTIME, b"\x9d")] * 5
-        + [(Lane.REALTIME, b"?")]  # behind the bytes: what is in force now
-    )
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:123,25,85>")
-    assert grbl.session.model.overrides == {"feed": 123, "rapid": 25, "spindle": 85}
-    assert grbl.session.override_answers == 1
+def ov(values: str, extra: str = "") -> str:
+    """A report with `Ov:` (feed, rapid, spindle), as one after an override change."""
+    return f"<Idle|MPos:0.000,0.000,0.000|FS:0,0{extra}|Ov:{values}>"
 
 
-def test_an_override_report_read_before_the_bytes_acted_is_asked_again() -> None:
-    """grblHAL over USB answers a `?` that came in the bytes' packet before it acts on
-    them (protocol.c protocol_exec_rt_system): that `Ov:` shows the old values."""
+def rt(*data: bytes) -> list[tuple[Lane, bytes]]:
+    return [(Lane.REALTIME, b) for b in data]
+
+
+def test_a_classic_override_round_is_one_byte_of_a_kind_then_steps_from_the_report() -> None:
+    """Classic grbl applies one flag bit per kind a pass (gnea/grbl protocol.c:405-452):
+    a round writes a reset, one step of ten and one of one; the next rounds step from
+    what a report said, until it says what was asked."""
     grbl = Grbl()
     grbl.connect()
-    grbl.session.override(feed=150, spindle=80)
-    assert grbl.pump()[-1] == (Lane.REALTIME, b"?")
-    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>") == [
-        (Lane.REALTIME, b"?")
-    ]
-    assert grbl.session.override_answers == 0  # not the answer yet
-    # A report without `Ov:` says nothing about the overrides: no ask spent on it.
-    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0>") == []
-    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:150,100,80>") == []
+    grbl.session.override(feed=112, rapid=25, spindle=98)
+    assert grbl.pump() == rt(b"\x97", b"\x90", b"\x91", b"\x93", b"\x99", b"\x9d", b"?")
+    # Its report may have been read in the bytes' pass, answered before they acted.
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.session.override_answers == 0
+    # Asked after that one arrived: it postdates them. The next round starts from it.
+    assert grbl.feed(ov("111,25,99")) == rt(b"\x93", b"\x9d", b"?")
+    assert grbl.feed(ov("111,25,99")) == rt(b"?")
+    assert grbl.session.override_answers == 0
+    assert grbl.feed(ov("112,25,98")) == []
     assert grbl.session.override_answers == 1
-    assert grbl.session.model.overrides == {"feed": 150, "rapid": 100, "spindle": 80}
+    assert grbl.session.model.overrides == {"feed": 112, "rapid": 25, "spindle": 98}
+    assert grbl.feed(ov("112,25,98")) == [] and grbl.session.override_answers == 1
     # Only the values asked are compared: rapid was not, and stays the board's.
-    grbl.session.override(rapid=25)
-    grbl.pump()
-    assert grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:150,25,80>") == []
-    assert grbl.session.override_answers == 2
+    grbl.session.override(spindle=99)
+    assert grbl.pump() == rt(b"\x99", b"\x9d", b"?")
+    assert grbl.feed(ov("112,25,98")) == rt(b"?")
+    assert grbl.feed(ov("112,25,99")) == [] and grbl.session.override_answers == 2
 
 
-def test_overrides_the_board_never_shows_are_asked_twice_then_answered_as_it_says() -> None:
+def test_an_override_is_not_answered_by_a_report_that_may_predate_its_bytes() -> None:
+    """The board already at 150: the report read with the bytes says 150, but the reset
+    and "+10" then act (110). The answer waits for a report asked after it."""
+    grbl = Grbl()
+    grbl.connect(report=ov("150,100,100"))
+    grbl.session.override(feed=150)
+    assert grbl.pump() == rt(b"\x90", b"\x91", b"?")
+    assert grbl.feed(ov("150,100,100")) == rt(b"?")
+    assert grbl.session.override_answers == 0
+    assert grbl.feed(ov("110,100,100")) == rt(b"\x91", b"?")
+    for feed in (120, 130, 140):
+        assert grbl.feed(ov(f"{feed - 10},100,100")) == rt(b"?")
+        assert grbl.feed(ov(f"{feed},100,100")) == rt(b"\x91", b"?")
+    assert grbl.feed(ov("140,100,100")) == rt(b"?")
+    assert grbl.feed(ov("150,100,100")) == []
+    assert grbl.session.override_answers == 1
+
+
+def test_an_override_written_while_a_request_is_out_reads_one_report_more() -> None:
+    """A `?` unanswered when the bytes go may be answered first, before they arrive:
+    then the report read with them, then one that surely follows them."""
+    grbl = Grbl()
+    grbl.connect(report=ov("150,100,100"))
+    grbl.session.send("?", "client")
+    assert grbl.pump() == rt(b"?")
+    grbl.session.override(feed=150)
+    assert grbl.pump() == rt(b"\x90", b"\x91", b"?")
+    assert grbl.feed(ov("150,100,100")) == rt(b"?")  # the client's
+    assert grbl.feed(ov("150,100,100")) == rt(b"?")  # read with the bytes
+    assert grbl.session.override_answers == 0
+    assert grbl.feed(ov("110,100,100")) == rt(b"\x91", b"?")
+
+
+def test_a_grblhal_override_round_is_what_its_rings_hold() -> None:
+    """grblHAL queues override bytes in rings of 15 (override.c:35-43), feed and rapid in
+    one (protocol.c:941-950), and drops what does not fit: 100 to 199 is 19 bytes."""
+    grbl = Grbl()
+    grbl.connect(opt="VNMHSL,35,1024,3,0", hal=True)
+    assert grbl.session.flavour == "GrblHAL"  # from `$I`, no banner
+    grbl.session.override(feed=199, rapid=25, spindle=11)
+    first = grbl.pump()
+    motion = [b"\x97", b"\x90", *[b"\x91"] * 9, *[b"\x93"] * 4]
+    accessory = [b"\x99", *[b"\x9b"] * 8, *[b"\x9d"] * 6]
+    assert first == rt(*motion, *accessory, b"?")
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.feed(ov("194,25,14")) == rt(*[b"\x93"] * 5, *[b"\x9d"] * 3, b"?")
+    assert grbl.feed(ov("194,25,14")) == rt(b"?")
+    assert grbl.feed(ov("199,25,11")) == []
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 199, "rapid": 25, "spindle": 11}
+
+
+def test_an_override_the_board_stops_moving_towards_is_answered_as_it_says() -> None:
     """A board that keeps other values (a grblHAL built with MAX_FEED_RATE_OVERRIDE 120
-    clamps 150 to 120, grbl.h): two more `?`, then the answer is the board's 120."""
+    clamps there, grbl.h): once a round brings nothing nearer, the answer is its 120.
+    A report with no `Ov:` says no value changed (report.c:615-619), unless it shows
+    WCO: classic grbl then puts `Ov:` in the next one (report.c:608)."""
     grbl = Grbl()
     grbl.connect()
     grbl.session.override(feed=150)
     grbl.pump()
-    asks = grbl.realtime().count(b"?")
-    clamped = "<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:120,100,100>"
-    for _ in range(2):
-        assert grbl.feed(clamped) == [(Lane.REALTIME, b"?")]
-        assert grbl.session.override_answers == 0
-    assert grbl.feed(clamped) == []  # the bound: no third ask
-    assert grbl.realtime().count(b"?") == asks + 2
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.feed(ov("110,100,100")) == rt(b"\x91", b"?")
+    assert grbl.feed(ov("110,100,100")) == rt(b"?")
+    wco = "<Idle|MPos:0.000,0.000,0.000|FS:0,0|WCO:0.000,0.000,0.000>"
+    assert grbl.feed(wco) == rt(b"?")  # `Ov:` is due next
+    assert grbl.feed(ov("120,100,100")) == rt(b"\x91", b"?")
+    assert grbl.feed(IDLE) == rt(b"?")
+    assert grbl.feed(IDLE) == []  # no `Ov:`, no WCO: still 120, no nearer
     assert grbl.session.override_answers == 1
     assert grbl.session.model.overrides == {"feed": 120, "rapid": 100, "spindle": 100}
-    assert grbl.feed(clamped) == [] and grbl.session.override_answers == 1  # answered once
+    assert grbl.feed(ov("120,100,100")) == [] and grbl.session.override_answers == 1
+
+
+def test_an_override_gives_up_after_its_bound_of_rounds() -> None:
+    """A board that moves, but by one a round (not a board's way, but a bound is one),
+    is answered after OVERRIDE_ROUNDS rounds with what it said last."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=200)
+    assert grbl.pump() == rt(b"\x90", b"\x91", b"?")
+    rounds = 1
+    feed = 100
+    while True:
+        assert grbl.feed(ov(f"{feed},100,100")) == rt(b"?")
+        feed += 1
+        out = grbl.feed(ov(f"{feed},100,100"))
+        if not out:
+            break
+        assert out[0] == (Lane.REALTIME, b"\x91") and out[-1] == (Lane.REALTIME, b"?")
+        rounds += 1
+    assert rounds == OVERRIDE_ROUNDS == 20
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 120, "rapid": 100, "spindle": 100}
+
+
+def test_an_override_under_way_when_the_board_resets_is_answered_with_its_100() -> None:
+    """A reset sets every override to 100 (protocol.c; grblHAL flushes its rings): no more
+    rounds, and the first report after it is the answer."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.override(feed=150)
+    grbl.pump()
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    grbl.feed("", "Grbl 1.1h ['$' for help]")
+    grbl.feed("$N0=", "$N1=", "ok")
+    grbl.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
+    written = len(grbl.realtime())
+    grbl.feed(ov("100,100,100"))
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 100, "rapid": 100, "spindle": 100}
+    assert not [b for b in grbl.realtime()[written:] if b != b"?"]  # no override byte
 
 
 def test_an_override_waiting_for_its_report_is_forgotten_with_the_link() -> None:

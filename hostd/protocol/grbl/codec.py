@@ -51,17 +51,21 @@ CLASSIC_RX_BUFFER = 128  # grbl 1.1's serial receive buffer (gnea/grbl config.h)
 CLASSIC_BLOCKS = 15  # grbl 1.1's planner (BLOCK_BUFFER_SIZE on the 328p)
 
 
-def override_steps(percent: int, what: str) -> list[bytes]:
-    """The bytes that take a feed or spindle override from anywhere to `percent`."""
+def override_steps(percent: int, what: str, start: int | None = None) -> list[bytes]:
+    """The bytes that take a feed or spindle override to `percent`: from `start`, the
+    value the board last reported, or (None) from anywhere, by a reset to 100 first;
+    then steps of ten, then of one, all towards `percent`, so that no step leaves
+    10..200 (the board would clamp it, protocol.c)."""
     low, high = OVERRIDE_RANGE
     if not low <= percent <= high:
         raise InvalidCommand(
             Refusal.BAD_NUMBER, f"a {what} override is {low} to {high} percent, not {percent}"
         )
-    tens, ones = divmod(abs(percent - 100), 10)
-    sign = "plus" if percent >= 100 else "minus"
+    origin = 100 if start is None else start
+    tens, ones = divmod(abs(percent - origin), 10)
+    sign = "plus" if percent >= origin else "minus"
     return [
-        OVERRIDES[f"{what}_reset"],
+        *([OVERRIDES[f"{what}_reset"]] if start is None else []),
         *[OVERRIDES[f"{what}_{sign}_10"]] * tens,
         *[OVERRIDES[f"{what}_{sign}_1"]] * ones,
     ]
@@ -101,7 +105,7 @@ class Alarm:
 class Welcome:
     """`Grbl 1.1h ['$' for help]` or `GrblHAL 1.1f ['$' or '$HELP' for help]`: after a reset."""
 
-    flavour: str  # "grbl" or "grblHAL"
+    flavour: str  # "Grbl" or "GrblHAL"
     version: str
 
 

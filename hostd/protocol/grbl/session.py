@@ -53,6 +53,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from enum import Enum, auto
 from typing import Any
 
@@ -114,8 +115,18 @@ BANNER_WAIT = 2.0  # s: an Arduino's bootloader runs ~1.5 s before grbl prints i
 # read with the `!` predates it (protocol.c), and a `~` kept back waits for Hold:0.
 SETTLE_POLL = 0.02
 RESUME_ASKS = 3  # `?`s after a `~` while reports still say Hold (`_cycle_start`)
-# `?`s more after an override while its `Ov:` reports do not show it yet (`override`)
+# `?`s more after an override round while a report that postdates its bytes carries no
+# `Ov:` and one may be due next (classic grbl defers it a report behind `WCO:`)
 OVERRIDE_ASKS = 2
+# Override rounds at most (`override`): the first, from a reset to 100, then steps from
+# what the board reported. Classic grbl takes one byte of a kind a pass, so a round moves
+# a feed or spindle override by one step of ten and one of one: 100 to any of 10..200 is
+# at most 10 rounds, and any value to any other at most 19 (190 = 19 steps of ten);
+# grblHAL takes 15 a ring a pass (the 19 bytes of 100 to 199 or 11: two rounds).
+OVERRIDE_ROUNDS = 20
+# grblHAL's override rings (override.h OVERRIDE_BUFSIZE 16, override.c:37-42: a byte
+# arriving at a full ring is dropped): 15 usable. Feed and rapid share one (protocol.c:941-950).
+OVERRIDE_RING = 15
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
 SILENT_QUERIES = 3  # `?`s unanswered in a silence before the link is given up
 # s of silence allowed on top of `link_silence` while a line writes EEPROM or flash: an
@@ -145,6 +156,25 @@ class _Own(OwnLine, Enum):
     MODES = auto()  # $G: [GC:...]
 
 
+@dataclass(slots=True)
+class _Rounds:
+    """A machine.override under way (`GrblSession.override`): what was asked, and its
+    rounds so far."""
+
+    wanted: dict[str, int]  # percent: feed, rapid, spindle, those asked
+    rounds: int = 0  # rounds written
+    hops: int = 0  # reports to read before one surely postdates the last round's bytes
+    asks: int = 0  # `?`s left while such a report carries no `Ov:`
+    gap: int | None = None  # how far from `wanted` the last round found the board
+    final: bool = False  # the board was reset: the next `Ov:` is the answer
+
+    def gap_to(self, now: dict[str, float]) -> int | None:
+        """How far `now` is from the values asked (None: a value was never reported)."""
+        if any(what not in now for what in self.wanted):
+            return None
+        return sum(abs(round(now[what]) - percent) for what, percent in self.wanted.items())
+
+
 class GrblSession(GrblWords, SessionBase):
     def __init__(
         self,
@@ -168,7 +198,7 @@ class GrblSession(GrblWords, SessionBase):
         self.link_silence = link_silence  # s without a byte (and SILENT_QUERIES `?`): gone
         self.homing_timeout = homing_timeout  # None: the bound the settings give
         self.handshake_timeout = handshake_timeout
-        self.flavour: str | None = None  # "grbl" or "grblHAL"
+        self.flavour: str | None = None  # "Grbl" or "GrblHAL", as its banner or `$I` says
         self.version: str | None = None
         self.rx_size = codec.CLASSIC_RX_BUFFER
         self.blocks = codec.CLASSIC_BLOCKS
@@ -192,8 +222,7 @@ class GrblSession(GrblWords, SessionBase):
         self._hold_settling = False
         self._start_pending = False  # a `~` kept back until the hold completes
         self._resume_asks = 0  # `?`s left to ask while reports say Hold after our `~`
-        self._override_wanted: dict[str, float] | None = None  # asked, not yet answered
-        self._override_asks = 0  # `?`s left to ask while `Ov:` does not show it
+        self._override: _Rounds | None = None  # machine.override, not yet answered
         self._resetting = False  # 0x18 written: the banner is next
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
@@ -257,51 +286,114 @@ class GrblSession(GrblWords, SessionBase):
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
-        """The override bytes (grbl.h CMD_OVERRIDE_*): from 100%, in steps of 10 then 1,
-        then a `?` whose answer, or one after it, says what is in force.
+        """The override bytes (grbl.h CMD_OVERRIDE_*), by rounds, each followed by `?`s,
+        until a report shows the values asked; then `override_answers` counts up.
 
-        grbl's overrides are relative steps; an absolute percentage is a reset
-        to 100 then the steps to it, all realtime bytes, taken in any state.
+        grbl's overrides are relative steps; an absolute percentage is a reset to
+        100 then steps of 10 and of 1, all realtime bytes, taken in any state.
         Rapid has three settings: 100, 50 and 25; feed and spindle are refused
-        outside 10..200, the firmware's own bounds, so a board that takes the
-        bytes reports exactly the values asked.
+        outside 10..200, the firmware's own bounds.
 
-        A `?` read with the bytes is answered before they act (gnea/grbl protocol.c
-        protocol_exec_rt_system: the status report at :250-253, the overrides from
-        :405; grblHAL protocol.c: the report at :604-605, the overrides from :629),
-        which on grblHAL over USB, a packet at a time, is the rule: an `Ov:` that
-        does not show the values asked yet is asked again (`_override_seen`), up to
-        OVERRIDE_ASKS times. Then `override_answers` counts up, whatever the last
-        `Ov:` said: the answer is the board's, never the values asked.
+        Neither firmware takes many at once. Classic grbl keeps one flag bit per
+        kind (serial.c:167-181), applied once a main-loop pass (protocol.c:405-452):
+        a reset and five "+10" that arrive within one pass make 110, not 150.
+        grblHAL queues them in 16-slot rings (override.c:35-43), feed and rapid in
+        one (protocol.c:941-950), and drops a byte that finds its ring full: the
+        19 bytes of 100 to 199 lose their last. So a round writes what one pass
+        takes (classic: one byte of a kind; grblHAL: OVERRIDE_RING a ring), the
+        first from a reset, the next ones from what a report said, up to
+        OVERRIDE_ROUNDS (`_Rounds`, `_override_round`).
+
+        A `?` read in the same pass as the bytes is answered before they act
+        (gnea/grbl protocol.c:250-253 before :405; grblHAL protocol.c:604-605
+        before :629): the next round, or the answer, comes from a report asked
+        after the one that answered that `?` (`_override_seen`). A round that
+        brings no value nearer ends it: the answer is then what the board said,
+        with a warning, never the values asked.
         """
         self._require_open()
-        out: list[bytes] = []
+        wanted: dict[str, int] = {}
         if feed is not None:
-            out += codec.override_steps(feed, "feed")
+            codec.override_steps(feed, "feed")  # refuses a value outside 10..200
+            wanted["feed"] = feed
         if rapid is not None:
-            out.append(codec.rapid_override(rapid))
+            codec.rapid_override(rapid)
+            wanted["rapid"] = rapid
         if spindle is not None:
-            out += codec.override_steps(spindle, "spindle")
-        self._out += [(Lane.REALTIME, b) for b in out]
-        asked = {"feed": feed, "rapid": rapid, "spindle": spindle}
-        self._override_wanted = {k: float(v) for k, v in asked.items() if v is not None}
-        self._override_asks = OVERRIDE_ASKS
+            codec.override_steps(spindle, "spindle")
+            wanted["spindle"] = spindle
+        self._override = _Rounds(wanted)
+        self._override_round(None)
+
+    def _override_round(self, now: dict[str, float] | None) -> None:
+        """One round's bytes (see `override`), then a `?`: from a reset when `now`, the
+        values the board last reported, is None (the first round), else steps from them.
+
+        The bytes are realtime: they go now, whatever line waits. The report that
+        answers the round's `?` may predate them, as may one that answers an older
+        `?` still unanswered: `hops` reports are read, a `?` asked after each,
+        before one surely postdates them.
+        """
+        rounds = self._override
+        assert rounds is not None
+        wanted = rounds.wanted
+        motion: list[bytes] = []  # feed and rapid: one ring on grblHAL
+        accessory: list[bytes] = []
+        if "rapid" in wanted and (now is None or now.get("rapid") != wanted["rapid"]):
+            motion.append(codec.rapid_override(wanted["rapid"]))
+        for what, ring in (("feed", motion), ("spindle", accessory)):
+            if what not in wanted:
+                continue
+            value = None if now is None else now.get(what)
+            start = None if value is None else int(value)
+            if start is None or start != wanted[what]:
+                ring += codec.override_steps(wanted[what], what, start)
+        if self.flavour == "GrblHAL":
+            motion, accessory = motion[:OVERRIDE_RING], accessory[:OVERRIDE_RING]
+        else:  # one byte of a kind; in the order protocol.c applies them (reset, 10s, 1s)
+            motion, accessory = list(dict.fromkeys(motion)), list(dict.fromkeys(accessory))
+        self._out += [(Lane.REALTIME, b) for b in motion + accessory]
+        rounds.rounds += 1
+        rounds.hops = 2 if self._asked_at is None else 3
+        rounds.asks = OVERRIDE_ASKS
         self._ask_report()
 
-    def _override_seen(self) -> None:
-        """A report with `Ov:` while an override waits for its answer (`override`)."""
-        wanted = self._override_wanted
-        if wanted is None:
+    def _override_seen(self, report: codec.StatusReport, fresh: bool) -> None:
+        """A report while an override's rounds run (`override`); `fresh`: it has `Ov:`."""
+        rounds = self._override
+        assert rounds is not None
+        rounds.hops -= 1
+        if rounds.hops > 0:
+            self._ask_report()  # this report may predate the round's bytes: ask again
             return
-        now = self.model.overrides or {}
-        differ = any(now.get(k) != v for k, v in wanted.items())
-        if differ and self._override_asks:
-            self._override_asks -= 1  # this report may predate the bytes: ask again
+        now = self.model.overrides
+        if not fresh and rounds.asks and (now is None or "WCO" in report.fields):
+            # No `Ov:`: with no change since the last one the board sends none for up
+            # to 20 reports (report.c:615-619), but classic grbl also defers one a
+            # report when it prints WCO (report.c:608): ask again.
+            rounds.asks -= 1
+            rounds.hops = 1
             self._ask_report()
             return
-        if differ:
-            self._log.warning("overrides not as asked", asked=wanted, reported=now)
-        self._override_wanted = None
+        gap = None if now is None else rounds.gap_to(now)
+        why = None
+        if gap == 0:
+            pass
+        elif gap is None:
+            why = "the board reports no overrides"
+        elif rounds.final:
+            why = "the controller was reset meanwhile"
+        elif rounds.gap is not None and gap >= rounds.gap:
+            why = "the last round brought them no nearer"
+        elif rounds.rounds >= OVERRIDE_ROUNDS:
+            why = f"not there after {OVERRIDE_ROUNDS} rounds"
+        else:
+            rounds.gap = gap
+            self._override_round(now)
+            return
+        if why is not None:
+            self._log.warning("overrides not as asked", asked=rounds.wanted, reported=now, why=why)
+        self._override = None
         self.override_answers += 1
 
     def safety_door(self) -> None:
@@ -378,7 +470,7 @@ class GrblSession(GrblWords, SessionBase):
         self._resetting = False
         self._held = None
         self._forget_holds()
-        self._override_wanted = None  # machine.override sees the link go down
+        self._override = None  # machine.override sees the link go down
         self._forget(NotConnected(f"link lost: {reason}"))
         self._end_stream_on_close(reason, restarted)
         self._out.clear()
@@ -574,8 +666,8 @@ class GrblSession(GrblWords, SessionBase):
                 self._poll_soon()
         elif self._resume_asks:
             self._resume_seen(report)
-        if self.model.override_reports != ov_reports:
-            self._override_seen()
+        if self._override is not None:
+            self._override_seen(report, self.model.override_reports != ov_reports)
         self._track_executed(fields)
         self._events.append(Reported(fields, self.model.snapshot()))
         waiters, self._report_waiters = self._report_waiters, []
@@ -696,6 +788,11 @@ class GrblSession(GrblWords, SessionBase):
         # A reset: ours (a cancel, machine.reset) or the board's own. It forgot every line.
         ours = self._resetting
         self._resetting = False
+        if self._override is not None:
+            # The reset set every override to 100 (and grblHAL flushed its rings,
+            # protocol.c:595): no more rounds; the next report's `Ov:` is the answer.
+            self._override.final = True
+            self._override.hops = 1
         self._needs_reset = None
         self._stopping = None
         self._held = None
@@ -723,6 +820,8 @@ class GrblSession(GrblWords, SessionBase):
             parts = msg.text.split(",")
             if len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit():
                 self.blocks, self.rx_size = int(parts[1]), int(parts[2])
+        elif msg.kind == "FIRMWARE" and msg.text == "grblHAL":
+            self.flavour = "GrblHAL"  # `$I` (report.c:1076): a native USB port prints no banner
         elif msg.kind == "MSG":
             self._job_log().info("controller message", msg=msg.text)
         self._said.append(text)

@@ -90,6 +90,7 @@ class GrblBoard:
         self.touch_plate: TouchPlate | None = None  # on the work, wired to the probe pin
         self.touch_reads = 0  # the operator holds the plate to the bit for this many `?`
         self.rx_dropped = 0  # bytes lost to a full receive ring, ever
+        self.ovr_dropped = 0  # HAL: override bytes lost to a full override ring, ever
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
         self.status_ignored = False  # `?` is not answered (reports stop), lines still are
@@ -216,7 +217,12 @@ class GrblBoard:
 
     def receive(self, data: bytes) -> None:
         """Bytes from the host: realtime ones act now (or after the read's report:
-        `GrblConfig.report_first`), the rest queue or are lost."""
+        `GrblConfig.report_first`), the rest queue or are lost.
+
+        One read is one pass of the main loop for the overrides: those it brings
+        act together (`realtime.overrides`: classic grbl's flag bits count two alike
+        as one, grblHAL's rings drop what does not fit), after the read's report
+        with `report_first`, else before a `?` behind them (it came a pass later)."""
         if self._deaf_until is not None:
             if self.hal:
                 self._held += data  # USB: the host's bytes wait until the write is over
@@ -228,12 +234,22 @@ class GrblBoard:
         # `?` is answered, in the order they came; a reset or a jog cancel at once, after
         # those before it.
         later: list[int] | None = [] if self.config.reports_first else None
+        passing: list[int] = []  # this pass's override bytes
         for byte in data:
             if byte == realtime.STATUS and (self.status_lost or self.status_ignored):
                 self.status_lost = max(self.status_lost - 1, 0)
                 continue
-            if byte in realtime.REALTIME:
+            if byte in realtime.OVERRIDES:
+                passing.append(byte)
+            elif byte in realtime.REALTIME:
+                if byte == realtime.RESET:
+                    # Lost: gnea/grbl main.c:84-85 clears the flags, grblHAL
+                    # protocol.c:595 flushes the rings (flush_override_buffers).
+                    passing.clear()
                 if later is None or byte == realtime.STATUS:
+                    if later is None and byte == realtime.STATUS:
+                        realtime.overrides(self, passing)
+                        passing.clear()
                     self.realtime(byte)
                 elif byte in (realtime.RESET, realtime.JOG_CANCEL):
                     self._act_on(later)
@@ -248,6 +264,7 @@ class GrblBoard:
                 self.rx.append(byte)
         if later:
             self._act_on(later)
+        realtime.overrides(self, passing)
 
     def _act_on(self, later: list[int]) -> None:
         """The realtime characters kept back in this read, now, and forgotten."""

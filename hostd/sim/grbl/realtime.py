@@ -23,6 +23,10 @@ FEED_OVR = range(0x90, 0x95)
 RAPID_OVR = range(0x95, 0x98)
 SPINDLE_OVR = range(0x99, 0x9F)
 COOLANT_OVR = (0xA0, 0xA1)
+OVERRIDES = frozenset({*FEED_OVR, *RAPID_OVR, *SPINDLE_OVR, *COOLANT_OVR})
+# grblHAL's override rings: override.h OVERRIDE_BUFSIZE 16, and override.c:37-42 keeps a
+# slot free (`bptr != feed.tail`), so 15 fit; a byte arriving at a full one is dropped.
+HAL_RING = 15
 REALTIME = frozenset(
     {RESET, STATUS, HOLD, CYCLE_START, DOOR, JOG_CANCEL, 0xA0, 0xA1}
     | set(FEED_OVR)
@@ -49,8 +53,8 @@ def command(board: GrblBoard, char: int) -> None:
             door_event(board)
     elif char == JOG_CANCEL:
         _jog_cancel(board, now)
-    elif char in FEED_OVR or char in RAPID_OVR or char in SPINDLE_OVR or char in COOLANT_OVR:
-        _override(board, char)
+    elif char in OVERRIDES:
+        overrides(board, [char])
 
 
 def _feed_hold(board: GrblBoard, now: float) -> None:
@@ -115,22 +119,92 @@ def _jog_cancel(board: GrblBoard, now: float) -> None:
         board.state = "Idle"
 
 
-def _override(board: GrblBoard, char: int) -> None:
-    if char in FEED_OVR:
-        steps = {0x90: None, 0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}
-        step = steps[char]
-        board.feed_ovr = 100 if step is None else min(max(board.feed_ovr + step, 10), 200)
-    elif char in RAPID_OVR:
-        board.rapid_ovr = {0x95: 100, 0x96: 50, 0x97: 25}[char]
-    elif char == 0x9E:
-        pass  # spindle stop: only in Hold with the spindle on; not modelled
-    elif char in SPINDLE_OVR:
-        steps = {0x99: None, 0x9A: 10, 0x9B: -10, 0x9C: 1, 0x9D: -1}
-        step = steps[char]
-        board.spindle_ovr = 100 if step is None else min(max(board.spindle_ovr + step, 10), 200)
-    elif char == 0xA0:
-        board.flood = not board.flood
-    elif char == 0xA1:
-        board.mist = not board.mist
+def overrides(board: GrblBoard, chars: list[int]) -> None:
+    """The override bytes that reached the board within one main-loop pass, in order.
+
+    Classic grbl's receive interrupt only sets a flag bit per kind (serial.c:167-181,
+    system.c:384-396) and protocol_exec_rt_system applies the flags once a pass
+    (protocol.c:405-452): two "+10" in one pass are one. Its arithmetic is uint8_t,
+    clamped after all the flags (protocol.c:411-417). grblHAL queues each byte in a
+    ring of 15, feed and rapid sharing one, spindle and coolant one each
+    (protocol.c:941-960, override.c:35-105), drops what finds its ring full, and
+    applies every queued byte in the pass, clamping after each (protocol.c:631-722).
+    Either reports `Ov:` in the next report only when a value changed (protocol.c:427,
+    :452; grblHAL planner.c:782-787).
+    """
+    if not chars:
+        return
+    if board.hal:
+        _hal_overrides(board, chars)
+    else:
+        _classic_overrides(board, set(chars))
+    # Coolant toggles: a flag bit each on classic grbl (once a pass), a ring on grblHAL.
+    coolant = [c for c in chars if c in COOLANT_OVR]
+    for char in set(coolant) if not board.hal else coolant[:HAL_RING]:
+        if char == 0xA0:
+            board.flood = not board.flood
+        else:
+            board.mist = not board.mist
+    if coolant:
+        _report_overrides(board)
+
+
+def _classic_overrides(board: GrblBoard, flags: set[int]) -> None:
+    feed, rapid = board.feed_ovr, board.rapid_ovr
+    if 0x90 in flags:
+        feed = 100
+    for char, step in ((0x91, 10), (0x92, -10), (0x93, 1), (0x94, -1)):
+        if char in flags:
+            feed = (feed + step) & 0xFF  # uint8_t new_f_override
+    feed = max(min(feed, 200), 10)
+    for char, value in ((0x95, 100), (0x96, 50), (0x97, 25)):
+        if char in flags:
+            rapid = value
+    if (feed, rapid) != (board.feed_ovr, board.rapid_ovr):
+        board.feed_ovr, board.rapid_ovr = feed, rapid
+        _report_overrides(board)
+    spindle = board.spindle_ovr
+    if 0x99 in flags:
+        spindle = 100
+    for char, step in ((0x9A, 10), (0x9B, -10), (0x9C, 1), (0x9D, -1)):
+        if char in flags:
+            spindle = (spindle + step) & 0xFF
+    spindle = max(min(spindle, 200), 10)
+    if spindle != board.spindle_ovr:
+        board.spindle_ovr = spindle
+        _report_overrides(board)
+    # 0x9E, spindle stop: only in Hold with the spindle on; not modelled.
+
+
+def _hal_overrides(board: GrblBoard, chars: list[int]) -> None:
+    motion = [c for c in chars if c in FEED_OVR or c in RAPID_OVR]
+    accessory = [c for c in chars if c in SPINDLE_OVR]
+    board.ovr_dropped += max(len(motion) - HAL_RING, 0) + max(len(accessory) - HAL_RING, 0)
+    feed, rapid = board.feed_ovr, board.rapid_ovr
+    for char in motion[:HAL_RING]:
+        if char == 0x90:
+            feed = 100
+        elif char in (0x91, 0x92, 0x93, 0x94):
+            feed += {0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}[char]
+        else:
+            rapid = {0x95: 100, 0x96: 50, 0x97: 25}[char]
+        feed = max(min(feed, 200), 10)
+    if (feed, rapid) != (board.feed_ovr, board.rapid_ovr):
+        board.feed_ovr, board.rapid_ovr = feed, rapid
+        _report_overrides(board)
+    spindle = board.spindle_ovr
+    for char in accessory[:HAL_RING]:
+        if char == 0x99:
+            spindle = 100
+        elif char != 0x9E:  # spindle stop: only in Hold with the spindle on; not modelled
+            spindle += {0x9A: 10, 0x9B: -10, 0x9C: 1, 0x9D: -1}[char]
+        spindle = max(min(spindle, 200), 10)
+    if spindle != board.spindle_ovr:
+        board.spindle_ovr = spindle
+        _report_overrides(board)
+
+
+def _report_overrides(board: GrblBoard) -> None:
+    """`Ov:` in the next report (classic report_ovr_counter = 0; HAL Report_Overrides)."""
     board._report_flags.add("overrides")
     board._ovr_counter = 0

@@ -442,11 +442,50 @@ async def test_grblhal_reports_before_the_overrides_read_with_the_request_act(
     assert "|Ov:120,50,100" in await hal_host.status()  # the next report shows them
 
 
-async def test_classic_grbl_acts_on_overrides_as_they_arrive(classic_host: GrblHost) -> None:
-    """A UART brings a byte at a time: each is acted on before the `?` behind it."""
+async def test_classic_grbl_counts_alike_overrides_read_together_once(
+    classic_host: GrblHost,
+) -> None:
+    """The receive interrupt sets one flag bit per kind and the main loop applies them once
+    a pass (serial.c:167-181, protocol.c:405-452): a reset, three "+10" and two "+1" read
+    together make 111. A `?` behind them came a pass later (a UART brings a byte at a
+    time): it reports them. Read apart, each acts."""
     await classic_host.status()
-    classic_host.send(b"\x91\x91\x96?")
-    assert "|Ov:120,50,100" in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+    classic_host.send(b"\x90\x91\x91\x91\x93\x93\x96?")
+    assert "|Ov:111,50,100" in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+    for feed in (121, 131):
+        classic_host.send(b"\x91?")
+        assert f"|Ov:{feed},50,100" in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+
+
+async def test_classic_grbl_reports_no_ov_for_overrides_that_change_nothing(
+    classic_host: GrblHost,
+) -> None:
+    """`Ov:` is forced into the next report only when a value changed (protocol.c:427,
+    :452); otherwise it comes when report.c's counter runs out (one in 10 at rest)."""
+    await classic_host.status()
+    assert "|Ov:" in await classic_host.status()
+    classic_host.send(b"\x90\x95\x99?")  # all at 100 already
+    assert "|Ov:" not in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+    classic_host.send(b"\x94?")
+    assert "|Ov:99,100,100" in (await classic_host.until(lambda s: s.startswith("<")))[-1]
+
+
+async def test_grblhal_drops_override_bytes_that_find_their_ring_full(tmp_path: Path) -> None:
+    """Rings of 16 slots, 15 usable (override.h, override.c:35-43), feed and rapid in one,
+    spindle in another (protocol.c:941-960), emptied once a pass: of 20 feed bytes read
+    together the last 5 are lost, and the 15 spindle bytes all fit."""
+    async with Board(tmp_path, HAL) as (sim, host):
+        await host.status()
+        # Rapid 25, 19 of "+1", 15 of spindle "+1", and a `?`: one write, one read. The
+        # report comes first (report_first); the next one shows them.
+        host.send(b"\x97" + b"\x93" * 19 + b"\x9c" * 15 + b"?")
+        await host.until(lambda s: s.startswith("<"))
+        assert "|Ov:114,25,115" in await host.status()
+        assert sim.board.ovr_dropped == 5
+        host.send(b"\x93" * 5 + b"?")  # the ring is empty again: all five fit
+        await host.until(lambda s: s.startswith("<"))
+        assert "|Ov:119,25,115" in await host.status()
+        assert sim.board.ovr_dropped == 5
 
 
 async def test_grblhal_answers_a_request_read_with_its_resume_still_holding(
