@@ -77,7 +77,7 @@ def admit(
 ) -> Status | None:
     """None if the command may be written in this state, else the rejection status.
 
-    `table` is a dialect's (g2core's by default; grbl's in grbl/session.py).
+    `table` is a dialect's (g2core's by default; grbl's in grbl/books.py).
     """
     column = _COLUMN.get(state) if state is not None else None
     if column is None:

@@ -14,14 +14,12 @@ import pytest
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
-from hostd.protocol.grbl.session import (
-    BANNER_WAIT,
-    OVERRIDE_ROUNDS,
-    STOP_TIMEOUT,
-    STORAGE_QUIET,
-    GrblSession,
-    homing_time_bound,
-)
+from hostd.protocol.grbl.connection import BANNER_WAIT
+from hostd.protocol.grbl.liveness import STORAGE_QUIET
+from hostd.protocol.grbl.overrides import OVERRIDE_ROUNDS
+from hostd.protocol.grbl.session import GrblSession
+from hostd.protocol.grbl.stops import STOP_TIMEOUT
+from hostd.protocol.grbl.words import homing_time_bound
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState as S
 from hostd.protocol.stream import Stream
