@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 import uvloop
+from hypothesis import settings
 from xdist.scheduler import LoadScopeScheduling
 
 from hostd.api import rpc
@@ -23,6 +24,13 @@ LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
     "asyncio": asyncio.new_event_loop,
     "uvloop": uvloop.new_event_loop,
 }
+
+
+# Hypothesis' default deadline (200 ms an example) is a timing assertion: on a loaded
+# two-core machine one example of tests/protocol/test_per_line_paths.py took 472 ms and
+# failed a correct test. The examples are bounded by their count, not by the clock.
+settings.register_profile("hostd", deadline=None)
+settings.load_profile("hostd")
 
 
 # The analysis workers (hostd/machine/workers.py) fork from multiprocessing's forkserver,
