@@ -51,16 +51,21 @@ CLASSIC_RX_BUFFER = 128  # grbl 1.1's serial receive buffer (gnea/grbl config.h)
 CLASSIC_BLOCKS = 15  # grbl 1.1's planner (BLOCK_BUFFER_SIZE on the 328p)
 
 
-def override_steps(percent: int, what: str, start: int | None = None) -> list[bytes]:
-    """The bytes that take a feed or spindle override to `percent`: from `start`, the
-    value the board last reported, or (None) from anywhere, by a reset to 100 first;
-    then steps of ten, then of one, all towards `percent`, so that no step leaves
-    10..200 (the board would clamp it, protocol.c)."""
+def check_override(percent: int, what: str) -> None:
+    """Refuse a feed or spindle override outside the firmware's own 10..200."""
     low, high = OVERRIDE_RANGE
     if not low <= percent <= high:
         raise InvalidCommand(
             Refusal.BAD_NUMBER, f"a {what} override is {low} to {high} percent, not {percent}"
         )
+
+
+def override_steps(percent: int, what: str, start: int | None = None) -> list[bytes]:
+    """The bytes that take a feed or spindle override to `percent`: from `start`, the
+    value the board last reported, or (None) from anywhere, by a reset to 100 first;
+    then steps of ten, then of one, all towards `percent`, so that no step leaves
+    10..200 (the board would clamp it, protocol.c)."""
+    check_override(percent, what)
     origin = 100 if start is None else start
     tens, ones = divmod(abs(percent - origin), 10)
     sign = "plus" if percent >= origin else "minus"

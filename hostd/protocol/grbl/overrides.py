@@ -86,13 +86,13 @@ class GrblOverrides(GrblHolds):
         self._require_open()
         wanted: dict[str, int] = {}
         if feed is not None:
-            codec.override_steps(feed, "feed")  # refuses a value outside 10..200
+            codec.check_override(feed, "feed")
             wanted["feed"] = feed
         if rapid is not None:
             codec.rapid_override(rapid)
             wanted["rapid"] = rapid
         if spindle is not None:
-            codec.override_steps(spindle, "spindle")
+            codec.check_override(spindle, "spindle")
             wanted["spindle"] = spindle
         self._override = _Rounds(wanted)
         self._override_round(None)
