@@ -58,6 +58,7 @@ from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client, End
 from hostd.api.intake import Intake
 from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
+from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 
@@ -105,6 +106,10 @@ class ApiServer:
         self._max_inflight = max_inflight
         self._max_clients = max_clients
         self._line_timeout = line_timeout
+        # Refusals a local flood of connections repeats: a record a second at most, counted.
+        self._dropped = Tally(log, "api connection dropped: too many being admitted")
+        self._denied = Tally(log, "api client denied")
+        self._full = Tally(log, "api client refused: daemon full")
         self._server: asyncio.Server | None = None
         self._path: str | None = None
         self._inode: tuple[int, int] | None = None
@@ -173,6 +178,8 @@ class ApiServer:
     async def close(self) -> None:
         """Stop accepting, drop every client (cancelling their requests), remove the socket file."""
         self._closing = True
+        for tally in (self._dropped, self._denied, self._full):
+            tally.flush()
         if self._server is not None:
             self._server.close()
         tasks = list(self._connections)
@@ -199,7 +206,7 @@ class ApiServer:
             return
         if self._unadmitted >= self._max_clients:
             # A flood of connections: do not even ask who they are (a thread each).
-            log.warning("api connection dropped: too many being admitted", max=self._max_clients)
+            self._dropped.warning(max=self._max_clients)
             transport.abort()
             return
         self._unadmitted += 1
@@ -220,7 +227,7 @@ class ApiServer:
             log.exception("api access check failed; closed", pid=peer.pid, uid=peer.uid)
             return None
         if not allowed:
-            log.warning("api client denied", pid=peer.pid, uid=peer.uid, gid=peer.gid)
+            self._denied.warning(pid=peer.pid, uid=peer.uid, gid=peer.gid)
             return None
         return peer
 
@@ -264,12 +271,7 @@ class ApiServer:
         discarded until it hangs up too (or TURN_AWAY_LINGER passes): closing
         with its request unread would reset the connection under the answer.
         """
-        log.warning(
-            "api client refused: daemon full",
-            pid=peer.pid,
-            uid=peer.uid,
-            max_clients=self._max_clients,
-        )
+        self._full.warning(pid=peer.pid, uid=peer.uid, max_clients=self._max_clients)
         message = f"daemon full: {self._max_clients} clients connected; try again later"
         transport = cast(asyncio.Transport, writer.transport)
         with contextlib.suppress(TimeoutError, OSError):

@@ -8,6 +8,7 @@ import os
 import socket
 import stat
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -554,6 +555,34 @@ async def test_connections_waiting_for_admission_are_bounded_too(
             gate.open.set()
             for conn in held:
                 await conn.close()
+
+
+async def test_a_flood_of_connections_past_the_bound_is_counted_not_logged_a_line_each(
+    harness: Harness, tmp_path: Path
+) -> None:
+    """A local peer that opens connections in a loop makes the daemon drop each one; the
+    log tells how many (every one) in a record a second at most, not a line each."""
+    gate = _Gate()
+    with capture_logs() as logs:
+        async with serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server:
+            assert server.path is not None
+            held = [await Conn.open(server.path) for _ in range(2)]
+            try:
+                for _ in held:
+                    assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
+                started = time.monotonic()
+                for _ in range(200):
+                    dropped = await Conn.open(server.path)
+                    assert await dropped.closed_by_server()
+                    await dropped.close()
+                elapsed = time.monotonic() - started
+            finally:
+                gate.open.set()
+                for conn in held:
+                    await conn.close()
+    records = [e for e in logs if e["event"] == "api connection dropped: too many being admitted"]
+    assert sum(e.get("repeats", 1) for e in records) == 200  # each one counted, at the close
+    assert len(records) <= 2 + elapsed
 
 
 async def test_a_half_sent_line_left_for_line_timeout_disconnects_only_that_client(

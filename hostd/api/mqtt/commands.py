@@ -42,6 +42,7 @@ from hostd.api import rpc
 from hostd.api.mqtt import topics
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.mqtt.outbox import Outbox
+from hostd.logs import Tally
 
 # Commands running at once; one more is answered rpc.SERVER_FULL and does not run.
 MAX_COMMANDS: Final = 16
@@ -106,6 +107,9 @@ class Commands:
         # Request ids refused for a passing reason, as long (MAX_REFUSED of them at most).
         self._refused = RecentIds(MAX_REFUSED)
         self._log = log
+        # A flood of refusals (past the rate, above all) is logged at most once a second.
+        self._refusals = Tally(log, "mqtt command refused", clock=clock)
+        self._dropped = Tally(log, "mqtt event dropped: broker behind", clock=clock)
         unknown = sorted(set(config.allow) - set(methods))
         if unknown:
             self._log.warning("mqtt allow names unknown methods; ignored", methods=unknown)
@@ -116,9 +120,12 @@ class Commands:
         return len(self._refused)
 
     def cancel_all(self) -> None:
-        """The bridge is stopping: the daemon's machines are gone."""
+        """The bridge is stopping: the daemon's machines are gone. Refusals still tallied
+        are told now."""
         for task in self.running:
             task.cancel()
+        self._refusals.flush()
+        self._dropped.flush()
 
     async def subscribe(self, client: aiomqtt.Client) -> None:
         # Retain as published: a retained command is seen as retained even when it arrives
@@ -268,10 +275,11 @@ class Commands:
         correlation: bytes | None,
         refusal: Refusal,
     ) -> None:
-        """Log it, and answer it: on its response topic when it has a usable one, else on
-        `<prefix>/errors`. Never silent."""
+        """Log it (at most once a second in a flood, with how many: `Tally`), and answer it:
+        on its response topic when it has a usable one, else on `<prefix>/errors`. Never
+        silent."""
         code, why = refusal.code, refusal.message
-        said.warning("mqtt command refused", code=code, reason=why, reply_to=reply_to)
+        self._refusals.warning(said, code=code, reason=why, reply_to=reply_to)
         usable = (
             reply_to is not None and topics.response_topic_problem(self.prefix, reply_to) is None
         )
@@ -293,11 +301,7 @@ class Commands:
         before = self.outbox.dropped
         self.outbox.event(topic, payload, correlation)
         if self.outbox.dropped > before:
-            self._log.warning(
-                "mqtt event dropped: broker behind",
-                bound=self.config.max_events,
-                dropped=self.outbox.dropped,
-            )
+            self._dropped.warning(bound=self.config.max_events, dropped=self.outbox.dropped)
 
     async def _run_command(
         self,

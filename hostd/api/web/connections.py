@@ -19,10 +19,11 @@ from aiohttp import web
 from aiohttp.web_protocol import RequestHandler
 
 from hostd.api.web.addresses import IPNetwork, in_networks
+from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 
-# At most one log line a second about connections refused, with how many.
+# At most one log line a second about connections refused, with how many (`Tally`).
 REFUSAL_LOG_INTERVAL: Final = 1.0
 
 
@@ -31,7 +32,7 @@ class ConnectionGuard:
 
     Asked by each new connection before aiohttp sees a byte of it; one past a
     cap is closed at once (its descriptor freed), and a line is logged at most
-    once a second with how many were refused.
+    once a second: the first refusal of a burst in full, then how many more (`Tally`).
     """
 
     def __init__(
@@ -44,12 +45,10 @@ class ConnectionGuard:
         self.total = total
         self.per_address = per_address
         self._trusted = trusted
-        self._clock = clock
         self._count: dict[str, int] = {}
         self.open = 0
         self.refused = 0
-        self._unlogged = 0
-        self._logged_at = -1e18
+        self._refusals = Tally(log, "web connections refused", REFUSAL_LOG_INTERVAL, clock)
 
     def admit(self, address: str) -> bool:
         over = None
@@ -61,15 +60,15 @@ class ConnectionGuard:
             over = f"{self.per_address} from {address} ([web] max_connections_per_address)"
         if over is not None:
             self.refused += 1
-            self._unlogged += 1
-            now = self._clock()
-            if now - self._logged_at >= REFUSAL_LOG_INTERVAL:
-                log.warning("web connections refused", refused=self._unlogged, over=over)
-                self._unlogged, self._logged_at = 0, now
+            self._refusals.warning(over=over)
             return False
         self.open += 1
         self._count[address] = self._count.get(address, 0) + 1
         return True
+
+    def flush(self) -> None:
+        """Log the refusals still tallied (the server is closing)."""
+        self._refusals.flush()
 
     def release(self, address: str) -> None:
         self.open -= 1
@@ -161,3 +160,7 @@ class GuardedRunner(web.AppRunner):
 
     async def _make_server(self) -> web.Server:
         return _Server(await super()._make_server(), self._guard, self._header_timeout)
+
+    async def cleanup(self) -> None:
+        await super().cleanup()
+        self._guard.flush()
