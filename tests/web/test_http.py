@@ -6,11 +6,13 @@ import asyncio
 import json
 import os
 import socket
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import aiohttp
 import pytest
+from structlog.testing import capture_logs
 
 from hostd.api.web import COOKIE
 from tests.web.conftest import Web, WsRpc, running_web
@@ -269,6 +271,25 @@ async def test_a_request_naming_an_unknown_host_is_refused_against_dns_rebinding
         assert await status(f"127.0.0.1:{port}") == 200
         assert await status(f"cnc.shop.lan:{port}") == 200  # [web] hosts
         assert await status(f"CNC.Shop.LAN:{port}") == 200
+
+
+async def test_a_flood_of_requests_for_an_unknown_host_is_refused_each_and_logged_counted(
+    tmp_path: Path,
+) -> None:
+    """Every request is refused; the log counts them all in a record a second at most
+    (the last at the server's close), where a line each would be the attacker's to write."""
+    with capture_logs() as logs:
+        async with running_web(tmp_path) as web:
+            headers = {**web.auth(), "Host": f"evil.example:{web.server.port}"}
+            started = time.monotonic()
+            for _ in range(300):
+                async with web.session.get(f"{web.url}/session", headers=headers) as response:
+                    assert response.status == 421
+            elapsed = time.monotonic() - started
+    records = [e for e in logs if e["event"] == "web request for an unknown host refused"]
+    assert sum(e.get("repeats", 1) for e in records) == 300
+    assert len(records) <= 2 + elapsed
+    assert records[0]["host"] == f"evil.example:{web.server.port}"
 
 
 @pytest.mark.parametrize("compress", [0, 15], ids=["plain", "deflate"])

@@ -132,6 +132,8 @@ class WebServer:
                 await self._watcher
             self._watcher = None
         self._sockets.close_all("server closing")
+        self._sockets.flush_logs()
+        self._auth.flush_logs()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None

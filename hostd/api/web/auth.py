@@ -31,6 +31,7 @@ from hostd.api.web import addresses
 from hostd.api.web.addresses import IPNetwork
 from hostd.api.web.responses import error
 from hostd.api.webconfig import WebConfig
+from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 
@@ -111,6 +112,15 @@ class Auth:
         self.trusted: list[IPNetwork] = list(config.trusted_proxies)
         self._limiter = LoginLimiter(config.login_attempts, clock)
         self._hosts = {"localhost", config.host.strip("[]").lower(), *map(str.lower, config.hosts)}
+        # What a peer on the network can repeat at will: a record a second at most, counted.
+        self._unknown_host = Tally(log, "web request for an unknown host refused", clock=clock)
+        self._rate_limited = Tally(log, "web login rate-limited", clock=clock)
+        self._bad_login = Tally(log, "web login refused", clock=clock)
+
+    def flush_logs(self) -> None:
+        """Log the refusals still tallied (the server is closing)."""
+        for tally in (self._unknown_host, self._rate_limited, self._bad_login):
+            tally.flush()
 
     async def watch_tokens(self, revoked: Callable[[set[str]], object]) -> None:
         """Every REVOKE_POLL, the ids of the tokens on file, for `revoked` to end the others'
@@ -168,7 +178,7 @@ class Auth:
         self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
     ) -> web.StreamResponse:
         if not self._known_host(request.host):
-            log.warning("web request for an unknown host refused", host=request.host)
+            self._unknown_host.warning(host=request.host)
             return error(421, f"this dashboard does not answer to {request.host!r} ([web] hosts)")
         if request.path in PUBLIC:
             return await handler(request)
@@ -193,7 +203,7 @@ class Auth:
         address = self.client_address(request)
         wait = self._limiter.allow(address)
         if wait is not None:
-            log.warning("web login rate-limited", address=address)
+            self._rate_limited.warning(address=address)
             response = error(429, "too many login attempts; try again later")
             response.headers["Retry-After"] = str(max(1, round(wait)))
             return response
@@ -204,7 +214,7 @@ class Auth:
             token = None
         token_id = self._tokens.identify(token) if isinstance(token, str) else None
         if token_id is None:
-            log.warning("web login refused", address=address)
+            self._bad_login.warning(address=address)
             return error(401, "not a valid token")
         log.info("web login", address=address, token=token_id)
         response = web.json_response({"control": self._config.control})

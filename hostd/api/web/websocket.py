@@ -25,6 +25,7 @@ from hostd.api.peer import PeerCred
 from hostd.api.server import MAX_INFLIGHT, MAX_LINE
 from hostd.api.web.auth import TOKEN_ID, Auth
 from hostd.api.web.responses import error
+from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 
@@ -128,11 +129,16 @@ class WebSockets:
         self._write_timeout = write_timeout
         self._max_inflight = max_inflight
         self._ids = itertools.count(1)
+        self._foreign = Tally(log, "web socket from another site refused")
         self._clients: set[WebClient] = set()
 
     @property
     def clients(self) -> list[WebClient]:
         return [c for c in self._clients if not c.closed]
+
+    def flush_logs(self) -> None:
+        """Log the refusals still tallied (the server is closing)."""
+        self._foreign.flush()
 
     def close_all(self, reason: str) -> None:
         for client in list(self._clients):
@@ -149,7 +155,7 @@ class WebSockets:
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if self._auth.foreign_origin(request):
-            log.warning("web socket from another site refused", origin=request.headers["Origin"])
+            self._foreign.warning(origin=request.headers["Origin"])
             return error(403, "WebSocket from another site refused")
         if len(self._clients) >= self._max_clients:
             return error(503, f"daemon full: {self._max_clients} web clients connected")
