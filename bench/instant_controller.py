@@ -65,10 +65,12 @@ Commands, one a line on stdin; answers on stdout:
   second, recording the time just before each write (g2core).
 - `dump`: one JSON line `{"bangs": [t, ...], "sr": [[k, t], ...], "lines": n,
   "sched": how it is scheduled, "job": {...}, "starved": [[t, s], ...],
-  "overflows": n, "late": s}`, then forget them. `job`: the G-code lines of
-  the job read since the last dump and the times of the first and last;
-  `starved`: each time the planner ran empty mid-job (when, for how long);
-  `late`: the most this process woke after a block freed (its own delay).
+  "overflows": n, "late": s, "rescued": n}`, then forget them. `job`: the
+  G-code lines of the job read since the last dump and the times of the first
+  and last; `starved`: each time the planner ran empty mid-job (when, for how
+  long); `late`: the most this process woke after a block freed (its own
+  delay); `rescued`: how often the safety net (`WAITING_LOOK`) found lines it
+  should have planned already (0 unless this file has a bug).
 - `quit`.
 
 A board is hardware of its own, but this process is not: by default it is
@@ -97,7 +99,7 @@ import termios
 import time
 import tty
 from collections import deque
-from typing import Any
+from typing import Any, TextIO
 
 from bench.planner import Planner
 
@@ -108,6 +110,12 @@ BANNER = (
 FLUSH_BITS = 0x01 | 0x02  # TIOCPKT_FLUSHREAD | TIOCPKT_FLUSHWRITE
 ATTACH_POLL = 0.001  # s between looks for a host while none has the port open
 BANNER_FALLBACK = 0.05  # s: a host that opens without a tcflush still gets its banner
+# s: the longest the process sleeps while lines wait for a block. A safety net only, in
+# addition to the deadlines (a block's free time, or "at once" when one is free): a board
+# that slept through its deadlines once stalled a P8 window (docs/performance.md, "The
+# bench's boards blocked in a read of the port"). A wake that finds lines it should have
+# planned earlier is counted (`rescued` in the dump): that is a bug here, not the host.
+WAITING_LOOK = 0.05
 IDLE_STOP = 0.2  # s without a G-code line while running: the job is over
 # s from the job's last line to its stop report: a board reports the stop once the last
 # move has run, well after answering the line (and the daemon checks for an underflow
@@ -135,6 +143,10 @@ class Controller:
         name = os.ttyname(slave)
         os.close(slave)  # while we hold a slave fd the master never sees the host go
         fcntl.ioctl(master, termios.TIOCPKT, struct.pack("i", 1))
+        # Non-blocking: a `dump` reads the port itself (below), so a POLLIN the loop then
+        # handles may find nothing left; a blocking read there slept until the host wrote
+        # again, and a host whose window was full of lines waiting here never did.
+        os.set_blocking(master, False)
         self.fd = master
         tmp = f"{link}.{os.getpid()}.tmp"
         with contextlib.suppress(FileNotFoundError):
@@ -164,32 +176,58 @@ class Controller:
         self.job_first: float | None = None
         self.job_last: float | None = None
         self.late = 0.0  # the most this process woke after a block freed
+        self.rescued = 0  # wakes of the safety net (WAITING_LOOK) that planned lines
+        # The bench's commands and this process's answers (stdin and stdout; a test may
+        # drive the loop with `step` and its own pipe).
+        self.commands = 0  # stdin
+        self.answers: TextIO = sys.stdout
+        self._poller: select.poll | None = None
+        self._master_on = False  # the port is registered in the poller
 
     # --- the loop
 
     def serve(self) -> None:
-        say("listening")
-        poller = select.poll()
-        poller.register(sys.stdin.fileno(), select.POLLIN)
-        master_on = False
+        self._say("listening")
         while self.running:
-            if self.attached and not master_on:
-                poller.register(self.fd, select.POLLIN)
-                master_on = True
-            elif not self.attached and master_on:
-                poller.unregister(self.fd)
-                master_on = False
-            timeout = self._timeout()
-            events = poller.poll(None if timeout is None else max(timeout * 1000, 0))
-            for fd, ev in events:
-                if fd == self.fd:
-                    if ev & select.POLLIN:
-                        self._read()
-                    elif ev & (select.POLLHUP | select.POLLERR):
-                        self._detach()
-                else:
-                    self._command()
-            self._timers()
+            self.step()
+
+    def step(self, limit: float | None = None) -> None:
+        """One turn of the loop: sleep until an input, the next deadline or the safety net
+        (or `limit` seconds: a test's turn), take what came (the bench's commands first:
+        poll lists them first), then run what is due."""
+        poller = self._poller
+        if poller is None:
+            poller = self._poller = select.poll()
+            poller.register(self.commands, select.POLLIN)
+        if self.attached and not self._master_on:
+            poller.register(self.fd, select.POLLIN)
+            self._master_on = True
+        elif not self.attached and self._master_on:
+            poller.unregister(self.fd)
+            self._master_on = False
+        due = self._due()
+        now = time.monotonic()
+        wakes = [] if due is None else [due]
+        if self.waiting and self.attached:
+            wakes.append(now + WAITING_LOOK)  # the safety net, never the plan
+        if limit is not None:
+            wakes.append(now + limit)
+        timeout = max((min(wakes) - time.monotonic()) * 1000, 0) if wakes else None
+        events = poller.poll(timeout)
+        for fd, ev in events:
+            if fd == self.fd:
+                if ev & select.POLLIN:
+                    self._read()
+                elif ev & (select.POLLHUP | select.POLLERR):
+                    self._detach()
+            else:
+                self._command()
+        planned = self.job_lines
+        self._timers()
+        if self.job_lines > planned and not events and (due is None or time.monotonic() < due):
+            # Lines planned by a wake that neither an input nor a deadline made (the net, or
+            # a test's `limit`): no deadline had said a block would be free by now.
+            self.rescued += 1
 
     def _deadlines(self) -> list[float]:
         now = time.monotonic()
@@ -216,9 +254,10 @@ class Controller:
                 deadlines.append(now)
         return deadlines
 
-    def _timeout(self) -> float | None:
+    def _due(self) -> float | None:
+        """The next deadline (monotonic time), if any."""
         deadlines = self._deadlines()
-        return None if not deadlines else min(deadlines) - time.monotonic()
+        return min(deadlines) if deadlines else None
 
     def _timers(self) -> None:
         now = time.monotonic()
@@ -266,7 +305,7 @@ class Controller:
         self.banner_due = None
         self._reset_board()
         self._write(BANNER)
-        say("opened")
+        self._say("opened")
 
     def _reset_board(self) -> None:
         self.stat = STOP
@@ -455,7 +494,7 @@ class Controller:
     # --- commands from the bench
 
     def _command(self) -> None:
-        chunk = os.read(sys.stdin.fileno(), 4096)
+        chunk = os.read(self.commands, 4096)
         if not chunk:
             self.running = False
             return
@@ -474,10 +513,12 @@ class Controller:
             elif words[0] == "dump":
                 # What the host wrote before the bench asked is counted: the loop looks at
                 # stdin ahead of the port, so a `!` written just before a dump was still
-                # unread ("32 feedholds sent, 31 `!` received", once, in P8).
+                # unread ("32 feedholds sent, 31 `!` received", once, in P8). The loop may
+                # then find nothing left to read for the POLLIN it had: the port is
+                # non-blocking for that.
                 if self.attached and select.select([self.fd], [], [], 0)[0]:
                     self._read()
-                say(json.dumps(self._records()))
+                self._say(json.dumps(self._records()))
                 self._forget_records()
             elif words[0] == "quit":
                 self.running = False
@@ -494,14 +535,20 @@ class Controller:
             "starved": [] if planner is None else [[s.at, s.seconds] for s in planner.starved],
             "overflows": 0,
             "late": self.late,
+            "rescued": self.rescued,
         }
 
     def _forget_records(self) -> None:
         self.bangs, self.sr_times, self.total_lines = [], [], 0
         self.job_lines, self.job_first, self.job_last = 0, None, None
         self.late = 0.0
+        self.rescued = 0
         if self.planner is not None:
             self.planner.starved = []
+
+    def _say(self, text: str) -> None:
+        self.answers.write(text + "\n")
+        self.answers.flush()
 
     def close(self) -> None:
         os.close(self.fd)
@@ -549,7 +596,7 @@ class GrblController(Controller):
         self.unanswered = 0
         self.held = self.job_active = False
         self._write(GRBL_BANNER)
-        say("opened")
+        self._say("opened")
 
     def _data(self, data: memoryview, now: float, out: list[bytes]) -> None:
         buf = self.buf
@@ -682,11 +729,6 @@ class GrblController(Controller):
     def _forget_records(self) -> None:
         super()._forget_records()
         self.overflows = 0
-
-
-def say(text: str) -> None:
-    sys.stdout.write(text + "\n")
-    sys.stdout.flush()
 
 
 def _run_like_hardware() -> str:

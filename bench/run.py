@@ -195,12 +195,18 @@ class BudgetWindow:
             f"{r:,.0f}" + (" (holds)" if i == 0 and self.sent_at else "")
             for i, r in enumerate(rates)
         )
+        rescued = sum(record.get("rescued", 0) for record in self.records)
         notes = []
         if late > STALLED_BOARD:
             notes.append(
-                f"a board's own process woke {late * 1e3:.0f} ms after a block freed (seen "
-                "rarely on a loaded machine, cause not found): its starvation, in this window "
-                "or the next, is the bench's, not the host's"
+                f"a board's own process woke {late * 1e3:.0f} ms after a block freed (its "
+                "process kept off the CPU, or a bug in bench/instant_controller.py): its "
+                "starvation, in this window or the next, is the bench's, not the host's"
+            )
+        if rescued:
+            notes.append(
+                f"a board's safety net planned lines {rescued} times that no "
+                "deadline had woken it for (a bug in bench/instant_controller.py)"
             )
         return Row(
             figure,

@@ -8,16 +8,21 @@ stream and counts a host that overfills its 128-byte receive buffer.
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import os
 import select
 import termios
+import threading
 import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from bench.instant_controller import Controller
 from bench.procs import ControllerProcess
 
 
@@ -170,3 +175,109 @@ def test_a_rastering_g2core_never_leaves_a_host_with_a_full_window_waiting(
             answered += 1
             port.until(b'{"r":{"n":%d}' % answered, timeout=2.0)
         assert board.dump()["job"]["lines"] == total
+
+
+class Stepped:
+    """A bench board in this process, its loop turned by the test: its commands through
+    a pipe of the test's, its answers kept, and each turn (`Controller.step`) taken when
+    the test has arranged what the turn finds."""
+
+    def __init__(self, path: Path, rate: float, blocks: int) -> None:
+        self.board = Controller(str(path), rate, blocks)
+        self.commands, self._commands_w = os.pipe()
+        self.board.commands = self.commands
+        self.answers = io.StringIO()
+        self.board.answers = self.answers
+        self.port = Port(self.board.link)
+
+    def command(self, text: str) -> None:
+        os.write(self._commands_w, text.encode() + b"\n")
+
+    def turn_until(self, wanted: bytes) -> bytes:
+        """Turn the loop (never sleeping long) until the host has read `wanted`."""
+        deadline = time.monotonic() + 10.0
+        while wanted not in self.port.seen:
+            assert time.monotonic() < deadline, f"no {wanted!r} in {self.port.seen!r}"
+            self.board.step(limit=0.01)
+            if select.select([self.port.fd], [], [], 0)[0]:
+                self.port.seen += os.read(self.port.fd, 4096)
+        return self.port.until(wanted)
+
+    def turn_alone(self) -> bool:
+        """One turn as the board's process takes it, with nothing from the test to end its
+        sleep: False if it was still asleep (blocked) after a long while; then a byte
+        from the host (an empty line, which the board ignores) wakes it."""
+        turn = threading.Thread(target=self.board.step)
+        turn.start()
+        turn.join(timeout=5.0)
+        if not turn.is_alive():
+            return True
+        self.port.write(b"\n")
+        turn.join()
+        return False
+
+    def dumped(self) -> dict[str, Any]:
+        """The board's last answer to `dump` (its answers also say `opened`)."""
+        record: dict[str, Any] = json.loads(self.answers.getvalue().splitlines()[-1])
+        return record
+
+    def close(self) -> None:
+        os.close(self.port.fd)
+        os.close(self.commands)
+        os.close(self._commands_w)
+        self.board.close()
+
+
+@pytest.fixture
+def stepped(tmp_path: Path) -> Iterator[Stepped]:
+    """A rastering g2core of one block at 5 a second (a line waits up to 0.2 s for it),
+    opened by the host and its banner read."""
+    pair = Stepped(tmp_path / "ttyS", rate=5.0, blocks=1)
+    try:
+        pair.turn_until(b"SYSTEM READY")
+        pair.turn_until(b"\n")
+        yield pair
+    finally:
+        pair.close()
+
+
+def test_a_dump_that_reads_the_hosts_line_leaves_the_board_awake_for_its_block(
+    stepped: Stepped,
+) -> None:
+    """The bench's `dump` reads the port itself (a `!` written just before it is counted).
+    When the same wake-up also had the port readable, the loop then read the port again,
+    found nothing, and (blocking) slept in that read until the host wrote. A host whose
+    window was full of lines waiting for a block never did: P8 saw a g2core board stream
+    2 lines a second, `late` 2.0 s, until the daemon's heartbeat (2 s of silence) wrote a
+    status query (a grbl board: until the next `?`, 0.25 s). Here the host's line and the
+    dump arrive together, as they did then, while the planner's one block is busy."""
+    stepped.port.write(b"N1 G1 X1\n")
+    stepped.turn_until(b'{"r":{"n":1}')  # planned: the planner's one block
+    stepped.port.write(b"N2 G1 X2\n")  # waits for that block
+    assert select.select([stepped.board.fd], [], [], 10.0)[0]  # the board can read it
+    stepped.command("dump")
+    assert stepped.turn_alone(), "the board slept in a read of its port after a dump"
+    assert stepped.dumped()["job"]["lines"] >= 1  # answered (N2 too, if its block freed)
+    # Nothing more from the host: the block's end alone gets N2 its answer.
+    assert stepped.turn_until(b'{"r":{"n":2}').endswith(b'{"r":{"n":2}')
+    assert stepped.board.rescued == 0  # its deadline woke it, not the safety net
+
+
+def test_a_board_that_misses_its_deadline_is_woken_by_its_safety_net_and_says_so(
+    stepped: Stepped, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The earlier stall (4b1eba1): no deadline while lines waited. Made again here (the
+    planner's deadline left out), the safety net still plans the line once its block is
+    free, and the dump counts the rescue, so that P8 says a board had a bug."""
+    monkeypatch.setattr(stepped.board, "_deadlines", list)
+    stepped.port.write(b"N1 G1 X1\nN2 G1 X2\n")
+    assert select.select([stepped.board.fd], [], [], 10.0)[0]
+    assert stepped.turn_alone()  # reads both: N1 takes the one block, N2 waits for it
+    assert stepped.board.waiting
+    while b'{"r":{"n":2}' not in stepped.port.seen:
+        assert stepped.turn_alone(), "the board slept with a line waiting"
+        if select.select([stepped.port.fd], [], [], 0)[0]:
+            stepped.port.seen += os.read(stepped.port.fd, 4096)
+    stepped.command("dump")
+    assert stepped.turn_alone()
+    assert stepped.dumped()["rescued"] == 1
