@@ -58,7 +58,7 @@ from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client, End
 from hostd.api.intake import Intake
 from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
-from hostd.logs import Tally
+from hostd.api.tally import Tally
 
 log = structlog.get_logger(__name__)
 

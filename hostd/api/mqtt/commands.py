@@ -42,7 +42,7 @@ from hostd.api import rpc
 from hostd.api.mqtt import topics
 from hostd.api.mqtt.config import MqttConfig
 from hostd.api.mqtt.outbox import Outbox
-from hostd.logs import Tally
+from hostd.api.tally import Tally
 
 # Commands running at once; one more is answered rpc.SERVER_FULL and does not run.
 MAX_COMMANDS: Final = 16

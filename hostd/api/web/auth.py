@@ -26,12 +26,12 @@ import structlog
 from aiohttp import web
 
 from hostd.api import rpc
+from hostd.api.tally import Tally
 from hostd.api.tokens import Sessions, TokenStore
 from hostd.api.web import addresses
 from hostd.api.web.addresses import IPNetwork
 from hostd.api.web.responses import error
 from hostd.api.webconfig import WebConfig
-from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 

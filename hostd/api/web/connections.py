@@ -18,8 +18,8 @@ import structlog
 from aiohttp import web
 from aiohttp.web_protocol import RequestHandler
 
+from hostd.api.tally import Tally
 from hostd.api.web.addresses import IPNetwork, in_networks
-from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 

@@ -23,9 +23,9 @@ from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client
 from hostd.api.intake import Intake
 from hostd.api.peer import PeerCred
 from hostd.api.server import MAX_INFLIGHT, MAX_LINE
+from hostd.api.tally import Tally
 from hostd.api.web.auth import TOKEN_ID, Auth
 from hostd.api.web.responses import error
-from hostd.logs import Tally
 
 log = structlog.get_logger(__name__)
 

@@ -11,7 +11,7 @@ import pytest
 import structlog
 from structlog.testing import capture_logs
 
-from hostd.logs import Tally
+from hostd.api.tally import Tally
 
 pytestmark = pytest.mark.asyncio
 
