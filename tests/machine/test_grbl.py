@@ -249,7 +249,8 @@ async def test_an_override_takes_no_report_to_an_older_question_for_its_answer(
     heartbeat asked again with a report of its own, after the host wrote an override
     round: those reports predate the round's bytes. Taken for the round's answer, the
     next round stepped again from the old 100: asked 150, the upstream Simulator went to
-    200 while the host answered 150 (docs/dialects.md, issue 36's comparison)."""
+    200 while the host answered 150 (docs/dialects.md, "Compared against the firmware's
+    own simulators")."""
     async with grbl_bench(tmp_path, HAL, heartbeat=0.05, link_silence=60.0) as bench:
         sim = bench.board
         sim.queue_input()
