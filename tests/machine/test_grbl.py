@@ -241,6 +241,30 @@ async def test_a_grblhal_override_of_many_steps_reaches_the_value_though_a_ring_
         assert board.ovr_dropped == 0
 
 
+async def test_an_override_takes_no_report_to_an_older_question_for_its_answer(
+    tmp_path: Path,
+) -> None:
+    """A board that reads its input late and in order (grblHAL's upstream Simulator feeds
+    its firmware a byte a main-loop pass, behind what came before) answers each `?` the
+    heartbeat asked again with a report of its own, after the host wrote an override
+    round: those reports predate the round's bytes. Taken for the round's answer, the
+    next round stepped again from the old 100: asked 150, the upstream Simulator went to
+    200 while the host answered 150 (docs/dialects.md, "Compared against the firmware's
+    own simulators")."""
+    async with grbl_bench(tmp_path, HAL, heartbeat=0.05, link_silence=60.0) as bench:
+        sim = bench.board
+        sim.queue_input()
+        await sim.wait_for(lambda: (sim.board.queued or b"").count(b"?") >= 3)
+        asked = asyncio.create_task(operations.override(bench.machine, 150, None, None))
+        await sim.wait_for(lambda: b"\x90\x91\x91\x91\x91\x91?" in (sim.board.queued or b""))
+        sim.queue_input(False)
+        got = await asked
+        assert got == {"feed": 150, "spindle": 100, "rapid": 100}
+        assert sim.board.feed_ovr == 150
+        read = b"".join(r.data for r in sim.received)
+        assert read.count(b"\x91") == 5  # one round: never a step past what was asked
+
+
 async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(
     tmp_path: Path,
 ) -> None:

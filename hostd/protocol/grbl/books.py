@@ -96,6 +96,10 @@ class GrblBooks(GrblWords, SessionBase):
         self._report_waiters: list[Any] = []  # clients' `?`: answered by the next report
         self._reports = ReportReader()  # what reports said now and then (WCO)
         self._asked_at: float | None = None  # the last `?`, while no report has answered it
+        # When each `?` no report has answered yet was written (`asks_open`); a report
+        # takes off the newest (grbl answers the `?`s one pass reads with one report, so
+        # one may never be answered: those older than `link_silence` are dropped).
+        self._asks: deque[float] = deque()
         self._next_poll = 0.0
         self._heard_at = 0.0  # the last line the board printed, whatever it was
         self._silent_asks: list[float] = []  # the first `?`s written since then
@@ -159,10 +163,24 @@ class GrblBooks(GrblWords, SessionBase):
     def _ask_report(self) -> None:
         now = self.clock()
         self._asked_at = now
+        asks = self._asks
+        if asks and asks[0] < now - self.link_silence:
+            asks.popleft()  # never answered (see `_asks_open`); one a `?` keeps it short
+        asks.append(now)
         self._next_poll = now + self.status_interval
         if len(self._silent_asks) < SILENT_QUERIES:
             self._silent_asks.append(now)
         self._out.append((Lane.REALTIME, codec.STATUS))
+
+    def _asks_open(self) -> int:
+        """`?`s written that may still be answered, each by a report of its own: a board
+        that reads its input in order and slowly (grblHAL's upstream Simulator feeds its
+        firmware a byte a main-loop pass, behind the lines before it) answers the
+        `?`s the heartbeat asked again one by one, long after they were written."""
+        asks, oldest = self._asks, self.clock() - self.link_silence
+        while asks and asks[0] < oldest:
+            asks.popleft()
+        return len(asks)
 
     def _query_status(self) -> None:
         if self.phase is not Phase.CLOSED:
@@ -183,6 +201,7 @@ class GrblBooks(GrblWords, SessionBase):
         self._report_waiters.clear()
         self._await_report = self._awaiting_rest = False
         self._asked_at = None
+        self._asks.clear()
         self._homing_lines = 0
         self._homing_failed = False
         self._storing = None

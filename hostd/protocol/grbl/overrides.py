@@ -102,9 +102,10 @@ class GrblOverrides(GrblHolds):
         values the board last reported, is None (the first round), else steps from them.
 
         The bytes are realtime: they go now, whatever line waits. The report that
-        answers the round's `?` may predate them, as may one that answers an older
-        `?` still unanswered: `hops` reports are read, a `?` asked after each,
-        before one surely postdates them.
+        answers the round's `?` may predate them, as may each that answers an older
+        `?` still unanswered (`_asks_open`: a board reading slowly answers the ones the
+        heartbeat asked again one by one): `hops` reports are read, a `?` asked after
+        each, before one surely postdates them.
         """
         rounds = self._override
         assert rounds is not None
@@ -126,7 +127,9 @@ class GrblOverrides(GrblHolds):
             motion, accessory = list(dict.fromkeys(motion)), list(dict.fromkeys(accessory))
         self._out += [(Lane.REALTIME, b) for b in motion + accessory]
         rounds.rounds += 1
-        rounds.hops = 2 if self._asked_at is None else 3
+        # Each `?` still unanswered may bring a report that predates the bytes, then
+        # the round's own may (same pass): the one after those surely follows them.
+        rounds.hops = 2 + self._asks_open()
         rounds.asks = OVERRIDE_ASKS
         self._ask_report()
 

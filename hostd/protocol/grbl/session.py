@@ -183,6 +183,8 @@ class GrblSession(GrblLiveness):
         self.model.board_state = report.state + ("" if report.sub is None else f":{report.sub}")
         changed = self.model.apply_status(fields)
         self._asked_at = None
+        if self._asks:
+            self._asks.pop()
         self._await_report = False
         if changed is not None:
             self._on_state(changed, before)

@@ -94,6 +94,8 @@ class GrblBoard:
         self.lost_in_write = 0  # bytes lost while classic grbl wrote its EEPROM, ever
         self.status_lost = 0  # `?`s the wire is to lose next (line noise), as a test sets
         self.status_ignored = False  # `?` is not answered (reports stop), lines still are
+        # Input waiting in the transport (`queue_input`): None reads as it arrives.
+        self.queued: bytearray | None = None
         # The next G-code line is answered `error:N` with this code instead of run (a
         # test's: a code of a build, a setting or a machine the simulator lacks).
         self.refuse_next: int | None = None
@@ -222,7 +224,13 @@ class GrblBoard:
         One read is one pass of the main loop for the overrides: those it brings
         act together (`realtime.overrides`: classic grbl's flag bits count two alike
         as one, grblHAL's rings drop what does not fit), after the read's report
-        with `report_first`, else before a `?` behind them (it came a pass later)."""
+        with `report_first`, else before a `?` behind them (it came a pass later).
+        With `report_first` the `?`s of one read get one report: the interrupt sets one
+        flag bit for them all (grblHAL protocol.c:871-875, EXEC_STATUS_REPORT; printed
+        once a pass, :604-605)."""
+        if self.queued is not None:
+            self.queued += data  # it waits in the transport (`queue_input`)
+            return
         if self._deaf_until is not None:
             if self.hal:
                 self._held += data  # USB: the host's bytes wait until the write is over
@@ -235,10 +243,15 @@ class GrblBoard:
         # those before it.
         later: list[int] | None = [] if self.config.reports_first else None
         passing: list[int] = []  # this pass's override bytes
+        reported = False  # with report_first: this pass's report is printed
         for byte in data:
             if byte == realtime.STATUS and (self.status_lost or self.status_ignored):
                 self.status_lost = max(self.status_lost - 1, 0)
                 continue
+            if byte == realtime.STATUS and later is not None:
+                if reported:
+                    continue  # the flag is set already: one report for the pass
+                reported = True
             if byte in realtime.OVERRIDES:
                 passing.append(byte)
             elif byte in realtime.REALTIME:
@@ -246,6 +259,7 @@ class GrblBoard:
                     # Lost: gnea/grbl main.c:84-85 clears the flags, grblHAL
                     # protocol.c:595 flushes the rings (flush_override_buffers).
                     passing.clear()
+                    reported = False
                 if later is None or byte == realtime.STATUS:
                     if later is None and byte == realtime.STATUS:
                         realtime.overrides(self, passing)
@@ -265,6 +279,21 @@ class GrblBoard:
         if later:
             self._act_on(later)
         realtime.overrides(self, passing)
+
+    def queue_input(self, queued: bool) -> None:
+        """While `queued`, what the host writes waits in the transport, unread; once off, it
+        is read a byte at a time, in order, each byte its own read (one main-loop pass),
+        as grblHAL's upstream Simulator feeds its firmware (grblHAL/Simulator c9f6b81
+        src/mcu.c:291-305: one byte a pass, and only while the receive buffer has 100
+        bytes free). A `?` queued behind others is answered by a report of its own, after
+        the bytes before it acted, long after the host wrote it."""
+        if queued:
+            if self.queued is None:
+                self.queued = bytearray()
+            return
+        waiting, self.queued = self.queued, None
+        for byte in waiting or b"":
+            self.receive(bytes((byte,)))
 
     def _act_on(self, later: list[int]) -> None:
         """The realtime characters kept back in this read, now, and forgotten."""

@@ -181,6 +181,13 @@ class GrblSimController(SimShell[GrblBoard, str]):
         errors.h, including those this simulator's firmware model never gives."""
         self._board.refuse_next = code
 
+    def queue_input(self, queued: bool = True) -> None:
+        """The host's bytes wait unread (realtime ones too) while `queued`; then they are
+        read a byte a main-loop pass, in order, as grblHAL's upstream Simulator reads
+        (`GrblBoard.queue_input`): the `?`s the host asked again each get a late report."""
+        self._board.queue_input(queued)
+        self._kick()
+
     def hang(self, hung: bool = True) -> None:
         """The firmware hangs with its USB device still there: it reads and prints nothing."""
         self._hung = hung

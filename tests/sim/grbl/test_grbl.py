@@ -488,6 +488,33 @@ async def test_grblhal_drops_override_bytes_that_find_their_ring_full(tmp_path: 
         assert sim.board.ovr_dropped == 5
 
 
+async def test_grblhal_answers_the_requests_of_one_packet_with_one_report(
+    hal_host: GrblHost,
+) -> None:
+    """Each `?` only sets the EXEC_STATUS_REPORT bit (grblHAL protocol.c:871-875) and a
+    pass prints one report (:604-605): `???` in one packet is one report."""
+    await hal_host.status()
+    hal_host.send(b"???")
+    hal_host.send(b"$G\n")  # answered after the pass that read the `?`s
+    lines = await hal_host.until(lambda s: s == "ok")
+    assert sum(line.startswith("<") for line in lines) == 1
+
+
+async def test_input_queued_in_the_transport_is_read_a_byte_a_pass(tmp_path: Path) -> None:
+    """`queue_input`: nothing is read meanwhile; then a byte a pass, in order, as the
+    upstream grblHAL Simulator feeds its firmware: each `?` gets its own report, and
+    one behind an override byte shows it (the byte acted in its own, earlier pass)."""
+    async with Board(tmp_path, HAL) as (sim, host):
+        await host.status()
+        sim.queue_input()
+        host.send(b"??\x91?")
+        await sim.wait_for(lambda: sim.board.queued == b"??\x91?")
+        sim.queue_input(False)
+        reports = [await host.line() for _ in range(3)]
+        assert all(r.startswith("<") for r in reports)
+        assert "|Ov:" not in reports[1] and "|Ov:110,100,100" in reports[2]
+
+
 async def test_grblhal_answers_a_request_read_with_its_resume_still_holding(
     tmp_path: Path,
 ) -> None:
