@@ -85,11 +85,38 @@ class OneAtATime(LoadScopeScheduling):
     def __init__(self, config: pytest.Config, log: Any = None) -> None:
         super().__init__(config, log)
         config.option.loadscopereorder = False
+        self._indices: dict[Any, dict[str, int]] = {}
 
     def _split_scope(self, nodeid: str) -> str:
         if nodeid.startswith(ONE_WORKER_PER_MODULE):
             return nodeid.partition("::")[0]
         return nodeid
+
+    # LoadScopeScheduling keeps every unit a worker has finished in `assigned_work` and
+    # sums them all again on every report (`_pending_of`, from `mark_test_complete`,
+    # `tests_finished` and `has_pending`), and finds each test's index with `list.index`:
+    # both grow with the tests run, quadratic over the suite's ~3,200 one-test units.
+    # A finished unit is dropped (the pending counts are the same without it) and the
+    # indices are looked up in a dict (docs/performance.md, "Third round").
+
+    def mark_test_complete(self, node: Any, item_index: int, duration: float = 0) -> None:
+        nodeid = self.registered_collections[node][item_index]
+        units = self.assigned_work[node]
+        scope = self._split_scope(nodeid)
+        unit = units[scope]
+        unit[nodeid] = True
+        if all(unit.values()):
+            del units[scope]
+        self._reschedule(node)
+
+    def _assign_work_unit(self, node: Any) -> None:
+        scope, unit = self.workqueue.popitem(last=False)
+        self.assigned_work.setdefault(node, {})[scope] = unit
+        index = self._indices.get(node)
+        if index is None:
+            collection = self.registered_collections[node]
+            index = self._indices[node] = {nodeid: i for i, nodeid in enumerate(collection)}
+        node.send_runtest_some([index[nodeid] for nodeid, done in unit.items() if not done])
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
