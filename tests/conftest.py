@@ -7,12 +7,14 @@ fixture every transport's tests share: `rpc_answer_fails_once`.
 from __future__ import annotations
 
 import asyncio
+import logging
 import multiprocessing
 import os
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import pytest
+import structlog
 import uvloop
 from hypothesis import settings
 from xdist.scheduler import LoadScopeScheduling
@@ -31,6 +33,26 @@ LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
 # failed a correct test. The examples are bounded by their count, not by the clock.
 settings.register_profile("hostd", deadline=None)
 settings.load_profile("hostd")
+
+
+# The daemons, machines and boards the tests build in their own process log as `hostd
+# serve` does by default (`[daemon] log_level = "info"`), not at structlog's default of
+# everything: each debug line was rendered for the console, timestamped, written, captured
+# and carried in the test's report to the xdist controller (about 36 kB a test in
+# tests/daemon), some 14 % of those tests' CPU (docs/performance.md, "Third round").
+# Info, warnings and errors still show with a failure; HOSTD_TEST_LOG_LEVEL=debug shows
+# the rest. `structlog.testing.capture_logs` sees the same events (none asserted is debug).
+LOG_LEVEL = logging.getLevelNamesMapping()[os.environ.get("HOSTD_TEST_LOG_LEVEL", "info").upper()]
+
+
+def suite_logging() -> None:
+    """The suite's logging, set for the session and again by a test that changed it."""
+    structlog.reset_defaults()
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(LOG_LEVEL))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    suite_logging()
 
 
 # The analysis workers (hostd/machine/workers.py) fork from multiprocessing's forkserver,
