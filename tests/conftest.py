@@ -7,12 +7,14 @@ fixture every transport's tests share: `rpc_answer_fails_once`.
 from __future__ import annotations
 
 import asyncio
+import logging
 import multiprocessing
 import os
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import pytest
+import structlog
 import uvloop
 from hypothesis import settings
 from xdist.scheduler import LoadScopeScheduling
@@ -31,6 +33,26 @@ LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
 # failed a correct test. The examples are bounded by their count, not by the clock.
 settings.register_profile("hostd", deadline=None)
 settings.load_profile("hostd")
+
+
+# The daemons, machines and boards the tests build in their own process log as `hostd
+# serve` does by default (`[daemon] log_level = "info"`), not at structlog's default of
+# everything: each debug line was rendered for the console, timestamped, written, captured
+# and carried in the test's report to the xdist controller (about 36 kB a test in
+# tests/daemon), some 14 % of those tests' CPU (docs/performance.md, "Third round").
+# Info, warnings and errors still show with a failure; HOSTD_TEST_LOG_LEVEL=debug shows
+# the rest. `structlog.testing.capture_logs` sees the same events (none asserted is debug).
+LOG_LEVEL = logging.getLevelNamesMapping()[os.environ.get("HOSTD_TEST_LOG_LEVEL", "info").upper()]
+
+
+def suite_logging() -> None:
+    """The suite's logging, set for the session and again by a test that changed it."""
+    structlog.reset_defaults()
+    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(LOG_LEVEL))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    suite_logging()
 
 
 # The analysis workers (hostd/machine/workers.py) fork from multiprocessing's forkserver,
@@ -85,11 +107,38 @@ class OneAtATime(LoadScopeScheduling):
     def __init__(self, config: pytest.Config, log: Any = None) -> None:
         super().__init__(config, log)
         config.option.loadscopereorder = False
+        self._indices: dict[Any, dict[str, int]] = {}
 
     def _split_scope(self, nodeid: str) -> str:
         if nodeid.startswith(ONE_WORKER_PER_MODULE):
             return nodeid.partition("::")[0]
         return nodeid
+
+    # LoadScopeScheduling keeps every unit a worker has finished in `assigned_work` and
+    # sums them all again on every report (`_pending_of`, from `mark_test_complete`,
+    # `tests_finished` and `has_pending`), and finds each test's index with `list.index`:
+    # both grow with the tests run, quadratic over the suite's ~3,200 one-test units.
+    # A finished unit is dropped (the pending counts are the same without it) and the
+    # indices are looked up in a dict (docs/performance.md, "Third round").
+
+    def mark_test_complete(self, node: Any, item_index: int, duration: float = 0) -> None:
+        nodeid = self.registered_collections[node][item_index]
+        units = self.assigned_work[node]
+        scope = self._split_scope(nodeid)
+        unit = units[scope]
+        unit[nodeid] = True
+        if all(unit.values()):
+            del units[scope]
+        self._reschedule(node)
+
+    def _assign_work_unit(self, node: Any) -> None:
+        scope, unit = self.workqueue.popitem(last=False)
+        self.assigned_work.setdefault(node, {})[scope] = unit
+        index = self._indices.get(node)
+        if index is None:
+            collection = self.registered_collections[node]
+            index = self._indices[node] = {nodeid: i for i, nodeid in enumerate(collection)}
+        node.send_runtest_some([index[nodeid] for nodeid, done in unit.items() if not done])
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:

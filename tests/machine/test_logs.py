@@ -7,12 +7,12 @@ import json
 from collections.abc import Iterator
 
 import pytest
-import structlog
 
 from hostd.logs import configure_logging
 from hostd.machine.stream import JobStream
 from hostd.protocol.commands import Realtime
 from hostd.protocol.states import MachineState as S
+from tests.conftest import suite_logging
 from tests.machine.conftest import Rig
 
 pytestmark = pytest.mark.asyncio
@@ -23,14 +23,14 @@ def debug_json(capsys: pytest.CaptureFixture[str]) -> Iterator[None]:
     """Configured before the rig is built: a bound logger keeps the config it was bound under."""
     configure_logging("debug", "json")
     yield
-    structlog.reset_defaults()
+    suite_logging()
 
 
 @pytest.fixture
 def info_json(capsys: pytest.CaptureFixture[str]) -> Iterator[None]:
     configure_logging("info", "json")
     yield
-    structlog.reset_defaults()
+    suite_logging()
 
 
 def records(err: str) -> list[dict[str, object]]:

@@ -8,9 +8,11 @@ from collections.abc import Iterator
 import pytest
 import structlog
 
+from tests.conftest import suite_logging
+
 
 @pytest.fixture(autouse=True)
 def warnings_only() -> Iterator[None]:
     structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
     yield
-    structlog.reset_defaults()
+    suite_logging()
