@@ -77,16 +77,33 @@ class G2Status(G2Kills):
             self._moved = True
 
     def _track_executed(self) -> None:
-        """`line` is the runtime's N while the board moves (stat 5), and only then.
+        """`line` is the runtime's N while the board moves, and only then.
 
-        canonical_machine.cpp: `line` reads the ACTIVE_MODEL, which is the runtime
-        (the block being executed) while motion runs, and the parser's model (the last
-        line *read*, possibly far ahead in the planner) once motion stops, in a hold
-        too. So only a report showing RUN says which line executes.
+        canonical_machine.cpp (synthetos/g2 1fb5940): `line` reads the ACTIVE_MODEL
+        (:2048), which is the parser's model (the last line *read*, possibly far ahead
+        in the planner) while the motion state is MOTION_STOP, else the runtime (:354).
+        The motion state leaves MOTION_STOP only when a block begins to execute
+        (plan_exec.cpp:531-533), but stat says RUN from the moment a move is *parsed*
+        (`cm_cycle_start` in `cm_straight_traverse` :1204 and `cm_straight_feed`
+        :1360; `cm_get_combined_state` :375). So in the planner's startup, before its
+        first block runs, a report says RUN with the line the parser reached, maybe
+        the job's last: taken, a job lost then was resumed past lines that never ran.
+        `vel` is 0 exactly while the motion state is MOTION_STOP (`cm_get_vel`,
+        :2050): only a report of RUN with a speed (as merged: a filtered report
+        leaves out a `vel` that did not change) says which line executes. A moment of
+        motion whose report shows no speed is missed, which keeps `line_executed` a
+        lower bound.
         """
         stream = self.stream
-        line = self.model.line
-        if stream is not None and not stream.done and line and self.model.state is MachineState.RUN:
+        model = self.model
+        line = model.line
+        if (
+            stream is not None
+            and not stream.done
+            and line
+            and model.state is MachineState.RUN
+            and (model.velocity or 0.0) > 0.0
+        ):
             stream.executing(line)
 
     def _on_probe(self, report: dict[str, Any]) -> None:
