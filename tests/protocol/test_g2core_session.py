@@ -604,6 +604,28 @@ def test_a_run_report_before_the_first_block_moves_says_no_line_executes(fb: flo
     assert stream.line_executed == 1
 
 
+def test_a_filtered_report_leaves_out_what_the_last_automatic_one_said(fb: float) -> None:
+    """report.cpp: a filtered report leaves out what did not change since the last
+    *automatic* report (:480); an answer to `{"sr":null}` leaves that record alone (:385).
+    An answer in the planner's startup says the parser's line (8); the automatic report
+    in motion leaves out the runtime's line, 1 as the automatic one before the answer
+    said: line 1 executes, not the 8 a merged model would still hold."""
+    wire = ready(fb=fb, window=4)
+    stream = Stream(job_id=1, encode=wire.session.encode_job_line, numbered=True)
+    stream.feed_all(enumerate((f"G1 X{i} F100" for i in range(10)), start=1))
+    wire.session.start_stream(stream)
+    wire.pump()
+    for i in range(4):
+        wire.answer(f"N{i + 1} G1 X{i} F100\n".encode(), {})
+    wire.report(stat=5, line=1)  # the cycle starts as N1 is parsed; nothing moves
+    wire.session.send("?", object())
+    wire.pump()
+    wire.answer(b'{"sr":null}\n', {"sr": {"stat": 5, "line": 8, "vel": 0}})
+    assert stream.line_executed is None
+    wire.report(vel=40)  # N1 moves: `line` is 1 still, as last reported automatically
+    assert stream.line_executed == 1
+
+
 def test_the_lockout_says_what_caused_it_and_what_ends_it() -> None:
     wire = ready()
     assert wire.session.lockout() is None
