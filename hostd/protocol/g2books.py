@@ -94,6 +94,10 @@ class G2Books(G2Words, SessionBase):
         # since showed it elsewhere or moving: a stop that moved nothing is no underflow.
         self._rest_at: dict[str, float] | None = None
         self._moved = False
+        # `line` and `vel` as the board's automatic reports last said them: what a filtered
+        # report leaves out is unchanged since then (report.cpp:480), whatever an answer to
+        # `{"sr":null}` said in between (it leaves that record alone, :385).
+        self._auto_sr: dict[str, Any] = {}
 
     # -- the books -------------------------------------------------------------
 

@@ -83,6 +83,7 @@ class G2Connection(G2Lockouts):
         self._await_report = self._awaiting_rest = False
         self._settings_pending = False
         self._rest_at, self._moved = None, False
+        self._auto_sr.clear()  # a board that starts again reports from nothing
         self._to_set.clear()
         self._lines_in = 0
         self._out.clear()

@@ -194,7 +194,7 @@ class G2Session(G2Connection):
             self._detected("syntax", line, f"{line!r} refused: {message(response.status)}")
         report = response.status_report
         if report is not None:
-            self._on_status(report)
+            self._on_status(report, requested=True)
         if response.ok and (entry.line == _CLEAR or (self._held and _clears(entry.line))):
             self._cleared()
         elif response.status in _LOCKOUT_REJECTIONS:

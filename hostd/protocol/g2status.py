@@ -29,6 +29,7 @@ from hostd.protocol.status import message
 from hostd.protocol.vocabulary import Phase, Probed, Reported
 
 _RESTING_STATES = frozenset({MachineState.READY, *_FLUSH_CONFIRMED})
+_TRACKED = ("line", "vel")  # what `_track_executed` reads from the board's automatic reports
 
 
 class G2Status(G2Kills):
@@ -36,7 +37,10 @@ class G2Status(G2Kills):
 
     # -- reports ---------------------------------------------------------------
 
-    def _on_status(self, fields: dict[str, Any]) -> None:
+    def _on_status(self, fields: dict[str, Any], *, requested: bool = False) -> None:
+        """A report: automatic (`{"sr":...}`, filtered) or in an answer (`requested`, whole)."""
+        if not requested:
+            self._auto_sr.update((key, fields[key]) for key in _TRACKED if key in fields)
         before = self.model.state
         changed = self.model.apply_status(fields)
         held = self._held
@@ -61,7 +65,7 @@ class G2Status(G2Kills):
         if self._moved and self.model.state in _RESTING_STATES:
             here = self.model.machine_position or self.model.position
             self._rest_at, self._moved = dict(here), False  # at rest: moves count from here
-        self._track_executed()
+        self._track_executed(fields if requested else self._auto_sr)
         self._events.append(Reported(fields, self.model.snapshot()))
 
     def _track_motion(self) -> None:
@@ -76,18 +80,42 @@ class G2Status(G2Kills):
         if self._rest_at is None or (model.velocity or 0.0) > 0.0 or here != self._rest_at:
             self._moved = True
 
-    def _track_executed(self) -> None:
-        """`line` is the runtime's N while the board moves (stat 5), and only then.
+    def _track_executed(self, said: dict[str, Any]) -> None:
+        """`line` is the runtime's N while the board moves, and only then.
 
-        canonical_machine.cpp: `line` reads the ACTIVE_MODEL, which is the runtime
-        (the block being executed) while motion runs, and the parser's model (the last
-        line *read*, possibly far ahead in the planner) once motion stops, in a hold
-        too. So only a report showing RUN says which line executes.
+        canonical_machine.cpp (synthetos/g2 1fb5940): `line` reads the ACTIVE_MODEL
+        (:2048), which is the parser's model (the last line *read*, possibly far ahead
+        in the planner) while the motion state is MOTION_STOP, else the runtime (:354).
+        The motion state leaves MOTION_STOP only when a block begins to execute
+        (plan_exec.cpp:531-533), but stat says RUN from the moment a move is *parsed*
+        (`cm_cycle_start` in `cm_straight_traverse` :1204 and `cm_straight_feed`
+        :1360; `cm_get_combined_state` :375). So in the planner's startup, before its
+        first block runs, a report says RUN with the line the parser reached, maybe
+        the job's last: taken, a job lost then was resumed past lines that never ran.
+        `vel` is 0 exactly while the motion state is MOTION_STOP (`cm_get_vel`,
+        :2050): only a report of RUN with a speed says which line executes. `said` is
+        what the report says of `line` and `vel`: an answer's, whole; for an automatic
+        one, the board's own record of its automatic reports (`_auto_sr`), since a
+        filtered report leaves out what did not change since the last *automatic*
+        one (report.cpp:480; an answer's report, :385, leaves that record alone). The
+        merged model would not do: an answer in the planner's startup (`line` 26, the
+        parser's) and then a filtered report in motion that leaves out `line` (3, as
+        the automatic report before the answer said) merge to line 26 with a speed.
+        A moment of motion whose report shows no speed is missed, which keeps
+        `line_executed` a lower bound.
         """
         stream = self.stream
-        line = self.model.line
-        if stream is not None and not stream.done and line and self.model.state is MachineState.RUN:
-            stream.executing(line)
+        line, speed = _number(said.get("line")), _number(said.get("vel"))
+        if (
+            stream is not None
+            and not stream.done
+            and line is not None
+            and int(line) > 0
+            and speed is not None
+            and speed > 0
+            and self.model.state is MachineState.RUN
+        ):
+            stream.executing(int(line))
 
     def _on_probe(self, report: dict[str, Any]) -> None:
         """A probe cycle's result (cycle_probing.cpp `_send_probe_report`): kept and told."""
@@ -191,3 +219,10 @@ class G2Status(G2Kills):
 
 # `{"sr":null}` as the session writes it, or as an operator may (`{sr:n}`, `{"sr":""}`).
 _STATUS_POLL = re.compile(rb'\{\s*"?sr"?\s*:\s*(?:n|null|"")\s*\}', re.IGNORECASE).fullmatch
+
+
+def _number(value: Any) -> float | None:
+    """A report's number, or None for anything else (a bool is no number here)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    return None

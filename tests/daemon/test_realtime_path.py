@@ -20,6 +20,7 @@ from tests.daemon.conftest import GRBL, Rpc, Running
 
 pytestmark = pytest.mark.asyncio
 
+REALTIME = b"!~?"  # the realtime bytes these tests write, and the polls' `?`
 WAIT = 30.0  # a bound for a wait that would otherwise hang (six test workers, two cores)
 
 
@@ -44,17 +45,33 @@ class Raw:
         await self.writer.wait_closed()
 
 
-def _is_job_line(data: bytes) -> bool:
-    return b"G1" in data
+def _taken(received: list[Received]) -> bytes:
+    """The bytes the board took, in the order it took them.
+
+    A simulated g2core records each line (without its newline) and each realtime byte
+    apart; a grbl board records each read whole (kind "raw"), and one read holds what
+    the host wrote since the last: when the event loop runs late (a loaded machine),
+    the `!` shares its read with the job line written just before it, or with the `?`
+    written 20 ms after it (`SETTLE_POLL`). So the order is judged byte by byte, not
+    read by read.
+    """
+    return b"".join(r.data + b"\n" if r.kind == "line" else r.data for r in received)
 
 
-def _first(received: list[Received], byte: bytes) -> int | None:
-    """Where the board first took that realtime byte (a grbl board records it as read raw,
-    with what came in the same read: the `?` the host writes behind its `~`)."""
-    return next(
-        (i for i, r in enumerate(received) if r.kind in ("realtime", "raw") and byte in r.data),
-        None,
-    )
+def _job_lines_from(taken: bytes, start: int, end: int | None = None) -> list[bytes]:
+    """The job lines whose first byte the board took at `start` or later (before `end`).
+
+    Realtime bytes taken before a line's first byte are not part of it; a line begun
+    before a realtime byte and ended after it (the byte reached the board ahead of the
+    rest of the line) was written before it: it does not count.
+    """
+    found, at = [], 0
+    for line in taken.split(b"\n"):
+        first = at + len(line) - len(line.lstrip(REALTIME))
+        if start <= first and (end is None or first < end) and b"G1" in line:
+            found.append(line)
+        at += len(line) + 1
+    return found
 
 
 async def test_a_feedhold_pauses_the_streaming_job_and_no_job_line_follows_its_bang(
@@ -102,7 +119,7 @@ async def _hold_and_resume(
         )
         assert await raw.ask(hold) == {"jsonrpc": "2.0", "result": {}, "id": 7}
         assert (await rpc.call("job.get", job=started["job"]))["state"] == "paused"
-        await sim.wait_for(lambda: any(r.data == b"!" for r in list(sim.received)[seen:]), WAIT)
+        await sim.wait_for(lambda: b"!" in _taken(list(sim.received)[seen:]), WAIT)
         if held is not None:
             await sim.wait_for(held, WAIT)
         # The CLI's bytes: json.dumps' separators, the method before the id, a string id.
@@ -114,17 +131,17 @@ async def _hold_and_resume(
         assert (await rpc.call("job.get", job=started["job"]))["state"] == "running"
 
         def streams_again() -> bool:
-            after = list(sim.received)[seen:]
-            tilde = _first(after, b"~")
-            return tilde is not None and any(_is_job_line(r.data) for r in after[tilde:])
+            taken = _taken(list(sim.received)[seen:])
+            tilde = taken.find(b"~")
+            return tilde >= 0 and bool(_job_lines_from(taken, tilde))
 
         await sim.wait_for(streams_again, WAIT)
     finally:
         await raw.close()
-    after = list(sim.received)[seen:]
-    bang, tilde = _first(after, b"!"), _first(after, b"~")
-    assert bang is not None and tilde is not None and bang < tilde
-    assert not [r.data for r in after[bang:tilde] if _is_job_line(r.data)]
+    taken = _taken(list(sim.received)[seen:])
+    bang, tilde = taken.find(b"!"), taken.find(b"~")
+    assert 0 <= bang < tilde, taken
+    assert not _job_lines_from(taken, bang, tilde), taken
     await rpc.call("job.cancel", machine=machine)
 
 

@@ -59,6 +59,7 @@ SETUP = {
     ),
 }
 _MOVE = re.compile(r"\b(G0*[0-3])\b|[XYZ]-?[0-9.]")
+_SPINDLE = re.compile(r"\bM0*(2|30|[345])\b|\bS([0-9.]+)")
 
 
 def _cases() -> Iterator[object]:
@@ -121,15 +122,18 @@ async def _run(hostd: Running, rpc: Rpc, path: Path, dialect: str) -> None:
     for lose_at in _draw(text, f"{dialect}-{path.name}"):
         await _power_cycle(hostd, rpc)
         await _prepare(hostd, rpc, dialect, laser, by_hand)
+        record.clear()
         lost = await rpc.call("job.start", machine="sim1", file=path.name, force=True)
         await _executed_at_least(rpc, lost["job"], lose_at)
         if dialect == "grbl":  # unplugged: an Arduino powers down with its USB
             await sim.unplug()
             ended = await job_end(rpc, lost["job"])
+            ran = {t.move.n for t in record}
             await sim.replug()
         else:  # g2core has power of its own: lost to a reset, which forgets the position
             await rpc.call("machine.reset", machine="sim1")
             ended = await job_end(rpc, lost["job"])
+            ran = {t.move.n for t in record}
         if ended["state"] != "completed":
             break
     assert ended["state"] in ("interrupted", "failed"), ended
@@ -144,6 +148,10 @@ async def _run(hostd: Running, rpc: Rpc, path: Path, dialect: str) -> None:
         await rpc.call("machine.send", machine="sim1", line=SPEED)
     plan = await rpc.call("job.recovery", job=lost["job"])
     await hostd.idle(rpc)  # the operator reads the plan: grbl answered its queries
+    # Every move before the resume line was begun by the lost run (the board's record:
+    # g2core's as each block starts, grbl's as each is planned): nothing is skipped.
+    skipped = [t.move for t in reference if t.move.n < plan["line"] and t.move.n not in ran]
+    assert not skipped, f"resumed at line {plan['line']}, past moves never made: {skipped}"
     assert not any("G10" in line for line in plan["preamble"] + plan["approach"])
     if by_hand:
         assert not any(re.search(r"\bS0\b", line) for line in plan["approach"])
@@ -158,7 +166,7 @@ async def _run(hostd: Running, rpc: Rpc, path: Path, dialect: str) -> None:
     where = f"{path.name} on {dialect}, resumed at line {plan['line']}: {plan['approach']}"
     low = _too_low(reference, after)
     assert low is None, f"{where}: the tool went to {low}"
-    wrong = _spindle_wrong(reference, after, plan, laser)
+    wrong = _spindle_wrong(reference, after, plan, laser, text)
     assert wrong is None, f"{where}: {wrong}"
     end, want = after[-1].move.target, reference[-1].move.target
     assert all(math.isclose(end[a], want[a], abs_tol=1e-3) for a in want), (where, end, want)
@@ -217,22 +225,46 @@ def _too_low(reference: list[Traversed], resumed: list[Traversed]) -> str | None
     return None
 
 
+def _spindle_at(reference: list[Traversed], text: str, line: int) -> tuple[str, float] | None:
+    """The spindle (and speed) the file had as `line` began: the board's, on the last
+    move before it, changed by the spindle words of the lines between (an `M5`, an
+    `S16000 M3` between two moves); None if no move comes before it."""
+    before = [t.move for t in reference if t.move.n < line]
+    if not before:
+        return None
+    spindle, speed = before[-1].spindle, before[-1].speed
+    for code in text.splitlines()[before[-1].n : line - 1]:
+        for m, s in _SPINDLE.findall(code.split("(")[0]):
+            if m:
+                spindle = "M5" if m in ("2", "30") else f"M{m}"  # a program end stops it
+            else:
+                speed = float(s)
+    return spindle, speed
+
+
 def _spindle_wrong(
-    reference: list[Traversed], resumed: list[Traversed], plan: dict[str, Any], laser: bool
+    reference: list[Traversed],
+    resumed: list[Traversed],
+    plan: dict[str, Any],
+    laser: bool,
+    text: str,
 ) -> str | None:
     """The first cutting move of `resumed` whose spindle is not the file's there.
 
     The approach's moves are the first ones (as many as its lines with a move); the
-    rest are the file's, each matched by its line number (its N word).
+    rest are the file's, each matched by its line number (its N word). The approach's
+    plunge runs with the spindle the file had as the resume line began (`_spindle_at`);
+    the first move at or after the line says so too where no move comes before it.
     """
     line = plan["line"]
     approach = sum(
-        1 for text in plan["approach"] if re.search(r"[XYZ]", text) and "G92" not in text
+        1 for entry in plan["approach"] if re.search(r"[XYZ]", entry) and "G92" not in entry
     )
     first: dict[int, Traversed] = {}
     for t in reference:
         first.setdefault(t.move.n, t)
     at_line = next((t for t in reference if t.move.n >= line), None)
+    at_start = _spindle_at(reference, text, line)
     for i, t in enumerate(resumed):
         if t.move.rapid:
             if laser and t.cutting:
@@ -246,10 +278,15 @@ def _spindle_wrong(
             if t.cutting:
                 return f"the beam is on before the laser is in position: {t.move}"
             continue
+        elif at_start is not None:  # the approach's plunge
+            got = (t.move.spindle, t.move.speed)
+            if got != at_start:
+                return f"{t.move} runs with {got}, the file with {at_start} at line {line}"
+            continue
         elif at_line is None:
             continue  # nothing of the file moves after the line: nothing to cut
         else:
-            want = at_line  # the approach's plunge: the spindle the file had at the line
+            want = at_line  # no move before the line: the first at or after it says
         got = (t.move.spindle, t.move.speed)
         if got != (want.move.spindle, want.move.speed):
             return f"{t.move} runs with {got}, the file with {want.move.spindle, want.move.speed}"

@@ -574,16 +574,56 @@ def test_the_executing_line_is_read_only_from_reports_that_show_motion(fb: float
     wire.session.start_stream(stream)
     wire.pump()
     assert wire.lines(Lane.DATA)[0].startswith(b"N1 ")  # numbered with the file line
-    wire.report(stat=5, line=2)
+    wire.report(stat=5, line=2, vel=100)
     assert stream.line_executed == 2
     wire.report(stat=6, line=4)  # a hold: the line read ahead, not the one running
     assert stream.line_executed == 2
-    wire.report(stat=5, line=9)  # never sent: a stale or foreign number
+    wire.report(stat=5, line=9, vel=100)  # never sent: a stale or foreign number
     assert stream.line_executed == 2
-    wire.report(stat=5, line=3)
+    wire.report(stat=5, line=3)  # filtered: `vel` left out, still the 100 last reported
     assert stream.line_executed == 3
     wire.report(stat=5, line=1)  # never backwards
     assert stream.line_executed == 3
+
+
+def test_a_run_report_before_the_first_block_moves_says_no_line_executes(fb: float) -> None:
+    """stat is RUN from the first move *parsed* (cm_cycle_start), but `line` is the
+    parser's until a block executes (ACTIVE_MODEL, MOTION_STOP; `vel` 0 until then):
+    the planner's startup reports the last line read. Taken, a job lost there was
+    planned to resume at that line, past every line the board had not run."""
+    wire = ready(fb=fb, window=4)
+    stream = Stream(job_id=1, encode=wire.session.encode_job_line, numbered=True)
+    stream.feed_all(enumerate((f"G1 X{i} F100" for i in range(10)), start=1))
+    wire.session.start_stream(stream)
+    wire.pump()
+    for line in (b"N1 G1 X0 F100\n", b"N2 G1 X1 F100\n", b"N3 G1 X2 F100\n"):
+        wire.answer(line, {})
+    wire.report(stat=5, line=4, vel=0)  # the planner fills; nothing moves yet
+    assert stream.line_executed is None
+    wire.report(stat=5, line=1, vel=40)  # the first block runs: the runtime's line
+    assert stream.line_executed == 1
+
+
+def test_a_filtered_report_leaves_out_what_the_last_automatic_one_said(fb: float) -> None:
+    """report.cpp: a filtered report leaves out what did not change since the last
+    *automatic* report (:480); an answer to `{"sr":null}` leaves that record alone (:385).
+    An answer in the planner's startup says the parser's line (8); the automatic report
+    in motion leaves out the runtime's line, 1 as the automatic one before the answer
+    said: line 1 executes, not the 8 a merged model would still hold."""
+    wire = ready(fb=fb, window=4)
+    stream = Stream(job_id=1, encode=wire.session.encode_job_line, numbered=True)
+    stream.feed_all(enumerate((f"G1 X{i} F100" for i in range(10)), start=1))
+    wire.session.start_stream(stream)
+    wire.pump()
+    for i in range(4):
+        wire.answer(f"N{i + 1} G1 X{i} F100\n".encode(), {})
+    wire.report(stat=5, line=1)  # the cycle starts as N1 is parsed; nothing moves
+    wire.session.send("?", object())
+    wire.pump()
+    wire.answer(b'{"sr":null}\n', {"sr": {"stat": 5, "line": 8, "vel": 0}})
+    assert stream.line_executed is None
+    wire.report(vel=40)  # N1 moves: `line` is 1 still, as last reported automatically
+    assert stream.line_executed == 1
 
 
 def test_the_lockout_says_what_caused_it_and_what_ends_it() -> None:
