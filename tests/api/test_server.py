@@ -9,7 +9,8 @@ import socket
 import stat
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -534,27 +535,37 @@ class _Gate:
         return self.open.wait(TIMEOUT)
 
 
+@asynccontextmanager
+async def _admissions_full(server: Any, gate: _Gate) -> AsyncIterator[list[Conn]]:
+    """Two connections held at the door (the server's `max_clients` of 2): the next one
+    to come is dropped before it is asked who it is."""
+    assert server.path is not None
+    held = [await Conn.open(server.path) for _ in range(2)]
+    try:
+        for _ in held:
+            assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
+        yield held
+    finally:
+        gate.open.set()
+        for conn in held:
+            await conn.close()
+
+
 async def test_connections_waiting_for_admission_are_bounded_too(
     harness: Harness, tmp_path: Path
 ) -> None:
     gate = _Gate()
-    async with serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server:
-        assert server.path is not None
-        held = [await Conn.open(server.path) for _ in range(2)]
-        try:
-            for _ in held:
-                assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
-            with capture_logs() as logs:
-                dropped = await Conn.open(server.path)
-                assert await dropped.closed_by_server()
-            assert [e["event"] for e in logs] == ["api connection dropped: too many being admitted"]
-            gate.open.set()
-            for conn in held:
-                assert (await conn.call("count"))["id"] == 1
-        finally:
-            gate.open.set()
-            for conn in held:
-                await conn.close()
+    async with (
+        serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server,
+        _admissions_full(server, gate) as held,
+    ):
+        with capture_logs() as logs:
+            dropped = await Conn.open(server.path)
+            assert await dropped.closed_by_server()
+        assert [e["event"] for e in logs] == ["api connection dropped: too many being admitted"]
+        gate.open.set()
+        for conn in held:
+            assert (await conn.call("count"))["id"] == 1
 
 
 async def test_a_flood_of_connections_past_the_bound_is_counted_not_logged_a_line_each(
@@ -564,22 +575,16 @@ async def test_a_flood_of_connections_past_the_bound_is_counted_not_logged_a_lin
     log tells how many (every one) in a record a second at most, not a line each."""
     gate = _Gate()
     with capture_logs() as logs:
-        async with serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server:
-            assert server.path is not None
-            held = [await Conn.open(server.path) for _ in range(2)]
-            try:
-                for _ in held:
-                    assert await asyncio.to_thread(gate.waiting.acquire, timeout=TIMEOUT)
-                started = time.monotonic()
-                for _ in range(200):
-                    dropped = await Conn.open(server.path)
-                    assert await dropped.closed_by_server()
-                    await dropped.close()
-                elapsed = time.monotonic() - started
-            finally:
-                gate.open.set()
-                for conn in held:
-                    await conn.close()
+        async with (
+            serving(harness, tmp_path / "s", max_clients=2, policy=gate) as server,
+            _admissions_full(server, gate),
+        ):
+            started = time.monotonic()
+            for _ in range(200):
+                dropped = await Conn.open(server.path)
+                assert await dropped.closed_by_server()
+                await dropped.close()
+            elapsed = time.monotonic() - started
     records = [e for e in logs if e["event"] == "api connection dropped: too many being admitted"]
     assert sum(e.get("repeats", 1) for e in records) == 200  # each one counted, at the close
     assert len(records) <= 2 + elapsed
