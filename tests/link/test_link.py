@@ -267,3 +267,76 @@ async def test_a_realtime_byte_overtakes_every_line_the_device_has_not_taken(
         assert got.replace(b"!\n", b"", 1) == line * 200  # the lines themselves, intact
     finally:
         await link.close()
+        await link.close()
+
+
+async def test_a_resting_link_reads_nothing_until_the_rest_ends_then_all_in_one_read(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """The engine's pacing (`Link.rest`): answers that come meanwhile wait in the kernel
+    and are read together; writing, a realtime byte above all, never waits for it."""
+    data, control = next(peers), next(peers)
+    reads: list[tuple[Channel, list[bytes]]] = []
+    read = asyncio.Event()
+
+    class Receiver:
+        def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
+            reads.append((channel, lines))
+            read.set()
+
+        def link_lost(self, reason: str) -> None:
+            raise AssertionError(reason)
+
+    loop = asyncio.get_running_loop()
+    link = await Link.open(str(data.path), str(control.path), receiver=Receiver())
+    control.start_reading()
+    try:
+        began = loop.time()
+        link.rest(0.3)
+        for _ in range(3):
+            control.write(b'{"r":{},"f":[1,0,4]}\n')
+        assert link.write_realtime(encode_realtime(Realtime.FEEDHOLD))
+        await control.wait_received(b"!\n")  # out at once, the link resting or not
+        async with asyncio.timeout(5):
+            await read.wait()
+        assert loop.time() - began >= 0.25  # not before the rest's end (a timer never fires early)
+        assert reads == [(Channel.CONTROL, [b'{"r":{},"f":[1,0,4]}'] * 3)]
+        link.rest(0.3)
+    finally:
+        await link.close()  # a rest under way ends with the link: no reading is resumed
+
+
+async def test_a_rest_that_ends_with_nothing_to_read_keeps_the_link(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """serialx opens a port with VMIN 0: a read of an empty tty returns no bytes, which its
+    reader takes for a hang-up. A rest's end reads only what the device holds, so a quiet
+    board is not taken for a vanished one; what comes later is read as it comes."""
+    data = next(peers)
+    reads: list[tuple[Channel, list[bytes]]] = []
+    lost: list[str] = []
+    read = asyncio.Event()
+
+    class Receiver:
+        def link_lines(self, channel: Channel, lines: list[bytes]) -> None:
+            reads.append((channel, lines))
+            read.set()
+
+        def link_lost(self, reason: str) -> None:
+            lost.append(reason)
+
+    link = await Link.open(str(data.path), receiver=Receiver())
+    try:
+        for _ in range(3):  # rest after rest with nothing said
+            link.rest(0.002)
+            async with asyncio.timeout(5):
+                while link.resting:
+                    await asyncio.sleep(0.001)
+        assert lost == [] and link.lost is None
+        data.write(b"ok\n")
+        async with asyncio.timeout(5):
+            await read.wait()
+        assert reads == [(Channel.DATA, [b"ok"])]
+        assert lost == []
+    finally:
+        await link.close()
