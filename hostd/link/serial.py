@@ -40,6 +40,7 @@ from hostd.protocol.framing import LineBuffer
 # on some boards that erases the firmware (g2core.md section 1).
 BOOTLOADER_BAUD = 1200
 _CLOSE_GRACE = 1.0
+READ_SIZE = 64 * 1024  # bytes a read takes at most (`connection_made`)
 
 
 class LinkError(Exception):
@@ -90,6 +91,13 @@ class SerialChannel(asyncio.Protocol):
         assert isinstance(transport, asyncio.Transport)
         self._transport = transport
         transport.set_write_buffer_limits(high=0, low=0)
+        # serialx reads up to 256 KiB a read (`DescriptorTransport.max_size`). glibc
+        # serves a buffer that size with mmap (its threshold starts at 128 KiB and only
+        # rises when a larger mmapped block is freed), and CPython shrinks it to the bytes
+        # read with mremap: three system calls and a page fault a read, in a daemon young
+        # enough never to have freed a large block. 64 KiB is under the threshold, and
+        # more than a board's serial line delivers between two reads.
+        transport.max_size = READ_SIZE  # type: ignore[attr-defined]
 
     def data_received(self, data: bytes) -> None:
         lines = self._framer.feed(data)
