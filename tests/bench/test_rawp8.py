@@ -26,7 +26,8 @@ import uvloop
 from bench.client import raster
 from bench.procs import ControllerProcess
 from bench.raw import wire_lines
-from bench.rawp8 import open_ports, run, stream
+from bench.rawp8 import BareWindow, open_ports, run, stream
+from bench.run import _bare_baseline
 
 T = TypeVar("T")
 LINES = 300
@@ -172,3 +173,26 @@ def test_the_helper_stops_mid_stream_when_told(tmp_path: Path) -> None:
     assert len(result["acked"]) == 1
     assert result["acked"][0] < 10_000
     assert result["sent"][0] - result["acked"][0] <= 4
+
+
+def _window(starved: list[list[float]]) -> BareWindow:
+    record = {"job": {"lines": 4000}, "starved": starved, "overflows": 0, "late": 0.001}
+    return BareWindow([record, dict(record, starved=[])], 2.0, 0.3, 200, 0, 0.0)
+
+
+def test_p8s_row_puts_the_bare_host_beside_the_daemon() -> None:
+    baseline, notes = _bare_baseline(_window([]), daemon_us=62.0)
+    assert baseline == "bare host: 2,000 lines/s each, 38 us/line, starved 0x"
+    assert "38 us a line against the daemon's 62" in notes[0]
+    assert len(notes) == 1  # nothing to excuse
+
+
+def test_a_bare_host_that_starved_the_boards_is_called_the_machines_floor() -> None:
+    """A target a bare host misses in the same cgroup is not the daemon's to meet:
+    the row says so rather than letting the daemon's FAIL read as the daemon's."""
+    _, notes = _bare_baseline(_window([[1.0, 0.004], [1.5, 0.002]]), daemon_us=62.0)
+    assert any(
+        "bare host itself starved the boards 2x, 6.0 ms in all, longest 4.0 ms" in note
+        and "not the daemon's to meet" in note
+        for note in notes
+    )
