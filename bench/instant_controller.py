@@ -70,7 +70,10 @@ Commands, one a line on stdin; answers on stdout:
   and last; `starved`: each time the planner ran empty mid-job (when, for how
   long); `late`: the most this process woke after a block freed (its own
   delay); `rescued`: how often the safety net (`WAITING_LOOK`) found lines it
-  should have planned already (0 unless this file has a bug).
+  should have planned already (0 unless this file has a bug); `unanswered`
+  (g2core): the most G-code lines the board had read and not yet answered,
+  counted as each read came in (answers the same read gets are not yet
+  written): a host that keeps its window of N lines never makes it more than N.
 - `quit`.
 
 A board is hardware of its own, but this process is not: by default it is
@@ -177,6 +180,7 @@ class Controller:
         self.job_last: float | None = None
         self.late = 0.0  # the most this process woke after a block freed
         self.rescued = 0  # wakes of the safety net (WAITING_LOOK) that planned lines
+        self.most_unanswered = 0  # G-code lines read, not answered (g2core), since the dump
         # The bench's commands and this process's answers (stdin and stdout; a test may
         # drive the loop with `step` and its own pipe).
         self.commands = 0  # stdin
@@ -352,11 +356,17 @@ class Controller:
         self.buf += data
         buf = self.buf
         start = 0
+        # Every G-code line read before is answered (and written) or waiting for a block.
+        before, read = len(self.waiting), self.job_lines + len(self.waiting)
         while (end := buf.find(b"\n", start)) >= 0:
             line = bytes(buf[start:end])
             start = end + 1
             self._line(line, now, out)
         del buf[:start]
+        # What the host had unanswered when this read came: the answers it gets are
+        # written after it (`out`), so lines planned in it still count.
+        fresh = self.job_lines + len(self.waiting) - read
+        self.most_unanswered = max(self.most_unanswered, before + fresh)
 
     def _line(self, line: bytes, now: float, out: list[bytes]) -> None:
         if not line:
@@ -536,6 +546,7 @@ class Controller:
             "overflows": 0,
             "late": self.late,
             "rescued": self.rescued,
+            "unanswered": self.most_unanswered,
         }
 
     def _forget_records(self) -> None:
@@ -543,6 +554,7 @@ class Controller:
         self.job_lines, self.job_first, self.job_last = 0, None, None
         self.late = 0.0
         self.rescued = 0
+        self.most_unanswered = 0
         if self.planner is not None:
             self.planner.starved = []
 
@@ -724,6 +736,7 @@ class GrblController(Controller):
     def _records(self) -> dict[str, Any]:
         records = super()._records()
         records["overflows"] = self.overflows
+        del records["unanswered"]  # a host's grbl stream is bounded in bytes: `overflows`
         return records
 
     def _forget_records(self) -> None:

@@ -41,7 +41,11 @@
   streaming alone and then with feedhold/cycle-start pairs on the first:
   in each, every machine's line rate, each board's planner running empty
   mid-job (how often, how long) and the daemon's CPU; `!` on the first
-  machine in the second.
+  machine in the second. Baseline (the streaming-alone rows): a bare host
+  (bench/rawp8.py: uvloop + serialx and the same flow control, nothing
+  else) in a cgroup of the same share, on boards of its own, for one window
+  of the same length just before the daemon's: what this machine charges any
+  host for the stream.
 
 Targets: P1 >= 0.8x raw, P5 <= 0.10 s and P6's `!` p99 < 2 ms are issue
 15's; the `!` p99 < 1 ms of P2 and P2f is issue 11's; P8's are issue 30's
@@ -89,6 +93,7 @@ from bench.cgroup import CgroupUnavailable, CpuLimit, cpu_limit
 from bench.client import Client, DaemonProcess, RpcFailure, program, raster, run_delay
 from bench.procs import ControllerProcess, Flooder, SubscriberFleet, WebClient
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost, wire_lines
+from bench.rawp8 import BareWindow, bare_window
 from hostd.api.tokens import TokenStore
 
 WINDOW = 4
@@ -184,8 +189,16 @@ class BudgetWindow:
     throttled: float  # seconds
     sent_at: list[float]  # each feedhold's write, when the window had holds
 
-    def row(self, figure: str, rate: float, limit: CpuLimit, streaming: bool) -> Row:
-        """The window's row: the boards' line rates and their planners' starvation."""
+    def row(
+        self,
+        figure: str,
+        rate: float,
+        limit: CpuLimit,
+        streaming: bool,
+        bare: BareWindow | None = None,
+    ) -> Row:
+        """The window's row: the boards' line rates and their planners' starvation; with
+        `bare`, the bare host's window (bench/rawp8.py) as its baseline."""
         rates = [record["job"]["lines"] / self.seconds for record in self.records]
         gaps = [gap for record in self.records for _, gap in record["starved"]]
         overflows = sum(record["overflows"] for record in self.records)
@@ -208,10 +221,14 @@ class BudgetWindow:
                 f"a board's safety net planned lines {rescued} times that no "
                 "deadline had woken it for (a bug in bench/instant_controller.py)"
             )
+        baseline = f"{rate:,.0f} lines/s asked"
+        if bare is not None:
+            baseline, bare_notes = _bare_baseline(bare, self.cpu / max(lines, 1) * 1e6)
+            notes.extend(bare_notes)
         return Row(
             figure,
             f"{per_machine} lines/s",
-            f"{rate:,.0f} lines/s asked",
+            baseline,
             f"starved {len(gaps)}x, {sum(gaps) * 1e3:.1f} ms in all, longest "
             f"{max([0.0, *gaps]) * 1e3:.1f} ms",
             "never starved",
@@ -227,6 +244,37 @@ class BudgetWindow:
                 *notes,
             ],
         )
+
+
+def _bare_baseline(bare: BareWindow, daemon_us: float) -> tuple[str, list[str]]:
+    """The bare host's figures for a P8 row: its baseline column and its notes."""
+    low, high = min(bare.rates), max(bare.rates)
+    rates = f"{low:,.0f}" if f"{low:,.0f}" == f"{high:,.0f}" else f"{low:,.0f}-{high:,.0f}"
+    gaps = bare.gaps
+    baseline = (
+        f"bare host: {rates} lines/s each, {bare.us_a_line:.0f} us/line, starved {len(gaps)}x"
+    )
+    notes = [
+        f"bare host (bench/rawp8.py: uvloop + serialx, nothing but the stream, in a cgroup "
+        f"of the same share and period, its own window of {bare.seconds:.1f} s before the "
+        f"daemon's): CPU {bare.cpu:.2f} s = {bare.cpu / bare.seconds:.0%} of a core, "
+        f"{bare.us_a_line:.0f} us a line against the daemon's {daemon_us:.0f}; throttled in "
+        f"{bare.throttles} of {bare.periods} periods, {bare.throttled:.2f} s in all"
+    ]
+    if gaps:
+        notes.append(
+            f"the bare host itself starved the boards {len(gaps)}x, {sum(gaps) * 1e3:.1f} ms "
+            f"in all, longest {max(gaps) * 1e3:.1f} ms: the bench's floor on this machine; "
+            "a target a bare host misses is not the daemon's to meet"
+        )
+    overflows = sum(record["overflows"] for record in bare.records)
+    late = max(record["late"] for record in bare.records)
+    if overflows or late > STALLED_BOARD:
+        notes.append(
+            f"in the bare host's window: {overflows} receive-buffer overflows (a bug in "
+            f"bench/rawp8.py), the boards' own lateness up to {late * 1e3:.0f} ms"
+        )
+    return baseline, notes
 
 
 # --- statistics ---------------------------------------------------------------
@@ -822,6 +870,18 @@ class Bench:
         gives a fleet that only streams; each window now has its own row.
         """
         ids = [f"laser{i}" for i in range(1, count + 1)]
+        # The baseline first, on boards of its own: the bare host in the same kind of cgroup.
+        bare = bare_window(
+            self._dir(f"p8-bare-{dialect}"),
+            dialect,
+            count,
+            rate,
+            self.s.p8_seconds,
+            self.s.p8_share,
+            self.s.p8_period_us,
+            fifo=self.pinned,
+            cpus=self.host_cpus,
+        )
         # Jobs that outlast both windows even at the full rate; cancelled after them.
         n = round(rate * (4 * self.s.p8_seconds + 10))
         port = _free_port()
@@ -889,8 +949,12 @@ class Bench:
             f"WebSocket read {seen['messages']:,} messages"
             + (" and was closed" if seen["closed"] else "")
         )
-        for window, label in ((alone, "streaming alone"), (held, f"{len(sent_at)} holds")):
-            self.rows.append(window.row(self._label(f"{title}, {label}"), rate, limit, streaming))
+        self.rows.append(
+            alone.row(self._label(f"{title}, streaming alone"), rate, limit, streaming, bare)
+        )
+        self.rows.append(
+            held.row(self._label(f"{title}, {len(sent_at)} holds"), rate, limit, streaming)
+        )
         self.rows[-1].notes.extend([ending, load])
         text, p99 = latency_runs([latencies])
         self.rows.append(
