@@ -329,8 +329,9 @@ async def test_a_rest_that_ends_with_nothing_to_read_keeps_the_link(
     try:
         for _ in range(3):  # rest after rest with nothing said
             link.rest(0.002)
-            await asyncio.sleep(0.01)  # a later timer of the same loop: the rest ends first
-            assert not link.resting
+            async with asyncio.timeout(5):
+                while link.resting:
+                    await asyncio.sleep(0.001)
         assert lost == [] and link.lost is None
         data.write(b"ok\n")
         async with asyncio.timeout(5):
