@@ -21,7 +21,6 @@ from enum import StrEnum
 from functools import partial
 from typing import Protocol
 
-from hostd.link.pacer import ReadPacer, pacer
 from hostd.link.serial import SerialChannel
 
 INBOX_HIGH = 4096
@@ -64,8 +63,6 @@ class Link:
         self._wakeup = asyncio.Event()
         self._channels: dict[Channel, SerialChannel] = {}
         self._paused = False
-        self._resting = False  # `rest`: reading resumes when the loop's pacer ends it
-        self._pacer: ReadPacer | None = None  # the loop's, once the link first rests
         self.lost: LinkLost | None = None
 
     @classmethod
@@ -143,57 +140,8 @@ class Link:
 
     def _set_reading(self, on: bool) -> None:
         self._paused = not on
-        if on and self._resting:
-            return  # the rest's end reads again
         for ch in self._channels.values():
             ch.set_reading(on)
-
-    def rest(self, seconds: float) -> None:
-        """Read nothing for `seconds` (or up to `pacer.SLACK` less), then everything that
-        came meanwhile, in one read.
-
-        For a receiver whose board answers at the pace of its motion: one wake-up for
-        several answers instead of one each (the engine's pacing). The rests of every
-        link of the loop end on one timer (hostd/link/pacer.py), so that their reads
-        are one wake-up too. Writing is not affected: realtime bytes and lines still
-        leave at once.
-        """
-        if self._resting or self.lost is not None:
-            return
-        self._resting = True
-        for ch in self._channels.values():
-            ch.set_reading(False)
-        if self._pacer is None:
-            self._pacer = pacer()
-        self._pacer.rest(self, seconds)
-
-    @property
-    def resting(self) -> bool:
-        """Reading rests (`rest`) until the loop's pacer ends it."""
-        return self._resting
-
-    def end_rest(self) -> None:
-        """The rest is over (the pacer's call): read what came meanwhile, in one read a
-        channel, in this call; then, unless the receiver rested the link again, read as
-        bytes come (the loop's reader, registered again).
-
-        In a job's steady state the receiver rests the link again after that read, and
-        the link goes from rest to rest without its reader: no `epoll_ctl` a rest.
-        """
-        if not self._resting:
-            return
-        self._resting = False
-        if self._paused or self.lost is not None:
-            return
-        channels = list(self._channels.values())
-        for ch in channels:
-            if not ch.read_now():
-                break  # this transport cannot read on demand: its reader does
-            if self.lost is not None:
-                return
-        if not self._resting and not self._paused:
-            for ch in channels:
-                ch.set_reading(True)
 
     # writing
 
@@ -239,9 +187,6 @@ class Link:
 
     async def close(self) -> None:
         """Release every port (data first, the reverse of opening)."""
-        if self._resting and self._pacer is not None:
-            self._resting = False
-            self._pacer.cancel(self)
         for name in (Channel.DATA, Channel.CONTROL):
             if name in self._channels:
                 await self._channels[name].close()

@@ -24,10 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
-import fcntl
 import os
-import sys
-import termios
 from collections import deque
 from collections.abc import Callable
 
@@ -117,35 +114,6 @@ class SerialChannel(asyncio.Protocol):
                 transport.resume_reading()
             else:
                 transport.pause_reading()
-
-    def read_now(self) -> bool:
-        """While reading is paused: read what the device holds now, once, as the
-        transport's own reader would; False if this transport cannot (then resume
-        reading instead).
-
-        The transport's reader (`_read_ready`) is called as the event loop would call
-        it, so an error ends the connection exactly as it does on a read the loop
-        started; and only when the device holds bytes (`FIONREAD`): serialx opens a
-        port with VMIN 0 and VTIME 0, where a read of an empty tty returns no bytes,
-        which the reader takes for a hang-up. A device that cannot say what it holds
-        (an error, a hang-up) is left to the reader. Both are serialx's private
-        names: a serialx without them reads nothing here, and its link resumes reading
-        the usual way (tests/link/test_link.py checks that a rest's answers are read).
-        """
-        transport = self._transport
-        if transport is None or transport.is_closing():
-            return True  # nothing to read: the loss is reported on its own
-        fileno: int | None = getattr(transport, "_fileno", None)
-        read: Callable[[], None] | None = getattr(transport, "_read_ready", None)
-        if fileno is None or read is None:
-            return False
-        try:
-            held = int.from_bytes(fcntl.ioctl(fileno, termios.FIONREAD, bytes(4)), sys.byteorder)
-        except OSError:
-            return False
-        if held:
-            read()
-        return True
 
     # writing
 

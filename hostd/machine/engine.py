@@ -48,27 +48,16 @@ This module keeps `Engine` and `LinkState` where every importer finds them.
 
 from __future__ import annotations
 
-import time
-
 from hostd.link import Channel
 from hostd.machine.engine_link import RECONNECT_BACKOFF
 from hostd.machine.engine_requests import EngineRequests
 from hostd.machine.engine_state import LinkState, session_for
 
-__all__ = ["PACE_MAX", "PACE_MIN", "RECONNECT_BACKOFF", "Engine", "LinkState", "session_for"]
-
-# `Engine._pace`: how long a link may rest between reads in a job's steady state. Shorter
-# than a rest is worth its timer; at most 2 ms, far less than what a board that holds
-# unparsed lines has planned (grbl's smallest planner is 15 blocks; docs/protocol.md).
-PACE_MIN = 0.0005
-PACE_MAX = 0.002
+__all__ = ["RECONNECT_BACKOFF", "Engine", "LinkState", "session_for"]
 
 
 class Engine(EngineRequests):
     """One machine's engine (the module's docstring); this layer reads."""
-
-    _paced_read_at: float | None = None  # `_pace`: the last read in a job's steady state
-    _held_after = 0  # lines the board held after that read's writes
 
     # -- reading: the link's callbacks -----------------------------------
 
@@ -94,43 +83,9 @@ class Engine(EngineRequests):
             self._receive(lines, channel if self.console_but_job else None)
         try:
             self._deliver()
-            self._pace(len(lines))
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
-
-    def _pace(self, answered: int) -> None:
-        """Rest the link a little when the board answers at the pace of its motion.
-
-        A laser rastering 1,000-2,000 short lines a second answers them one at a
-        time: read as they come, each answer is a wake-up of its own, and the
-        wake-up, not the line, is most of what a line costs a small computer
-        (docs/performance.md, P8). When this read answered fewer lines than the
-        board held (it still holds lines it has not parsed: its planner is full,
-        and it takes them as its motion frees room) the link reads nothing for
-        about the time the board takes to answer half of what it now holds, at the
-        pace this read showed, never over PACE_MAX; the answers that came
-        meanwhile are then one read, and the rests of all the daemon's links end
-        on one timer (hostd/link/pacer.py). When the board answered everything it
-        held (a fast board, or a host that was late) nothing waits: the board may
-        be waiting for lines. Only in a job's steady state (`paceable`); a realtime
-        byte or an operator's line is still written at once, and what the board
-        says (an alarm, an error, a report) is read at most PACE_MAX late.
-        """
-        session = self.session
-        if not session.paceable():
-            self._paced_read_at = None
-            return
-        now = time.monotonic()
-        last, held = self._paced_read_at, self._held_after
-        self._paced_read_at = now
-        self._held_after = holds = session.unanswered()
-        link = self.link
-        if last is None or answered >= held or holds < 2 or link is None:
-            return
-        delay = min(PACE_MAX, (now - last) / answered * (holds // 2))
-        if delay >= PACE_MIN:
-            link.rest(delay)
 
     def _receive(self, lines: list[bytes], published: Channel | None = None) -> None:
         """The read's lines to the session: each run of plain job answers in one pass

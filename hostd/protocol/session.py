@@ -44,8 +44,6 @@ from hostd.protocol.vocabulary import (
 
 log = structlog.get_logger(__name__)
 
-_MOVING = frozenset({MachineState.RUN, MachineState.CYCLE})  # what `paceable` asks for
-
 
 class SessionBase:
     """The rules of behaviour.md that hold over every dialect; a dialect fills in the rest.
@@ -191,26 +189,6 @@ class SessionBase:
         ):
             return None
         return stream
-
-    def paceable(self) -> bool:
-        """Whether a read may wait a little for the next answers (the engine's pacing,
-        docs/protocol.md "Reading at the pace of the motion"): a job streams in its
-        steady state, not paused, on a board that reports motion and no hold. Any other
-        time (a job's start or end, a hold, a flush, a lockout, an operator's command)
-        every read is taken as it comes."""
-        stream = self.stream
-        return (
-            stream is not None
-            and not stream.done
-            and not stream.paused
-            and not stream.input_ended
-            and stream.refused is None
-            and stream.held is None
-            and self.model.state in _MOVING
-            and not self.model.hold  # a hold at rest (g2core 101.05+) shows in `hold` alone
-            and self._context() is Context.JOB
-            and not self.flushing()
-        )
 
     def status_traffic(self, line: bytes, written: bool) -> bool:
         """Whether a line written (`written`) or read is status traffic: the host's own
