@@ -232,21 +232,28 @@ async def test_a_tab_that_never_reads_is_dropped_and_the_job_streams_on(tmp_path
             server_side.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
             dropped = asyncio.Event()
             frozen.on_disconnect.append(dropped.set)
-            # Moves of ~1.4 ms on the daemon's simulated board, each: 48 of them in its
-            # planner outlast a loaded test machine's pause, so the job cannot underflow.
-            lines = "".join(f"G1 X{i % 2} Y{i % 2} F6000 (tab test {i:05d})\n" for i in range(1500))
+            # Moves of ~4.5 ms on the daemon's simulated board, each: the 48 in its
+            # planner (about 0.2 s) outlast a loaded test machine's pause, so the job
+            # cannot underflow. What the frozen tab is sent fills its buffers (the two
+            # sockets, the transport's 64 KiB, aiohttp's 64 KiB before it drains) by
+            # about the 700th line: the write then waits, and the tab is dropped half a
+            # second later, with 1,200 lines well before the job's end. (At F6000,
+            # moves of 1.4 ms, 67 ms of planner: a loaded machine underflowed the job.)
+            lines = "".join(f"G1 X{i % 2} Y{i % 2} F2000 (tab test {i:05d})\n" for i in range(1200))
             await other.call("file.upload", name="long.nc", data=lines)
             await other.call("subscribe", topics=["job"], machine="sim1")
             job = (await other.call("job.start", machine="sim1", file="long.nc"))["job"]
             async with asyncio.timeout(30):
-                await dropped.wait()  # while the job streams
+                await dropped.wait()
+                running = await other.call("job.get", job=job)
+                assert running["state"] == "running", running  # dropped while the job streams
                 while True:
                     note = await other.notifications.get()
                     if note["method"] == "job" and note["params"]["job"]["state"] != "running":
                         break
             assert note["params"]["job"]["id"] == job
             assert note["params"]["job"]["state"] == "completed"
-            assert note["params"]["job"]["lines_acked"] == 1500
+            assert note["params"]["job"]["lines_acked"] == 1200
             assert web.server.clients == [c for c in web.server.clients if c is not frozen]
             assert (await other.call("machine.status", machine="sim1"))["id"] == "sim1"
         finally:
