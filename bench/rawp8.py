@@ -260,12 +260,13 @@ def _raise_mmap_threshold() -> None:
 
 
 @dataclass
-class BareWindow:
-    """What the bare host did in one window of P8's length: as `BudgetWindow` in run.py."""
+class HostWindow:
+    """What a host did in one window of P8's length: the bare host's (`bare_window`), and
+    the daemon's (`BudgetWindow` in run.py, which adds its holds)."""
 
     records: list[dict[str, Any]]  # each board's dump (bench/instant_controller.py)
     seconds: float
-    cpu: float  # the bare host's CPU seconds (utime + stime) in the window
+    cpu: float  # the host's CPU seconds (utime + stime) in the window
     periods: int  # the cgroup's CFS periods in the window, and those it was throttled in
     throttles: int
     throttled: float  # seconds
@@ -282,6 +283,16 @@ class BareWindow:
     def gaps(self) -> list[float]:
         """Each time a board's planner ran empty mid-job, how long (s)."""
         return [gap for record in self.records for _, gap in record["starved"]]
+
+    @property
+    def overflows(self) -> int:
+        """Bytes past the boards' receive buffers (grbl's; a g2core board's dump says 0)."""
+        return sum(record["overflows"] for record in self.records)
+
+    @property
+    def late(self) -> float:
+        """The most a board's own process woke after a block freed (s)."""
+        return max(record["late"] for record in self.records)
 
     @property
     def us_a_line(self) -> float:
@@ -305,7 +316,7 @@ def bare_window(
     *,
     fifo: bool = False,
     cpus: set[int] | None = None,
-) -> BareWindow:
+) -> HostWindow:
     """The bare host on `count` fresh boards of `dialect` rastering at `rate`, in a cgroup
     of `share` of one core: started, given FILL s for the planners to fill, then measured
     for `seconds` (P8's window), as P8 measures the daemon. Needs root (the cgroup)."""
@@ -358,7 +369,7 @@ def bare_window(
             host.wait()
         for board in boards:
             board.close()
-    return BareWindow(
+    return HostWindow(
         records=records,
         seconds=t1 - t0,
         cpu=cpu1 - cpu0,

@@ -93,7 +93,7 @@ from bench.cgroup import CgroupUnavailable, CpuLimit, cpu_limit
 from bench.client import Client, DaemonProcess, RpcFailure, program, raster, run_delay
 from bench.procs import ControllerProcess, Flooder, SubscriberFleet, WebClient
 from bench.raw import REALTIME_EVERY, RESUME_AFTER, RawHost, wire_lines
-from bench.rawp8 import BareWindow, bare_window
+from bench.rawp8 import HostWindow, bare_window
 from hostd.api.tokens import TokenStore
 
 WINDOW = 4
@@ -178,15 +178,9 @@ STALLED_BOARD = 0.1  # s: a P8 board's process this late did not keep its own ti
 
 
 @dataclass
-class BudgetWindow:
-    """One P8 window: what the boards recorded, and the daemon's CPU and throttling."""
+class BudgetWindow(HostWindow):
+    """One P8 window of the daemon: what the boards recorded, its CPU and throttling."""
 
-    records: list[dict[str, Any]]  # each controller's dump (bench/instant_controller.py)
-    seconds: float
-    cpu: float
-    periods: int  # the cgroup's CFS periods in the window, and those it was throttled in
-    throttles: int
-    throttled: float  # seconds
     sent_at: list[float]  # each feedhold's write, when the window had holds
 
     def row(
@@ -195,15 +189,11 @@ class BudgetWindow:
         rate: float,
         limit: CpuLimit,
         streaming: bool,
-        bare: BareWindow | None = None,
+        bare: HostWindow | None = None,
     ) -> Row:
         """The window's row: the boards' line rates and their planners' starvation; with
         `bare`, the bare host's window (bench/rawp8.py) as its baseline."""
-        rates = [record["job"]["lines"] / self.seconds for record in self.records]
-        gaps = [gap for record in self.records for _, gap in record["starved"]]
-        overflows = sum(record["overflows"] for record in self.records)
-        late = max(record["late"] for record in self.records)
-        lines = sum(record["job"]["lines"] for record in self.records)
+        rates, gaps, overflows, late = self.rates, self.gaps, self.overflows, self.late
         per_machine = " / ".join(
             f"{r:,.0f}" + (" (holds)" if i == 0 and self.sent_at else "")
             for i, r in enumerate(rates)
@@ -223,7 +213,7 @@ class BudgetWindow:
             )
         baseline = f"{rate:,.0f} lines/s asked"
         if bare is not None:
-            baseline, bare_notes = _bare_baseline(bare, self.cpu / max(lines, 1) * 1e6)
+            baseline, bare_notes = _bare_baseline(bare, self.us_a_line)
             notes.extend(bare_notes)
         return Row(
             figure,
@@ -236,7 +226,7 @@ class BudgetWindow:
             [
                 f"daemon CPU {self.cpu:.2f} s in {self.seconds:.1f} s = "
                 f"{self.cpu / self.seconds:.0%} of a core, "
-                f"{self.cpu / max(lines, 1) * 1e6:.0f} us a line ({limit.describe()}); "
+                f"{self.us_a_line:.0f} us a line ({limit.describe()}); "
                 f"throttled in {self.throttles} of {self.periods} periods, "
                 f"{self.throttled:.2f} s in all; receive-buffer overflows: {overflows}; the "
                 f"controllers' own lateness (a block freed to its line planned) up to "
@@ -246,7 +236,7 @@ class BudgetWindow:
         )
 
 
-def _bare_baseline(bare: BareWindow, daemon_us: float) -> tuple[str, list[str]]:
+def _bare_baseline(bare: HostWindow, daemon_us: float) -> tuple[str, list[str]]:
     """The bare host's figures for a P8 row: its baseline column and its notes."""
     low, high = min(bare.rates), max(bare.rates)
     rates = f"{low:,.0f}" if f"{low:,.0f}" == f"{high:,.0f}" else f"{low:,.0f}-{high:,.0f}"
@@ -267,8 +257,7 @@ def _bare_baseline(bare: BareWindow, daemon_us: float) -> tuple[str, list[str]]:
             f"in all, longest {max(gaps) * 1e3:.1f} ms: the bench's floor on this machine; "
             "a target a bare host misses is not the daemon's to meet"
         )
-    overflows = sum(record["overflows"] for record in bare.records)
-    late = max(record["late"] for record in bare.records)
+    overflows, late = bare.overflows, bare.late
     if overflows or late > STALLED_BOARD:
         notes.append(
             f"in the bare host's window: {overflows} receive-buffer overflows (a bug in "

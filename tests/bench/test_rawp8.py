@@ -26,7 +26,7 @@ import uvloop
 from bench.client import raster
 from bench.procs import ControllerProcess
 from bench.raw import wire_lines
-from bench.rawp8 import BareWindow, open_ports, run, stream
+from bench.rawp8 import HostWindow, open_ports, run, stream
 from bench.run import _bare_baseline
 
 T = TypeVar("T")
@@ -175,9 +175,9 @@ def test_the_helper_stops_mid_stream_when_told(tmp_path: Path) -> None:
     assert result["sent"][0] - result["acked"][0] <= 4
 
 
-def _window(starved: list[list[float]]) -> BareWindow:
+def _window(starved: list[list[float]]) -> HostWindow:
     record = {"job": {"lines": 4000}, "starved": starved, "overflows": 0, "late": 0.001}
-    return BareWindow([record, dict(record, starved=[])], 2.0, 0.3, 200, 0, 0.0)
+    return HostWindow([record, dict(record, starved=[])], 2.0, 0.3, 200, 0, 0.0)
 
 
 def test_p8s_row_puts_the_bare_host_beside_the_daemon() -> None:
