@@ -119,15 +119,21 @@ async def daemon_process(
 
 
 async def follow_until_acked(rpc: Rpc, job_id: int, lines: int) -> dict[str, object]:
+    """The job's notification once `lines` are answered; a job that ended before fails the
+    test at once, saying how (not 90 s later, as a timeout that hides it)."""
     note = await rpc.notification(
         lambda n: (
             n["method"] == "job"
             and n["params"]["job"]["id"] == job_id
-            and n["params"]["job"]["lines_acked"] >= lines
+            and (
+                n["params"]["job"]["lines_acked"] >= lines
+                or n["params"]["job"]["state"] not in ("running", "paused")
+            )
         ),
         timeout=90,  # a daemon process just started: see pytestmark
     )
     job: dict[str, object] = note["params"]["job"]
+    assert job["state"] in ("running", "paused"), job
     return job
 
 
@@ -495,7 +501,11 @@ async def test_the_daemon_on_asyncios_own_loop_runs_a_job_pauses_and_stops_clean
     async with daemon_process(tmp_path, config) as process:
         rpc = await ready_client(process)
         await process.message(b"WATCHDOG=1")
-        program = "".join(f"G1 X{i % 2} F6000\n" for i in range(300))
+        # Moves of about 5 ms on the simulated board (2 mm at F3000, ten times real speed):
+        # its 48-block planner holds some 0.25 s, more than a loaded suite keeps a daemon
+        # just started off the CPU. (With 1 mm at F6000 the job stopped short of 20
+        # answered lines in one CI run; the wait's timeout then hid how it ended.)
+        program = "".join(f"G1 X{2 * (i % 2)} F3000\n" for i in range(300))
         await rpc.call("file.upload", name="short.gcode", data=program)
         await rpc.call("subscribe", topics=["job"], machine="sim1")
         job_id = (await rpc.call("job.start", machine="sim1", file="short.gcode"))["job"]
