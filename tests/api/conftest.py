@@ -14,7 +14,7 @@ import pytest_asyncio
 from pydantic import BaseModel, ConfigDict
 
 from hostd.api.client import current_client
-from hostd.api.rpc import Methods
+from hostd.api.rpc import Methods, encode_notification
 from hostd.api.server import ApiServer
 
 TIMEOUT = 5.0
@@ -36,6 +36,10 @@ class AddParams(_Params):
 class FloodParams(_Params):
     count: int
     size: int = 0
+
+
+class TellParams(_Params):
+    count: int
 
 
 class MachineStyleError(Exception):
@@ -71,6 +75,7 @@ class Harness:
         m.register("count", None, self.count)
         m.register("whoami", None, self.whoami)
         m.register("flood", FloodParams, self.flood)
+        m.register("tell", TellParams, self.tell)
         m.register("note", None, self.note)
         m.register("machine.mark", None, self.mark, immediate=True)
 
@@ -114,6 +119,15 @@ class Harness:
         client = current_client()
         client.on_disconnect.append(self.disconnected.set)
         return {"pid": client.pid, "uid": client.uid, "gid": client.gid}
+
+    async def tell(self, p: TellParams) -> int:
+        """Tell the caller `count` topic notifications, each from a loop pass of its own,
+        as a machine's events reach a subscriber."""
+        client = current_client()
+        for i in range(p.count):
+            client.send_notice(encode_notification("tick", {"i": i}))
+            await asyncio.sleep(0)
+        return p.count
 
     async def flood(self, p: FloodParams) -> int:
         """Notify the caller `count` times, yielding now and then as a live machine would."""

@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 from structlog.testing import capture_logs
 
+from hostd.api import client as client_module
 from hostd.api.peer import AccessPolicy
 from hostd.api.server import ApiServer
 from hostd.api.socketfile import SocketPathError
@@ -75,6 +76,38 @@ async def test_notifications_sent_while_handling_go_out_before_the_answer(conn: 
         {"jsonrpc": "2.0", "method": "tick", "params": {"i": i, "pad": ""}} for i in range(3)
     ]
     assert await conn.recv() == {"jsonrpc": "2.0", "result": 3, "id": 1}
+
+
+async def test_notices_told_apart_reach_a_client_in_one_write_with_the_answer(
+    conn: Conn, server: ApiServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A topic's notifications wait for the client's next message (NOTICE_DELAY, made
+    long here so that only the answer can end the wait): five told in five loop passes
+    and the request's answer reach the client in order, in one write, one wake-up."""
+    monkeypatch.setattr(client_module, "NOTICE_DELAY", 3600.0)
+    writes: list[bytes] = []  # what each write held
+    await conn.send({"jsonrpc": "2.0", "method": "whoami", "id": 0})
+    await conn.recv()  # the connection's client exists: count its writes
+    for client in server.clients:
+        real = client._write_staged
+
+        def counted(transport: Any, messages: list[bytes], real: Any = real) -> None:
+            writes.append(b"".join(messages))
+            real(transport, messages)
+
+        client._write_staged = counted  # type: ignore[method-assign]
+    await conn.send({"jsonrpc": "2.0", "method": "tell", "params": {"count": 5}, "id": 1})
+    ticks = [await conn.recv() for _ in range(5)]
+    assert ticks == [{"jsonrpc": "2.0", "method": "tick", "params": {"i": i}} for i in range(5)]
+    assert await conn.recv() == {"jsonrpc": "2.0", "result": 5, "id": 1}
+    assert len(writes) == 1, writes
+
+
+async def test_notices_with_no_answer_to_take_them_still_go_out_in_order(conn: Conn) -> None:
+    """Told by a request without an id (no answer follows): the delay alone sends them."""
+    await conn.send({"jsonrpc": "2.0", "method": "tell", "params": {"count": 3}})
+    ticks = [await conn.recv() for _ in range(3)]
+    assert ticks == [{"jsonrpc": "2.0", "method": "tick", "params": {"i": i}} for i in range(3)]
 
 
 async def test_a_flood_that_fills_the_socket_arrives_whole_and_in_order(

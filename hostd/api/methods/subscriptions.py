@@ -81,7 +81,7 @@ Send = Callable[[bytes], object]
 @dataclass(frozen=True, slots=True)
 class _Subscription:
     owner: object  # the client: one notification per client, however many subscriptions match
-    send: Send  # the client's send_line: takes an encoded message
+    send: Send  # the client's send_notice: takes an encoded message
     topics: frozenset[str]
     machine: str | None
 
@@ -304,7 +304,7 @@ class SubscriptionMethods:
             client.on_disconnect.append(partial(self.api.subscriptions.remove_all, client))
         sub_id = self.api.subscriptions.add(
             client,
-            client.send_line,
+            client.send_notice,
             list(p.topics),
             p.machine,
             job_lines=p.job_lines,
