@@ -91,6 +91,11 @@ class _Flusher:
             client._later = False
         self._flush(clients)
 
+    def flush_now(self) -> None:
+        """Both lists at once (the server closing): nothing staged is left behind."""
+        self._run_soon()
+        self._run_later()
+
     @staticmethod
     def _flush(clients: list[Client]) -> None:
         for client in clients:
@@ -104,6 +109,15 @@ class _Flusher:
 _FLUSHERS: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, _Flusher] = (
     weakref.WeakKeyDictionary()
 )
+
+
+def flush_staged() -> None:
+    """Write what every client of this loop has staged, now: before a server drops its
+    clients, so that what they were told last (a job interrupted by the daemon's stop)
+    is not lost with the wait of NOTICE_DELAY."""
+    flusher = _FLUSHERS.get(asyncio.get_running_loop())
+    if flusher is not None:
+        flusher.flush_now()
 
 
 def _flusher() -> _Flusher:

@@ -54,7 +54,7 @@ from typing import Final, Self, cast
 import structlog
 
 from hostd.api import fastpath, rpc, socketfile
-from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client, End
+from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, Client, End, flush_staged
 from hostd.api.intake import Intake
 from hostd.api.lines import LineReader, LineTimeout, LineTooLong
 from hostd.api.peer import AccessPolicy, PeerCred, peer_credentials
@@ -182,6 +182,7 @@ class ApiServer:
             tally.flush()
         if self._server is not None:
             self._server.close()
+        flush_staged()  # what the clients were told last goes out before they are dropped
         tasks = list(self._connections)
         for task in tasks:
             task.cancel()

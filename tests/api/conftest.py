@@ -60,6 +60,7 @@ class Harness:
     release: asyncio.Event = field(default_factory=asyncio.Event)
     slow_started: asyncio.Event = field(default_factory=asyncio.Event)
     disconnected: asyncio.Event = field(default_factory=asyncio.Event)
+    told: asyncio.Event = field(default_factory=asyncio.Event)  # `tell` has told them all
     counted: int = 0
     order: list[str] = field(default_factory=list)  # `note` and `mark` calls, as run
     running: int = 0  # `slow` calls under way
@@ -127,6 +128,7 @@ class Harness:
         for i in range(p.count):
             client.send_notice(encode_notification("tick", {"i": i}))
             await asyncio.sleep(0)
+        self.told.set()
         return p.count
 
     async def flood(self, p: FloodParams) -> int:

@@ -110,6 +110,27 @@ async def test_notices_with_no_answer_to_take_them_still_go_out_in_order(conn: C
     assert ticks == [{"jsonrpc": "2.0", "method": "tick", "params": {"i": i}} for i in range(3)]
 
 
+async def test_notices_still_waiting_go_out_before_the_server_drops_its_clients(
+    harness: Harness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The daemon stopping closes the server: what its clients were told last (a job
+    interrupted by the stop) is written before they are dropped, not lost with the wait."""
+    monkeypatch.setattr(client_module, "NOTICE_DELAY", 3600.0)
+    async with serving(harness, tmp_path / "s") as server:
+        assert server.path is not None
+        conn = await Conn.open(server.path)
+        try:
+            await conn.send({"jsonrpc": "2.0", "method": "tell", "params": {"count": 3}})
+            async with asyncio.timeout(TIMEOUT):
+                await harness.told.wait()
+            await server.close()
+            ticks = [await conn.recv() for _ in range(3)]
+            assert [t["params"]["i"] for t in ticks] == [0, 1, 2]
+            assert await conn.closed_by_server()
+        finally:
+            await conn.close()
+
+
 async def test_a_flood_that_fills_the_socket_arrives_whole_and_in_order(
     harness: Harness, tmp_path: Path
 ) -> None:

@@ -82,6 +82,17 @@ class Rpc:
                 if predicate(msg):
                     return msg
 
+    async def ended(self) -> None:
+        """Until the daemon has ended the connection and everything it sent is read."""
+        await asyncio.wait({self._task})
+
+    def queued(self) -> list[dict[str, Any]]:
+        """The notifications received and not yet taken, taken now, in order."""
+        taken = []
+        while not self.notifications.empty():
+            taken.append(self.notifications.get_nowait())
+        return taken
+
     async def close(self) -> None:
         self._task.cancel()
         await asyncio.wait({self._task})  # the reader ends here: no task outlives its client

@@ -170,6 +170,11 @@ async def test_sigterm_mid_job_interrupts_it_and_removes_the_socket(tmp_path: Pa
         await process.message(b"STOPPING=1")
         async with asyncio.timeout(EXIT_WAIT):
             assert await process.proc.wait() == 0
+            await rpc.ended()  # everything the daemon wrote has been read
+        # A client that follows the job is told its end before the daemon goes, whatever
+        # waited to be written with it (hostd/api/client.py, NOTICE_DELAY).
+        told = [n["params"]["job"] for n in rpc.queued() if n["method"] == "job"]
+        assert told and told[-1]["id"] == job_id and told[-1]["state"] == "interrupted", told[-3:]
         await rpc.close()
         assert not await asyncio.to_thread(os.path.exists, process.socket_path)
 

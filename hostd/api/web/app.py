@@ -19,7 +19,7 @@ import structlog
 from aiohttp import web
 
 from hostd.api import rpc
-from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT
+from hostd.api.client import QUEUE_SIZE, WRITE_TIMEOUT, flush_staged
 from hostd.api.files import JobsDir
 from hostd.api.server import MAX_INFLIGHT, MAX_LINE
 from hostd.api.tokens import TokenStore
@@ -131,6 +131,7 @@ class WebServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._watcher
             self._watcher = None
+        flush_staged()  # what the tabs were told last goes out before they are dropped
         self._sockets.close_all("server closing")
         self._sockets.flush_logs()
         self._auth.flush_logs()
