@@ -80,8 +80,9 @@ LONGEST_FIRST = (
 )
 
 # Each module here starts its own `hostd serve` for all its tests (tests/cli/conftest.py,
-# module-scoped `daemon`): its tests go to one worker, which starts it once.
-ONE_WORKER_PER_MODULE = "tests/cli/"
+# module-scoped `daemon`), or reads what its tests share once (tests/test_layers.py parses
+# all of hostd): its tests go to one worker, which does it once.
+ONE_WORKER_PER_MODULE = ("tests/cli/", "tests/test_layers.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
