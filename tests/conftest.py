@@ -7,15 +7,22 @@ fixture every transport's tests share: `rpc_answer_fails_once`.
 from __future__ import annotations
 
 import asyncio
+import compileall
+import importlib.util
 import logging
 import multiprocessing
 import os
+import re
+import sys
 from collections.abc import Callable, Mapping
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import pytest
 import structlog
 import uvloop
+from _pytest.assertion import rewrite
 from hypothesis import settings
 from xdist.scheduler import LoadScopeScheduling
 
@@ -62,6 +69,86 @@ def pytest_configure(config: pytest.Config) -> None:
 multiprocessing.set_forkserver_preload(["hostd.machine.preflight"])
 
 
+# The bytecode the workers would each write, written once first. On a clean clone
+# (CI) every xdist worker rewrote the asserts of all the test modules itself as it
+# collected (5.5 s of CPU a worker, 4 at once on two cores) and compiled hostd again:
+# the controller writes those caches before it starts the workers, with pytest's own
+# rewriting and in pytest's own format (a hash-checked pyc: a stale one is never used),
+# on two processes. With the caches there it only reads each file's hash (0.2 s). Only
+# where `make unit` lets bytecode be written; skipped where pytest would rewrite
+# differently (the assertion-pass hook) or its rewriting functions moved (a cache
+# only: the workers then write it as before). docs/performance.md, "Fourth round".
+ROOT = Path(__file__).resolve().parents[1]
+_REWRITTEN = re.compile(r"(^|/)(test_[^/]*|conftest)\.py$")
+
+
+def _rewritten_pyc(source: Path) -> Path:
+    return rewrite.get_cache_dir(source) / (source.name[:-3] + rewrite.PYC_TAIL)
+
+
+def _rewrite_once(path: str) -> None:
+    source = Path(path)
+    pyc = _rewritten_pyc(source)
+    source_hash, code = rewrite._rewrite_test(source, None)  # type: ignore[arg-type]
+    pyc.parent.mkdir(exist_ok=True)
+    partial = f"{pyc}.{os.getpid()}"
+    with open(partial, "wb") as out:
+        rewrite._write_pyc_fp(out, source_hash, code)
+    os.replace(partial, pyc)  # atomic, as pytest's own: a worker reads it whole or not
+
+
+def _compile_once(path: str) -> None:
+    compileall.compile_file(path, quiet=2)
+
+
+def _fresh(source: Path) -> bool:
+    """A module's own pyc is there and newer than it (import checks it exactly)."""
+    try:
+        pyc = Path(importlib.util.cache_from_source(str(source)))
+        return pyc.stat().st_mtime >= source.stat().st_mtime
+    except OSError:
+        return False
+
+
+def warm_bytecode(config: pytest.Config) -> None:
+    workers = getattr(config.option, "numprocesses", None)
+    if (
+        not workers
+        or hasattr(config, "workerinput")
+        or sys.dont_write_bytecode
+        or config.getoption("assertmode") != "rewrite"
+        or config.getini("enable_assertion_pass_hook")
+        or not all(
+            hasattr(rewrite, name)
+            for name in ("get_cache_dir", "PYC_TAIL", "_read_pyc", "_rewrite_test", "_write_pyc_fp")
+        )
+    ):
+        return
+    tests = sorted((ROOT / "tests").rglob("*.py"))
+    rewritten = [
+        str(p)
+        for p in tests
+        if _REWRITTEN.search(str(p)) and rewrite._read_pyc(p, _rewritten_pyc(p)) is None
+    ]
+    plain = [
+        str(p)
+        for p in [
+            *(p for p in tests if not _REWRITTEN.search(str(p))),
+            *(ROOT / "hostd").rglob("*.py"),
+        ]
+        if not _fresh(p)
+    ]
+    if not rewritten and not plain:
+        return
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        list(pool.map(_rewrite_once, rewritten, chunksize=8))
+        list(pool.map(_compile_once, plain, chunksize=16))
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    warm_bytecode(session.config)  # before pytest-xdist starts the workers (its own is trylast)
+
+
 # The longest tests (tens of seconds of a simulated board's real time each), run first:
 # pytest-xdist hands tests out in collection order, and one of these handed out last kept
 # the whole suite waiting on a single worker while the others had nothing left to do.
@@ -80,8 +167,9 @@ LONGEST_FIRST = (
 )
 
 # Each module here starts its own `hostd serve` for all its tests (tests/cli/conftest.py,
-# module-scoped `daemon`): its tests go to one worker, which starts it once.
-ONE_WORKER_PER_MODULE = "tests/cli/"
+# module-scoped `daemon`), or reads what its tests share once (tests/test_layers.py parses
+# all of hostd): its tests go to one worker, which does it once.
+ONE_WORKER_PER_MODULE = ("tests/cli/", "tests/test_layers.py")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

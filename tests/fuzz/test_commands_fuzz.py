@@ -43,7 +43,10 @@ def test_any_text_is_one_safe_line_or_refused(text: str) -> None:
     _check(text)
 
 
-@fuzz(800)
+# 300, not 800: its examples are the generator's CPU, not the check's; the cut that
+# lets a control byte through past the 12th character failed it within 80
+# (docs/performance.md, "Fourth round").
+@fuzz(300)
 @given(commandish)
 def test_command_shaped_text_is_one_safe_line_or_refused(text: str) -> None:
     _check(text)
