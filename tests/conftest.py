@@ -22,9 +22,13 @@ from typing import Any
 import pytest
 import structlog
 import uvloop
-from _pytest.assertion import rewrite
 from hypothesis import settings
 from xdist.scheduler import LoadScopeScheduling
+
+try:  # pytest's own rewriting, private: the warm-up below is skipped if it moved
+    from _pytest.assertion import rewrite
+except ImportError:  # pragma: no cover - another pytest
+    rewrite = None  # type: ignore[assignment]
 
 from hostd.api import rpc
 from hostd.config import DaemonConfig
@@ -118,6 +122,7 @@ def warm_bytecode(config: pytest.Config) -> None:
         or sys.dont_write_bytecode
         or config.getoption("assertmode") != "rewrite"
         or config.getini("enable_assertion_pass_hook")
+        or rewrite is None
         or not all(
             hasattr(rewrite, name)
             for name in ("get_cache_dir", "PYC_TAIL", "_read_pyc", "_rewrite_test", "_write_pyc_fp")
@@ -140,9 +145,14 @@ def warm_bytecode(config: pytest.Config) -> None:
     ]
     if not rewritten and not plain:
         return
-    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
-        list(pool.map(_rewrite_once, rewritten, chunksize=8))
-        list(pool.map(_compile_once, plain, chunksize=16))
+    try:
+        with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+            list(pool.map(_rewrite_once, rewritten, chunksize=8))
+            list(pool.map(_compile_once, plain, chunksize=16))
+    except Exception as exc:  # only a cache: the workers write their own, as before
+        config.issue_config_time_warning(
+            pytest.PytestWarning(f"bytecode warm-up skipped: {exc!r}"), stacklevel=2
+        )
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
