@@ -14,7 +14,9 @@ import aiohttp
 import pytest
 from structlog.testing import capture_logs
 
+from hostd.api import client as client_module
 from hostd.api.web import COOKIE
+from hostd.machine.events import StatusChanged
 from tests.web.conftest import Web, WsRpc, running_web
 
 pytestmark = pytest.mark.asyncio
@@ -57,6 +59,39 @@ async def test_the_websocket_speaks_the_same_json_rpc_and_notifications(web: Web
         await api.call("subscribe", topics=["status"], machine="sim1")
         note = await api.notification(lambda n: n["method"] == "status")
         assert note["params"]["machine"] == "sim1" and "snapshot" in note["params"]
+    finally:
+        await api.close()
+
+
+async def test_a_tab_is_told_what_waited_before_the_web_server_closes(
+    web: Web, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The daemon stopping closes the web server: a notification still waiting to be
+    written with others (NOTICE_DELAY, an hour here) reaches the tab before its close."""
+    monkeypatch.setattr(client_module, "NOTICE_DELAY", 3600.0)
+    api = await web.ws()
+    try:
+        await api.call("subscribe", topics=["status"], machine="sim1")
+        told = asyncio.Event()
+        machine = web.hostd.daemon.machines["sim1"]
+        # After the API's own listener: once this hears a status, the tab's is staged.
+        unsubscribe = machine.hub.subscribe(
+            lambda event: told.set() if isinstance(event, StatusChanged) else None
+        )
+        try:
+            async with asyncio.timeout(10):
+                await told.wait()
+        finally:
+            unsubscribe()
+        while not api.notifications.empty():  # any that went out with subscribe's answer
+            api.notifications.get_nowait()
+        await web.server.close()
+        async with asyncio.timeout(10):
+            await api.closed.wait()  # everything the server sent is read
+        told_tab = []
+        while not api.notifications.empty():
+            told_tab.append(api.notifications.get_nowait())
+        assert any(n["method"] == "status" for n in told_tab), told_tab
     finally:
         await api.close()
 
