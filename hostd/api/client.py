@@ -227,25 +227,25 @@ class Client:
         if self._closed or self._ending:
             return False
         staged = self._staged
-        if staged:  # a flush is due: on one list or the other
+        if staged:
             # The line itself: a notification's one encoding is shared by every subscriber.
             staged.append(line)
             if len(staged) > self._queue_size:
                 self.log.warning("api client not reading; disconnected", bound=self._queue_size)
                 self.close(f"outbound queue over {self._queue_size} messages")
                 return False
-            if soon and not self._soon:
-                self._flusher_of_loop().add_soon(self)
-            return True
-        if self._keeps_up():
+        elif self._keeps_up():
             staged.append(line)
-            if soon:
-                if not self._soon:
-                    self._flusher_of_loop().add_soon(self)
-            elif not self._soon and not self._later:
-                self._flusher_of_loop().add_later(self)
-            return True
-        return self._enqueue(line)
+        else:
+            return self._enqueue(line)
+        # Staged: a flush is due, at this pass's end for an answer, else within NOTICE_DELAY
+        # (while anything is staged the client is on one list or the other already).
+        if soon:
+            if not self._soon:
+                self._flusher_of_loop().add_soon(self)
+        elif not (self._soon or self._later):
+            self._flusher_of_loop().add_later(self)
+        return True
 
     def _flusher_of_loop(self) -> _Flusher:
         flusher = self._flusher

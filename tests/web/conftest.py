@@ -93,6 +93,13 @@ class WsRpc:
                 if predicate(msg):
                     return msg
 
+    def queued(self) -> list[dict[str, Any]]:
+        """The notifications received and not yet taken, taken now, in order."""
+        taken = []
+        while not self.notifications.empty():
+            taken.append(self.notifications.get_nowait())
+        return taken
+
     async def close(self) -> None:
         await self.ws.close()
         self._task.cancel()

@@ -83,14 +83,11 @@ async def test_a_tab_is_told_what_waited_before_the_web_server_closes(
                 await told.wait()
         finally:
             unsubscribe()
-        while not api.notifications.empty():  # any that went out with subscribe's answer
-            api.notifications.get_nowait()
+        api.queued()  # any that went out with subscribe's answer
         await web.server.close()
         async with asyncio.timeout(10):
             await api.closed.wait()  # everything the server sent is read
-        told_tab = []
-        while not api.notifications.empty():
-            told_tab.append(api.notifications.get_nowait())
+        told_tab = api.queued()
         assert any(n["method"] == "status" for n in told_tab), told_tab
     finally:
         await api.close()
