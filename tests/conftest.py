@@ -178,8 +178,16 @@ LONGEST_FIRST = (
 
 # Each module here starts its own `hostd serve` for all its tests (tests/cli/conftest.py,
 # module-scoped `daemon`), or reads what its tests share once (tests/test_layers.py parses
-# all of hostd): its tests go to one worker, which does it once.
-ONE_WORKER_PER_MODULE = ("tests/cli/", "tests/test_layers.py")
+# all of hostd): its tests go to one worker, which does it once. rs274's reference runs
+# (test_gcodestate_rs274.py, `runs`) are made once per test run under a file lock: handed
+# out one at a time, its 16 tests went to every worker, and all but the one making the
+# runs sat idle on the lock for their 4-5 s (the slowest setups of the suite after the
+# browser tests': 5.4 s and 3.8 s in one run).
+ONE_WORKER_PER_MODULE = (
+    "tests/cli/",
+    "tests/test_layers.py",
+    "tests/protocol/test_gcodestate_rs274.py",
+)
 
 
 # Long tests that mostly wait (a simulated board's motion in real time: about a tenth of
