@@ -178,8 +178,42 @@ LONGEST_FIRST = (
 
 # Each module here starts its own `hostd serve` for all its tests (tests/cli/conftest.py,
 # module-scoped `daemon`), or reads what its tests share once (tests/test_layers.py parses
-# all of hostd): its tests go to one worker, which does it once.
-ONE_WORKER_PER_MODULE = ("tests/cli/", "tests/test_layers.py")
+# all of hostd): its tests go to one worker, which does it once. rs274's reference runs
+# (test_gcodestate_rs274.py, `runs`) are made once per test run under a file lock: handed
+# out one at a time, its 16 tests went to every worker, and all but the one making the
+# runs sat idle on the lock for their 4-5 s (the slowest setups of the suite after the
+# browser tests': 5.4 s and 3.8 s in one run).
+ONE_WORKER_PER_MODULE = (
+    "tests/cli/",
+    "tests/test_layers.py",
+    "tests/protocol/test_gcodestate_rs274.py",
+)
+
+
+# Long tests that mostly wait (a simulated board's motion in real time: about a tenth of
+# a core each), handed out among the chromium tests (a browser and a daemon each: most of
+# a core) rather than after them. After them, the workers ran browser tests together,
+# more than two cores' worth, and then the waiting tests together on idle cores. Those
+# two sets at `-n 2`, back to back, twice: 144 s and 148 s of wall before, 117 s and
+# 120 s spread (the browser tests' own walls 145-150 s before, 88-95 s spread).
+WAIT_AMONG_BROWSERS = ("tests/daemon/test_resume_safety.py",)
+BROWSERS = (
+    "tests/web/test_operator.py",
+    "tests/web/test_browser.py",
+    "tests/web/test_operator_day.py",
+)
+
+
+def _spread(busy: list[pytest.Item], waiting: list[pytest.Item]) -> list[pytest.Item]:
+    """`waiting` spaced evenly through `busy`, each list in its own order."""
+    merged: list[pytest.Item] = []
+    taken = 0
+    for i, item in enumerate(busy):
+        merged.append(item)
+        while taken < len(waiting) * (i + 1) // len(busy):
+            merged.append(waiting[taken])
+            taken += 1
+    return merged + waiting[taken:]
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -190,6 +224,13 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         )
 
     items.sort(key=rank)  # stable: the rest keep their order
+    waiting = [item for item in items if item.nodeid.startswith(WAIT_AMONG_BROWSERS)]
+    busy = [item for item in items if item.nodeid.startswith(BROWSERS)]
+    if waiting and busy:  # where the browser tests begin
+        moved = {item.nodeid for item in [*waiting, *busy]}
+        before = [item for item in items[: items.index(busy[0])] if item.nodeid not in moved]
+        after = [item for item in items if item.nodeid not in moved][len(before) :]
+        items[:] = [*before, *_spread(busy, waiting), *after]
 
 
 class OneAtATime(LoadScopeScheduling):
