@@ -84,19 +84,32 @@ async def _power_cycle(hostd: Running, rpc: Rpc) -> None:
 
 
 async def _executed_at_least(rpc: Rpc, job_id: int, line: int) -> dict[str, Any]:
-    """The job as first told past `line`, or as told at its end if it ended first: a
-    short job can end between two progress tells, and its end is then the one told."""
-    note = await rpc.notification(
-        lambda n: (
-            n["method"] == "job"
-            and n["params"]["job"]["id"] == job_id
+    """The job as the daemon first told it past `line`, or as told at its end if it ended
+    first (a short job can end between two progress tells). Told by a `job` notification,
+    or by a `status` one's snapshot, which carries the job too, for a client subscribed
+    to both: a loss then comes nearer the line, whatever the pace of either topic."""
+
+    def told(note: dict[str, Any]) -> dict[str, Any] | None:
+        if note["method"] == "job":
+            job: dict[str, Any] = note["params"]["job"]
+            return job
+        if note["method"] == "status":
+            snapshot: dict[str, Any] = note["params"]["snapshot"]
+            return snapshot.get("job")
+        return None
+
+    def past(note: dict[str, Any]) -> bool:
+        job = told(note)
+        return (
+            job is not None
+            and job["id"] == job_id
             and (
-                (n["params"]["job"].get("line_executed") or 0) >= line
-                or n["params"]["job"]["state"] not in ("running", "paused")
+                (job.get("line_executed") or 0) >= line or job["state"] not in ("running", "paused")
             )
         )
-    )
-    job: dict[str, Any] = note["params"]["job"]
+
+    job = told(await rpc.notification(past))
+    assert job is not None
     return job
 
 

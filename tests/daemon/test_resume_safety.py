@@ -106,7 +106,8 @@ async def _run(hostd: Running, rpc: Rpc, path: Path, dialect: str) -> None:
     text = await asyncio.to_thread(path.read_text)
     await hostd.idle(rpc)
     await rpc.call("file.upload", name=path.name, data=text)
-    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    # `status` too: each report's snapshot tells the job's executed line (_executed_at_least)
+    await rpc.call("subscribe", topics=["job", "status"], machine="sim1")
     offsets, _ = SETUP[dialect]
     for line in offsets:
         await rpc.call("machine.send", machine="sim1", line=line)
