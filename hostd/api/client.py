@@ -42,7 +42,7 @@ log = structlog.get_logger(__name__)
 QUEUE_SIZE: Final = 1000
 WRITE_TIMEOUT: Final = 10.0
 # How long a staged notification waits for others to the same client: about one frame
-# of a 50 Hz display, and a fifth of the `job` topic's 100 ms. Nobody sees it.
+# of a 50 Hz display, and a twelfth of the `job` topic's 250 ms. Nobody sees it.
 NOTICE_DELAY: Final = 0.02
 
 

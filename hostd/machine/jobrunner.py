@@ -207,13 +207,12 @@ class JobRunner:
         last: tuple[int, int, int | None] = (0, 0, None)
         try:
             while not stream.done:
-                gap_over = time.monotonic() - persisted_at >= PERSIST_GAP
+                now = time.monotonic()
+                gap_over = now - persisted_at >= PERSIST_GAP
                 # Within the gap the mark would wake the follower at every answer: wait it out.
                 stream.wake_at = persisted_acked + PERSIST_LINES if gap_over else None
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(
-                        next_look(self._told_at, persisted_at, time.monotonic())
-                    ):
+                    async with asyncio.timeout(next_look(self._told_at, persisted_at, now)):
                         await stream.wake.wait()
                 stream.wake.clear()
                 counts = (stream.sent, stream.acked, stream.line_executed)
