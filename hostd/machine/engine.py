@@ -19,8 +19,15 @@ inside its own receive step, nor from inside the delivery of its events.
 
 A job's lines reach the session the same way: after every step the engine
 feeds the running job's session position from its file (`JobStream.fill`),
-at most LOOK_AHEAD lines ahead, and pumps again at once when the session
-had room and nothing to send.
+in blocks of up to LOOK_AHEAD lines ahead, and pumps again at once when the
+session had room and nothing to send.
+
+A job's steady state takes a shorter way (`_express`, issue 30): a read of
+nothing but plain answers to the job's lines, when the session says the job's
+next plain lines are all there is to write (`job_lines_due`), is booked and
+answered with one write, without the delivery loop. It is the same step: the
+session books what its own loop would, and says None whenever that loop could
+do anything more (tests/machine/test_fast_path.py runs both and compares).
 
 `serve()` owns the connection for the life of the daemon: it opens the link
 when asked (or at once with `auto_connect`), runs one connection until the
@@ -79,17 +86,52 @@ class Engine(EngineRequests):
                 self._log.debug("rx", channel=channel.value, line=line)
         if self.console:
             self._receive_published(channel, lines)  # line by line: each is published
+            plain = False
         else:
-            self._receive(lines, channel if self.console_but_job else None)
+            plain = self._receive(lines, channel if self.console_but_job else None)
         try:
-            self._deliver()
+            # A read of plain answers alone, no one listening to the console or the traffic.
+            express = plain and not (self.console_but_job or self._traffic_logged)
+            if not (express and self._express()):
+                self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
 
-    def _receive(self, lines: list[bytes], published: Channel | None = None) -> None:
+    def _express(self) -> bool:
+        """The step after a read of a job's plain answers alone, in the job's steady state:
+        True if it was taken here, without the delivery loop.
+
+        When nothing is to be written but the job's next plain lines
+        (`job_lines_due`; no event, no other line, nothing for the writer's loop to
+        do after them), those go out in one write, and the job is fed, told and
+        timed as `_deliver` would. False otherwise (and inside a step of several
+        calls, `one_step`): `_deliver` then runs as after any read.
+        """
+        if self._delivering:
+            return False
+        due = self.session.job_lines_due()
+        if due is None:
+            return False
+        if due:
+            link = self.link
+            assert link is not None  # link_lines returned early without one
+            # A failed write means the link is already gone (see `_write`).
+            self._write_failed = not link.write_lines(due)
+        job = self._job
+        if job is not None:
+            if job.fill():  # it had room and nothing ahead, or the file ended: pump again
+                self._deliver()
+                return True
+            job.stepped()
+        self._changed.set()
+        self._arm_timer()
+        return True
+
+    def _receive(self, lines: list[bytes], published: Channel | None = None) -> bool:
         """The read's lines to the session: each run of plain job answers in one pass
-        (`receive_plain`), anything else in full at its place.
+        (`receive_plain`), anything else in full at its place. True if every line was
+        a plain answer, taken in the first pass.
 
         With `published` (someone listens to the console without the job's lines)
         each line taken in full is published as it is, unless it answered a job
@@ -111,4 +153,8 @@ class Engine(EngineRequests):
             except Exception as exc:  # a bug of ours: stop writing, keep reading
                 self._log.exception("engine invariant broken")
                 session.halt(f"{type(exc).__name__}: {exc}")
+            else:
+                if at == count:
+                    return index == 0  # the first pass took them all
             index = at + 1
+        return False

@@ -157,7 +157,9 @@ class EngineRequests(EngineDelivery):
 
     def start_stream(self, stream: JobStream) -> None:
         """Stream a job: the session takes its position, and the file feeds it from now on."""
-        self.session.start_stream(stream.start(self.session.encode_job_line))
+        self.session.start_stream(
+            stream.start(self.session.encode_job_line, self.session.encode_job_block)
+        )
         self._job = stream
         stream.fill()
         self._deliver()

@@ -3,7 +3,7 @@
 The session holds the job's read position (hostd/protocol/stream.py): what
 is sent, answered, executed, and how the job ended. This side holds what
 the session must not: the file (an iterator of its lines, read no faster
-than the board takes them, but for LOOK_AHEAD lines fed ahead), and the
+than the board takes them, but for the look-ahead fed in blocks), and the
 asyncio objects the runner waits on. The engine calls `fill` after every
 step it delivers, and `ended` when the session tells `StreamEnded`.
 
@@ -15,10 +15,10 @@ and `reached` is set once the session holds there.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Container, Iterator
+from collections.abc import Callable, Container, Iterator, Sequence
 from itertools import islice
 
-from hostd.protocol.stream import Stream
+from hostd.protocol.stream import LOOK_AHEAD, Stream
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
 __all__ = ["JobStream", "StreamEnd", "StreamResult"]
@@ -34,8 +34,10 @@ class JobStream:
         *,
         numbered: bool = False,
         holds: Container[int] | None = None,
+        look_ahead: int = LOOK_AHEAD,
     ) -> None:
         self._lines = lines
+        self._look_ahead = look_ahead
         self._holds = holds
         self.job_id = job_id
         self.numbered = numbered
@@ -48,9 +50,19 @@ class JobStream:
         # Set when the session holds at one of `holds` (cleared by whoever waits for it).
         self.reached = asyncio.Event()
 
-    def start(self, encode: Callable[[str, int | None], bytes]) -> Stream:
+    def start(
+        self,
+        encode: Callable[[str, int | None], bytes],
+        encode_block: Callable[[Sequence[int], Sequence[str]], list[bytes] | None] | None = None,
+    ) -> Stream:
         """The session's position in this job, its lines encoded in the session's dialect."""
-        self.position = Stream(self.job_id, encode, numbered=self.numbered)
+        self.position = Stream(
+            self.job_id,
+            encode,
+            numbered=self.numbered,
+            encode_block=encode_block,
+            look_ahead=self._look_ahead,
+        )
         return self.position
 
     def fill(self) -> bool:

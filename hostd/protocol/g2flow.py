@@ -12,16 +12,19 @@ awaits a status report, or the board holds or is locked out.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from hostd.protocol.classes import CommandClass, admit, classify
 from hostd.protocol.commands import MAX_LINE_BYTES, encode_get, encode_line, validate_line
 from hostd.protocol.errors import Rejected
 from hostd.protocol.g2holds import G2Holds
-from hostd.protocol.gcode import plain_match
+from hostd.protocol.gcode import plain_match, plain_numbered_block
+from hostd.protocol.linemode import InFlight
 from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.states import MachineState
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
 
 
@@ -69,6 +72,63 @@ class G2Flow(G2Holds):
                     return (line + "\n").encode("ascii")
             text = number_line(text, number)
         return encode_line(text)
+
+    def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
+        """`encode_job_line` of each numbered line, in one pass when all are plain (the
+        first branch above for every one of them); else None."""
+        if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
+            return None
+        block = "".join(
+            [f"N{number} {text}\n" for number, text in zip(numbers, texts, strict=True)]
+        )
+        if plain_numbered_block(block) is None:
+            return None
+        lines = block.encode("ascii").splitlines(keepends=True)  # plain: no CR in any
+        if max(map(len, lines)) > MAX_LINE_BYTES + 1:
+            return None
+        return lines
+
+    def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
+        """None of the job's lines may be written now (`_pump`'s and `job_lines_due`'s)."""
+        return (
+            stream.paused
+            or self._await_report
+            or (state is not None and (state.is_lockout or state is MachineState.HOLD))
+            or bool(self.model.hold)  # a hold at rest (101.05+) shows in `hold` alone
+        )
+
+    def _take_run(self, stream: Stream) -> list[InFlight]:
+        """The plain lines ahead that the window has room for, taken and booked."""
+        sender = self.sender
+        taken = stream.take_run(sender.window - sender.data_in_flight)
+        if taken:
+            sender.book_run(taken)
+        return taken
+
+    def job_lines_due(self) -> list[bytes] | None:
+        """The express step's `data_to_send` (SessionBase.job_lines_due): the job's plain
+        lines the window has room for, taken and booked, when nothing else can be due;
+        None, having booked nothing it does not also hand to `data_to_send`, otherwise."""
+        stream = self._steady_stream()
+        if (
+            stream is None
+            or self.phase is not Phase.READY
+            or self.halted
+            or self._flush is not None
+            or self._lane
+            or self._outbox
+            or self._out
+            or self._events
+            or self._job_lines_wait(stream, self.model.state)
+        ):
+            return None
+        taken = self._take_run(stream)
+        lines = [entry.line for entry in taken]
+        if not stream.full:  # the writer's loop goes on from there: the general step
+            data = Lane.DATA
+            self._out.extend([(data, line) for line in lines])
+            return None
+        return lines
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:
         out = super().data_to_send()
@@ -122,26 +182,16 @@ class G2Flow(G2Holds):
                 where = Lane.DATA if queued.cls is CommandClass.CLEAR else _lane_of(queued.encoded)
                 self._book(queued.encoded, queued.token, where, own=queued.own)
         stream = self.stream
-        if (
-            stream is None
-            or stream.done
-            or stream.paused
-            or self._await_report
-            or (state is not None and (state.is_lockout or state is MachineState.HOLD))
-            or self.model.hold  # a hold at rest (101.05+) shows in `hold` alone
-        ):
+        if stream is None or stream.done or self._job_lines_wait(stream, state):
             return
         out = self._out
         data = Lane.DATA
         if self.fast_path:
             # The steady state: the plain lines ahead that the window has room for, taken
             # and booked together; the loop below goes on from the first line it left.
-            room = sender.window - sender.data_in_flight
-            if room > 0:
-                taken = stream.take_run(room)
-                if taken:
-                    sender.book_run(taken)
-                    out.extend([(data, entry.line) for entry in taken])
+            taken = self._take_run(stream)
+            if taken:
+                out.extend([(data, entry.line) for entry in taken])
         book = sender.book
         while True:
             entry = stream.peek()

@@ -39,7 +39,12 @@ INTEGER_DIGITS = 9
 # number of at most nine integer digits, no comments. Anything else is read in full.
 # Possessive (`*+`, `?+`): no part of a word can be given back to the next one, so
 # backtracking finds nothing more, and the match takes half the time.
-_PLAIN = re.compile(r"(?:[A-DF-Za-df-z][ \t]*+(?:[-+]?+[0-9]{0,9}+(?:\.[0-9]*+)?+)?+[ \t]*+)++")
+_PLAIN_WORDS = r"(?:[A-DF-Za-df-z][ \t]*+(?:[-+]?+[0-9]{0,9}+(?:\.[0-9]*+)?+)?+[ \t]*+)++"
+_PLAIN = re.compile(_PLAIN_WORDS)
+# Job lines as the host numbers them, each ending in LF: `N<number> ` and plain words,
+# the first not an N word of the file's own (it would be renumbered). `_PLAIN` of each
+# line, all in one match.
+_PLAIN_NUMBERED = re.compile(rf"(?:N[0-9]++ (?![Nn]){_PLAIN_WORDS}\n)++")
 _ACTIVE_COMMENT = re.compile(r"\((?:\{|msg)", re.IGNORECASE)
 # The board: `(` to `)` is a comment (gcodewords.strip_comments); `;` or `%` ends the
 # line; `*` starts a checksum. Every pattern here is linear: no two ways to match a text.
@@ -53,6 +58,7 @@ _INTEGER_PART = re.compile(r"(?<![0-9.])[0-9]+")
 
 # `is_plain` as a bound method, for the per-line paths that would otherwise pay a call more.
 plain_match = _PLAIN.fullmatch
+plain_numbered_block = _PLAIN_NUMBERED.fullmatch
 
 
 def is_plain(text: str) -> bool:

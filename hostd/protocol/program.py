@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Iterator
+from itertools import chain, islice
 
 from hostd.protocol.gcodewords import strip_comments
 
@@ -37,17 +38,27 @@ def strip_line(text: str) -> str:
 def program_lines(lines: Iterable[str], start_line: int = 1) -> Iterator[tuple[int, str]]:
     """(file line number, line to send) for every sendable line at or after `start_line`.
 
-    `strip_line` written out (the same steps): this runs for every line of every
-    job, and once more to count them, so a call a line is worth saving.
+    Read BLOCK lines at a time, each block stripped in one pass (`strip_line` of
+    each line): this runs for every line of every job, and once more to count
+    them, so the iterator a job's stream takes its lines from is C's (`chain`,
+    `islice`), not a generator resumed a line.
     """
-    for number, text in enumerate(lines, start=1):
-        if number < start_line:
-            continue
-        if "(" in text or ";" in text:
-            text, _ = strip_comments(text, "")
-        text = text.strip()
-        if text and text[0] != "%":
-            yield number, text
+    return chain.from_iterable(_program_blocks(lines, start_line))
+
+
+BLOCK = 256  # lines of the file read and stripped together
+
+
+def _program_blocks(lines: Iterable[str], start_line: int) -> Iterator[list[tuple[int, str]]]:
+    numbered = enumerate(lines, start=1)
+    if start_line > 1:
+        next(islice(numbered, start_line - 1, start_line - 1), None)  # skip the lines before
+    while block := list(islice(numbered, BLOCK)):
+        texts = "".join([text for _, text in block])
+        if "(" in texts or ";" in texts or "%" in texts:
+            yield [(number, text) for number, line in block if (text := strip_line(line))]
+        else:  # no comment and no tape mark in the block: each line only loses its blanks
+            yield [(number, text) for number, line in block if (text := line.strip())]
 
 
 # The leads `number_line` does not simply put `N<number> ` in front of: every other line

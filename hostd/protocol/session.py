@@ -175,6 +175,17 @@ class SessionBase:
         without this fast path takes none."""
         return start
 
+    def job_lines_due(self) -> list[bytes] | None:
+        """The express step's `data_to_send` (the engine's `link_lines`), asked after a
+        read whose every line `receive_plain` took: the job's next plain lines that
+        the flow control has room for, taken and booked, when that is all there is to
+        write and nothing else can change (no event, no other line waiting, the job
+        in its steady state, and the writer's loop, run after them, would write
+        nothing more and change nothing). None otherwise: the engine then runs its
+        delivery loop, and `data_to_send` hands out whatever this took. A dialect
+        without it takes nothing."""
+        return None
+
     def _steady_stream(self) -> Stream | None:
         """The running job, if its answers may take the fast path: not at its end (its
         input ended, or a refused line's turn came: each answer then checks whether the
@@ -247,6 +258,12 @@ class SessionBase:
         `Ln:`): that is how the host knows which file line was executing (`line_executed`).
         """
         raise NotImplementedError
+
+    def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
+        """Numbered job lines (their file lines, their texts), each as `encode_job_line`
+        writes it, in one pass when every one is a plain line; None (each then goes
+        through `encode_job_line`) when any is not, or the dialect has no such pass."""
+        return None
 
     def jog_lines(self, axes: Mapping[str, float], feed: float) -> list[str]:
         """The lines of a jog by these distances at this feed."""

@@ -9,10 +9,12 @@ session tells the job's end as an event (`StreamEnded`), never by
 resolving anything of its caller's.
 
 Lines are encoded when fed, so that the path from an answer to the next line
-written carries no encoding: the caller keeps LOOK_AHEAD lines ahead of what
-the flow control has taken. When the flow control has room and nothing
-ahead (`starved`), the caller feeds more and the session is pumped again in
-the same step. A line that may not be sent is refused when its turn comes,
+written carries no encoding: the caller keeps up to `look_ahead` lines ahead
+of what the flow control has taken, fed in blocks (once no more than a
+quarter of them are left), which the dialect encodes in one pass when every
+line of the block is plain (`encode_block`). When the flow control has room
+and nothing ahead (`starved`), the caller feeds more and the session is
+pumped again in the same step. A line that may not be sent is refused when its turn comes,
 not when it is fed: the lines before it still go.
 
 Counts only move forward: `sent` when a line is written, `acked` when the
@@ -37,14 +39,17 @@ from __future__ import annotations
 
 import re
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
+from itertools import repeat
 
 from hostd.protocol.commands import InvalidCommand, encode_line
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
-LOOK_AHEAD = 8  # lines fed and encoded ahead of the flow control's room
+# Lines fed and encoded ahead of the flow control's room, at most: a job's are fed in
+# blocks of about this many, not a line a read.
+LOOK_AHEAD = 64
 _PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
 _DOLLAR = ord("$")
 # Bytes looked for as their values: `77 in line` is a byte search, where `b"M" in line`
@@ -62,11 +67,18 @@ class Stream:
         encode: Callable[[str, int | None], bytes] | None = None,
         *,
         numbered: bool = False,
+        encode_block: Callable[[Sequence[int], Sequence[str]], list[bytes] | None] | None = None,
+        look_ahead: int = LOOK_AHEAD,
     ) -> None:
         # The dialect's: what a job line becomes on the wire; `numbered` gives each line its
         # file line number as an N word, so that status reports say which line runs.
         self._encode = encode or (lambda text, _number: encode_line(text))
         self.numbered = numbered
+        # The dialect's for a block of numbered lines that are all plain: each encoded as
+        # `encode` would, or None (then each line goes through `encode`).
+        self._encode_block = encode_block if numbered else None
+        self.look_ahead = look_ahead
+        self._refill_at = look_ahead // 4  # fed again once no more are ahead
         self.job_id = job_id  # the job row it belongs to, for the logs
         self._next: InFlight | None = None
         # Fed ahead: a line as the flow control books it, or why it may not be sent, or
@@ -90,14 +102,17 @@ class Stream:
         self.held: int | None = None  # the file line a hold point keeps back, its turn come
         self.result: StreamResult | None = None
         self.done = False  # the outcome is set (read at every line: a plain attribute)
+        self.full = False  # the last `take_run` stopped at the room alone
 
     # -- the caller's side ---------------------------------------------------------
 
     def wanted(self) -> int:
-        """How many more lines to feed now: up to LOOK_AHEAD ahead, none once it ended."""
+        """How many more lines to feed now: up to `look_ahead` ahead once no more than a
+        quarter of them are left, none once the input ended."""
         if self.done or self._input_ended:
             return 0
-        return LOOK_AHEAD - len(self._ahead)
+        ahead = len(self._ahead)
+        return self.look_ahead - ahead if ahead <= self._refill_at else 0
 
     def feed(self, number: int, text: str, *, hold: bool = False) -> None:
         """One more line of the job: its file line number and its text. `hold`: the job
@@ -112,9 +127,17 @@ class Stream:
         else:
             self._ahead.append(InFlight(encoded, self, number))
 
-    def feed_many(self, lines: Iterable[tuple[int, str]]) -> None:
+    def feed_many(self, lines: list[tuple[int, str]]) -> None:
         """`feed` for each (file line number, text), none of them a hold point: a job's
         file, a look-ahead's worth at a time, without a call a line."""
+        block = self._encode_block
+        if block is not None and lines:
+            numbers = [number for number, _ in lines]
+            written = block(numbers, [text for _, text in lines])
+            if written is not None:
+                self.starved = False
+                self._ahead.extend(map(InFlight, written, repeat(self), numbers))
+                return
         encode = self._encode
         numbered = self.numbered
         append = self._ahead.append
@@ -219,7 +242,12 @@ class Stream:
         `special` matches (the dialect's own: grbl's storing lines), the room used up, the
         look-ahead empty (`starved` is then the next `peek`'s to say). What it leaves
         is exactly what `peek` and `take`, line by line, would leave there.
+
+        `full` says afterwards whether it stopped at the room alone, before a line that
+        `peek` would hand out as it is: the writer's loop would write nothing more and
+        `peek` change nothing, so the step may end here (the engine's express step).
         """
+        self.full = False
         if self.done:
             return []
         ahead = self._ahead
@@ -242,6 +270,7 @@ class Stream:
             if by_bytes:
                 room -= len(line)
                 if room < 0:
+                    self.full = True  # this line does not fit
                     break
             else:
                 room -= 1
@@ -254,6 +283,8 @@ class Stream:
                 if self._first_line is None:
                     self._first_line = number
                 sent_line = number
+        if room == 0 and ahead and type(ahead[0]) is flight:
+            self.full = True
         self._sent_line = sent_line
         self.sent += len(taken)
         return taken

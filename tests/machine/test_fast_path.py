@@ -1,13 +1,15 @@
 """The steady state's fast path (issue 30) does exactly what the general path does.
 
 A read that holds only plain answers to a job's lines is taken in one pass
-(`receive_plain`), and the job's plain lines are taken and booked together
-(`Stream.take_run`). Neither may change a byte written, an event, or a
-count: here a real `Engine` with each dialect's real session streams random
-jobs twice, fast path on and off, against a board that answers the same
-way both times (the answers split into reads at random, error answers,
-status reports in the middle of a read, a pause (its `!`) and a resume
-between reads, hold points released), and everything the two runs wrote, told and counted is
+(`receive_plain`), the job's plain lines are taken and booked together
+(`Stream.take_run`), and when those are all there is to write the engine
+writes them without its delivery loop (`Engine._express`, `job_lines_due`).
+None may change a byte written, an event, or a count: here a real `Engine`
+with each dialect's real session streams random jobs twice, fast path on
+and off, against a board that answers the same way both times (the answers
+split into reads at random, error answers, status reports in the middle of
+a read, a pause (its `!`) and a resume between reads, hold points
+released), and everything the two runs wrote, told and counted is
 compared. Both runs also check, at every write, the rules that must never
 break: the window and the receive buffer are never exceeded, no job line is
 written while the job is paused, and a realtime byte leaves in the write of
@@ -33,6 +35,7 @@ from hostd.machine.engine import Engine, LinkState
 from hostd.machine.events import EngineEvent
 from hostd.machine.stream import JobStream
 from hostd.protocol.program import program_lines
+from hostd.protocol.stream import LOOK_AHEAD
 
 G2_BANNER = b'{"r":{"fv":0.99,"fb":101.03,"hp":3,"hv":0,"id":"t","msg":"SYSTEM READY"},"f":[1,0,0]}'
 GRBL_HANDSHAKE = {
@@ -189,6 +192,7 @@ async def _run(
     error_rate: float,
     listening: bool = False,
     status_traffic: bool = True,
+    look_ahead: int = 8,
 ) -> Any:
     rng = random.Random(seed)
     events: list[str] = []
@@ -215,6 +219,16 @@ async def _run(
         return index
 
     session.receive_plain = counted  # type: ignore[method-assign]
+    express = 0
+    due = session.job_lines_due
+
+    def counted_due() -> list[bytes] | None:
+        nonlocal express
+        lines = due()
+        express += lines is not None
+        return lines
+
+    session.job_lines_due = counted_due  # type: ignore[method-assign]
     board = Board(dialect, rng, error_rate)
     engine.link = board  # type: ignore[assignment]
     engine.link_state = LinkState.HANDSHAKE
@@ -235,7 +249,10 @@ async def _run(
     assert engine.ready
     board.writes.clear()
     holds = {number for number, text in enumerate(job, 1) if text.startswith("M6")}
-    stream = JobStream(iter(program_lines(job)), 1, numbered=True, holds=holds or None)
+    # A look-ahead of 8: jobs of a few dozen lines still have a steady state to compare.
+    stream = JobStream(
+        iter(program_lines(job)), 1, numbered=True, holds=holds or None, look_ahead=look_ahead
+    )
     engine.start_stream(stream)
     paused = False
     for _step in range(len(job) * 4 + 40):
@@ -268,6 +285,7 @@ async def _run(
     # (a hold's settle poll, 20 ms on) that came due during a slow run would write then.
     return {
         "taken": taken,
+        "express": express,
         "writes": list(board.writes),
         "events": list(events),
         "counts": (
@@ -297,7 +315,7 @@ def _jobs(extra: list[str]) -> st.SearchStrategy[list[str]]:
 def _compare(dialect: str, job: list[str], seed: int, error_rate: float, listening: bool) -> None:
     fast = asyncio.run(_run(dialect, True, job, seed, error_rate, listening))
     slow = asyncio.run(_run(dialect, False, job, seed, error_rate, listening))
-    assert slow["taken"] == 0
+    assert slow["taken"] == slow["express"] == 0
     assert fast["writes"] == slow["writes"]
     assert fast["events"] == slow["events"]
     assert fast["counts"] == slow["counts"]
@@ -330,16 +348,21 @@ def test_grbl_fast_path_writes_tells_and_counts_as_the_general_path(
 
 
 def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:
-    """The comparison above would pass with a fast path never taken: here it is taken."""
-    job = [PLAIN[i % len(PLAIN)] for i in range(200)]
+    """The comparison above would pass with a fast path never taken: here it is taken,
+    with the daemon's own look-ahead."""
+    job = [PLAIN[i % len(PLAIN)] for i in range(600)]
     for dialect, listening in itertools.product(("g2core", "grbl"), (False, True)):
-        run = asyncio.run(_run(dialect, True, job, 7, 0.0, listening))
+        run = asyncio.run(_run(dialect, True, job, 7, 0.0, listening, look_ahead=LOOK_AHEAD))
         sent, acked = run["counts"][:2]
-        assert (sent, acked) == (200, 200)
+        assert (sent, acked) == (600, 600)
         assert "completed" in run["counts"][8]
-        # All but the job's last look-ahead, answered once its input ended; with a
-        # console listener that leaves the job's lines out (the dashboard) as well.
-        assert run["taken"] >= 150
+        # All but the job's last look-ahead and the window, answered once its input
+        # ended; with a console listener that leaves the job's lines out (the
+        # dashboard) as well.
+        assert run["taken"] >= 600 - LOOK_AHEAD - 7
+        # The express step (a read of plain answers, then the job's lines alone), only
+        # while no one listens to the console.
+        assert run["express"] == 0 if listening else run["express"] >= 50
         if listening:  # what it was told: the reports and the queries, no job line
             console = [e for e in run["events"] if e.startswith("Console(")]
             assert console and not any("job=True" in e for e in console)

@@ -13,12 +13,18 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hostd.protocol.commands import InvalidCommand, encode_line
+from hostd.protocol.commands import MAX_LINE_BYTES, InvalidCommand, encode_line
 from hostd.protocol.g2core import G2Session
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.session import GrblSession
 from hostd.protocol.linemode import InFlight, LineModeSender
-from hostd.protocol.program import MAX_LINE_NUMBER, number_line, program_lines, strip_line
+from hostd.protocol.program import (
+    BLOCK,
+    MAX_LINE_NUMBER,
+    number_line,
+    program_lines,
+    strip_line,
+)
 
 EDGES = [
     "G1 X1 Y2 F3000",
@@ -102,6 +108,71 @@ def test_any_text_is_encoded_as_the_general_path_encodes_it(text: str, number: i
 def test_program_lines_strips_each_line_as_strip_line_does(lines: list[str]) -> None:
     expected = [(n, strip_line(t)) for n, t in enumerate(lines, start=1) if strip_line(t)]
     assert list(program_lines(lines)) == expected
+
+
+@settings(max_examples=60, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    lines=st.lists(
+        st.sampled_from(["G1 X1\n", "  G0 Y2  \n", "\n", "%\n", "G1 (c) X3\n", "; c\n"]),
+        min_size=BLOCK - 5,
+        max_size=2 * BLOCK + 5,
+    ),
+    start=st.integers(min_value=-1, max_value=2 * BLOCK + 6),
+)
+def test_program_lines_reads_blocks_as_it_would_read_each_line(
+    lines: list[str], start: int
+) -> None:
+    """Read a block at a time (comments in some blocks only), from any start line."""
+    expected = [
+        (n, strip_line(t)) for n, t in enumerate(lines, start=1) if n >= start and strip_line(t)
+    ]
+    assert list(program_lines(lines, start)) == expected
+
+
+PLAIN_MOVES = ["G1 X1 Y2 F3000", "g1x1y2", "M3 S1000", "G1 X-1.5 Y+2.", "S500 G1 X1"]
+JOB_TEXTS = st.one_of(
+    st.sampled_from(PLAIN_MOVES),
+    st.sampled_from(EDGES),
+    st.text(alphabet=st.sampled_from("GMNXYZFSE $;()%!?{}\t.-+0123456789 \u00a0"), max_size=20),
+)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    texts=st.lists(st.one_of(JOB_TEXTS.map(str.strip), JOB_TEXTS), min_size=1, max_size=12),
+    first=st.one_of(st.integers(min_value=-2, max_value=20), st.just(MAX_LINE_NUMBER - 5)),
+    rx=st.sampled_from([128, 256]),
+)
+def test_a_block_of_job_lines_is_encoded_as_each_line_is(
+    texts: list[str], first: int, rx: int
+) -> None:
+    """A block in one pass, or None: never a byte other than each line's own encoding;
+    and a block of plain moves is taken in one pass."""
+    numbers = list(range(first, first + len(texts)))
+    g2 = G2Session("m1")
+    grbl = GrblSession("m1")
+    grbl.rx_size = rx
+    for session in (g2, grbl):
+        block = session.encode_job_block(numbers, texts)
+        each = [_shortcut(session, text, n) for n, text in zip(numbers, texts, strict=True)]
+        if block is not None:
+            assert block == each
+        if all(t in PLAIN_MOVES for t in texts) and first >= 0 and numbers[-1] <= MAX_LINE_NUMBER:
+            assert block is not None
+
+
+@pytest.mark.parametrize("extra", [-1, 0, 1])
+def test_a_block_is_held_to_each_boards_line_length(extra: int) -> None:
+    """Numbered lines at each board's longest, and one byte past it."""
+    g2 = G2Session("m1")
+    grbl = GrblSession("m1")
+    for session, longest in ((g2, MAX_LINE_BYTES), (grbl, grbl.rx_size - 2)):
+        # "N7 " and "G1", then "X1" words: a line of `longest + extra` bytes without its LF.
+        size = longest + extra - len("N7 G1")
+        text = "G1" + " X1" * (size // 3) + "1" * (size % 3)
+        assert len(f"N7 {text}") == longest + extra
+        block = session.encode_job_block([7], [text])
+        assert block == ([_shortcut(session, text, 7)] if extra <= 0 else None)
 
 
 def test_a_plain_answer_takes_the_oldest_job_line_off_the_books_only_if_it_is_its() -> None:

@@ -287,6 +287,13 @@ def classify(text: str) -> CommandClass:
 # Printable ASCII without the bytes grbl picks out of a line: `encode`'s one-regex test,
 # for the session's per-line path.
 printable = _PRINTABLE_LINE.fullmatch
+# Job lines as the host numbers them, each ending in LF: `N<number> ` and a text that
+# `GrblFlow.encode_job_line` writes as it is (printable, no comment, no blank at its end,
+# not a `$`, `{` or `?` line, not an N word of the file's own), all in one match.
+_PLAIN_NUMBERED = re.compile(
+    r"(?:N[0-9]++ (?![Nn$?{])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)++"
+)
+plain_numbered_block = _PLAIN_NUMBERED.fullmatch
 
 
 def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:

@@ -13,14 +13,17 @@ that free the buffer are read here when they are a job's plain `ok`s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from hostd.protocol.classes import CommandClass
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.books import _MAY_STORE, _REFUSED_BY_ALARM, GrblBooks
+from hostd.protocol.linemode import InFlight
 from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
 from hostd.protocol.states import MachineState
+from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
 
 
@@ -56,6 +59,21 @@ class GrblFlow(GrblBooks):
                     return (line + "\n").encode("ascii")
             text = number_line(text, number)
         return codec.encode(text, max_bytes=self.rx_size - 1)
+
+    def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
+        """`encode_job_line` of each numbered line, in one pass when every one takes its
+        first branch above; else None."""
+        if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
+            return None
+        block = "".join(
+            [f"N{number} {text}\n" for number, text in zip(numbers, texts, strict=True)]
+        )
+        if codec.plain_numbered_block(block) is None:
+            return None
+        lines = block.encode("ascii").splitlines(keepends=True)  # printable: no CR in any
+        if max(map(len, lines)) > self.rx_size - 1:
+            return None
+        return lines
 
     def send(self, line: str, token: Any, *, operation: bool = False) -> None:
         self._require_ready()
@@ -121,13 +139,7 @@ class GrblFlow(GrblBooks):
                 if self._storing is not None:
                     return  # send-response: the next line waits for this one's answer
         stream = self.stream
-        if (
-            stream is None
-            or stream.done
-            or stream.paused
-            or self._await_report
-            or (state is not None and (state.is_lockout or state in _NO_JOB_LINES))
-        ):
+        if stream is None or stream.done or self._job_lines_wait(stream, state):
             return
         # `_room` and `_special`'s first test written out: this loop runs for every job line.
         room = self.rx_size - 1
@@ -138,12 +150,9 @@ class GrblFlow(GrblBooks):
             # The steady state: the plain lines ahead that the receive buffer has room
             # for, taken and booked together; the loop below goes on from the first line
             # it left (a `$` line, one that may store, one that does not fit).
-            taken = stream.take_run(room - self._rx_used, by_bytes=True, special=_MAY_STORE)
+            taken = self._take_run(stream)
             if taken:
-                inflight.extend(taken)
-                pairs = [(data, entry.line) for entry in taken]
-                out.extend(pairs)
-                self._rx_used += sum([len(line) for _, line in pairs])
+                out.extend([(data, entry.line) for entry in taken])
         while True:
             entry = stream.peek()
             if entry is None:
@@ -158,6 +167,48 @@ class GrblFlow(GrblBooks):
             out.append((data, line))
             if (line[:1] == b"$" or _MAY_STORE(line)) and self._special(entry):
                 return
+
+    def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
+        """None of the job's lines may be written now (`_pump`'s and `job_lines_due`'s)."""
+        return (
+            stream.paused
+            or self._await_report
+            or (state is not None and (state.is_lockout or state in _NO_JOB_LINES))
+        )
+
+    def _take_run(self, stream: Stream) -> list[InFlight]:
+        """The plain lines ahead that the receive buffer has room for, taken and booked."""
+        taken = stream.take_run(self.rx_size - 1 - self._rx_used, by_bytes=True, special=_MAY_STORE)
+        if taken:
+            self._inflight.extend(taken)
+            self._rx_used += sum([len(entry.line) for entry in taken])
+        return taken
+
+    def job_lines_due(self) -> list[bytes] | None:
+        """The express step's `data_to_send` (SessionBase.job_lines_due): the job's plain
+        lines the receive buffer has room for, taken and booked, when nothing else can
+        be due; None, having booked nothing it does not also hand to `data_to_send`,
+        otherwise."""
+        stream = self._steady_stream()
+        if (
+            stream is None
+            or self.phase is not Phase.READY
+            or self.halted
+            or self.flushing()
+            or self._storing is not None
+            or self._outbox
+            or self._out
+            or self._events
+            or self._job_lines_wait(stream, self.model.state)
+        ):
+            return None
+        taken = self._take_run(stream)
+        lines = [entry.line for entry in taken]
+        if not stream.full:  # the writer's loop goes on from there: the general step
+            data = Lane.DATA
+            self._out.extend([(data, line) for line in lines])
+            return None
+        return lines
 
     def receive_plain(self, lines: list[bytes], start: int) -> int:
         """`receive`'s `_job_ok` for a run of `ok`s, each the answer to the job's oldest
