@@ -19,6 +19,7 @@ from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import partial
+from itertools import repeat
 from typing import Protocol
 
 from hostd.link.serial import SerialChannel
@@ -154,7 +155,7 @@ class Link:
         the control channel (the only one, on a one-port link)."""
         data = b"".join(lines)
         # Each ends in its LF and holds no other: as many LFs as lines, each at an end.
-        if data.count(b"\n") != len(lines) or any(line[-1:] != b"\n" for line in lines):
+        if data.count(b"\n") != len(lines) or not all(map(bytes.endswith, lines, repeat(b"\n"))):
             for line in lines:
                 _check_line(line)  # raises, saying which
         channel = Channel.CONTROL if control and self.dual else Channel.DATA

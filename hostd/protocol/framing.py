@@ -34,11 +34,11 @@ class LineBuffer:
         buf = self._buf
         if not buf and not self._discarding and data[-1:] == b"\n" and len(data) <= self.max_line:
             # Whole lines in one read, none too long: the most. grbl ends its lines in
-            # CRLF: each loses one CR at its end, as `_strip_cr` takes it below.
-            lines = data[:-1].split(b"\n")
+            # CRLF: each loses one CR at its end, as `_strip_cr` takes it below (the CR
+            # right before each LF; two CRLFs never overlap).
             if _CR in data:  # a byte's value: see _CR
-                return [line[:-1] if line[-1:] == b"\r" else line for line in lines]
-            return lines
+                data = data.replace(b"\r\n", b"\n")
+            return data[:-1].split(b"\n")
         lines = []
         buf += data
         start = 0
