@@ -72,6 +72,24 @@ class InFlight:
         return f"InFlight({self.line!r}, file_line={self.file_line}, own={self.own})"
 
 
+class PlainLine(InFlight):
+    """A job's data line that its dialect encoded in a block and found plain
+    (`encode_job_block`): not a `{` line, not a `$` line, no program pause, nothing
+    the dialect's flow control must look at. `Stream.take_run` takes it on its
+    room alone."""
+
+    __slots__ = ()
+    file_line: int
+
+    def __init__(self, line: bytes, source: Any, file_line: int) -> None:
+        self.line = line
+        self.source = source
+        self.file_line = file_line
+        self.own = False
+        self.control = False
+        self.count = len(line)
+
+
 CONTROL_WINDOW = 4
 
 

@@ -43,14 +43,16 @@ from collections.abc import Callable, Iterable, Sequence
 from itertools import repeat
 
 from hostd.protocol.commands import InvalidCommand, encode_line
-from hostd.protocol.linemode import InFlight
+from hostd.protocol.linemode import InFlight, PlainLine
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
 _ACKED_KEPT = 512  # answered lines remembered: more than any planner holds blocks
 # Lines fed and encoded ahead of the flow control's room, at most: a job's are fed in
 # blocks of about this many, not a line a read.
 LOOK_AHEAD = 64
-_PROGRAM_PAUSE = re.compile(rb"(?<![0-9.])[mM]0*(?:0|1|60)(?![0-9.])")
+# M0, M1 or M60, not inside a number. The M first, then what comes before it: a pattern that
+# starts with a look-behind is tried at every byte (twice the time on a job's block).
+_PROGRAM_PAUSE = re.compile(rb"[mM](?<![0-9.][mM])0*(?:0|1|60)(?![0-9.])")
 _DOLLAR = ord("$")
 # Bytes looked for as their values: `77 in line` is a byte search, where `b"M" in line`
 # first tries the bytes as an integer, and raises and clears a TypeError, each time
@@ -136,7 +138,11 @@ class Stream:
             written = block(numbers, [text for _, text in lines])
             if written is not None:
                 self.starved = False
-                self._ahead.extend(map(InFlight, written, repeat(self), numbers))
+                # No program pause among them: each is a plain line, taken on its room alone.
+                data = b"".join(written)
+                pause = (_M in data or _m in data) and _PROGRAM_PAUSE.search(data)
+                kind = InFlight if pause else PlainLine
+                self._ahead.extend(map(kind, written, repeat(self), numbers))
                 return
         encode = self._encode
         numbered = self.numbered
@@ -262,6 +268,22 @@ class Stream:
         sent_line = self._sent_line
         while ahead and room > 0:
             entry = ahead[0]
+            if type(entry) is PlainLine:  # nothing to look at but its room (`encode_block`)
+                if by_bytes:
+                    room -= entry.count
+                    if room < 0:
+                        self.full = True  # this line does not fit
+                        break
+                else:
+                    room -= 1
+                popleft()
+                append(entry)
+                line_number = entry.file_line
+                if line_number > sent_line:
+                    if self._first_line is None:
+                        self._first_line = line_number
+                    sent_line = line_number
+                continue
             if type(entry) is not flight or entry.control:
                 break
             line = entry.line
@@ -283,7 +305,7 @@ class Stream:
                 if self._first_line is None:
                     self._first_line = number
                 sent_line = number
-        if room == 0 and ahead and type(ahead[0]) is flight:
+        if room == 0 and ahead and type(ahead[0]) in (flight, PlainLine):
             self.full = True
         self._sent_line = sent_line
         self.sent += len(taken)

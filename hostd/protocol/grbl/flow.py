@@ -62,7 +62,8 @@ class GrblFlow(GrblBooks):
 
     def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
         """`encode_job_line` of each numbered line, in one pass when every one takes its
-        first branch above; else None."""
+        first branch above and none may store (`_MAY_STORE`, which `_pump` must see);
+        else None."""
         if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
             return None
         block = "".join(
@@ -70,7 +71,10 @@ class GrblFlow(GrblBooks):
         )
         if codec.plain_numbered_block(block) is None:
             return None
-        lines = block.encode("ascii").splitlines(keepends=True)  # printable: no CR in any
+        data = block.encode("ascii")
+        if _MAY_STORE(data):  # found in the block if in any of its lines
+            return None
+        lines = data.splitlines(keepends=True)  # printable: no CR in any
         if max(map(len, lines)) > self.rx_size - 1:
             return None
         return lines
