@@ -50,7 +50,7 @@ from hostd.protocol.errors import Busy, FaultActive, MachineError
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import Response
-from hostd.protocol.program import program_lines
+from hostd.protocol.program import program_blocks, program_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
@@ -574,7 +574,7 @@ class Machine:
 
 def _count_lines(path: Path, start_line: int) -> int:
     with path.open(encoding="utf-8", errors="replace") as f:
-        return sum(1 for _ in program_lines(f, start_line))
+        return sum(map(len, program_blocks(f, start_line)))  # a block at a time, not a line
 
 
 def setting_lines(values: dict[str, Any]) -> list[str]:

@@ -43,13 +43,15 @@ def program_lines(lines: Iterable[str], start_line: int = 1) -> Iterator[tuple[i
     them, so the iterator a job's stream takes its lines from is C's (`chain`,
     `islice`), not a generator resumed a line.
     """
-    return chain.from_iterable(_program_blocks(lines, start_line))
+    return chain.from_iterable(program_blocks(lines, start_line))
 
 
 BLOCK = 256  # lines of the file read and stripped together
 
 
-def _program_blocks(lines: Iterable[str], start_line: int) -> Iterator[list[tuple[int, str]]]:
+def program_blocks(lines: Iterable[str], start_line: int = 1) -> Iterator[list[tuple[int, str]]]:
+    """`program_lines`, BLOCK lines of the file at a time: a list of their sendable
+    lines (fewer where lines are blank or comments alone; empty if all are)."""
     numbered = enumerate(lines, start=1)
     if start_line > 1:
         next(islice(numbered, start_line - 1, start_line - 1), None)  # skip the lines before
