@@ -53,7 +53,7 @@ async def test_an_analysis_past_its_time_limit_is_refused_and_the_next_one_runs(
     async with running_daemon(tmp_path, daemon={"analysis_timeout": 1.0}) as hostd:
         rpc = await hostd.client()
         try:
-            _long_file(hostd.jobs / "huge.gcode", 150_000)
+            _long_file(hostd.jobs / "huge.gcode", 600_000)  # well past 1 s of analysis
             (hostd.jobs / "small.gcode").write_text("G0 X1\nG1 X2 F100\n")
             with pytest.raises(RpcFailure) as over:
                 await rpc.call("file.analyze", file="huge.gcode")
