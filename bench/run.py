@@ -725,10 +725,18 @@ class Bench:
                     daemon.wait_idle(machine=machine)
                     controller.expect(self.s.long_job)
                     controller.dump()
-                # The machine the holds are on starts last: each `job.start` checks the
-                # file on the analysis worker (niced, beside seven streaming machines:
-                # seconds each), and a job started first could end before the holds.
-                jobs = {m: _start_job(client, m, "p6.gcode") for m in reversed(ids)}
+                # Each `job.start` checks the file on the analysis worker (niced: seconds
+                # each), and a job streaming meanwhile could end before the holds do
+                # (three of eight did on 2026-11-28, once a line cost less): each job is
+                # paused once started, and all resume together.
+                jobs = {}
+                for machine in reversed(ids):
+                    jobs[machine] = _start_job(client, machine, "p6.gcode")
+                    client.call("job.pause", machine=machine)
+                for machine in ids:
+                    client.call("job.resume", machine=machine)
+                for controller in controllers:
+                    controller.dump()  # the pauses' `!` are no hold's
                 time.sleep(0.5)  # every machine streaming at full rate
                 acked0 = self._acked(client, jobs)
                 cpu0, t0 = daemon.cpu_seconds(), time.monotonic()
@@ -742,11 +750,9 @@ class Bench:
                     runs.append(self._latencies(controllers[0], sent_at, f"p6-{run}"))
                 seconds, cpu = time.monotonic() - t0, daemon.cpu_seconds() - cpu0
                 acked1 = self._acked(client, jobs)
-                running = [
-                    m
-                    for m, j in jobs.items()
-                    if client.call("job.get", job=j)["state"] in ("running", "paused")
-                ]
+                states = {m: client.call("job.get", job=j)["state"] for m, j in jobs.items()}
+                running = [m for m, state in states.items() if state in ("running", "paused")]
+                ended = ", ".join(f"{m} {s}" for m, s in states.items() if m not in running)
                 for machine in running:
                     client.call("job.cancel", machine=machine)
             finally:
@@ -767,7 +773,8 @@ class Bench:
                 [
                     f"{lines:,} lines acked in {seconds:.1f} s ({others:,} by the other "
                     f"{FLEET - 1}); daemon CPU {cpu:.2f} s = {cpu / seconds:.0%} of a core; "
-                    f"streaming to the end: {len(running)} of {FLEET}",
+                    f"streaming to the end: {len(running)} of {FLEET}"
+                    + (f" (ended: {ended})" if ended else ""),
                     waits.describe(),
                 ],
             )
