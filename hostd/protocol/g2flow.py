@@ -105,30 +105,9 @@ class G2Flow(G2Holds):
             sender.book_run(taken)
         return taken
 
-    def job_lines_due(self) -> list[bytes] | None:
-        """The express step's `data_to_send` (SessionBase.job_lines_due): the job's plain
-        lines the window has room for, taken and booked, when nothing else can be due;
-        None, having booked nothing it does not also hand to `data_to_send`, otherwise."""
-        stream = self._steady_stream()
-        if (
-            stream is None
-            or self.phase is not Phase.READY
-            or self.halted
-            or self._flush is not None
-            or self._lane
-            or self._outbox
-            or self._out
-            or self._events
-            or self._job_lines_wait(stream, self.model.state)
-        ):
-            return None
-        taken = self._take_run(stream)
-        lines = [entry.line for entry in taken]
-        if not stream.full:  # the writer's loop goes on from there: the general step
-            data = Lane.DATA
-            self._out.extend([(data, line) for line in lines])
-            return None
-        return lines
+    def _writes_wait(self) -> bool:
+        """A flush awaits its proof, or a client's line waits for the control lane."""
+        return self._flush is not None or bool(self._lane)
 
     def data_to_send(self) -> list[tuple[Lane, bytes]]:
         out = super().data_to_send()

@@ -23,6 +23,7 @@ from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected,
 from hostd.protocol.gcode import WCS_P, work_zero_line
 from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
+from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import JsonObject, Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.probing import ProbeInput
@@ -180,11 +181,44 @@ class SessionBase:
         read whose every line `receive_plain` took: the job's next plain lines that
         the flow control has room for, taken and booked, when that is all there is to
         write and nothing else can change (no event, no other line waiting, the job
-        in its steady state, and the writer's loop, run after them, would write
-        nothing more and change nothing). None otherwise: the engine then runs its
-        delivery loop, and `data_to_send` hands out whatever this took. A dialect
-        without it takes nothing."""
-        return None
+        in its steady state, nothing the dialect holds its writes for, and the
+        writer's loop, run after them, would write nothing more and change nothing).
+        None otherwise: the engine then runs its delivery loop, and `data_to_send`
+        hands out whatever this took (`_take_run` stopped short of its room)."""
+        stream = self._steady_stream()
+        if (
+            stream is None
+            or self.phase is not Phase.READY
+            or self.halted
+            or self._outbox
+            or self._out
+            or self._events
+            or self._writes_wait()
+            or self._job_lines_wait(stream, self.model.state)
+        ):
+            return None
+        taken = self._take_run(stream)
+        lines = [entry.line for entry in taken]
+        if not stream.full:  # the writer's loop goes on from there: the general step
+            data = Lane.DATA
+            self._out.extend([(data, line) for line in lines])
+            return None
+        return lines
+
+    def _writes_wait(self) -> bool:
+        """The dialect's: it writes nothing now, or only what its own loop must see (a
+        flush awaiting its proof, a line writing EEPROM, a client's query waiting)."""
+        return True
+
+    def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
+        """The dialect's: none of the job's lines may be written now (`_pump`'s test)."""
+        return True
+
+    def _take_run(self, stream: Stream) -> list[InFlight]:
+        """The dialect's: the job's plain lines ahead that its flow control has room for,
+        taken and booked (`Stream.take_run`); asked only once `_writes_wait` and
+        `_job_lines_wait` said no."""
+        raise NotImplementedError
 
     def _steady_stream(self) -> Stream | None:
         """The running job, if its answers may take the fast path: not at its end (its

@@ -113,7 +113,7 @@ class Stream:
         quarter of them are left, none once the input ended."""
         if self.done or self._input_ended:
             return 0
-        ahead = len(self._ahead)
+        ahead = len(self._ahead) + (self._next is not None)  # a line peeked is still ahead
         return self.look_ahead - ahead if ahead <= self._refill_at else 0
 
     def feed(self, number: int, text: str, *, hold: bool = False) -> None:
@@ -263,34 +263,21 @@ class Stream:
         taken: list[InFlight] = []
         append = taken.append
         popleft = ahead.popleft
-        flight = InFlight
         pause = _PROGRAM_PAUSE.search
         sent_line = self._sent_line
         while ahead and room > 0:
             entry = ahead[0]
-            if type(entry) is PlainLine:  # nothing to look at but its room (`encode_block`)
-                if by_bytes:
-                    room -= entry.count
-                    if room < 0:
-                        self.full = True  # this line does not fit
-                        break
-                else:
-                    room -= 1
-                popleft()
-                append(entry)
-                line_number = entry.file_line
-                if line_number > sent_line:
-                    if self._first_line is None:
-                        self._first_line = line_number
-                    sent_line = line_number
-                continue
-            if type(entry) is not flight or entry.control:
+            if isinstance(entry, tuple):  # a hold point, or a refused line
                 break
-            line = entry.line
-            if line[0] == _DOLLAR or (special is not None and special(line)):
-                break
+            plain = type(entry) is PlainLine  # nothing to look at but its room (`encode_block`)
+            if not plain:
+                if entry.control:
+                    break
+                line = entry.line
+                if line[0] == _DOLLAR or (special is not None and special(line)):
+                    break
             if by_bytes:
-                room -= len(line)
+                room -= entry.count  # a data line's bytes
                 if room < 0:
                     self.full = True  # this line does not fit
                     break
@@ -298,14 +285,14 @@ class Stream:
                 room -= 1
             popleft()
             append(entry)
-            if (_M in line or _m in line) and pause(line):
+            if not plain and (_M in line or _m in line) and pause(line):
                 self.program_pause_sent = True
             number: int = entry.file_line  # type: ignore[assignment]  # a job's line has one
             if number > sent_line:  # file lines only grow; a resume's preamble is line 0
                 if self._first_line is None:
                     self._first_line = number
                 sent_line = number
-        if room == 0 and ahead and type(ahead[0]) in (flight, PlainLine):
+        if room == 0 and ahead and not isinstance(ahead[0], tuple):
             self.full = True
         self._sent_line = sent_line
         self.sent += len(taken)

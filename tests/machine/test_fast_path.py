@@ -26,6 +26,7 @@ import re
 from collections import deque
 from typing import Any
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -345,6 +346,20 @@ def test_grbl_fast_path_writes_tells_and_counts_as_the_general_path(
     job: list[str], seed: int, error_rate: float, listening: bool
 ) -> None:
     _compare("grbl", job, seed, error_rate, listening)
+
+
+@pytest.mark.parametrize("dialect", ["g2core", "grbl"])
+@pytest.mark.parametrize("special", ["$X", "G10 L20 P1 X0", "M0", "M6 T1", "G1 X1e5"])
+def test_a_special_line_amid_plain_ones_is_written_as_the_general_path_writes_it(
+    dialect: str, special: str
+) -> None:
+    """Where a run of plain lines stops short of the room (a `$` line, one that may
+    store, a program pause, a hold point, a refused line), the express step leaves
+    the rest of the step to the writer's loop: the same writes, in the same batches."""
+    job = [PLAIN[i % len(PLAIN)] for i in range(24)] + [special]
+    job += [PLAIN[i % len(PLAIN)] for i in range(24)]
+    for seed in range(4):
+        _compare(dialect, job, seed, 0.0, listening=False)
 
 
 def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:

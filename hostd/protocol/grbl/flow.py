@@ -188,31 +188,9 @@ class GrblFlow(GrblBooks):
             self._rx_used += sum([len(entry.line) for entry in taken])
         return taken
 
-    def job_lines_due(self) -> list[bytes] | None:
-        """The express step's `data_to_send` (SessionBase.job_lines_due): the job's plain
-        lines the receive buffer has room for, taken and booked, when nothing else can
-        be due; None, having booked nothing it does not also hand to `data_to_send`,
-        otherwise."""
-        stream = self._steady_stream()
-        if (
-            stream is None
-            or self.phase is not Phase.READY
-            or self.halted
-            or self.flushing()
-            or self._storing is not None
-            or self._outbox
-            or self._out
-            or self._events
-            or self._job_lines_wait(stream, self.model.state)
-        ):
-            return None
-        taken = self._take_run(stream)
-        lines = [entry.line for entry in taken]
-        if not stream.full:  # the writer's loop goes on from there: the general step
-            data = Lane.DATA
-            self._out.extend([(data, line) for line in lines])
-            return None
-        return lines
+    def _writes_wait(self) -> bool:
+        """A stop or reset is under way, or a line writes EEPROM (send-response)."""
+        return self.flushing() or self._storing is not None
 
     def receive_plain(self, lines: list[bytes], start: int) -> int:
         """`receive`'s `_job_ok` for a run of `ok`s, each the answer to the job's oldest
