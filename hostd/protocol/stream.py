@@ -14,8 +14,8 @@ of what the flow control has taken, fed in blocks (once no more than a
 quarter of them are left), which the dialect encodes in one pass when every
 line of the block is plain (`encode_block`). When the flow control has room
 and nothing ahead (`starved`), the caller feeds more and the session is
-pumped again in the same step. A line that may not be sent is refused when its turn comes,
-not when it is fed: the lines before it still go.
+pumped again in the same step. A line that may not be sent is refused when
+its turn comes, not when it is fed: the lines before it still go.
 
 Counts only move forward: `sent` when a line is written, `acked` when the
 board answers it with status 0. Every sent line ends in exactly one of
