@@ -21,7 +21,7 @@ from hostd.protocol.errors import Rejected
 from hostd.protocol.g2holds import G2Holds
 from hostd.protocol.gcode import plain_match, plain_numbered_block
 from hostd.protocol.linemode import InFlight
-from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
+from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line, numbered_block
 from hostd.protocol.relaxed import parse_relaxed
 from hostd.protocol.states import MachineState
 from hostd.protocol.stream import Stream
@@ -76,12 +76,8 @@ class G2Flow(G2Holds):
     def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
         """`encode_job_line` of each numbered line, in one pass when all are plain (the
         first branch above for every one of them); else None."""
-        if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
-            return None
-        block = "".join(
-            [f"N{number} {text}\n" for number, text in zip(numbers, texts, strict=True)]
-        )
-        if plain_numbered_block(block) is None:
+        block = numbered_block(numbers, texts)
+        if block is None or plain_numbered_block(block) is None:
             return None
         lines = block.encode("ascii").splitlines(keepends=True)  # plain: no CR in any
         if max(map(len, lines)) > MAX_LINE_BYTES + 1:

@@ -11,7 +11,7 @@ Works on any iterable of lines, so a file is streamed, never read whole.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from itertools import chain, islice
 
 from hostd.protocol.gcodewords import strip_comments
@@ -68,6 +68,17 @@ def program_blocks(lines: Iterable[str], start_line: int = 1) -> Iterator[list[t
 # The dialects' `encode_job_line` test this first, to skip the general path. A set: one
 # hash lookup a line, where a tuple compared the lead with each in turn.
 NOT_PREFIXED = frozenset(("", "$", "{", "?", "n", "N"))
+
+
+def numbered_block(numbers: Sequence[int], texts: Sequence[str]) -> str | None:
+    """Lines as `number_line` numbers those whose lead it need not look at,
+    f"N{number} {text}", each ending in LF, joined: what a dialect's
+    `encode_job_block` matches whole against its plain-line pattern (which also
+    refuses the leads `number_line` treats apart). None if a number is one that
+    `number_line` leaves off."""
+    if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
+        return None
+    return "".join([f"N{number} {text}\n" for number, text in zip(numbers, texts, strict=True)])
 
 
 def number_line(text: str, number: int) -> str:

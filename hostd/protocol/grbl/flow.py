@@ -21,7 +21,7 @@ from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.books import _MAY_STORE, _REFUSED_BY_ALARM, GrblBooks
 from hostd.protocol.linemode import InFlight
-from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line
+from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line, numbered_block
 from hostd.protocol.states import MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
@@ -64,12 +64,8 @@ class GrblFlow(GrblBooks):
         """`encode_job_line` of each numbered line, in one pass when every one takes its
         first branch above and none may store (`_MAY_STORE`, which `_pump` must see);
         else None."""
-        if min(numbers) < 0 or max(numbers) > MAX_LINE_NUMBER:
-            return None
-        block = "".join(
-            [f"N{number} {text}\n" for number, text in zip(numbers, texts, strict=True)]
-        )
-        if codec.plain_numbered_block(block) is None:
+        block = numbered_block(numbers, texts)
+        if block is None or codec.plain_numbered_block(block) is None:
             return None
         data = block.encode("ascii")
         if _MAY_STORE(data):  # found in the block if in any of its lines
