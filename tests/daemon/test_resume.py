@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import AsyncIterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,7 @@ async def grbl(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
     async with running_daemon(tmp_path, dialect="grbl", spindle_dwell=0.05, safe_z=0.0) as hostd:
         rpc = await hostd.client()
         await hostd.idle(rpc)
+        await with_line_numbers(hostd, rpc)
         yield hostd, rpc
         await rpc.close()
 
@@ -81,6 +83,17 @@ async def _power_cycle(hostd: Running, rpc: Rpc) -> None:
         await watcher.close()
     await sim.replug()
     await hostd.idle(rpc)
+
+
+async def with_line_numbers(hostd: Running, rpc: Rpc) -> None:
+    """The simulated grbl built with USE_LINE_NUMBERS, its `Ln:` the exact line running:
+    these tests lose a job at a line they choose. The default build (no `Ln:`, lines
+    unnumbered) gives `line_executed` only as `Bf:` bounds it, up to 15 lines behind
+    (tests/protocol/test_grbl_session.py)."""
+    sim = hostd.daemon.sims["sim1"]
+    assert isinstance(sim, GrblSimController)
+    sim.flash(replace(sim.config, line_numbers=True))
+    await _power_cycle(hostd, rpc)
 
 
 async def _executed_at_least(rpc: Rpc, job_id: int, line: int) -> dict[str, Any]:

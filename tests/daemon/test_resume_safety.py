@@ -33,7 +33,7 @@ from hostd.sim import SimController
 from hostd.sim.motion import Traversed
 from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
 from tests.daemon.test_api import job_end
-from tests.daemon.test_resume import _executed_at_least, _power_cycle
+from tests.daemon.test_resume import _executed_at_least, _power_cycle, with_line_numbers
 
 pytestmark = pytest.mark.asyncio
 
@@ -83,6 +83,13 @@ async def daemon(tmp_path: Path, request: pytest.FixtureRequest) -> AsyncIterato
     if dialect == "grbl":
         extra["spindle_dwell"] = 0.2
     async with running_daemon(tmp_path, dialect=dialect, **extra) as hostd:
+        if dialect == "grbl":  # its `Ln:`: the job is lost at a line drawn for it
+            rpc = await hostd.client()
+            try:
+                await hostd.idle(rpc)
+                await with_line_numbers(hostd, rpc)
+            finally:
+                await rpc.close()
         yield hostd
 
 

@@ -39,6 +39,13 @@ class GrblConfig:
     `$x=`). grblHAL answers first and writes its settings to flash once idle
     (protocol.c nvs_buffer_sync_physical): bytes wait in the USB stack.
 
+    `line_numbers`: classic grbl built with USE_LINE_NUMBERS (gnea/grbl
+    config.h:159, off by default): `[OPT:]` then says `N` (report.c:379-381)
+    and a status report carries `Ln:` (report.c:540-548). Without it the
+    board parses a line's N word and keeps none of it (gcode.c:309 and
+    :902-905). grblHAL always does both (grblHAL/core report.c:897 and the
+    report's `Ln:`, :1314-1319), whatever this says.
+
     `report_first`: realtime characters that arrive in one read with a `?` act
     after the report is printed, as the firmware's main loop takes them: the
     receive interrupt only raises flags (gnea/grbl serial.c ISR(SERIAL_RX),
@@ -70,6 +77,7 @@ class GrblConfig:
     feedhold_decel: float = 0.05  # s from `!` to standing still
     reset_on_open: bool | None = None
     report_first: bool | None = None
+    line_numbers: bool = False
     history: int | None = None  # entries kept in `received` / `sent`; None keeps all
 
     def __post_init__(self) -> None:
@@ -89,6 +97,11 @@ class GrblConfig:
     @property
     def hal(self) -> bool:
         return self.flavour == "grblhal"
+
+    @property
+    def reports_lines(self) -> bool:
+        """`[OPT:]` says `N` and a status report carries `Ln:`."""
+        return self.hal or self.line_numbers
 
     @property
     def rx_size(self) -> int:

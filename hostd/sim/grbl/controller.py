@@ -199,6 +199,14 @@ class GrblSimController(SimShell[GrblBoard, str]):
             self._keep(self.sent, Received(time.monotonic(), PORT, data, "raw"))
             self._pulse()
 
+    def flash(self, config: GrblConfig) -> None:
+        """Another build of the same firmware flavour, from the board's next power-up on
+        (`replug`; the host reads it at its handshake). For a build option the board
+        reads as it runs, as `line_numbers` (USE_LINE_NUMBERS) is."""
+        if config.flavour != self.config.flavour or config.rx_size != self.config.rx_size:
+            raise ValueError("flash a build of the same flavour and receive buffer")
+        self.config = self._board.config = config
+
     async def unplug(self) -> None:
         """Pull the USB cable: the host reads EOF/EIO, the symlink goes away."""
         if self._port is not None:

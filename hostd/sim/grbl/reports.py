@@ -43,10 +43,11 @@ def status_report(board: GrblBoard) -> str:
     # report.c: the N of plan_get_current_block(), the block executing or next to
     # (it may not have started: grbl says Idle for an instant before a cycle); with
     # the planner empty grblHAL reports the parser's last N, classic grbl nothing.
+    # Classic grbl prints it only when built with USE_LINE_NUMBERS (config.py).
     line = board.planner[0].n if board.planner else 0
     if board.hal and not board.planner:
         line = board.modal.line
-    if line:
+    if line and board.config.reports_lines:
         fields.append(f"Ln:{line}")
     rate = board.active.velocity(now) if board.active is not None else 0.0
     speed = board.modal.speed * board.spindle_ovr / 100 if board.modal.spindle != "M5" else 0.0
@@ -192,7 +193,8 @@ def build_info(board: GrblBoard) -> list[str]:
     if not board.hal:
         return [
             f"[VER:{CLASSIC_VERSION}.{CLASSIC_BUILD}:]",
-            f"[OPT:V,{board.config.blocks},{board.config.rx_size}]",
+            f"[OPT:V{'N' if board.config.line_numbers else ''},"
+            f"{board.config.blocks},{board.config.rx_size}]",
         ]
     opt = "VNM" + ("" if board._bits(22) & 4 else "L") + "+"
     newopt = "ENUMS,RT+," + ("HOME," if board._bits(22) & 1 else "") + "ES,SED"

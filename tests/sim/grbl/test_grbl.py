@@ -70,6 +70,28 @@ async def test_build_info_gives_planner_blocks_and_rx_buffer(
     assert "[FIRMWARE:grblHAL]" in got and got[-1] == "ok"
 
 
+@pytest.mark.parametrize(
+    ("config", "opt", "reports"),
+    [
+        (TIMED_CLASSIC, "V,15,128", False),  # gnea/grbl config.h: USE_LINE_NUMBERS off
+        (replace(TIMED_CLASSIC, line_numbers=True), "VN,15,128", True),
+        (TIMED_HAL, "VNML+,100,1024,3,0", True),  # grblHAL: always
+    ],
+)
+async def test_a_running_lines_number_is_reported_only_by_a_build_that_keeps_it(
+    tmp_path: Path, config: GrblConfig, opt: str, reports: bool
+) -> None:
+    """`[OPT:]` has `N` exactly when a report has `Ln:` (gnea/grbl report.c:379-381 and
+    :540-548 under one `#ifdef`); a default classic board parses the N and keeps none."""
+    async with Board(tmp_path, config) as (sim, host):
+        assert (await host.ask(b"$I\n"))[1] == f"[OPT:{opt}]"
+        assert await host.ask(b"N7 G1 X-3 F600\n") == ["ok"]
+        await sim.wait_state("Run")
+        assert ("|Ln:7|" in await host.status()) is reports
+        host.send(b"!")
+        await sim.wait_state("Hold:0")
+
+
 async def test_every_output_line_ends_crlf(hal_host: GrblHost) -> None:
     await hal_host.ask(b"$$\n")
     await hal_host.ask(b"$#\n")
