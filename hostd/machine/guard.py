@@ -104,6 +104,12 @@ def line_limit(machine: Machine) -> int:
     return machine.engine.session.line_limit()
 
 
+def numbers_lines(machine: Machine) -> bool:
+    """Whether the machine's job lines go out numbered (`N<file line>`), as its session
+    knows the board: not on a classic grbl built without line numbers."""
+    return machine.engine.session.numbers_lines()
+
+
 def tool_change_policy(machine: Machine) -> str | None:
     """running.md's `tool_change`; absent is no policy (an M6 is refused, as "refuse")."""
     return machine.config.tool_change

@@ -24,7 +24,7 @@ from typing import Any
 
 import structlog
 
-from hostd.machine.guard import line_limit, tool_change_policy
+from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
@@ -231,8 +231,10 @@ async def check_file(
     start_line: int = 1,
     *,
     pool: WorkerPool,
+    numbered: bool = True,
 ) -> Findings:
-    """The lines of `path` (from `start_line`) the board would refuse or must not run."""
+    """The lines of `path` (from `start_line`) the board would refuse or must not run;
+    `numbered`: as the job writes them, each with its `N<line>` (`numbers_lines`)."""
     return await pool.run(
         f"checking {path.name}",
         _check_file,
@@ -241,6 +243,7 @@ async def check_file(
         max_line_bytes,
         tool_change,
         start_line,
+        numbered,
     )
 
 
@@ -250,6 +253,7 @@ def _check_file(
     max_line_bytes: int,
     tool_change: str | None,
     start_line: int,
+    numbered: bool,
 ) -> Findings:
     """`check_file`'s work, on a worker process."""
     with path.open(encoding="utf-8", errors="replace") as f:
@@ -258,6 +262,7 @@ def _check_file(
             dialect=dialect,
             max_line_bytes=max_line_bytes,
             tool_change=tool_change,
+            numbered=numbered,
         )
 
 
@@ -383,7 +388,12 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
     limits = await _limits(machine)
     offset = work_offset(machine.snapshot())
     found = await check_file(
-        path, machine.config.spec, line_limit(machine), tool_change_policy(machine), pool=pool
+        path,
+        machine.config.spec,
+        line_limit(machine),
+        tool_change_policy(machine),
+        pool=pool,
+        numbered=numbers_lines(machine),
     )
     analysis = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
     return replace(analysis, findings=found, dialect=machine.config.spec.gcode.name)
@@ -420,6 +430,7 @@ async def prepare_start(
             tool_change_policy(machine),
             start_line,
             pool=pool,
+            numbered=numbers_lines(machine),
         )
         if notes is not None:
             notes += [f"line {f.line}: {f.text}" for f in found.notes]

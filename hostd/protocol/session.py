@@ -285,8 +285,15 @@ class SessionBase:
             return "close the interlock, then machine.cycle_start"
         return "machine.clear"
 
+    def numbers_lines(self) -> bool:
+        """Whether a job's lines go out with their file line as their N word: the board
+        reports the N of the block it runs (g2core's `line`, grbl's `Ln:`). A board that
+        cannot report it is sent the lines as the file has them (`encode_job_line`)."""
+        return True
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
-        """A job's line as it is written to this board; `number` its N word (the file line).
+        """A job's line as it is written to this board; `number` its file line, written as
+        its N word when the board reports one (`numbers_lines`).
 
         The board reports the N word of the block it runs (g2core's `line`, grbl's
         `Ln:`): that is how the host knows which file line was executing (`line_executed`).

@@ -120,6 +120,23 @@ async def test_job_start_refuses_what_the_board_would_refuse_with_line_numbers(
     assert status["job"] is None or status["job"]["file"] != "bad.nc"  # no job was made
 
 
+async def test_a_line_that_fits_only_unnumbered_runs_on_a_default_grbl(
+    both: tuple[Running, Rpc],
+) -> None:
+    """The simulated grbl is classic's default build (`[OPT:V,15,128]`: no line numbers),
+    so job lines go as the file has them, and the check reads them so: a line whose LF is
+    the 127th byte runs. Numbered (`N2 `) it would not fit, and would be refused."""
+    hostd, rpc = both
+    text = "G0 X1" + " " * 119 + "Y1"  # 126 bytes, and its LF
+    await rpc.call("file.upload", name="long.nc", data=f"G21\n{text}\nG0 X0 Y0\n")
+    assert (await rpc.call("file.analyze", file="long.nc", machine=GRBL))["problems"] == []
+    await rpc.call("subscribe", topics=["job"], machine=GRBL)
+    started = await rpc.call("job.start", machine=GRBL, file="long.nc")
+    assert (await job_end(rpc, started["job"]))["state"] == "completed"
+    written = b"".join(r.data for r in hostd.daemon.sims[GRBL].received)
+    assert text.encode() + b"\n" in written and b"N2" not in written
+
+
 async def test_force_starts_a_refused_file_anyway(both: tuple[Running, Rpc]) -> None:
     _, rpc = both
     await rpc.call("file.upload", name="tools.nc", data="G21\nT2 M6\nG0 X1\n")

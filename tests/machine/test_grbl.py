@@ -150,7 +150,7 @@ async def test_a_resumed_job_runs_on_without_waiting_for_a_status_poll(tmp_path:
         await state(bench, S.HOLD)  # a poll soon after the `!`, not a minute away
 
         def job_lines() -> int:
-            return b"".join(r.data for r in board.received).count(b" G1 ")  # N<k> G1 ...
+            return b"".join(r.data for r in board.received).count(b"G1 ")
 
         before = job_lines()
         assert before < 400

@@ -941,23 +941,64 @@ def test_an_override_waiting_for_its_report_is_forgotten_with_the_link() -> None
     assert grbl.session.override_answers == 0
 
 
-def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:
-    grbl = Grbl()
-    grbl.connect()
-    lines = ((i, f"G1 X{i} F100") for i in range(1, 11))
+def _job(grbl: Grbl, count: int) -> Stream:
+    lines = ((i, f"G1 X{i} F100") for i in range(1, count + 1))
     stream = Stream(job_id=1, encode=grbl.session.encode_job_line, numbered=True)
     stream.feed_all(lines)
     grbl.session.start_stream(stream)
     grbl.pump()
-    assert grbl.lines()[0].startswith(b"N1 ")
+    return stream
+
+
+def test_the_executing_line_comes_from_ln_else_from_what_the_planner_still_holds() -> None:
+    grbl = Grbl()
+    grbl.connect(opt="VN,15,128")  # built with USE_LINE_NUMBERS: `Ln:` may come
+    stream = _job(grbl, 10)
+    assert grbl.lines()[0] == b"N1 G1 X1 F100\n"
     grbl.feed(*["ok"] * 6)
-    # Classic grbl reports no Ln: 3 of 15 blocks still planned, so lines 4-6 have not run.
+    # A report without Ln: 3 of 15 blocks still planned, so lines 4-6 have not run.
     grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:12,100|FS:100,0>")
     assert stream.line_executed == 3
-    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:13,100|FS:100,0|Ln:5>")  # grblHAL says it
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:13,100|FS:100,0|Ln:5>")  # the board says it
     assert stream.line_executed == 5
     grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:15,100|FS:100,0|Ln:2>")  # never backwards
     assert stream.line_executed == 6  # the planner is empty: all six answered lines ran
+
+
+def test_a_classic_build_without_line_numbers_is_sent_the_lines_as_they_are() -> None:
+    """`[OPT:V,15,128]` (gnea/grbl's default: USE_LINE_NUMBERS off) means no `Ln:` will
+    ever come: an N word would cost each line its bytes in the 128-byte buffer for
+    nothing. The executing line is still bounded by `Bf:`, in file lines."""
+    grbl = Grbl()
+    grbl.connect()  # [OPT:V,15,128]
+    assert not grbl.session.numbers_lines()
+    stream = _job(grbl, 20)
+    written = grbl.lines()
+    assert written[:4] == [b"G1 X1 F100\n", b"G1 X2 F100\n", b"G1 X3 F100\n", b"G1 X4 F100\n"]
+    # 9 lines of 11 bytes and 2 of 12 in 127; numbered (14 and 16 bytes), 9 would fit.
+    assert len(written) == 11 and grbl.unanswered_bytes() == 9 * 11 + 2 * 12
+    grbl.feed(*["ok"] * 6)
+    grbl.feed("<Run|MPos:1.000,0.000,0.000|Bf:12,100|FS:100,0>")
+    assert stream.line_executed == 3
+
+
+@pytest.mark.parametrize(
+    ("opt", "hal", "numbered"),
+    [
+        ("VN,15,128", False, True),  # classic, USE_LINE_NUMBERS
+        ("VNM+,100,1024,3,0", True, True),  # grblHAL: always N (core report.c)
+        ("V,15,128", False, False),  # classic's default build
+    ],
+)
+def test_job_lines_are_numbered_only_for_a_board_that_reports_them(
+    opt: str, hal: bool, numbered: bool
+) -> None:
+    grbl = Grbl()
+    assert grbl.session.numbers_lines()  # before `$I` is read: numbered, as ever
+    grbl.connect(opt=opt, hal=hal)
+    assert grbl.session.numbers_lines() is numbered
+    _job(grbl, 3)
+    assert grbl.lines()[0] == (b"N1 G1 X1 F100\n" if numbered else b"G1 X1 F100\n")
 
 
 def test_the_lockout_says_what_ends_it_on_grbl() -> None:

@@ -88,6 +88,16 @@ def test_a_job_line_is_encoded_as_the_general_path_encodes_it(
     assert _shortcut(grbl, text, number) == _general_grbl(text, number, grbl.rx_size)
     grbl.rx_size = 256  # a grblHAL's buffer, as its [OPT:] says
     assert _shortcut(grbl, text, number) == _general_grbl(text, number, 256)
+    # A classic build without USE_LINE_NUMBERS ([OPT:] without N): the line as it is.
+    assert _shortcut(_unnumbered(), text, number) == _general_grbl(text, None, 128)
+
+
+def _unnumbered() -> GrblSession:
+    """A grbl session whose handshake read `[OPT:V,15,128]`: no N, so no `Ln:`."""
+    grbl = GrblSession("m1")
+    grbl.line_numbers = False
+    assert not grbl.numbers_lines()
+    return grbl
 
 
 @settings(max_examples=400, suppress_health_check=[HealthCheck.too_slow])
@@ -102,6 +112,7 @@ def test_any_text_is_encoded_as_the_general_path_encodes_it(text: str, number: i
     grbl = GrblSession("m1")
     assert _shortcut(g2, text, number) == _general_g2(text, number)
     assert _shortcut(grbl, text, number) == _general_grbl(text, number, grbl.rx_size)
+    assert _shortcut(_unnumbered(), text, number) == _general_grbl(text, None, grbl.rx_size)
 
 
 @given(st.lists(st.text(alphabet=st.sampled_from("G1 X;(%)\t\u00a0"), max_size=12), max_size=8))
@@ -152,13 +163,17 @@ def test_a_block_of_job_lines_is_encoded_as_each_line_is(
     g2 = G2Session("m1")
     grbl = GrblSession("m1")
     grbl.rx_size = rx
-    for session in (g2, grbl):
+    unnumbered = _unnumbered()
+    unnumbered.rx_size = rx
+    for session in (g2, grbl, unnumbered):
         block = session.encode_job_block(numbers, texts)
         each = [_shortcut(session, text, n) for n, text in zip(numbers, texts, strict=True)]
         if block is not None:
             assert block == each
         if all(t in PLAIN_MOVES for t in texts) and first >= 0 and numbers[-1] <= MAX_LINE_NUMBER:
             assert block is not None
+    if all(t in PLAIN_MOVES for t in texts):  # unnumbered, whatever the numbers
+        assert unnumbered.encode_job_block(numbers, texts) == [t.encode() + b"\n" for t in texts]
 
 
 @pytest.mark.parametrize("extra", [-1, 0, 1])
@@ -173,6 +188,20 @@ def test_a_block_is_held_to_each_boards_line_length(extra: int) -> None:
         assert len(f"N7 {text}") == longest + extra
         block = session.encode_job_block([7], [text])
         assert block == ([_shortcut(session, text, 7)] if extra <= 0 else None)
+    unnumbered = _unnumbered()
+    text = "G1" + "X" * (unnumbered.rx_size - 4 + extra)  # with its LF, rx_size - 1 + extra
+    block = unnumbered.encode_job_block([7], [text])
+    assert block == ([_shortcut(unnumbered, text, 7)] if extra <= 0 else None)
+
+
+def test_an_unnumbered_block_is_its_lines_and_no_more() -> None:
+    """A text that holds a line end (never one of a file's) is not taken as two lines."""
+    unnumbered = _unnumbered()
+    assert unnumbered.encode_job_block([1, 2], ["G1 X1\nG1 X2", "G1 X3"]) is None
+    assert unnumbered.encode_job_block([1], ["$H"]) is None  # `_pump` takes it line by line
+    assert unnumbered.encode_job_block([1], ["{x:1}"]) is None
+    assert unnumbered.encode_job_block([1, 2], ["G1 X1", "G10 L20 P1 X0"]) is None  # stores
+    assert unnumbered.encode_job_block([1, 2], ["N5 G1 X1", "G1 X2"]) == [b"N5 G1 X1\n", b"G1 X2\n"]
 
 
 def test_a_plain_answer_takes_the_oldest_job_line_off_the_books_only_if_it_is_its() -> None:

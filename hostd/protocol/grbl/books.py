@@ -89,6 +89,9 @@ class GrblBooks(GrblWords, SessionBase):
         self.version: str | None = None
         self.rx_size = codec.CLASSIC_RX_BUFFER
         self.blocks = codec.CLASSIC_BLOCKS
+        # `[OPT:]` says `N`: the board keeps a line's N word and reports it (`Ln:`).
+        # None until `$I` is read (a board that never says: lines are numbered).
+        self.line_numbers: bool | None = None
         self.settings: dict[str, str] = {}
         self._inflight: deque[InFlight] = deque()  # written, unanswered, in order
         self._rx_used = 0  # bytes of them: never more than the board's buffer holds

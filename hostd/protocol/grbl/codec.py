@@ -294,6 +294,11 @@ _PLAIN_NUMBERED = re.compile(
     r"(?:N[0-9]++ (?![Nn$?{])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)++"
 )
 plain_numbered_block = _PLAIN_NUMBERED.fullmatch
+# The same lines unnumbered (a board that keeps no N): each is `encode`'s answer as it
+# is, with no blank at either end, and neither a `$` line nor a `{` one (whose turn
+# `_pump` takes line by line).
+_PLAIN_LINES = re.compile(r"(?:(?![ ${])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)++")
+plain_block = _PLAIN_LINES.fullmatch
 
 
 def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:

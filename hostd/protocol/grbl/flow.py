@@ -42,8 +42,14 @@ class GrblFlow(GrblBooks):
             return False
         return not self._outbox and not self._job_running() and not self.flushing()
 
+    def numbers_lines(self) -> bool:
+        """Unless `[OPT:]` said the build keeps no line number (classic grbl without
+        USE_LINE_NUMBERS, its default): an N word then costs the receive buffer and the
+        wire its bytes (a fifth of a short move's) and never comes back as `Ln:`."""
+        return self.line_numbers is not False
+
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
-        if number is not None:
+        if number is not None and self.line_numbers is not False:
             if (
                 text[:1] not in NOT_PREFIXED
                 and 0 <= number <= MAX_LINE_NUMBER
@@ -61,18 +67,23 @@ class GrblFlow(GrblBooks):
         return codec.encode(text, max_bytes=self.rx_size - 1)
 
     def encode_job_block(self, numbers: Sequence[int], texts: Sequence[str]) -> list[bytes] | None:
-        """`encode_job_line` of each numbered line, in one pass when every one takes its
-        first branch above and none may store (`_MAY_STORE`, which `_pump` must see);
-        else None."""
-        block = numbered_block(numbers, texts)
-        if block is None or codec.plain_numbered_block(block) is None:
+        """`encode_job_line` of each line, in one pass when every one takes its first
+        branch above (or, unnumbered, is written as it is) and none may store
+        (`_MAY_STORE`, which `_pump` must see); else None."""
+        if self.line_numbers is False:  # the lines as they are (`numbers_lines`)
+            block: str | None = "\n".join(texts) + "\n"
+            plain = codec.plain_block
+        else:
+            block = numbered_block(numbers, texts)
+            plain = codec.plain_numbered_block
+        if block is None or plain(block) is None:
             return None
         data = block.encode("ascii")
         if _MAY_STORE(data):  # found in the block if in any of its lines
             return None
         lines = data.splitlines(keepends=True)  # printable: no CR in any
-        if max(map(len, lines)) > self.rx_size - 1:
-            return None
+        if len(lines) != len(texts) or max(map(len, lines)) > self.rx_size - 1:
+            return None  # (a text of two lines, unnumbered, would pass the pattern)
         return lines
 
     def send(self, line: str, token: Any, *, operation: bool = False) -> None:

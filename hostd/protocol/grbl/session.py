@@ -302,6 +302,10 @@ class GrblSession(GrblLiveness):
             parts = msg.text.split(",")
             if len(parts) >= 3 and parts[1].isdigit() and parts[2].isdigit():
                 self.blocks, self.rx_size = int(parts[1]), int(parts[2])
+                # The build's letters: `N` is USE_LINE_NUMBERS on classic grbl (gnea/grbl
+                # report.c:379-381, off by default), always there on grblHAL (core
+                # report.c:897). Without it no `Ln:` ever comes: job lines go unnumbered.
+                self.line_numbers = "N" in parts[0]
         elif msg.kind == "FIRMWARE" and msg.text == "grblHAL":
             self.flavour = "GrblHAL"  # `$I` (report.c:1076): a native USB port prints no banner
         elif msg.kind == "MSG":
