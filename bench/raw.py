@@ -5,8 +5,9 @@ then a tcflush, which is what makes the instant controller send its banner),
 writes the job's lines one `os.write` each, and counts one answer per line:
 on g2core `{"r":` with `window` lines unanswered, on grbl `ok` with as many
 bytes unanswered as the board's receive buffer holds (character counting,
-127 of 128). The lines are the ones the daemon writes (numbered `N<k>`, as
-the daemon numbers job lines), so both send the same bytes. What the daemon
+127 of 128). The lines are the ones the daemon writes (numbered `N<k>` on
+g2core, as the daemon numbers job lines; as they are on grbl, whose bench
+boards keep no line numbers), so both send the same bytes. What the daemon
 does on top of this is what the bench measures.
 """
 
@@ -37,8 +38,12 @@ class RawResult:
 GRBL_ROOM = 127  # bytes a grbl's 128-byte receive ring holds
 
 
-def wire_lines(text: str) -> list[bytes]:
-    """The job's lines as the daemon writes them: numbered from 1, each ending in LF."""
+def wire_lines(text: str, dialect: str = "g2core") -> list[bytes]:
+    """The job's lines as the daemon writes them to the bench's boards, each ending in LF:
+    numbered from 1 on g2core; as they are on grbl, whose bench boards are classic
+    grbl's default build (`[OPT:V,15,128]`: no line numbers, so the daemon sends none)."""
+    if dialect == "grbl":
+        return [line.encode() + b"\n" for line in text.splitlines()]
     return [number_line(line, i).encode() + b"\n" for i, line in enumerate(text.splitlines(), 1)]
 
 

@@ -12,11 +12,12 @@ host of this shape could pay: this program, which does nothing but stream.
 It is the daemon's way of streaming with everything else taken out: uvloop
 and serialx as the daemon uses them (one protocol a port, a read per
 wake-up, the port opened as hostd/link/serial.py opens it), the job's lines
-encoded beforehand and numbered as the daemon numbers them (bench/raw.py
-`wire_lines`), and the same flow control: on grbl character counting against
-the 127 bytes a 128-byte receive ring holds (an `ok` frees its line's bytes),
-on g2core a window of lines unanswered (a `{"r":` frees one). Answers are
-counted, not parsed: no status, no notifications, no job record.
+encoded beforehand as the daemon encodes them (bench/raw.py `wire_lines`:
+numbered on g2core, as they are on grbl), and the same flow control: on grbl
+character counting against the 127 bytes a 128-byte receive ring holds (an
+`ok` frees its line's bytes), on g2core a window of lines unanswered (a
+`{"r":` frees one). Answers are counted, not parsed: no status, no
+notifications, no job record.
 
 As a process (the bench's use): it opens every port, waits for each board's
 banner, prints `ready`; `go` on stdin starts the streams; it prints one JSON
@@ -233,7 +234,7 @@ def main() -> None:
     args = parser.parse_args()
     import uvloop  # as the daemon runs by default
 
-    lines = wire_lines(raster(args.lines))
+    lines = wire_lines(raster(args.lines), args.dialect)
     _raise_mmap_threshold()
     uvloop.run(_serve(args.links, args.dialect, lines, args.window))
 

@@ -415,7 +415,7 @@ class Bench:
         """P1 and P5 on one dialect: the daemon's jobs and the raw loop's, interleaved."""
         n = self.s.stream_lines
         text = program(n)
-        lines = wire_lines(text)
+        lines = wire_lines(text, dialect)
         raw_ctl = self._controller(str(self._dir(f"raw-{dialect}") / "ttyRAW"), dialect)
         raw = RawHost(raw_ctl.link, dialect)
         client = daemon.client()
