@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import os
+import types
 from collections.abc import Callable
 from pathlib import Path
 
@@ -218,6 +219,17 @@ def test_two_uploads_of_one_name_never_mix(jobs: JobsDir) -> None:
 # -- failures ----------------------------------------------------------------
 
 
+def uploads_os(monkeypatch: pytest.MonkeyPatch) -> types.SimpleNamespace:
+    """uploads.py's own `os`, a copy of the module's names, to patch: patching `os`
+    itself would fail every `os.write` of the process, a multiprocessing finalizer's
+    run by the garbage collector meanwhile among them (an error in another test)."""
+    own = uploads.os
+    if not isinstance(own, types.SimpleNamespace):
+        own = types.SimpleNamespace(**vars(os))
+        monkeypatch.setattr(uploads, "os", own)
+    return own
+
+
 def failing_write(monkeypatch: pytest.MonkeyPatch, after: int) -> list[int]:
     """`os.write` in uploads.py writes `after` bytes of the next chunk, then the disk is full."""
     real = os.write
@@ -229,7 +241,7 @@ def failing_write(monkeypatch: pytest.MonkeyPatch, after: int) -> list[int]:
             return real(fd, bytes(data[:after]))
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(uploads.os, "write", write)
+    monkeypatch.setattr(uploads_os(monkeypatch), "write", write)
     return calls
 
 
@@ -269,7 +281,8 @@ def test_staging_that_cannot_be_cut_back_discards_the_upload(
     upload = start(jobs, "a.gcode", b"G0 X1\n")
     with monkeypatch.context() as patch:
         failing_write(patch, after=2)
-        patch.setattr(uploads.os, "ftruncate", _raise(errno.EIO))
+        patch.setattr(uploads_os(patch), "ftruncate", _raise(errno.EIO))
+        assert os.write is not uploads.os.write  # the process's own still writes
         with pytest.raises(StorageError, match="upload is discarded"):
             jobs.upload("a.gcode", b"G0 X2\n", upload_id=upload, offset=6)
     assert staged(jobs) == {} and jobs.entries() == []
@@ -283,7 +296,7 @@ def test_a_final_flush_that_fails_publishes_nothing(
     jobs.upload("a.gcode", b"old\n")
     upload = start(jobs, "a.gcode", b"G0 X1\n")
     with monkeypatch.context() as patch:
-        patch.setattr(uploads.os, "fsync", _raise(errno.EIO))
+        patch.setattr(uploads_os(patch), "fsync", _raise(errno.EIO))
         with pytest.raises(StorageError, match="cannot flush the upload") as refused:
             jobs.upload("a.gcode", b"G0 X2\n", upload_id=upload, offset=6)
     assert refused.value.reason == "io"
