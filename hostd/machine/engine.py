@@ -59,6 +59,7 @@ from hostd.link import Channel
 from hostd.machine.engine_link import RECONNECT_BACKOFF
 from hostd.machine.engine_requests import EngineRequests
 from hostd.machine.engine_state import LinkState, session_for
+from hostd.protocol.vocabulary import Lane
 
 __all__ = ["RECONNECT_BACKOFF", "Engine", "LinkState", "session_for"]
 
@@ -90,8 +91,10 @@ class Engine(EngineRequests):
         else:
             plain = self._receive(lines, channel if self.console_but_job else None)
         try:
-            # A read of plain answers alone, no one listening to the console or the traffic.
-            express = plain and not (self.console_but_job or self._traffic_logged)
+            # A read of plain answers alone, no one listening to the whole console (a
+            # listener without the job's lines, the dashboard's, is told none of them)
+            # nor to the traffic.
+            express = plain and not self._traffic_logged
             if not (express and self._express()):
                 self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
@@ -118,6 +121,8 @@ class Engine(EngineRequests):
             assert link is not None  # link_lines returned early without one
             # A failed write means the link is already gone (see `_write`).
             self._write_failed = not link.write_lines(due)
+            if self.console_but_job:  # as `_write` tells them: the job's lines are not
+                self._tx(link, Lane.DATA, due, self._sent_are_job(len(due)))
         job = self._job
         if job is not None:
             if job.fill():  # it had room and nothing ahead, or the file ended: pump again

@@ -57,6 +57,10 @@ class EngineConsole(EngineLink):
         are all the data lines here (no query admitted among them) are they called
         the job's; otherwise all are shown: leaving out too little is harmless.
         """
+        return self._sent_are_job(sum(1 for lane, _ in writes if lane is Lane.DATA))
+
+    def _sent_are_job(self, data_lines: int) -> bool:
+        """`_all_data_is_job` for a write of `data_lines` data lines."""
         stream = self.session.stream
         if stream is None:
             self._sent_stream = None
@@ -66,7 +70,7 @@ class EngineConsole(EngineLink):
         self._sent_stream, self._sent_seen = stream, sent
         if sent == before:
             return False
-        return sent - before == sum(1 for lane, _ in writes if lane is Lane.DATA)
+        return sent - before == data_lines
 
     def _tx(self, link: Link, lane: Lane, lines: list[bytes], job: bool = False) -> None:
         if not (self._traffic_logged or self.console or self.console_but_job):
