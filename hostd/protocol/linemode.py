@@ -91,6 +91,9 @@ class PlainLine(InFlight):
 
 
 CONTROL_WINDOW = 4
+# The plain answer to a job's line N<n> of `count` bytes at jv 4 (json_parser.cpp echoes
+# the line number; docs/protocol.md): `pop_job_answers`' first test.
+_JOB_ANSWER = b'{"r":{"n":%d},"f":[1,0,%d]}'
 
 
 class LineModeSender:
@@ -206,12 +209,18 @@ class LineModeSender:
         answered: list[int] = []
         index = start
         for line in lines[start:] if start else lines:
-            plain = plain_answer(line)
-            if plain is None or plain[2] != b"0" or not data:
+            if not data:
                 break
             entry = data[0]
-            if entry.source is not job or entry.count != int(plain[3]):
+            if entry.source is not job:
                 break
+            # What jv 4 answers a numbered line with, compared whole: a third of the
+            # match and its groups. Any other form (no `n` below jv 4, a line of no N)
+            # is matched as before.
+            if line != _JOB_ANSWER % (entry.file_line, entry.count):
+                plain = plain_answer(line)
+                if plain is None or plain[2] != b"0" or entry.count != int(plain[3]):
+                    break
             data.popleft()
             answered.append(entry.file_line)  # type: ignore[arg-type]  # a job's line has one
             index += 1

@@ -158,3 +158,24 @@ def test_a_plain_answer_is_the_oldest_data_lines_only_when_nothing_else_can_take
     assert [sender.answered(answer(7))[0].file_line] == [2]
     sender.sent(data("G1 X1"))  # a client's data line, no file line: read in full
     assert sender.pop_job_answer(6) is None and len(sender) == 1
+
+
+def test_a_run_of_job_answers_is_taken_in_any_plain_form_and_stops_at_the_first_other() -> None:
+    """`pop_job_answers` compares jv 4's answer to a numbered line whole first; any
+    other plain form of the answer (no `n`, below jv 4; an `n` it did not expect) is
+    matched as before, by its status and count: the same lines taken either way."""
+    sender = LineModeSender(window=4)
+    for n, line in ((7, "N7 G1 X1"), (8, "N8 G1 X22"), (9, "N9 G1 X3"), (10, "N10 G1 X4")):
+        sender.sent(InFlight(line.encode() + b"\n", source="job", file_line=n))
+    answers = [
+        b'{"r":{"n":7},"f":[1,0,9]}',  # jv 4, as compared whole
+        b'{"r":{},"f":[1,0,10]}',  # no `n`
+        b'{"r":{"n":99},"f":[1,0,9]}',  # an `n` of another line: the count decides
+        b'{"r":{"n":10},"f":[1,0,11]}',  # a count that is not the line's: stop
+    ]
+    assert sender.pop_job_answers(answers, 0, "job") == (3, [7, 8, 9])
+    assert len(sender) == 1  # the fourth is left for the full reading
+    assert sender.pop_job_answers([b'{"r":{"n":10},"f":[1,0,11]}'], 0, "job") == (0, [])
+    assert sender.pop_job_answers([b'{"r":{"n":10},"f":[1,0,10]}'], 0, "other") == (0, [])
+    assert sender.pop_job_answers([b'{"r":{"n":10},"f":[1,1,10]}'], 0, "job") == (0, [])
+    assert sender.pop_job_answers([b'{"r":{"n":10},"f":[1,0,10]}'], 0, "job") == (1, [10])
