@@ -75,13 +75,9 @@ async def daemon(tmp_path: Path, request: pytest.FixtureRequest) -> AsyncIterato
     # The safe height in machine coordinates. The top of the Z travel would do only on a
     # homed machine (Machine.safe_height): these boards are power-cycled, never homed.
     extra: dict[str, float] = {"safe_z": 90.0 if dialect == "g2core" else 0.0}
-    # The spindle's dwell: the daemon's 2 s, which also covers the host's writing the
-    # plunge after it. The simulated g2core divides a dwell by its speed factor (0.2 s on
-    # the x10 board); the simulated grbl does not, so its resumes get 0.2 s written (a
-    # grbl board tells no underflow, and a simulated spindle is at speed at once): the
-    # same wait on both, not 2 s more on each grbl case.
-    if dialect == "grbl":
-        extra["spindle_dwell"] = 0.2
+    # The spindle's dwell is the daemon's 2 s, which also covers the host's writing the
+    # plunge after it; both simulated boards divide a dwell by their speed factor (0.2 s
+    # on the x10 board).
     async with running_daemon(tmp_path, dialect=dialect, **extra) as hostd:
         if dialect == "grbl":  # its `Ln:`: the job is lost at a line drawn for it
             rpc = await hostd.client()

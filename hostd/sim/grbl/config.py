@@ -24,7 +24,7 @@ class GrblConfig:
     below are the power-on values of `$20` (soft limits), `$21` (hard
     limits), `$22` (homing), `$32` (laser mode) and, on grblHAL, homing's
     init lock (`$22` bit 2: ALARM:11 until homed). Times are real seconds;
-    `speed_factor` divides every move's duration and the homing cycle's
+    `speed_factor` divides every move's duration, every dwell's and the homing cycle's
     (`homing_time`, in the machine's seconds), `instant` makes moves end at
     once. `reset_on_open`: opening the port resets the board, as an
     Arduino's DTR line does (None: True for grbl, False for grblHAL on

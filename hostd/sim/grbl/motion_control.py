@@ -152,7 +152,10 @@ def _after_sync(board: GrblBoard, result: Executed, now: float) -> bool:
     assert wait is not None
     if result.dwell is not None:
         wait.kind = "dwell"
-        wait.until = now + (0.0 if board.config.instant else result.dwell)
+        # In the board's time, as a move's (`speed_factor`; the g2core simulator's too).
+        wait.until = now + (
+            0.0 if board.config.instant else result.dwell / board.config.speed_factor
+        )
         return True
     if result.probe is not None:
         return _probe_start(board, result.probe, now)

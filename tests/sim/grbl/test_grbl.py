@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -117,6 +118,17 @@ async def test_a_character_counted_stream_is_all_ok(classic: GrblSimController) 
     assert classic.board.rx_dropped == 0
     await classic.wait_state("Idle")
     host.close()
+
+
+async def test_a_dwell_runs_in_the_boards_time_as_a_move_does(tmp_path: Path) -> None:
+    """`speed_factor` divides a G4 as it divides a move (and as the g2core simulator
+    does): 5 s of the machine's on a board ten times as fast end 0.5 s on."""
+    async with Board(tmp_path, replace(TIMED_CLASSIC, speed_factor=10.0)) as (sim, host):
+        host.send(b"G4 P5\n")
+        await sim.wait_for(lambda: sim.board._wait is not None and sim.board._wait.kind == "dwell")
+        wait = sim.board._wait
+        assert wait is not None and wait.until - time.monotonic() <= 0.5
+        assert await host.until(is_answer) == ["ok"]
 
 
 async def test_overfilling_the_receive_buffer_loses_characters(tmp_path: Path) -> None:
