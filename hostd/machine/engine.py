@@ -121,7 +121,7 @@ class Engine(EngineRequests):
             assert link is not None  # link_lines returned early without one
             # A failed write means the link is already gone (see `_write`).
             self._write_failed = not link.write_lines(due)
-            if self.console_but_job:  # as `_write` tells them: the job's lines are not
+            if self.console_but_job:  # told as `_write` tells a write (none of the job's)
                 self._tx(link, Lane.DATA, due, self._sent_are_job(len(due)))
         job = self._job
         if job is not None:

@@ -214,9 +214,9 @@ class LineModeSender:
             entry = data[0]
             if entry.source is not job:
                 break
-            # What jv 4 answers a numbered line with, compared whole: a third of the
-            # match and its groups. Any other form (no `n` below jv 4, a line of no N)
-            # is matched as before.
+            # What jv 4 answers a numbered line with, compared whole, at a third of the
+            # cost of the match and its groups. Any other form (no `n` below jv 4, a
+            # line of no N) is matched as before.
             if line != _JOB_ANSWER % (entry.file_line, entry.count):
                 plain = plain_answer(line)
                 if plain is None or plain[2] != b"0" or entry.count != int(plain[3]):
