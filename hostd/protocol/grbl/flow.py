@@ -49,7 +49,7 @@ class GrblFlow(GrblBooks):
         return self.line_numbers is not False
 
     def encode_job_line(self, text: str, number: int | None = None) -> bytes:
-        if number is not None and self.line_numbers is not False:
+        if number is not None and self.numbers_lines():
             if (
                 text[:1] not in NOT_PREFIXED
                 and 0 <= number <= MAX_LINE_NUMBER
@@ -70,12 +70,12 @@ class GrblFlow(GrblBooks):
         """`encode_job_line` of each line, in one pass when every one takes its first
         branch above (or, unnumbered, is written as it is) and none may store
         (`_MAY_STORE`, which `_pump` must see); else None."""
-        if self.line_numbers is False:  # the lines as they are (`numbers_lines`)
-            block: str | None = "\n".join(texts) + "\n"
-            plain = codec.plain_block
-        else:
+        if self.numbers_lines():
             block = numbered_block(numbers, texts)
             plain = codec.plain_numbered_block
+        else:  # the lines as they are
+            block = "\n".join(texts) + "\n"
+            plain = codec.plain_block
         if block is None or plain(block) is None:
             return None
         data = block.encode("ascii")
