@@ -18,6 +18,13 @@ has not taken yet waits here, in two queues, and urgent bytes (`!`, `~`,
 0x18...) leave before any line queued beside them. Whatever the transport
 already holds is at most the tail of one write, whole lines, so an urgent
 byte never lands inside a partial line.
+
+While the transport holds nothing, bytes are written to the port's descriptor
+here, as serialx's own `write` would write them first (one `os.write`, the
+rest, if the device took only part, handed to the transport to hold). That is
+the same system call with seven Python calls fewer (serialx's checks and its
+debug logging) on every write: every `!` and every batch of a job's lines
+(docs/performance.md, "the port written directly").
 """
 
 from __future__ import annotations
@@ -63,6 +70,7 @@ class SerialChannel(asyncio.Protocol):
         self._urgent: deque[bytes] = deque()
         self._queued: deque[bytes] = deque()
         self._queued_bytes = 0
+        self._fd = -1  # the port's descriptor, serialx's, written while its transport is empty
 
     @classmethod
     async def open(
@@ -88,6 +96,7 @@ class SerialChannel(asyncio.Protocol):
         assert isinstance(transport, asyncio.Transport)
         self._transport = transport
         transport.set_write_buffer_limits(high=0, low=0)
+        self._fd = transport.get_extra_info("serial").fileno()
         # serialx reads up to 256 KiB a read (`DescriptorTransport.max_size`). glibc
         # serves a buffer that size with mmap (its threshold starts at 128 KiB and only
         # rises when a larger mmapped block is freed), and CPython shrinks it to the bytes
@@ -152,10 +161,20 @@ class SerialChannel(asyncio.Protocol):
                 return
 
     def _send(self, data: bytes) -> bool:
+        """Write now what the device takes; the transport holds the rest (and then says
+        `pause_writing`). Called only while it holds nothing (`_blocked` is False)."""
         transport = self._transport
         assert transport is not None
         try:
-            transport.write(data)
+            if transport.is_closing():
+                written = 0  # serialx tells what a write to a closing port means
+            else:
+                try:
+                    written = os.write(self._fd, data)
+                except (BlockingIOError, InterruptedError):
+                    written = 0
+            if written < len(data):
+                transport.write(data[written:] if written else data)
         except (OSError, SerialException) as exc:
             self._report_lost(_describe(exc))
             transport.abort()

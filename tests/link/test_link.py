@@ -109,6 +109,26 @@ async def test_unplugged_device_is_a_lost_event_not_an_exception(
         await link.close()
 
 
+async def test_a_write_to_an_unplugged_device_is_refused_and_told_once(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """The write finds the loss before any read does: no exception, one lost event."""
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        peer.unplug()
+        assert link.write_lines([b"G0 X1\n", b"G0 X2\n"]) is False
+        assert link.write_realtime(b"!\n") is False
+        async with asyncio.timeout(1):
+            events = await link.read()
+        assert len(events) == 1 and isinstance(events[0], LinkLost)
+        assert "disconnected" in events[0].reason
+        await asyncio.sleep(0.05)  # the read side sees the hang-up too: told no second time
+        assert await link.read() == [events[0]]
+    finally:
+        await link.close()
+
+
 async def test_lost_on_the_control_port_loses_the_link(peers: Iterator[PtyPeer]) -> None:
     data, control = next(peers), next(peers)
     link = await Link.open(str(data.path), str(control.path))
