@@ -80,13 +80,14 @@ class PlainLine(InFlight):
 
     __slots__ = ()
     file_line: int
+    # The same for every one: read from the class, not stored a line (they shadow the slots).
+    own = False
+    control = False
 
     def __init__(self, line: bytes, source: Any, file_line: int) -> None:
         self.line = line
         self.source = source
         self.file_line = file_line
-        self.own = False
-        self.control = False
         self.count = len(line)
 
 
