@@ -267,9 +267,11 @@ class Stream:
         sent_line = self._sent_line
         while ahead and room > 0:
             entry = ahead[0]
+            if isinstance(entry, tuple):  # a hold point, or a refused line
+                break
             plain = type(entry) is PlainLine  # nothing to look at but its room (`encode_block`)
             if not plain:
-                if isinstance(entry, tuple) or entry.control:  # a hold point, a refused line
+                if entry.control:
                     break
                 line = entry.line
                 if line[0] == _DOLLAR or (special is not None and special(line)):
