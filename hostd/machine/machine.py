@@ -213,18 +213,27 @@ class Machine:
     # -- operations ----------------------------------------------------------
 
     async def start_make(
-        self, file: str, start_line: int = 1, preamble: list[str] | None = None
+        self,
+        file: str,
+        start_line: int = 1,
+        preamble: list[str] | None = None,
+        *,
+        counted: int | None = None,
     ) -> Job:
         """Stream a file of the jobs directory (its name is checked by the API layer).
 
         `preamble`: lines sent first, before `start_line` (a resume's restore and
         approach, hostd.protocol.gcodestate.resume); they are file line 0, and the row
-        keeps them. Every line goes with its file line number as an N word.
+        keeps them. Every line goes with its file line number as an N word. `counted`:
+        the file's sendable lines from `start_line`, if the job's check just counted
+        them on a worker (preflight.prepare_start); else they are counted here.
         """
         path = self.jobs_dir / file
         if not await asyncio.to_thread(path.is_file):
             raise NoSuchFile(f"no file {file!r} in the jobs directory")
-        total = await asyncio.to_thread(_count_lines, path, start_line)
+        total = counted
+        if total is None:
+            total = await asyncio.to_thread(_count_lines, path, start_line)
         before = [(0, line) for line in preamble or ()]
         handle = path.open(encoding="utf-8", errors="replace")
         try:

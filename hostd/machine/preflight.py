@@ -399,6 +399,16 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
     return replace(analysis, findings=found, dialect=machine.config.spec.gcode.name)
 
 
+@dataclass(frozen=True, slots=True)
+class Start:
+    """What `prepare_start` found a make job needs."""
+
+    preamble: list[str] | None  # a resume's lines, sent before the file's
+    # The file's sendable lines from the start line, as the check counted them in its
+    # pass over the file; None when no check ran (`force`): the job counts them itself.
+    lines: int | None
+
+
 async def prepare_start(
     machine: Machine,
     path: Path,
@@ -408,8 +418,9 @@ async def prepare_start(
     force: bool,
     pool: WorkerPool,
     notes: list[str] | None = None,
-) -> list[str] | None:
-    """What a make job of `path` from `start_line` needs before it starts: the preamble.
+) -> Start:
+    """What a make job of `path` from `start_line` needs before it starts: the preamble,
+    and the count of its lines if the check read them.
 
     `notes`, if given, gets what the job will do that the file does not say (the
     M6s a "ignore" policy strips), one line each, for job.start's `warnings`.
@@ -420,6 +431,7 @@ async def prepare_start(
     plan's lines (the modal state restored, a safe approach) to send before
     the file's; else None.
     """
+    counted = None
     if not force:
         # Lines the board would refuse, or must not run: a job that would fail at its
         # 20,000th line for what the host can see now fails before anything moves.
@@ -445,6 +457,7 @@ async def prepare_start(
                     "force": "true starts it anyway",
                 },
             )
+        counted = found.lines
     limits = await _limits(machine) if not force or start_line > 1 else None
     offset = work_offset(machine.snapshot())
     if not force and limits is not None and limits.travel and offset:
@@ -456,9 +469,10 @@ async def prepare_start(
                 f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
                 {"beyond_travel": check.beyond, "force": "true runs it anyway"},
             )
+    preamble = None
     if start_line > 1 and restore:
-        return (await _plan(machine, path, start_line, limits, pool)).lines
-    return None
+        preamble = (await _plan(machine, path, start_line, limits, pool)).lines
+    return Start(preamble, counted)
 
 
 async def plan_for(machine: Machine, path: Path, line: int, *, pool: WorkerPool) -> ResumePlan:

@@ -69,6 +69,7 @@ class Findings:
     total: int
     notes: tuple[Finding, ...] = ()  # M6s the "ignore" policy strips (the first MAX_FINDINGS)
     notes_total: int = 0
+    lines: int = 0  # the sendable lines read: a job's total, counted in the same pass
 
     def __bool__(self) -> bool:
         return self.total > 0
@@ -100,7 +101,9 @@ def check_program(
     notes: list[Finding] = []
     notes_total = 0
     tool: int | None = None  # the last T word read
+    read = 0
     for number, text in lines:
+        read += 1
         finding = _check_line(number, text, spec, max_line_bytes, tool_change, numbered)
         selected = tool_words(text)
         tool = selected[-1] if selected else tool
@@ -129,7 +132,7 @@ def check_program(
             total += 1
             if len(found) < MAX_FINDINGS:
                 found.append(finding)
-    return Findings(tuple(found), total, tuple(notes), notes_total)
+    return Findings(tuple(found), total, tuple(notes), notes_total, read)
 
 
 def _refused_m6(tool_change: str | None) -> str:

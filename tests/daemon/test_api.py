@@ -213,6 +213,24 @@ async def test_a_job_runs_and_is_reported(rpc: Rpc, hostd: Running) -> None:
     listed = await rpc.call("job.list", machine="sim1")
     assert listed[0]["id"] == started["job"]
     await fails(1004, rpc.call("job.get", job=99999))
+
+
+async def test_a_jobs_total_is_its_sendable_lines_from_its_start(rpc: Rpc, hostd: Running) -> None:
+    """Counted by the job's check in its pass over the file, or, with `force` (no check),
+    by the job itself: the same count either way, from any start line."""
+    moves = "".join(f"G1 X{i} F6000\n" for i in range(10))  # lines 4-13
+    await rpc.call("file.upload", name="t.gcode", data="(a comment)\nG21 G90\n\n" + moves + "%\n")
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    for params, total in (
+        ({}, 11),
+        ({"force": True}, 11),
+        ({"start_line": 6, "restore": False}, 8),
+        ({"start_line": 6, "restore": False, "force": True}, 8),
+    ):
+        started = await rpc.call("job.start", machine="sim1", file="t.gcode", **params)
+        job = await job_end(rpc, started["job"])
+        assert job["state"] == "completed", params
+        assert job["lines_total"] == job["lines_acked"] == total, params
     await fails(1004, rpc.call("job.start", machine="sim1", file="missing.gcode"))
 
 

@@ -19,6 +19,16 @@ def test_a_clean_program_has_no_findings() -> None:
     assert not check("G21 G90\nG0 X1 Y1 (a long comment " + "x" * 300 + ")\nG1 X2 F100\nM5\n")
 
 
+def test_the_check_counts_the_sendable_lines_it_read() -> None:
+    """The job's total (job.start takes it from here): comments, blanks and tape marks
+    are not lines the board gets; lines with findings are."""
+    too_long = "G1 X1" + " Y1" * 50
+    found = check(f"%\n(setup)\nG21 G90\n\n  ; a comment\nG1 X1 F100\n{too_long}\nM5\n%\n")
+    assert found.lines == 4
+    assert [f.line for f in found.found] == [7]
+    assert check("").lines == 0
+
+
 def test_a_line_longer_than_grbls_buffer_counts_its_n_word() -> None:
     # 125 bytes of G-code and the LF fit 127; with `N3 ` in front they do not.
     line = "G1 X1" + " Y1" * 40

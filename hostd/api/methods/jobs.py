@@ -60,7 +60,7 @@ class JobMethods:
         machine = self.api.machine(p.machine)
         path = await self.api.resolve(p.file)
         warnings: list[str] = []
-        preamble = await prepare_start(
+        start = await prepare_start(
             machine,
             path,
             p.start_line,
@@ -69,8 +69,8 @@ class JobMethods:
             pool=self.api.daemon.workers,
             notes=warnings,
         )
-        job = await machine.start_make(p.file, p.start_line, preamble)
-        answer: dict[str, Any] = {"job": job.id, "preamble": preamble}
+        job = await machine.start_make(p.file, p.start_line, start.preamble, counted=start.lines)
+        answer: dict[str, Any] = {"job": job.id, "preamble": start.preamble}
         if warnings:  # what the job does that the file does not say (M6s ignored)
             answer["warnings"] = warnings
         return answer
