@@ -92,6 +92,16 @@ def not_a_number(code: str, at: int) -> bool:
     return _NOT_A_NUMBER.match(code, at) is not None
 
 
+def may_misspell_a_number(text: str) -> bool:
+    """False when no word of `text` can be `not_a_number` or `too_long`, in any reading
+    of it: it holds neither `inf` nor `nan` (any case) and no ten digits in a row. A
+    comment's removal (replaced by a blank) joins no digits and spells no word, so this
+    holds for the text with its comments stripped too. The job check asks it first of
+    every line: most say False at a seventh of reading the words."""
+    upper = text.upper()
+    return "INF" in upper or "NAN" in upper or _TEN_DIGITS.search(text) is not None
+
+
 def too_long(words: list[tuple[str, str]], code: str) -> tuple[str, str] | None:
     """The first word of `code` whose number has more integer digits than a board reads.
 

@@ -28,6 +28,7 @@ classes do not overlap, so it never backtracks.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Iterable
@@ -37,6 +38,7 @@ from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.dialects import DialectSpec, lookup
 from hostd.protocol.gcodewords import (
     INTEGER_DIGITS,
+    may_misspell_a_number,
     not_a_number,
     read_words,
     strip_comments,
@@ -181,6 +183,13 @@ def _check_line(
 
 def _bad_number(text: str) -> str | None:
     """A number no board reads (`Finf`, `X1e400` spelled as 400 digits), as the model says."""
+    if not may_misspell_a_number(text):
+        return None
+    return _read_bad_number(text)
+
+
+def _read_bad_number(text: str) -> str | None:
+    """`_bad_number`, read word by word."""
     code = strip_comments(text, " ")[0].upper().strip()
     words, end = read_words(code)
     if end != len(code) and not_a_number(code, end):
@@ -191,6 +200,7 @@ def _bad_number(text: str) -> str | None:
     return None
 
 
+@functools.lru_cache(maxsize=1024)  # a program names a few codes, thousands of times each
 def _code(number: str) -> str:
     """`01` is 1, `38.20` is 38.2: the code as the tables name it."""
     if number.isdigit() and len(number) < 6:

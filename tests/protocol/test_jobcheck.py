@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import io
 
+from hypothesis import example, given
+from hypothesis import strategies as st
+
+from hostd.protocol import jobcheck
 from hostd.protocol.jobcheck import MAX_FINDINGS, Findings, check_program
 from hostd.protocol.program import program_lines
 
@@ -86,3 +90,20 @@ def test_numbers_no_board_reads_are_refused_with_their_line() -> None:
     assert [(f.line, f.kind) for f in found.found] == [(2, "unsendable"), (3, "number")]
     assert "integer digits" in found.found[0].text and "nan" in found.found[1].text
     assert [f.kind for f in check("G1 Finf\n").found] == ["number"]  # grbl's encoder sends it
+
+
+# Texts made of what the two readings look at: digits, letters that spell inf and nan
+# in either case, signs, points, blanks and comments.
+_MISSPELLINGS = st.text(alphabet="0123456789XxFfIiNnAa+-. \t();", max_size=40)
+
+
+@given(_MISSPELLINGS)
+@example("Xinf")
+@example("F -NaN")
+@example("X1234567890")
+@example("X12345(a)67890")
+@example("(inf) X1")
+def test_the_quick_look_at_a_lines_numbers_misses_nothing(text: str) -> None:
+    """Most lines are passed by `may_misspell_a_number` without their words read: for
+    every text, the finding is the one the full reading gives."""
+    assert jobcheck._bad_number(text) == jobcheck._read_bad_number(text)
