@@ -159,6 +159,20 @@ async def test_a_resumed_job_runs_on_without_waiting_for_a_status_poll(tmp_path:
         assert bench.machine.current_job().state == "running"  # type: ignore[union-attr]
 
 
+async def test_a_jobs_end_is_seen_without_waiting_for_a_status_poll(tmp_path: Path) -> None:
+    """grbl tells nothing when its planner runs dry: once every line is answered, the host
+    asks every END_POLL until a report shows the board at rest. Before, the end waited for
+    the next poll (a minute here) while the board stood idle."""
+    async with grbl_bench(tmp_path, GRBL, status_interval=60.0) as bench:
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(40)))
+        job = await bench.machine.start_make("job.nc")
+        await bench.board.wait_state("Run")
+        await bench.board.wait_state("Idle")  # the last move ran
+        async with asyncio.timeout(5):  # a minute before, at the next poll
+            done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 40
+
+
 async def test_a_resume_given_while_the_hold_still_decelerates_runs_the_job_on(
     tmp_path: Path,
 ) -> None:

@@ -52,9 +52,9 @@ class GrblHolds(GrblFlow):
         self._resume_asks = RESUME_ASKS
         self._ask_report()
 
-    def _poll_soon(self) -> None:
-        """The next `?` within SETTLE_POLL, not a `status_interval` away."""
-        self._next_poll = min(self._next_poll, self.clock() + SETTLE_POLL)
+    def _poll_soon(self, within: float = SETTLE_POLL) -> None:
+        """The next `?` within `within` (SETTLE_POLL), not a `status_interval` away."""
+        self._next_poll = min(self._next_poll, self.clock() + within)
 
     def _forget_holds(self) -> None:
         """A reset or a closed link: no hold of ours settles, no resume is kept."""

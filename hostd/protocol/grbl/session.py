@@ -85,6 +85,12 @@ from hostd.protocol.status import Status
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Excepted, Phase, Probed, Reported, StreamEnd
 
+# s between `?`s once a job's every line is answered and its end waits for a report of
+# the board at rest: grbl pushes no report when its planner runs dry, so at the poll's
+# `status_interval` (0.25 s) the end was seen up to that late; 20 `?`s a second while the
+# last moves run cost a report each.
+END_POLL = 0.05
+
 
 class GrblSession(GrblLiveness):
     """grbl 1.1's and grblHAL's session (see the module's docstring): its reading."""
@@ -205,6 +211,8 @@ class GrblSession(GrblLiveness):
             self._stop_reset()
         if self._awaiting_rest:
             self._check_stream_complete(reported=True)
+            if self._awaiting_rest and report.state == "Run":  # the job's last moves run
+                self._poll_soon(END_POLL)  # (not while held: a resume asks for itself)
         if self._first_report:
             self._ready()
 
