@@ -163,11 +163,17 @@ async def test_a_jobs_end_is_seen_without_waiting_for_a_status_poll(tmp_path: Pa
     """grbl tells nothing when its planner runs dry: once every line is answered, the host
     asks every END_POLL until a report shows the board at rest. Before, the end waited for
     the next poll (a minute here) while the board stood idle."""
-    async with grbl_bench(tmp_path, GRBL, status_interval=60.0) as bench:
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow, status_interval=60.0) as bench:
         bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(40)))
         job = await bench.machine.start_make("job.nc")
-        await bench.board.wait_state("Run")
-        await bench.board.wait_state("Idle")  # the last move ran
+        board = bench.board
+
+        def moved_all() -> bool:  # every line read, the last move run: true from then on
+            lines = b"".join(r.data for r in board.received).count(b"G1 ")
+            return lines == 40 and board.state == "Idle"
+
+        await board.wait_for(moved_all, timeout=20)
         async with asyncio.timeout(5):  # a minute before, at the next poll
             done = await bench.job_ended(job.id)
         assert done.state == "completed" and done.lines_acked == 40
