@@ -80,6 +80,9 @@ class Board:
             self._line(line.rstrip(b"\n"))
         return True
 
+    def hand_over(self) -> None:
+        """No process at the other end to give the CPU to."""
+
     def write_realtime(self, data: bytes) -> bool:
         self.writes += 1
         byte = data[:1]

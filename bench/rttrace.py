@@ -12,8 +12,8 @@ one clock for every process on the host):
 - `written`: the `!` was handed to the port (`SerialChannel._send`);
 - `done`: the read callback returned (what it did after the write included).
 
-With `HOSTD_RTTRACE_YIELD=1` the daemon also calls `sched_yield()` right
-after handing a `!` to the port (an experiment, docs/performance.md).
+(`HOSTD_RTTRACE_YIELD=1`, the yield after a `!` tried here first, is gone: the
+daemon hands the CPU over itself, on a pty, since `Link.hand_over`.)
 
 Each daemon writes `$HOSTD_RTTRACE_DIR/rt-<pid>.json` on a clean stop;
 `python -m bench.rtsplit WORKDIR TRACEDIR` splits each sample of a run kept
@@ -32,9 +32,6 @@ from typing import Any
 
 from hostd.service import add_arguments, serve_main
 
-# An experiment (docs/performance.md): the daemon gives up its CPU right after a `!`, so
-# that the kernel's pty work and the board's process may run before the rest of its pass.
-YIELD = os.environ.get("HOSTD_RTTRACE_YIELD") == "1"
 STAMPS: dict[str, list[float]] = {"read": [], "machine": [], "written": [], "done": []}
 
 
@@ -64,10 +61,7 @@ def _patch() -> None:
         if data[:1] != b"!":
             return send(self, data)
         written.append(time.monotonic())
-        sent = send(self, data)
-        if YIELD:
-            os.sched_yield()
-        return sent
+        return send(self, data)
 
     fastpath.Connection.data_received = data_received  # type: ignore[method-assign]
     machine.Machine.feedhold = machine_feedhold  # type: ignore[method-assign]

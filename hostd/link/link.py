@@ -14,6 +14,7 @@ endpoint), and reads again as soon as the owner has taken the events.
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -175,6 +176,20 @@ class Link:
         if len(data) != 1:
             _check_line(data)
         return self._channel(Channel.CONTROL).write(data, urgent=True)
+
+    def hand_over(self) -> None:
+        """After a realtime byte the operator asked for: on a pseudo-terminal, give up
+        the CPU once, so that the process at its other end reads the byte before the
+        daemon goes on with what the byte set off (the hold's events, the notices).
+
+        A pty's byte reaches that process only when a kernel worker and then the
+        process get a CPU; on a small computer the daemon's own next half
+        millisecond is often the CPU they wait for (docs/performance.md, "the CPU
+        handed over after a `!`"). A USB device takes the byte in the write itself:
+        nothing is given up for one.
+        """
+        if self._channel(Channel.CONTROL).pty:
+            os.sched_yield()
 
     def _write(self, channel: Channel, data: bytes) -> bool:
         _check_line(data)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import os
+import stat
 from collections import deque
 from collections.abc import Callable
 
@@ -45,6 +46,11 @@ from hostd.protocol.framing import LineBuffer
 BOOTLOADER_BAUD = 1200
 _CLOSE_GRACE = 1.0
 READ_SIZE = 64 * 1024  # bytes a read takes at most (`connection_made`)
+# Pseudo-terminals (the kernel's Documentation/admin-guide/devices.txt): the BSD
+# masters and slaves (majors 2, 3), Unix98's (128-135, 136-143), and a master
+# opened through /dev/ptmx (5, 2).
+_PTY_MAJORS = frozenset((2, 3, *range(128, 144)))
+_PTMX = (5, 2)
 
 
 class LinkError(Exception):
@@ -71,6 +77,9 @@ class SerialChannel(asyncio.Protocol):
         self._queued: deque[bytes] = deque()
         self._queued_bytes = 0
         self._fd = -1  # the port's descriptor, serialx's, written while its transport is empty
+        # The device is a pseudo-terminal: a process on this computer is the other end (a
+        # simulated board, socat, ser2net), and reads a byte only once it has a CPU.
+        self.pty = False
 
     @classmethod
     async def open(
@@ -97,6 +106,7 @@ class SerialChannel(asyncio.Protocol):
         self._transport = transport
         transport.set_write_buffer_limits(high=0, low=0)
         self._fd = transport.get_extra_info("serial").fileno()
+        self.pty = _is_pty(self._fd)
         # serialx reads up to 256 KiB a read (`DescriptorTransport.max_size`). glibc
         # serves a buffer that size with mmap (its threshold starts at 128 KiB and only
         # rises when a larger mmapped block is freed), and CPython shrinks it to the bytes
@@ -215,3 +225,12 @@ def _describe(exc: BaseException) -> str:
             return "device disconnected (I/O error)"
         return f"{os.strerror(exc.errno)} (errno {exc.errno})"
     return str(exc) or type(exc).__name__
+
+
+def _is_pty(fd: int) -> bool:
+    """The descriptor is a pseudo-terminal's (either end)."""
+    mode = os.fstat(fd)
+    if not stat.S_ISCHR(mode.st_mode):
+        return False
+    major, minor = os.major(mode.st_rdev), os.minor(mode.st_rdev)
+    return major in _PTY_MAJORS or (major, minor) == _PTMX

@@ -88,6 +88,7 @@ class EngineDelivery(EngineConsole):
         finally:
             self._delivering = False
             self._handing_out = False
+            self._hand_over = False  # a command that wrote nothing hands nothing over
         self._changed.set()
         self._arm_timer()
 
@@ -125,6 +126,9 @@ class EngineDelivery(EngineConsole):
                 ok = self._write_batch(link, batch_lane, batch, job) and ok
             if lane is Lane.REALTIME:
                 ok = link.write_realtime(data) and ok
+                if self._hand_over:  # the operator's byte: its board reads it first
+                    self._hand_over = False
+                    link.hand_over()
                 self._tx(link, lane, [data])
                 batch, batch_lane = [], None
             else:

@@ -336,3 +336,32 @@ async def test_a_read_costs_no_fresh_memory_in_a_young_daemon() -> None:
         out, err = await process.communicate()
     assert process.returncode == 0, err.decode()
     assert int(out) < 100, out  # page faults in 500 reads
+
+
+async def test_a_pty_link_hands_the_cpu_over_once_and_a_device_that_is_none_never(
+    peers: Iterator[PtyPeer], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`hand_over` gives the CPU up once on a pseudo-terminal (a process is its other end)
+    and never on anything else: a USB device takes the byte in the write itself."""
+    from hostd.link import serial
+
+    yields: list[None] = []
+    monkeypatch.setattr(os, "sched_yield", lambda: yields.append(None))
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    try:
+        assert link.write_realtime(b"!\n")
+        link.hand_over()
+        assert yields == [None]
+        peer.start_reading()
+        await peer.wait_received(b"!\n")
+    finally:
+        await link.close()
+    read, write = os.pipe()
+    null = os.open(os.devnull, os.O_RDWR)
+    try:
+        assert not serial._is_pty(null) and not serial._is_pty(read)
+        assert peer.master is not None and serial._is_pty(peer.master)
+    finally:
+        for fd in (read, write, null):
+            os.close(fd)

@@ -90,6 +90,9 @@ class Board:
             self._line(line[:-1])
         return True
 
+    def hand_over(self) -> None:
+        """No process at the other end to give the CPU to."""
+
     def write_realtime(self, data: bytes) -> bool:
         self.writes.append(("realtime", data))
         byte = data[:1]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -610,3 +611,40 @@ async def test_grblhal_snapshot_reads_the_coordinate_system_not_scaling(tmp_path
         await engine.send("G55")
         await engine.send("$G")
         assert bench.machine.snapshot()["wcs"] == "G55"
+
+
+async def test_an_operators_realtime_byte_hands_the_cpu_over_and_a_status_poll_does_not(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a pty the board's process reads a `!` only once it gets a CPU: the daemon gives
+    its up right after writing the operator's byte (a hold, a job's pause and resume,
+    an override), before what the byte sets off. Its own `?` polls never do."""
+    slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
+    async with grbl_bench(tmp_path, slow) as bench:
+        link = bench.machine.engine.link
+        assert link is not None
+        log: list[bytes] = []
+        write_realtime = link.write_realtime
+
+        def recorded(data: bytes) -> bool:
+            log.append(data)
+            return write_realtime(data)
+
+        monkeypatch.setattr(link, "write_realtime", recorded)
+        monkeypatch.setattr(os, "sched_yield", lambda: log.append(b"yield"))
+        bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(60)))
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.machine.feedhold()  # the job's pause
+        await state(bench, S.HOLD)
+        await operations.override(bench.machine, 120, None, None)
+        bench.machine.cycle_start()  # the job's resume
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed"
+        assert b"?" in log and b"!" in log and b"~" in log
+        assert len([byte for byte in log if byte == b"yield"]) >= 3  # `!`, the override, `~`
+        after = {log[i - 1] for i, byte in enumerate(log) if byte == b"yield"}
+        assert after and b"?" not in after  # each yield follows an operator's byte
+        assert log[log.index(b"!") + 1] == b"yield"
+        assert log[log.index(b"~") + 1] == b"yield"
+        assert all(log[i + 1] != b"yield" for i, byte in enumerate(log[:-1]) if byte == b"?")
