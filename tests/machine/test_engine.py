@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import os
 from pathlib import Path
 
 import pytest
@@ -452,6 +453,27 @@ async def test_dual_port_lines_on_data_realtime_and_queries_on_control(tmp_path:
     assert ports[b"G0 X1"] == "data"
     assert ports[b'{"xvm":null}'] == "control"
     assert ports[b"!"] == "control"
+
+
+async def test_on_two_ports_the_cpu_is_handed_over_after_the_control_ports_bang(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """g2core's `!` goes on the control port, a pty here: the yield follows it there, and
+    a line or a query on either port is written without one."""
+    data, ctrl = str(tmp_path / "data"), str(tmp_path / "ctrl")
+    async with SimController(data, control_path=ctrl, config=FAST) as sim:
+        engine = Engine(machine_config(data, control=ctrl))
+        async with running(engine):
+            await engine.connect()
+            yielded: list[None] = []
+            monkeypatch.setattr(os, "sched_yield", lambda: yielded.append(None))
+            await engine.send("G0 X1")
+            await engine.send("{xvm:n}")
+            assert yielded == []
+            engine.realtime(Realtime.FEEDHOLD)
+            assert len(yielded) == 1
+            await sim.wait_received(lambda: sim.received[-1].data == b"!")
+    assert [r.port for r in sim.received if r.data == b"!"] == ["control"]
 
 
 async def test_a_uart_board_without_a_banner_is_asked_its_version(tmp_path: Path) -> None:
