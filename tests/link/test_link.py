@@ -254,6 +254,7 @@ async def test_a_batch_of_lines_goes_out_in_order_as_one_write(peers: Iterator[P
             [b"G1 X4", b"\nG1 X5\n"],  # as many LFs as lines, in the wrong places
             [b"G1 X4"],  # alone, unterminated
             [b"G1 X4\nG1 X5\n"],  # alone, two lines in one
+            [b"", b"G1 X4\n\n"],  # an empty line, and its LF on the next
         ):
             with pytest.raises(ValueError):
                 link.write_lines(bad)
