@@ -23,11 +23,12 @@ in blocks of up to LOOK_AHEAD lines ahead, and pumps again at once when the
 session had room and nothing to send.
 
 A job's steady state takes a shorter way (`_express`, issue 30): a read of
-nothing but plain answers to the job's lines, when the session says the job's
-next plain lines are all there is to write (`job_lines_due`), is booked and
-answered with one write, without the delivery loop. It is the same step: the
-session books what its own loop would, and says None whenever that loop could
-do anything more (tests/machine/test_fast_path.py runs both and compares).
+nothing but plain answers to the job's lines, when the job's next plain lines
+are all there is to write, is taken, booked and answered with one write by
+one call to the session (`express`), without the delivery loop. It is the
+same step: the session books what its own loop would, and says None, taking
+nothing, whenever that loop could do anything more
+(tests/machine/test_fast_path.py runs both and compares).
 
 `serve()` owns the connection for the life of the daemon: it opens the link
 when asked (or at once with `auto_connect`), runs one connection until the
@@ -85,58 +86,60 @@ class Engine(EngineRequests):
         if self._traffic_logged:
             for line in lines:
                 self._log.debug("rx", channel=channel.value, line=line)
-        if self.console:
-            self._receive_published(channel, lines)  # line by line: each is published
-            plain = False
-        else:
-            plain = self._receive(lines, channel if self.console_but_job else None)
         try:
-            # A read of plain answers alone, no one listening to the whole console (a
-            # listener without the job's lines, the dashboard's, is told none of them)
-            # nor to the traffic.
-            express = plain and not self._traffic_logged
-            if not (express and self._express()):
-                self._deliver()
+            # A job's steady state (`_express`), unless someone listens to the whole
+            # console (a listener without the job's lines, the dashboard's, is told none
+            # of them) or to the traffic, or a step of several calls is open (`one_step`).
+            if not (self.console or self._traffic_logged or self._delivering):
+                try:
+                    due = self.session.express(lines)
+                except Exception as exc:
+                    self._broken(exc)
+                    due = []  # the delivery loop writes what a halted session still may
+                if due is not None:
+                    self._express(due)
+                    return
+            if self.console:
+                self._receive_published(channel, lines)  # line by line: each is published
+            else:
+                self._receive(lines, channel if self.console_but_job else None)
+            self._deliver()
         except Exception as exc:  # never into the transport's callback: end it
             self._log.exception("engine failure")
             self._end(f"internal error: {exc!r}")
 
-    def _express(self) -> bool:
-        """The step after a read of a job's plain answers alone, in the job's steady state:
-        True if it was taken here, without the delivery loop.
+    def _express(self, due: list[bytes]) -> None:
+        """The step after a read the session took whole (`express`): the job's next plain
+        lines go out in one write, and the job is fed, told and timed as `_deliver`
+        would, without its loop. An empty `due`: the rest of the step is the loop's.
 
-        When nothing is to be written but the job's next plain lines
-        (`job_lines_due`; no event, no other line, nothing for the writer's loop to
-        do after them), those go out in one write, and the job is fed, told and
-        timed as `_deliver` would. False otherwise (and inside a step of several
-        calls, `one_step`): `_deliver` then runs as after any read.
+        The timer is armed only if none is: no deadline came earlier in this step. The
+        read only moved the board's silence later (g2core's heartbeat, grbl's lost
+        board), and nothing else changed: no event, no line but the job's, no flush or
+        stop under way (`express` says None for each).
         """
-        if self._delivering:
-            return False
-        due = self.session.job_lines_due()
-        if due is None:
-            return False
-        if due:
-            link = self.link
-            assert link is not None  # link_lines returned early without one
-            # A failed write means the link is already gone (see `_write`).
-            self._write_failed = not link.write_lines(due)
-            if self.console_but_job:  # told as `_write` tells a write (none of the job's)
-                self._tx(link, Lane.DATA, due, self._sent_are_job(len(due)))
+        if not due:
+            self._deliver()
+            return
+        link = self.link
+        assert link is not None  # link_lines returned early without one
+        # A failed write means the link is already gone (see `_write`).
+        self._write_failed = not link.write_lines(due)
+        if self.console_but_job:  # told as `_write` tells a write (none of the job's)
+            self._tx(link, Lane.DATA, due, self._sent_are_job(len(due)))
         job = self._job
         if job is not None:
             if job.fill():  # it had room and nothing ahead, or the file ended: pump again
                 self._deliver()
-                return True
+                return
             job.stepped()
         self._changed.set()
-        self._arm_timer()
-        return True
+        if self._timer is None:
+            self._arm_timer()
 
-    def _receive(self, lines: list[bytes], published: Channel | None = None) -> bool:
+    def _receive(self, lines: list[bytes], published: Channel | None = None) -> None:
         """The read's lines to the session: each run of plain job answers in one pass
-        (`receive_plain`), anything else in full at its place. True if every line was
-        a plain answer, taken in the first pass.
+        (`receive_plain`), anything else in full at its place.
 
         With `published` (someone listens to the console without the job's lines)
         each line taken in full is published as it is, unless it answered a job
@@ -155,11 +158,9 @@ class Engine(EngineRequests):
                         receive(lines[at])
                     else:
                         self._receive_one(published, lines[at])
-            except Exception as exc:  # a bug of ours: stop writing, keep reading
-                self._log.exception("engine invariant broken")
-                session.halt(f"{type(exc).__name__}: {exc}")
+            except Exception as exc:
+                self._broken(exc)
             else:
                 if at == count:
-                    return index == 0  # the first pass took them all
+                    return
             index = at + 1
-        return False

@@ -41,9 +41,8 @@ class EngineConsole(EngineLink):
         acked = stream.acked if stream is not None else 0
         try:
             session.receive(line)
-        except Exception as exc:  # a bug of ours: stop writing, keep reading
-            self._log.exception("engine invariant broken")
-            session.halt(f"{type(exc).__name__}: {exc}")
+        except Exception as exc:
+            self._broken(exc)
         job = stream is not None and stream.acked == acked + 1
         if job and not self.console:
             return

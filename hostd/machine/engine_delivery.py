@@ -210,6 +210,5 @@ class EngineDelivery(EngineConsole):
         try:
             self.session.tick()
         except Exception as exc:
-            self._log.exception("engine invariant broken")
-            self.session.halt(f"{type(exc).__name__}: {exc}")
+            self._broken(exc)
         self._deliver()

@@ -97,6 +97,11 @@ class EngineState:
         except Exception:
             self._log.exception("the machine failed on an engine event", kind=type(event).__name__)
 
+    def _broken(self, exc: Exception) -> None:
+        """A bug of ours in the session's step: it stops writing; the engine keeps reading."""
+        self._log.exception("engine invariant broken")
+        self.session.halt(f"{type(exc).__name__}: {exc}")
+
 
 def _debug_enabled(logger: Any) -> bool:
     """Whether a structlog logger passes debug records (True if it cannot say)."""

@@ -148,15 +148,13 @@ class G2Session(G2Connection):
             self._log.debug("controller said", message=type(msg).__name__)
         self._lines_in += 1
 
-    def receive_plain(self, lines: list[bytes], start: int) -> int:
+    def _take_answers(
+        self, lines: list[bytes], start: int, stream: Stream, *, whole: bool = False
+    ) -> int:
         """`receive`'s first branch for a run of lines: plain answers (`{"r":{"n":N},
-        "f":[1,0,C]}`) to the job's oldest lines, booked together. Not at the job's
-        end (its input ended, or a refused line's turn came: each answer then checks
-        whether the job is complete), nor while a control line waits for its answer."""
-        stream = self._steady_stream()
-        if stream is None:
-            return start
-        index, answered = self.sender.pop_job_answers(lines, start, stream)
+        "f":[1,0,C]}`) to the job's oldest lines, booked together. Not while a control
+        line waits for its answer (`pop_job_answers`)."""
+        index, answered = self.sender.pop_job_answers(lines, start, stream, whole=whole)
         if answered:
             self._last_rx = self.clock()
             self._lines_in += len(answered)

@@ -195,10 +195,13 @@ class LineModeSender:
             raise SenderError(f"window of {self.window} exceeded")
         data.extend(entries)
 
-    def pop_job_answers(self, lines: list[bytes], start: int, job: object) -> tuple[int, list[int]]:
+    def pop_job_answers(
+        self, lines: list[bytes], start: int, job: object, *, whole: bool = False
+    ) -> tuple[int, list[int]]:
         """`pop_job_answer` for each line from `start` on while each is the plain answer
         (`{"r":{"n":N},"f":[1,0,C]}`, status 0) of the oldest data line, a line of `job`:
         the index of the first line it did not take, and the file lines it answered.
+        With `whole`, every line from `start` on or none (the express step).
 
         The steady state of a job, a read at a time: it stops, nothing changed for that
         line, at anything else (a report, an error, an answer with a control line
@@ -208,11 +211,7 @@ class LineModeSender:
             return start, []
         data = self._data
         answered: list[int] = []
-        index = start
-        for line in lines[start:] if start else lines:
-            if not data:
-                break
-            entry = data[0]
+        for line, entry in zip(lines[start:] if start else lines, data, strict=False):
             if entry.source is not job:
                 break
             # What jv 4 answers a numbered line with, compared whole, at a third of the
@@ -222,10 +221,13 @@ class LineModeSender:
                 plain = plain_answer(line)
                 if plain is None or plain[2] != b"0" or entry.count != int(plain[3]):
                     break
-            data.popleft()
             answered.append(entry.file_line)  # type: ignore[arg-type]  # a job's line has one
-            index += 1
-        return index, answered
+        if whole and len(answered) != len(lines) - start:
+            return start, []
+        popleft = data.popleft
+        for _ in answered:
+            popleft()
+        return start + len(answered), answered
 
     def fence(self, entry: InFlight, keys: frozenset[str]) -> None:
         """Book a fence written behind a 0x04 on the data port; its answer's body holds

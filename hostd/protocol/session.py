@@ -174,17 +174,34 @@ class SessionBase:
         running job's oldest line (what `receive` would do with it, done in bulk); the
         index of the first line left, which the caller gives to `receive`. A dialect
         without this fast path takes none."""
+        stream = self._steady_stream()
+        if stream is None:
+            return start
+        return self._take_answers(lines, start, stream)
+
+    def _take_answers(
+        self, lines: list[bytes], start: int, stream: Stream, *, whole: bool = False
+    ) -> int:
+        """The dialect's: `receive_plain`'s pass over the lines from `start` on, the job's
+        position given; with `whole`, all of them or none (`express`)."""
         return start
 
-    def job_lines_due(self) -> list[bytes] | None:
-        """The express step's `data_to_send` (the engine's `link_lines`), asked after a
-        read whose every line `receive_plain` took: the job's next plain lines that
-        the flow control has room for, taken and booked, when that is all there is to
-        write and nothing else can change (no event, no other line waiting, the job
-        in its steady state, nothing the dialect holds its writes for, and the
-        writer's loop, run after them, would write nothing more and change nothing).
-        None otherwise: the engine then runs its delivery loop, and `data_to_send`
-        hands out whatever this took (`_take_run` stopped short of its room)."""
+    def express(self, lines: list[bytes]) -> list[bytes] | None:
+        """A job's steady state in one call (the engine's express step, issue 30): a read
+        of nothing but plain answers to the job's oldest lines, at a time when nothing
+        but the job's next plain lines is to be written (no event, no other line
+        waiting, the job in its steady state, nothing the dialect holds its writes
+        for). Every answer is taken, then the job's next plain lines that the flow
+        control has room for, taken and booked, are returned for one write: the
+        writer's loop, run after them, would write nothing more and change nothing.
+
+        None, and nothing taken, otherwise: the engine reads the lines in full and
+        runs its delivery loop. An empty list: the answers are taken, and the rest
+        of the step is the delivery loop's (the run stopped short of its room, at a
+        line the writer's loop must look at, which `data_to_send` hands out after
+        what this took; or nothing fitted). Plain answers change none of the
+        conditions, so they are checked before the answers are taken.
+        """
         stream = self._steady_stream()
         if (
             stream is None
@@ -195,15 +212,16 @@ class SessionBase:
             or self._events
             or self._writes_wait()
             or self._job_lines_wait(stream, self.model.state)
+            or not self._take_answers(lines, 0, stream, whole=True)  # lines: never empty
         ):
             return None
         taken = self._take_run(stream)
-        lines = [entry.line for entry in taken]
+        due = [entry.line for entry in taken]
         if not stream.full:  # the writer's loop goes on from there: the general step
             data = Lane.DATA
-            self._out.extend([(data, line) for line in lines])
-            return None
-        return lines
+            self._out.extend([(data, line) for line in due])
+            return []
+        return due
 
     def _writes_wait(self) -> bool:
         """The dialect's: it writes nothing now, or only what its own loop must see (a

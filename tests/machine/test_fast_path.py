@@ -1,9 +1,10 @@
 """The steady state's fast path (issue 30) does exactly what the general path does.
 
 A read that holds only plain answers to a job's lines is taken in one pass
-(`receive_plain`), the job's plain lines are taken and booked together
-(`Stream.take_run`), and when those are all there is to write the engine
-writes them without its delivery loop (`Engine._express`, `job_lines_due`).
+(`receive_plain`, `_take_answers`), the job's plain lines are taken and
+booked together (`Stream.take_run`), and when those are all there is to
+write the session takes the read and the lines in one call and the engine
+writes them without its delivery loop (`Session.express`, `Engine._express`).
 None may change a byte written, an event, or a count: here a real `Engine`
 with each dialect's real session streams random jobs twice, fast path on
 and off, against a board that answers the same way both times (the answers
@@ -214,25 +215,25 @@ async def _run(
     if listening and not fast:  # the reference: each line taken, then published, one by one
         engine._receive = lambda lines, channel: engine._receive_published(channel, lines)  # type: ignore[method-assign,assignment,misc]
     taken = 0
-    plain = session.receive_plain
+    plain = session._take_answers
 
-    def counted(lines: list[bytes], start: int) -> int:
+    def counted(lines: list[bytes], start: int, stream: Any, *, whole: bool = False) -> int:
         nonlocal taken
-        index = plain(lines, start)
+        index = plain(lines, start, stream, whole=whole)
         taken += index - start
         return index
 
-    session.receive_plain = counted  # type: ignore[method-assign]
+    session._take_answers = counted  # type: ignore[method-assign]
     express = 0
-    due = session.job_lines_due
+    due = session.express
 
-    def counted_due() -> list[bytes] | None:
+    def counted_due(lines: list[bytes]) -> list[bytes] | None:
         nonlocal express
-        lines = due()
-        express += lines is not None
-        return lines
+        written = due(lines)
+        express += bool(written)  # a read taken whole, and the job's lines written at once
+        return written
 
-    session.job_lines_due = counted_due  # type: ignore[method-assign]
+    session.express = counted_due  # type: ignore[method-assign]
     board = Board(dialect, rng, error_rate)
     engine.link = board  # type: ignore[assignment]
     engine.link_state = LinkState.HANDSHAKE

@@ -8,7 +8,7 @@ job's, as long as the receive buffer has room for all the bytes unanswered
 flash (send-response: bytes arriving meanwhile are lost), none while the
 board holds or is locked out, none while a report is awaited. The answers
 that free the buffer are read here when they are a job's plain `ok`s
-(`_job_ok`, `receive_plain`): the per-line hot path.
+(`_job_ok`, `_take_answers`): the per-line hot path.
 """
 
 from __future__ import annotations
@@ -199,39 +199,36 @@ class GrblFlow(GrblBooks):
         """A stop or reset is under way, or a line writes EEPROM (send-response)."""
         return self.flushing() or self._storing is not None
 
-    def receive_plain(self, lines: list[bytes], start: int) -> int:
+    def _take_answers(
+        self, lines: list[bytes], start: int, stream: Stream, *, whole: bool = False
+    ) -> int:
         """`receive`'s `_job_ok` for a run of `ok`s, each the answer to the job's oldest
-        line, booked together. Not at the job's end (its input ended, or a refused
-        line's turn came: each answer then checks whether the job is complete), nor
-        while a line writes EEPROM or homes; a `$` line's `ok` is read in full."""
-        stream = self._steady_stream()
-        if stream is None or self._storing is not None or self._homing_lines:
+        line, booked together. Not while a line writes EEPROM or homes; a `$` line's
+        `ok` is read in full."""
+        if self._storing is not None or self._homing_lines:
             return start
-        inflight = self._inflight
         answered: list[int] = []
         freed = 0
-        index = start
-        for line in lines[start:] if start else lines:
-            if line != b"ok" or not inflight:
-                break
-            entry = inflight[0]
+        for line, entry in zip(lines[start:] if start else lines, self._inflight, strict=False):
             encoded = entry.line
-            if entry.source is not stream or encoded[:1] == b"$":
+            if line != b"ok" or entry.source is not stream or encoded[:1] == b"$":
                 break
-            inflight.popleft()
             freed += len(encoded)
             answered.append(entry.file_line)  # type: ignore[arg-type]  # a job's line has one
-            index += 1
-        if answered:
-            self._heard_at = self.clock()  # `receive`'s first steps, once for the run
-            if self._silent_asks:
-                self._silent_asks.clear()
-            self._rx_used -= freed
-            if self._said:
-                self._said = []
-            self._lines_in += len(answered)
-            stream.acknowledged_run(answered)
-        return index
+        if not answered or (whole and len(answered) != len(lines) - start):
+            return start
+        popleft = self._inflight.popleft
+        for _ in answered:
+            popleft()
+        self._heard_at = self.clock()  # `receive`'s first steps, once for the run
+        if self._silent_asks:
+            self._silent_asks.clear()
+        self._rx_used -= freed
+        if self._said:
+            self._said = []
+        self._lines_in += len(answered)
+        stream.acknowledged_run(answered)
+        return start + len(answered)
 
     def _job_ok(self) -> bool:
         """An `ok` for the oldest line, a job's plain line: what `_answered` would do
