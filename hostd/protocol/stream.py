@@ -86,7 +86,8 @@ class Stream:
         # Fed ahead: a line as the flow control books it, or why it may not be sent, or
         # (file line, None): a hold point before that line.
         self._ahead: deque[InFlight | tuple[int, InvalidCommand | None]] = deque()
-        self._input_ended = False  # the caller has no more lines
+        # The caller has no more lines (read at every read of a job: a plain attribute).
+        self.input_ended = False
         self.starved = False  # the flow control asked for a line and none was ahead
         self.refused: tuple[int, str] | None = None  # the file line whose turn came, unsendable
         self.sent = 0
@@ -111,7 +112,7 @@ class Stream:
     def wanted(self) -> int:
         """How many more lines to feed now: up to `look_ahead` ahead once no more than a
         quarter of them are left, none once the input ended."""
-        if self.done or self._input_ended:
+        if self.done or self.input_ended:
             return 0
         ahead = len(self._ahead) + (self._next is not None)  # a line peeked is still ahead
         return self.look_ahead - ahead if ahead <= self._refill_at else 0
@@ -165,18 +166,13 @@ class Stream:
 
     def end_of_input(self) -> None:
         """The caller has no more lines: once those fed are written, the job is all sent."""
-        self._input_ended = True
+        self.input_ended = True
         self.starved = False
-
-    @property
-    def input_ended(self) -> bool:
-        """The caller said the file has no more lines."""
-        return self._input_ended
 
     @property
     def exhausted(self) -> bool:
         """Every line was handed out, and no more will be fed."""
-        return self._input_ended and self._next is None and not self._ahead
+        return self.input_ended and self._next is None and not self._ahead
 
     # -- the session's side --------------------------------------------------------
 
@@ -191,7 +187,7 @@ class Stream:
         if entry is None and not self.done:
             ahead = self._ahead
             if not ahead:
-                self.starved = not self._input_ended
+                self.starved = not self.input_ended
                 return None
             first = ahead[0]
             if isinstance(first, tuple):
@@ -210,7 +206,7 @@ class Stream:
         entry = self.peek()
         if entry is not None:
             return not entry.control
-        return self.refused is None and self.held is None and not self._input_ended
+        return self.refused is None and self.held is None and not self.input_ended
 
     def release(self) -> None:
         """The hold point whose turn came is passed: the line after it goes next."""
@@ -265,14 +261,14 @@ class Stream:
         popleft = ahead.popleft
         pause = _PROGRAM_PAUSE.search
         sent_line = self._sent_line
+        first_line = self._first_line
         while ahead and room > 0:
             entry = ahead[0]
-            if isinstance(entry, tuple):  # a hold point, or a refused line
+            if plain := type(entry) is PlainLine:
+                pass  # nothing to look at but its room (`encode_block`)
+            elif isinstance(entry, tuple) or entry.control:  # a hold point, a refused line
                 break
-            plain = type(entry) is PlainLine  # nothing to look at but its room (`encode_block`)
-            if not plain:
-                if entry.control:
-                    break
+            else:
                 line = entry.line
                 if line[0] == _DOLLAR or (special is not None and special(line)):
                     break
@@ -289,12 +285,13 @@ class Stream:
                 self.program_pause_sent = True
             number: int = entry.file_line  # type: ignore[assignment]  # a job's line has one
             if number > sent_line:  # file lines only grow; a resume's preamble is line 0
-                if self._first_line is None:
-                    self._first_line = number
+                if first_line is None:
+                    first_line = number
                 sent_line = number
         if room == 0 and ahead and not isinstance(ahead[0], tuple):
             self.full = True
         self._sent_line = sent_line
+        self._first_line = first_line
         self.sent += len(taken)
         return taken
 
@@ -312,7 +309,7 @@ class Stream:
         self.acked += 1
         self.last_acked_line = file_line
         self._acked_lines.append(file_line)
-        return self._input_ended or self.refused is not None
+        return self.input_ended or self.refused is not None
 
     def executing(self, file_line: int) -> None:
         """The board runs (or ran) this line. A number no line of this job carries is stale
