@@ -10,8 +10,8 @@ with each dialect's real session streams random jobs twice, fast path on
 and off, against a board that answers the same way both times (the answers
 split into reads at random, error answers, status reports in the middle of
 a read, a pause (its `!`) and a resume between reads, hold points
-released), and everything the two runs wrote, told and counted is
-compared. Both runs also check, at every write, the rules that must never
+released, on g2core bursts of client queries that fill the control lane),
+and everything the two runs wrote, told and counted is compared. Both runs also check, at every write, the rules that must never
 break: the window and the receive buffer are never exceeded, no job line is
 written while the job is paused, and a realtime byte leaves in the write of
 its own call, ahead of any line.
@@ -48,6 +48,7 @@ GRBL_HANDSHAKE = {
 }
 _NUMBER = re.compile(rb"N(\d+)")
 WINDOW = 4
+CONTROL_LANE = 4  # g2core's control lines unanswered at once (linemode.CONTROL_WINDOW)
 RX = 128
 
 # Job lines: mostly plain moves, and every kind the fast path must leave to the general one.
@@ -198,6 +199,7 @@ async def _run(
     listening: bool = False,
     status_traffic: bool = True,
     look_ahead: int = 8,
+    queries: bool = True,
 ) -> Any:
     rng = random.Random(seed)
     events: list[str] = []
@@ -275,6 +277,12 @@ async def _run(
             engine.resume_stream()
         elif roll < 0.40 and stream.held is not None:
             engine.release_stream()  # the tool change answered
+        elif 0.40 <= roll < 0.43 and queries and dialect == "g2core":
+            # Client queries, more than the control lane holds: the rest wait in it, and
+            # the reads meanwhile are the general path's (`_pump` writes them first).
+            for _ in range(CONTROL_LANE + 2):
+                engine.session.send('{"sr":null}', engine._future())
+            engine._deliver()
         answers = board.read()
         written = len(board.writes)
         if answers:
@@ -371,7 +379,9 @@ def test_a_plain_job_takes_the_fast_path_and_ends_complete() -> None:
     with the daemon's own look-ahead."""
     job = [PLAIN[i % len(PLAIN)] for i in range(600)]
     for dialect, listening in itertools.product(("g2core", "grbl"), (False, True)):
-        run = asyncio.run(_run(dialect, True, job, 7, 0.0, listening, look_ahead=LOOK_AHEAD))
+        run = asyncio.run(
+            _run(dialect, True, job, 7, 0.0, listening, look_ahead=LOOK_AHEAD, queries=False)
+        )
         sent, acked = run["counts"][:2]
         assert (sent, acked) == (600, 600)
         assert "completed" in run["counts"][8]
