@@ -11,10 +11,11 @@ and off, against a board that answers the same way both times (the answers
 split into reads at random, error answers, status reports in the middle of
 a read, a pause (its `!`) and a resume between reads, hold points
 released, on g2core bursts of client queries that fill the control lane),
-and everything the two runs wrote, told and counted is compared. Both runs also check, at every write, the rules that must never
-break: the window and the receive buffer are never exceeded, no job line is
-written while the job is paused, and a realtime byte leaves in the write of
-its own call, ahead of any line.
+and everything the two runs wrote, told and counted is compared. Both runs
+also check, at every write, the rules that must never break: the window and
+the receive buffer are never exceeded, no job line is written while the job
+is paused, and a realtime byte leaves in the write of its own call, ahead of
+any line.
 """
 
 from __future__ import annotations
