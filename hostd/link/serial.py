@@ -25,6 +25,14 @@ rest, if the device took only part, handed to the transport to hold). That is
 the same system call with seven Python calls fewer (serialx's checks and its
 debug logging) on every write: every `!` and every batch of a job's lines
 (docs/performance.md, "the port written directly").
+
+The descriptor is read here too: the channel's own reader replaces serialx's
+on the event loop once the port is open (`connection_made`), and reads as
+serialx's would (one `os.read` of up to READ_SIZE; EAGAIN is nothing to
+read; 0 bytes or an error is the device gone), without its two debug calls a
+read (docs/performance.md, "the express step as one call"). serialx still
+opens, configures and closes the port, and removes the reader when it closes
+the descriptor.
 """
 
 from __future__ import annotations
@@ -76,7 +84,9 @@ class SerialChannel(asyncio.Protocol):
         self._urgent: deque[bytes] = deque()
         self._queued: deque[bytes] = deque()
         self._queued_bytes = 0
-        self._fd = -1  # the port's descriptor, serialx's, written while its transport is empty
+        self._fd = -1  # the port's descriptor, serialx's: read here, and written while its
+        # transport holds nothing
+        self._loop = asyncio.get_running_loop()
         # The device is a pseudo-terminal: a process on this computer is the other end (a
         # simulated board, socat, ser2net), and reads a byte only once it has a CPU.
         self.pty = False
@@ -114,9 +124,28 @@ class SerialChannel(asyncio.Protocol):
         # enough never to have freed a large block. 64 KiB is under the threshold, and
         # more than a board's serial line delivers between two reads.
         transport.max_size = READ_SIZE  # type: ignore[attr-defined]
+        self._loop.add_reader(self._fd, self._read_ready)  # in place of serialx's
+
+    def _read_ready(self) -> None:
+        """The port has bytes (or is gone): one read, its lines to the link."""
+        try:
+            data = os.read(self._fd, READ_SIZE)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            self._fail(exc)
+            return
+        if not data:
+            # A hung-up tty reads 0 bytes (drivers/tty/tty_io.c, hung_up_tty_read): the
+            # device is gone, as the EIO its writes get says.
+            self._fail(OSError(errno.EIO, "device disconnected"))
+            return
+        lines = self._framer.feed(data)
+        if lines:
+            self._on_lines(lines)
 
     def data_received(self, data: bytes) -> None:
-        lines = self._framer.feed(data)
+        lines = self._framer.feed(data)  # serialx's reader, before `connection_made` replaces it
         if lines:
             self._on_lines(lines)
 
@@ -130,9 +159,9 @@ class SerialChannel(asyncio.Protocol):
         transport = self._transport
         if transport is not None and not transport.is_closing():
             if on:
-                transport.resume_reading()
+                self._loop.add_reader(self._fd, self._read_ready)
             else:
-                transport.pause_reading()
+                self._loop.remove_reader(self._fd)
 
     # writing
 
@@ -186,10 +215,15 @@ class SerialChannel(asyncio.Protocol):
             if written < len(data):
                 transport.write(data[written:] if written else data)
         except (OSError, SerialException) as exc:
-            self._report_lost(_describe(exc))
-            transport.abort()
+            self._fail(exc)
             return False
         return not self.lost
+
+    def _fail(self, exc: Exception) -> None:
+        """The device failed a read or a write: reported lost, the port closed."""
+        self._report_lost(_describe(exc))
+        if self._transport is not None:
+            self._transport.abort()
 
     @property
     def write_backlog(self) -> int:

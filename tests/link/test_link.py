@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from hostd.link import Channel, LineReceived, Link, LinkError, LinkLost
+from hostd.link.link import INBOX_HIGH
 from hostd.protocol.commands import Realtime, encode_line, encode_realtime
 from tests.link.conftest import PtyPeer
 
@@ -366,3 +367,42 @@ async def test_a_pty_link_hands_the_cpu_over_once_and_a_device_that_is_none_neve
     finally:
         for fd in (read, write, null):
             os.close(fd)
+
+
+async def test_an_unread_inbox_stops_the_reading_and_loses_no_line(
+    peers: Iterator[PtyPeer],
+) -> None:
+    """A device that floods a link nobody reads: past INBOX_HIGH lines the channel stops
+    reading its descriptor (the rest waits in the kernel, the device's writes stall),
+    and once read again every line arrives, in order, none lost or cut."""
+    peer = next(peers)
+    link = await Link.open(str(peer.path))
+    loop = asyncio.get_running_loop()
+    lines = [b"%06d" % i + b"x" * 90 for i in range(INBOX_HIGH * 3)]
+    data = memoryview(b"".join(line + b"\n" for line in lines))
+    assert peer.master is not None
+    master = peer.master
+
+    def write_more() -> None:  # as fast as the pty takes them
+        nonlocal data
+        data = data[os.write(master, data) :]
+        if not data:
+            loop.remove_writer(master)
+
+    loop.add_writer(master, write_more)
+    try:
+        async with asyncio.timeout(5):
+            while not link._paused:  # set in the read that brought the inbox to INBOX_HIGH
+                link._wakeup.clear()
+                await link._wakeup.wait()
+        # A hundred turns of the loop, the device's bytes waiting in the kernel at each:
+        # a reader still registered would take them, one read a turn.
+        for _ in range(100):
+            await asyncio.sleep(0)
+        assert data, "the device wrote everything: nothing held it back"
+        assert INBOX_HIGH <= len(link._inbox) < INBOX_HIGH + 700  # one read's lines more
+        got = await read_lines(link, len(lines))
+        assert [event.line for event in got] == lines
+    finally:
+        loop.remove_writer(master)
+        await link.close()
