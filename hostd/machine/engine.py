@@ -94,8 +94,8 @@ class Engine(EngineRequests):
                 try:
                     due = self.session.express(lines)
                 except Exception as exc:
-                    self._broken(exc)
-                    due = []  # the delivery loop writes what a halted session still may
+                    self._broken(exc)  # halted: it writes nothing more, and reads the lines
+                    due = None
                 if due is not None:
                     self._express(due)
                     return

@@ -38,6 +38,7 @@ from hostd.machine.engine import Engine, LinkState
 from hostd.machine.events import EngineEvent
 from hostd.machine.stream import JobStream
 from hostd.protocol.program import program_lines
+from hostd.protocol.states import MachineState
 from hostd.protocol.stream import LOOK_AHEAD
 
 G2_BANNER = b'{"r":{"fv":0.99,"fb":101.03,"hp":3,"hv":0,"id":"t","msg":"SYSTEM READY"},"f":[1,0,0]}'
@@ -191,6 +192,28 @@ def _config(dialect: str) -> MachineConfig:
     )
 
 
+def _connect(engine: Engine, board: Board) -> None:
+    """The engine on the board, through the dialect's handshake; its writes forgotten."""
+    engine.link = board  # type: ignore[assignment]
+    engine.link_state = LinkState.HANDSHAKE
+    engine.session.open()
+    engine._deliver()
+    if board.dialect == "g2core":
+        board.owed.append(G2_BANNER)
+    else:
+        board.owed.extend([b"", b"Grbl 1.1h ['$' for help]"])
+    for _ in range(100):
+        if engine.ready:
+            break
+        answers = board.read()
+        if answers:
+            engine.link_lines(Channel.DATA, answers)
+        else:
+            engine.query_status()
+    assert engine.ready
+    board.writes.clear()
+
+
 async def _run(
     dialect: str,
     fast: bool,
@@ -238,24 +261,7 @@ async def _run(
 
     session.express = counted_due  # type: ignore[method-assign]
     board = Board(dialect, rng, error_rate)
-    engine.link = board  # type: ignore[assignment]
-    engine.link_state = LinkState.HANDSHAKE
-    engine.session.open()
-    engine._deliver()
-    if dialect == "g2core":
-        board.owed.append(G2_BANNER)
-    else:
-        board.owed.extend([b"", b"Grbl 1.1h ['$' for help]"])
-    for _ in range(100):
-        if engine.ready:
-            break
-        answers = board.read()
-        if answers:
-            engine.link_lines(Channel.DATA, answers)
-        else:
-            engine.query_status()
-    assert engine.ready
-    board.writes.clear()
+    _connect(engine, board)
     holds = {number for number, text in enumerate(job, 1) if text.startswith("M6")}
     # A look-ahead of 8: jobs of a few dozen lines still have a steady state to compare.
     stream = JobStream(
@@ -415,3 +421,37 @@ def test_status_traffic_stays_out_of_a_console_that_does_not_want_it() -> None:
         assert not any("status=True" in e for e in console(quiet))
         assert any("status=False" in e for e in console(quiet))  # e.g. the handshake's
         assert (heard["writes"], heard["counts"]) == (quiet["writes"], quiet["counts"])
+
+
+@pytest.mark.parametrize(
+    ("dialect", "alarm"), [("g2core", b'{"sr":{"stat":2}}'), ("grbl", b"ALARM:1")]
+)
+def test_a_bug_in_the_express_step_halts_the_job_and_the_read_still_goes_in_full(
+    dialect: str, alarm: bytes
+) -> None:
+    """`express` raising (a bug of ours) is met as one in `receive` is: the session halts,
+    the job ends failed with an internal fault, no line of it is written after, and the
+    read is still read in full, so that an alarm in it is not lost."""
+
+    async def run() -> None:
+        engine = Engine(_config(dialect), lambda event: None)
+        board = Board(dialect, random.Random(1), 0.0)
+        _connect(engine, board)
+        stream = JobStream(iter(program_lines(PLAIN * 40)), 1, numbered=True)
+        engine.start_stream(stream)
+        for _ in range(10):
+            engine.link_lines(Channel.DATA, board.read())
+        assert stream.position.acked > 0 and not stream.done
+
+        def broken(lines: list[bytes]) -> list[bytes] | None:
+            raise RuntimeError("a bug of ours")
+
+        engine.session.express = broken  # type: ignore[method-assign]
+        written = len(board.writes)
+        engine.link_lines(Channel.DATA, [*board.read(), alarm])
+        assert engine.session.halted
+        assert stream.done and "internal fault" in str(stream.position.result)
+        assert engine.model.state is MachineState.ALARM
+        assert not [data for kind, data in board.writes[written:] if kind == "lines"]
+
+    asyncio.run(run())
