@@ -124,10 +124,15 @@ class Observer:
         elif isinstance(event, StatusChanged):
             self._status(event.report)
         elif isinstance(event, LinkChanged):
-            self._locked = False
-            self._stat, self._hold = None, 0
-            self._end_hold()
-            self._data_out = self._answers = 0
+            if not event.up:
+                # The link is gone: what the host read of the board no longer holds. Not
+                # when it comes up: the handshake's reports come before that event, and
+                # they are what the host knows of the board in the new connection (a
+                # hold at rest, `hold` 10, read there, lets in-hold lines go).
+                self._locked = False
+                self._stat, self._hold = None, 0
+                self._end_hold()
+            self._data_out = self._answers = 0  # the handshake's answers are none of a line's
         elif isinstance(event, SupervisorChanged):
             self._supervisor(event)
         elif isinstance(event, JobChanged):
