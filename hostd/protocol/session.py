@@ -212,7 +212,7 @@ class SessionBase:
             or self._events
             or self._writes_wait()
             or self._job_lines_wait(stream, self.model.state)
-            or not self._take_answers(lines, 0, stream, whole=True)  # lines: never empty
+            or not self._take_answers(lines, 0, stream, whole=True)  # 0: none taken
         ):
             return None
         taken = self._take_run(stream)
