@@ -38,7 +38,7 @@ import re
 import sys
 import time
 from collections import deque
-from typing import Any
+from typing import Any, Protocol
 
 from bench.client import program
 from hostd.link import Channel
@@ -139,7 +139,17 @@ def config(dialect: str) -> MachineConfig:
     return MachineConfig.model_validate(values)
 
 
-async def _connect(engine: Engine, board: Board) -> None:
+class InProcessBoard(Protocol):
+    """What `connect` needs of a board answered in-process (here, and the fast-path tests')."""
+
+    dialect: str
+    owed: deque[bytes]
+
+    def read(self) -> list[bytes]: ...
+
+
+def connect(engine: Engine, board: InProcessBoard) -> None:
+    """The engine on a board answered in-process, through its dialect's handshake."""
     engine.link = board  # type: ignore[assignment]
     engine.link_state = LinkState.HANDSHAKE
     engine.session.open()
@@ -168,7 +178,7 @@ async def run_job(
     """One job of `lines` lines (of `text`, if given): CPU seconds from its start to its end."""
     engine = Engine(config(dialect))
     board = Board(dialect)
-    await _connect(engine, board)
+    connect(engine, board)
     if text is None:
         text = program(lines).splitlines()
     stream = JobStream(iter(program_lines(text)), 1, numbered=True)

@@ -32,16 +32,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bench.perline import connect
 from hostd.link import Channel
 from hostd.machine.config import MachineConfig
-from hostd.machine.engine import Engine, LinkState
+from hostd.machine.engine import Engine
 from hostd.machine.events import EngineEvent
 from hostd.machine.stream import JobStream
 from hostd.protocol.program import program_lines
 from hostd.protocol.states import MachineState
 from hostd.protocol.stream import LOOK_AHEAD
 
-G2_BANNER = b'{"r":{"fv":0.99,"fb":101.03,"hp":3,"hv":0,"id":"t","msg":"SYSTEM READY"},"f":[1,0,0]}'
 GRBL_HANDSHAKE = {
     b"$I": [b"[VER:1.1h.20190830:]", b"[OPT:V,15,128]", b"ok"],
     b"$$": [b"$32=0", b"ok"],
@@ -194,23 +194,7 @@ def _config(dialect: str) -> MachineConfig:
 
 def _connect(engine: Engine, board: Board) -> None:
     """The engine on the board, through the dialect's handshake; its writes forgotten."""
-    engine.link = board  # type: ignore[assignment]
-    engine.link_state = LinkState.HANDSHAKE
-    engine.session.open()
-    engine._deliver()
-    if board.dialect == "g2core":
-        board.owed.append(G2_BANNER)
-    else:
-        board.owed.extend([b"", b"Grbl 1.1h ['$' for help]"])
-    for _ in range(100):
-        if engine.ready:
-            break
-        answers = board.read()
-        if answers:
-            engine.link_lines(Channel.DATA, answers)
-        else:
-            engine.query_status()
-    assert engine.ready
+    connect(engine, board)
     board.writes.clear()
 
 
