@@ -145,7 +145,10 @@ class SerialChannel(asyncio.Protocol):
             self._on_lines(lines)
 
     def data_received(self, data: bytes) -> None:
-        lines = self._framer.feed(data)  # serialx's reader, before `connection_made` replaces it
+        # asyncio.Protocol's: only serialx's reader calls it, and `connection_made` puts
+        # `_read_ready` in its place before the loop turns. Kept so that a serialx that
+        # read before `connection_made` would hand its bytes on, not drop them.
+        lines = self._framer.feed(data)
         if lines:
             self._on_lines(lines)
 
