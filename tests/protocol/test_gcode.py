@@ -163,6 +163,42 @@ def test_the_possessive_fast_path_matches_what_backtracking_would(text: str) -> 
     assert bool(gcode._PLAIN.fullmatch(text)) == bool(_PLAIN_BACKTRACKING.fullmatch(text))
 
 
+# Words as a job's lines hold them, plain or nearly: blanks of spaces and tabs, numbers
+# within the fast path's rules and just past them.
+_blank = st.sampled_from(["", " ", "\t", "  ", " \t"])
+words = st.lists(
+    st.tuples(
+        st.sampled_from([*"GXYZFSNnEe"]),
+        _blank,
+        st.sampled_from(["", "1", "-2.5", "+.5", "7.", "123456789", "1234567890", "1.2.3", "--1"]),
+        _blank,
+    ).map("".join),
+    min_size=1,
+    max_size=5,
+).map("".join)
+
+
+@fuzz(800)
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(min_value=0, max_value=10**8),
+            gcodeish | words,
+        ),
+        min_size=1,
+        max_size=8,
+    )
+)
+def test_a_numbered_block_is_plain_exactly_when_each_of_its_lines_is(
+    lines: list[tuple[int, str]],
+) -> None:
+    """A job's block in one match (one pattern for a block with a tab, a faster one for a
+    block without): what `_PLAIN` says of each line, none of them an N word of its own."""
+    block = "".join(f"N{number} {text}\n" for number, text in lines)
+    each = all(text[:1] not in ("N", "n") and gcode._PLAIN.fullmatch(text) for _, text in lines)
+    assert bool(gcode.plain_numbered_block(block)) == each
+
+
 @fuzz(800)
 @given(gcodeish)
 def test_gcode_is_checked_or_refused_never_crashes(text: str) -> None:
