@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Iterator, Sequence
-from itertools import chain, islice
+from itertools import chain, count, islice
 
 from hostd.protocol.gcodewords import strip_comments
 
@@ -52,15 +52,20 @@ BLOCK = 256  # lines of the file read and stripped together
 def program_blocks(lines: Iterable[str], start_line: int = 1) -> Iterator[list[tuple[int, str]]]:
     """`program_lines`, BLOCK lines of the file at a time: a list of their sendable
     lines (fewer where lines are blank or comments alone; empty if all are)."""
-    numbered = enumerate(lines, start=1)
+    lines = iter(lines)
     if start_line > 1:
-        next(islice(numbered, start_line - 1, start_line - 1), None)  # skip the lines before
-    while block := list(islice(numbered, BLOCK)):
-        texts = "".join([text for _, text in block])
+        next(islice(lines, start_line - 1, start_line - 1), None)  # skip the lines before
+    first = max(start_line, 1)
+    # The file's lines themselves, numbered only as they are kept: no (number, line) a line
+    # read, and the block's text joined whole (docs/performance.md, 2026-11-28 night).
+    while block := list(islice(lines, BLOCK)):
+        texts = "".join(block)
+        numbered = zip(count(first), block, strict=False)  # a count never ends
         if "(" in texts or ";" in texts or "%" in texts:
-            yield [(number, text) for number, line in block if (text := strip_line(line))]
+            yield [(number, text) for number, line in numbered if (text := strip_line(line))]
         else:  # no comment and no tape mark in the block: each line only loses its blanks
-            yield [(number, text) for number, line in block if (text := line.strip())]
+            yield [(number, text) for number, line in numbered if (text := line.strip())]
+        first += len(block)
 
 
 # The leads `number_line` does not simply put `N<number> ` in front of: every other line
