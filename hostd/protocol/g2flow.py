@@ -27,6 +27,12 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
 
+# The states in which none of a job's lines is written: a lockout (the board drains and
+# rejects them) and a hold. One set, asked once a read (`_job_lines_wait`).
+_NO_JOB_LINES = frozenset(
+    {state for state in MachineState if state.is_lockout} | {MachineState.HOLD}
+)
+
 
 class G2Flow(G2Holds):
     """Line-mode flow control: a client's lines and a job's (see `G2Session`)."""
@@ -85,11 +91,11 @@ class G2Flow(G2Holds):
         return lines
 
     def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
-        """None of the job's lines may be written now (`_pump`'s and `job_lines_due`'s)."""
+        """None of the job's lines may be written now (`_pump`'s and `express`'s)."""
         return (
             stream.paused
             or self._await_report
-            or (state is not None and (state.is_lockout or state is MachineState.HOLD))
+            or state in _NO_JOB_LINES
             or bool(self.model.hold)  # a hold at rest (101.05+) shows in `hold` alone
         )
 

@@ -619,3 +619,22 @@ def test_an_override_in_an_alarm_is_refused_with_its_code() -> None:
     with pytest.raises(Rejected) as err:
         wire.session.override(feed=110)
     assert err.value.code == 204
+
+
+@pytest.mark.parametrize(
+    "state", [S.RUN, *(s for s in S if s.is_lockout), S.HOLD], ids=lambda s: s.name
+)
+def test_no_job_line_is_written_in_a_lockout_or_a_hold_even_before_its_drain(state: S) -> None:
+    """The job's gate (`_job_lines_wait`, `_pump`'s and the express step's): while the
+    model says ALARM, SHUTDOWN, PANIC or HOLD, an answer that frees the window writes
+    no line of the job, whatever the drain that the state's report starts has done yet.
+    In RUN the same answers write the next lines."""
+    wire, stream = streaming(101.06)
+    sent = stream.sent
+    wire.session.model.state = state  # as a report has just set it
+    for line in data_lines(wire):
+        wire.answer(line)
+    if state is S.RUN:
+        assert stream.sent > sent and data_lines(wire)
+    else:
+        assert stream.sent == sent and not data_lines(wire)

@@ -1131,3 +1131,21 @@ def test_a_line_one_byte_over_the_receive_buffer_is_refused() -> None:
     with pytest.raises(InvalidCommand) as caught:
         codec.encode(fits + "1")
     assert caught.value.refusal is Refusal.TOO_LONG
+
+
+@pytest.mark.parametrize(
+    "state", [S.RUN, *(s for s in S if s.is_lockout), S.HOLD, S.INTERLOCK], ids=lambda s: s.name
+)
+def test_no_job_line_is_written_in_a_lockout_a_hold_or_a_door_even_before_its_drain(
+    state: S,
+) -> None:
+    """The job's gate (`_job_lines_wait`, `_pump`'s and the express step's): while the
+    model says ALARM, SHUTDOWN, PANIC, HOLD or a door open, an `ok` that frees the
+    receive buffer writes no line of the job. In RUN the same `ok` writes the next."""
+    grbl = streaming()
+    stream = grbl.session.stream
+    assert stream is not None
+    sent = stream.sent
+    grbl.session.model.state = state  # as a report has just set it
+    grbl.feed("ok")
+    assert (stream.sent > sent) is (state is S.RUN)

@@ -180,12 +180,8 @@ class GrblFlow(GrblBooks):
                 return
 
     def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
-        """None of the job's lines may be written now (`_pump`'s and `job_lines_due`'s)."""
-        return (
-            stream.paused
-            or self._await_report
-            or (state is not None and (state.is_lockout or state in _NO_JOB_LINES))
-        )
+        """None of the job's lines may be written now (`_pump`'s and `express`'s)."""
+        return stream.paused or self._await_report or state in _NO_JOB_LINES
 
     def _take_run(self, stream: Stream) -> list[InFlight]:
         """The plain lines ahead that the receive buffer has room for, taken and booked."""
@@ -256,4 +252,8 @@ class GrblFlow(GrblBooks):
         return True
 
 
-_NO_JOB_LINES = frozenset({MachineState.HOLD, MachineState.INTERLOCK})
+# The states in which none of a job's lines is written: a lockout, a hold, a door open.
+_NO_JOB_LINES = frozenset(
+    {state for state in MachineState if state.is_lockout}
+    | {MachineState.HOLD, MachineState.INTERLOCK}
+)
