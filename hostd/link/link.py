@@ -169,7 +169,7 @@ class Link:
             for line in lines:
                 _check_line(line)  # raises, saying which
         channel = Channel.CONTROL if control and self.dual else Channel.DATA
-        return self._channel(channel).write(data)
+        return self._channels[channel].write(data)  # each is open (`_channel` falls back)
 
     def write_control(self, data: bytes) -> bool:
         """A whole encoded line on the control channel (or the only one)."""
