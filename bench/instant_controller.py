@@ -73,7 +73,10 @@ Commands, one a line on stdin; answers on stdout:
   should have planned already (0 unless this file has a bug); `unanswered`
   (g2core): the most G-code lines the board had read and not yet answered,
   counted as each read came in (answers the same read gets are not yet
-  written): a host that keeps its window of N lines never makes it more than N.
+  written): a host that keeps its window of N lines never makes it more than N;
+  `credited`: reads whose first line was given the time its input woke this
+  process, not the later time this process got a CPU to read it (`woken_at`),
+  and `credited_most`, the most taken off such a line's arrival (s).
 - `quit`.
 
 A board is hardware of its own, but this process is not: by default it is
@@ -99,6 +102,7 @@ import select
 import struct
 import sys
 import termios
+import threading
 import time
 import tty
 from collections import deque
@@ -131,6 +135,68 @@ G2CORE_BLOCKS = 44
 STOP, END, RUN, HOLD = 3, 4, 5, 6
 REALTIME = frozenset(b"!~%\x04\x18\x05")
 _LINE_NUMBER = re.compile(rb"[Nn]([0-9]+)")
+
+
+def woken_at(
+    only_port: bool,
+    deadline: float | None,
+    before: tuple[int, int, int],
+    after: tuple[int, int, int],
+    now: float,
+) -> float | None:
+    """When the port's input woke this process in a `poll`, if that can be told; else None.
+
+    `before` and `after` are the thread's schedstat (time run and time waited on a run
+    queue, in ns; time slices) just before and just after the `poll`; `now` is read after
+    `after`. A process waits on a run queue only between a wake-up and its next time
+    slice, so when it slept once (one time slice more: it was not put off the CPU before
+    it slept, nor after it woke, since a second slice would count the wait of either) the
+    wait is all between the wake-up and the `poll`'s return, and `now` less that wait is no
+    earlier than the wake-up. The wake-up was the port's when the port alone was ready and
+    it came before the `poll`'s deadline (else the timeout may have woken it, and the input
+    come during the wait). Stolen time of a virtual machine is no wait on a run queue: it
+    stays in the line's arrival, against the host.
+    """
+    waited = after[1] - before[1]
+    if not only_port or after[2] - before[2] != 1 or waited <= 0:
+        return None  # (no wait: the line's time is its read's, as for any other)
+    woke = now - waited / 1e9
+    if deadline is not None and woke >= deadline:
+        return None
+    return woke
+
+
+class RunQueue:
+    """This thread's schedstat (`/proc/thread-self/schedstat`), read with one `pread`: the
+    file is opened again when another thread asks (a test turns the loop in threads, and
+    the file of a thread that has ended reads ESRCH)."""
+
+    def __init__(self) -> None:
+        self._fd: int | None = None
+        self._thread = 0
+
+    def read(self) -> tuple[int, int, int]:
+        thread = threading.get_native_id()
+        if self._fd is None or thread != self._thread:
+            self._open(thread)
+        assert self._fd is not None
+        try:
+            data = os.pread(self._fd, 128, 0)
+        except ProcessLookupError:  # the thread it was opened in has ended (its id reused)
+            self._open(thread)
+            data = os.pread(self._fd, 128, 0)
+        ran, waited, slices = data.split()[:3]
+        return int(ran), int(waited), int(slices)
+
+    def _open(self, thread: int) -> None:
+        self.close()
+        self._fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+        self._thread = thread
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class Controller:
@@ -180,6 +246,14 @@ class Controller:
         self.job_last: float | None = None
         self.late = 0.0  # the most this process woke after a block freed
         self.rescued = 0  # wakes of the safety net (WAITING_LOOK) that planned lines
+        # When the port's input woke this process for the read under way (`woken_at`):
+        # the read's first line arrived then, not when the process got a CPU to read it.
+        # A board is hardware of its own; this process waits for a CPU behind the bench's
+        # clients, and a line it reads late would make the host look late (P8).
+        self._woke: float | None = None
+        self._run_queue = RunQueue()
+        self.credited = 0  # reads whose first line got its wake-up's time
+        self.credited_most = 0.0  # the most taken off such a line's arrival, s
         self.most_unanswered = 0  # G-code lines read, not answered (g2core), since the dump
         # The bench's commands and this process's answers (stdin and stdout; a test may
         # drive the loop with `step` and its own pipe).
@@ -216,8 +290,13 @@ class Controller:
             wakes.append(now + WAITING_LOOK)  # the safety net, never the plan
         if limit is not None:
             wakes.append(now + limit)
-        timeout = max((min(wakes) - time.monotonic()) * 1000, 0) if wakes else None
+        deadline = min(wakes) if wakes else None
+        timeout = None if deadline is None else max((deadline - time.monotonic()) * 1000, 0)
+        before = self._run_queue.read()
         events = poller.poll(timeout)
+        after = self._run_queue.read()
+        only_port = len(events) == 1 and events[0][0] == self.fd and events[0][1] == select.POLLIN
+        self._woke = woken_at(only_port, deadline, before, after, time.monotonic())
         for fd, ev in events:
             if fd == self.fd:
                 if ev & select.POLLIN:
@@ -226,6 +305,7 @@ class Controller:
                     self._detach()
             else:
                 self._command()
+        self._woke = None
         planned = self.job_lines
         self._timers()
         if self.job_lines > planned and not events and (due is None or time.monotonic() < due):
@@ -349,6 +429,7 @@ class Controller:
             return
         out: list[bytes] = []
         self._data(memoryview(packet)[1:], now, out)
+        self._woke = None  # a read that ended no line: the next one's came later
         if out:
             self._write(b"".join(out))
 
@@ -368,7 +449,17 @@ class Controller:
         fresh = self.job_lines + len(self.waiting) - read
         self.most_unanswered = max(self.most_unanswered, before + fresh)
 
+    def _arrived(self, woke: float | None, now: float) -> float:
+        """A G-code line's arrival: the wake-up's time for a read's first line (`_woke`,
+        taken by whatever line comes first), else when it was read."""
+        if woke is None or woke >= now:
+            return now
+        self.credited += 1
+        self.credited_most = max(self.credited_most, now - woke)
+        return woke
+
     def _line(self, line: bytes, now: float, out: list[bytes]) -> None:
+        woke, self._woke = self._woke, None  # the read's first line alone came at the wake
         if not line:
             return
         if len(line) == 1 and line[0] in REALTIME:
@@ -390,7 +481,7 @@ class Controller:
         if self.planner is None:
             self._gcode(line, now, now, out)
             return
-        self.waiting.append((line, now))
+        self.waiting.append((line, self._arrived(woke, now)))
         self._plan_waiting(now, out)
 
     def _plan_waiting(self, now: float, out: list[bytes]) -> None:
@@ -546,6 +637,8 @@ class Controller:
             "overflows": 0,
             "late": self.late,
             "rescued": self.rescued,
+            "credited": self.credited,
+            "credited_most": self.credited_most,
             "unanswered": self.most_unanswered,
         }
 
@@ -554,6 +647,7 @@ class Controller:
         self.job_lines, self.job_first, self.job_last = 0, None, None
         self.late = 0.0
         self.rescued = 0
+        self.credited, self.credited_most = 0, 0.0
         self.most_unanswered = 0
         if self.planner is not None:
             self.planner.starved = []
@@ -563,6 +657,7 @@ class Controller:
         self.answers.flush()
 
     def close(self) -> None:
+        self._run_queue.close()
         os.close(self.fd)
         with contextlib.suppress(OSError):
             os.unlink(self.link)
@@ -614,6 +709,7 @@ class GrblController(Controller):
         buf = self.buf
         chunk = bytes(data)
         if _GRBL_PICKED.search(chunk):  # rare: most reads hold none
+            self._woke = None  # a realtime byte may have been what woke the process
             # Picked out as they arrive (the receive interrupt), ahead of the lines before them.
             for match in _GRBL_PICKED.finditer(chunk):
                 self._grbl_realtime(match[0][0], now, out)
@@ -630,6 +726,7 @@ class GrblController(Controller):
         del buf[:start]
 
     def _grbl_line(self, line: bytes, size: int, now: float, out: list[bytes]) -> None:
+        woke, self._woke = self._woke, None  # the read's first line alone came at the wake
         self.total_lines += 1
         if line[:1] == b"$" or not line:
             self.unanswered -= size
@@ -640,7 +737,7 @@ class GrblController(Controller):
             self.unanswered -= size
             self._grbl_gcode(now, now, out)
             return
-        self.waiting.append((line + b"\n", now))
+        self.waiting.append((line + b"\n", self._arrived(woke, now)))
         self._plan_waiting(now, out)
 
     def _plan_waiting(self, now: float, out: list[bytes]) -> None:

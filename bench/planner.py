@@ -18,7 +18,9 @@ would have had on a board keeps the controller process's own lateness (it
 is a Python process on a shared CPU) out of the answer's time it models,
 except for `arrival`, which is when the controller read the line: a
 controller that reads late makes the host look later than it was, never
-earlier.
+earlier. The one exception the controller can prove: a read's first line,
+when the port's input alone woke the process and it then waited for a CPU,
+arrived at the wake-up (instant_controller.py `woken_at`), not at the read.
 
 Holds stop the clock: a board in a feedhold runs no block, so time spent
 held is taken out (`hold`/`resume`) and the planner's times are on a clock

@@ -296,6 +296,15 @@ class HostWindow:
         return max(record["late"] for record in self.records)
 
     @property
+    def credited(self) -> tuple[int, float]:
+        """Reads whose first line got the time its input woke its board's process, and
+        the most taken off such a line's arrival (s): the boards' own waits for a CPU."""
+        return (
+            sum(record.get("credited", 0) for record in self.records),
+            max([0.0, *(record.get("credited_most", 0.0) for record in self.records)]),
+        )
+
+    @property
     def us_a_line(self) -> float:
         return self.cpu / max(self.lines, 1) * 1e6
 

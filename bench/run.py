@@ -247,7 +247,8 @@ class BudgetWindow(HostWindow):
                 f"throttled in {self.throttles} of {self.periods} periods, "
                 f"{self.throttled:.2f} s in all; receive-buffer overflows: {overflows}; the "
                 f"controllers' own lateness (a block freed to its line planned) up to "
-                f"{late * 1e3:.1f} ms",
+                f"{late * 1e3:.1f} ms; their own waits for a CPU, taken out of "
+                f"{self.credited[0]:,} lines' arrivals, up to {self.credited[1] * 1e3:.1f} ms",
                 *notes,
             ],
         )

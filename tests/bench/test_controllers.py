@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from bench.instant_controller import Controller
+from bench.instant_controller import Controller, GrblController, woken_at
 from bench.procs import ControllerProcess
 
 
@@ -182,8 +182,10 @@ class Stepped:
     a pipe of the test's, its answers kept, and each turn (`Controller.step`) taken when
     the test has arranged what the turn finds."""
 
-    def __init__(self, path: Path, rate: float, blocks: int) -> None:
-        self.board = Controller(str(path), rate, blocks)
+    def __init__(
+        self, path: Path, rate: float, blocks: int, board: type[Controller] = Controller
+    ) -> None:
+        self.board = board(str(path), rate, blocks)
         self.commands, self._commands_w = os.pipe()
         self.board.commands = self.commands
         self.answers = io.StringIO()
@@ -281,3 +283,93 @@ def test_a_board_that_misses_its_deadline_is_woken_by_its_safety_net_and_says_so
     stepped.command("dump")
     assert stepped.turn_alone()
     assert stepped.dumped()["rescued"] == 1
+
+
+# -- a read's first line, given the time its input woke the board's process -------------
+
+
+def test_a_wake_is_the_ports_only_when_it_slept_once_and_only_the_port_woke_it() -> None:
+    """`woken_at`: the run-queue wait comes off `now` when the process slept once (one time
+    slice more), the port alone was ready and the wake came before the deadline; any
+    other case is None, and the line keeps the time it was read (against the host)."""
+    before, waited = (5, 1_000, 7), (9, 31_000_000 + 1_000, 8)  # 31 ms on a run queue
+    assert woken_at(True, None, before, waited, 100.0) == pytest.approx(100.0 - 0.031)
+    assert woken_at(True, 101.0, before, waited, 100.0) == pytest.approx(99.969)
+    assert woken_at(False, None, before, waited, 100.0) is None  # a command came too
+    assert woken_at(True, 99.95, before, waited, 100.0) is None  # the timeout's, maybe
+    twice = (9, 31_001_000, 9)  # put off the CPU before it slept, or after it woke
+    assert woken_at(True, None, before, twice, 100.0) is None
+    assert woken_at(True, None, before, (9, 1_000, 7), 100.0) is None  # it never slept
+    assert woken_at(True, None, before, (9, 1_000, 8), 100.0) is None  # it ran at once
+
+
+class FakeRunQueue:
+    """Each `poll` seen as a sleep of `slices` time slices after which the process waited
+    `wait` seconds on a run queue (the readings alternate: before, after)."""
+
+    def __init__(self, wait: float, slices: int = 1) -> None:
+        self.wait, self.slices, self.calls = int(wait * 1e9), slices, 0
+
+    def read(self) -> tuple[int, int, int]:
+        self.calls += 1
+        turn, after = divmod(self.calls - 1, 2)
+        return (0, turn * self.wait + after * self.wait, turn * self.slices + after * self.slices)
+
+    def close(self) -> None:
+        pass
+
+
+def _first_arrival(pair: Stepped, data: bytes, queue: FakeRunQueue, answer: bytes) -> float:
+    """How much earlier than the read the board says the job's first line arrived."""
+    pair.board._run_queue = queue  # type: ignore[assignment]
+    pair.command("expect 1")
+    assert select.select([pair.commands], [], [], 10.0)[0]
+    pair.board.step(limit=0.01)  # the command read alone: no port input in that turn
+    pair.port.write(data)
+    assert select.select([pair.board.fd], [], [], 10.0)[0]
+    pair.turn_until(answer)
+    read_by = time.monotonic()
+    pair.command("dump")
+    assert pair.turn_alone()
+    first: float = pair.dumped()["job"]["first"]
+    return read_by - first
+
+
+def test_a_reads_first_line_arrived_when_the_port_woke_the_board(stepped: Stepped) -> None:
+    """A board process kept off the CPU for 10 s after the host's line woke it: the line
+    arrived at the wake, not 10 s later, and the dump says one line was credited."""
+    early = _first_arrival(stepped, b"N1 G1 X1\n", FakeRunQueue(10.0), b'{"r":{"n":1}')
+    assert early >= 10.0
+    assert stepped.dumped()["credited"] == 1
+    assert stepped.dumped()["credited_most"] >= 10.0
+
+
+@pytest.mark.parametrize(
+    ("data", "slices"),
+    [
+        (b"N1 G1 X1\n", 2),  # put off the CPU before it slept or after it woke
+        (b'{"sr":null}\nN1 G1 X1\n', 1),  # another line came first: it woke the board
+    ],
+    ids=["two slices", "a control line first"],
+)
+def test_no_line_is_credited_when_the_wake_may_not_be_its_own(
+    stepped: Stepped, data: bytes, slices: int
+) -> None:
+    early = _first_arrival(stepped, data, FakeRunQueue(10.0, slices), b'{"r":{"n":1}')
+    assert early < 10.0
+    assert stepped.dumped()["credited"] == 0
+
+
+def test_a_grbl_read_led_by_a_realtime_byte_credits_no_line(tmp_path: Path) -> None:
+    """grbl picks realtime bytes out of a read: a `?` may have been what woke the board,
+    with the line after it written later; the line keeps the time it was read. The same
+    line alone is credited."""
+    pair = Stepped(tmp_path / "ttyG", rate=5.0, blocks=1, board=GrblController)
+    try:
+        pair.turn_until(b"Grbl 1.1h ['$' for help]\r\n")
+        assert _first_arrival(pair, b"?G1 X1\n", FakeRunQueue(10.0), b"ok") < 10.0
+        assert pair.dumped()["credited"] == 0
+        assert _first_arrival(pair, b"G1 X2\n", FakeRunQueue(10.0), b"ok") >= 10.0
+        assert pair.dumped()["credited"] == 1
+    finally:
+        pair.close()
