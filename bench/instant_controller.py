@@ -451,8 +451,9 @@ class Controller:
 
     def _arrived(self, woke: float | None, now: float) -> float:
         """A G-code line's arrival: the wake-up's time for a read's first line (`_woke`,
-        taken by whatever line comes first), else when it was read."""
-        if woke is None or woke >= now:
+        taken by whatever line comes first), else when it was read. `woken_at` gives a
+        time before its `poll` returned, so before `now`."""
+        if woke is None:
             return now
         self.credited += 1
         self.credited_most = max(self.credited_most, now - woke)
