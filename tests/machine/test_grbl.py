@@ -637,6 +637,12 @@ async def test_an_operators_realtime_byte_hands_the_cpu_over_and_a_status_poll_d
         await state(bench, S.RUN)
         bench.machine.feedhold()  # the job's pause
         await state(bench, S.HOLD)
+        # The hold complete, so that the resume's `~` goes at once: while the board still
+        # decelerates (Hold:1) the session keeps the `~` back and asks `?` instead
+        # (grbl/holds.py), and a loaded machine made that race about once in a CI run.
+        engine = bench.machine.engine
+        async with asyncio.timeout(5):
+            await engine.wait_for(lambda: engine.model.board_state == "Hold:0")
         await operations.override(bench.machine, 120, None, None)
         bench.machine.cycle_start()  # the job's resume
         done = await bench.job_ended(job.id)
