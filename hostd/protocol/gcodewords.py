@@ -10,7 +10,10 @@ splitting into comments and words is done here, once.
 Linear by construction, whatever the line: every pattern here is
 deterministic. Each alternative starts with a character no other alternative
 of the same choice starts with, and every repetition is possessive (`*+`,
-`++`, `?+`), so the engine never gives a character back to try another split.
+`++`, `?+`) or, for a group, greedy inside an atomic group (`(?>(?:...)*)`:
+Python 3.11.0-3.11.4, Debian 12's, match a possessive group wrongly;
+tests/test_patterns.py), so the engine never gives a character back to try
+another split.
 Before this, the model's line pattern let `[0-9]+\\.?[0-9]*` split `111` three
 ways; "X111" sixteen times and a `#` took 27 s to refuse, holding the GIL
 (docs/gcode.md, "Reading G-code in linear time"). `tests/protocol/
@@ -30,9 +33,10 @@ import re
 # A word: (letter, number). Possessive throughout; the two forms of a number start
 # with a digit and with a point, so at most one of them can go on.
 WORD = re.compile(r"([A-Za-z])[ \t]*+([-+]?+(?:[0-9]++(?:\.[0-9]*+)?+|\.[0-9]++))")
-# The longest run of words (spaces and tabs around them) from the start of a text.
+# The longest run of words (spaces and tabs around them) from the start of a text. Atomic,
+# not `*+`: an iteration can fail after its letter ("X1 Y"), which 3.11.2 gets wrong.
 _WORDS = re.compile(
-    r"(?:[ \t]*+[A-Za-z][ \t]*+[-+]?+(?:[0-9]++(?:\.[0-9]*+)?+|\.[0-9]++))*+[ \t]*+"
+    r"(?>(?:[ \t]*+[A-Za-z][ \t]*+[-+]?+(?:[0-9]++(?:\.[0-9]*+)?+|\.[0-9]++))*)[ \t]*+"
 )
 # A parenthesised comment, flat: to the first `)`, or to the end of the line when there
 # is none (the caller decides what an unclosed one means); or `;` and the rest of the line.

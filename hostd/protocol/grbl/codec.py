@@ -289,15 +289,16 @@ def classify(text: str) -> CommandClass:
 printable = _PRINTABLE_LINE.fullmatch
 # Job lines as the host numbers them, each ending in LF: `N<number> ` and a text that
 # `GrblFlow.encode_job_line` writes as it is (printable, no comment, no blank at its end,
-# not a `$`, `{` or `?` line, not an N word of the file's own), all in one match.
+# not a `$`, `{` or `?` line, not an N word of the file's own), all in one match. Atomic
+# groups, not `++`, as in gcode.py's: Python 3.11.2 matches those wrongly.
 _PLAIN_NUMBERED = re.compile(
-    r"(?:N[0-9]++ (?![Nn$?{])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)++"
+    r"(?>(?:N[0-9]++ (?![Nn$?{])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)+)"
 )
 plain_numbered_block = _PLAIN_NUMBERED.fullmatch
 # The same lines unnumbered (a board that keeps no N): each is `encode`'s answer as it
 # is, with no blank at either end, and neither a `$` line nor a `{` one (whose turn
 # `_pump` takes line by line).
-_PLAIN_LINES = re.compile(r"(?:(?![ ${])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)++")
+_PLAIN_LINES = re.compile(r"(?>(?:(?![ ${])[\x20\x22-\x27\x29-\x3a\x3c-\x3e\x40-\x7d]++(?<! )\n)+)")
 plain_block = _PLAIN_LINES.fullmatch
 
 
