@@ -1,25 +1,36 @@
 # The two commands of the README: `make demo` and `make test`.
 # Both create .venv when it is missing and install what they need.
-PY ?= python3
+#
+# The interpreter is the system's own python3 when it is 3.11 or newer: the service runs
+# on it (docs/operations.md makes its venv with `sudo python3 -m venv`, and sudo's PATH
+# finds /usr/bin first), so the tests and the bench run what a machine runs. Until
+# 2026-11-28 they ran on whatever python3 came first on PATH (this machine's: a pyenv
+# 3.11.7), and five tests that fail on Debian 12's 3.11.2 went unseen
+# (tests/test_patterns.py). Else the python3 on PATH; `make PY=...` for another.
+SYSTEM_PY := $(shell /usr/bin/python3 -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null && echo /usr/bin/python3)
+PY ?= $(or $(SYSTEM_PY),python3)
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+# Made again when pyproject.toml changes, or .venv was made by another interpreter.
+PY_VERSION = $(shell $(PY) -c 'import sys; print(sys.version)' 2>/dev/null)
+STAMP := $(VENV)/.installed-$(shell { cat pyproject.toml; echo '$(PY_VERSION)'; } | cksum | cut -d' ' -f1)
 
 .PHONY: demo test lint typecheck unit clean system-deps service-test
 
 # Debian's own python3 makes no venv without python3-venv (ensurepip): installed as root,
 # else the command to run.
-$(BIN)/python:
-	@$(PY) -c 'import ensurepip' 2>/dev/null || { \
-	    if [ "$$(id -u)" != 0 ]; then \
-	        echo "$(PY) cannot make a virtual environment: run  sudo apt-get install python3-venv"; \
-	        exit 1; fi; \
-	    echo "installing python3-venv: $(PY) needs it to make .venv"; \
-	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv >/dev/null; }
-	$(PY) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-
-$(STAMP): $(BIN)/python pyproject.toml
+$(STAMP): pyproject.toml
+	@if [ -x $(BIN)/python ] && [ "$$($(BIN)/python -c 'import sys; print(sys.version)')" != '$(PY_VERSION)' ]; then \
+	    echo "$(VENV) was made by another python: making it again with $(PY)"; rm -rf $(VENV); fi
+	@[ -x $(BIN)/python ] || { \
+	    $(PY) -c 'import ensurepip' 2>/dev/null || { \
+	        if [ "$$(id -u)" != 0 ]; then \
+	            echo "$(PY) cannot make a virtual environment: run  sudo apt-get install python3-venv"; \
+	            exit 1; fi; \
+	        echo "installing python3-venv: $(PY) needs it to make .venv"; \
+	        apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq python3-venv >/dev/null; }; \
+	    echo "making $(VENV) with $(PY) ($(firstword $(PY_VERSION)))"; \
+	    $(PY) -m venv $(VENV) && $(BIN)/pip install --quiet --upgrade pip; }
 	$(BIN)/pip install --quiet -e '.[test,bench]'
 	rm -f $(VENV)/.installed-*
 	touch $@
