@@ -183,7 +183,7 @@ def _default(obj: Any) -> Any:
 def encode(message: Any) -> bytes:
     """Compact, strict JSON as UTF-8 bytes, without the line terminator.
 
-    Text with a lone surrogate (JSON's "\ud800", echoed back in an id or a
+    Text with a lone surrogate (JSON's "\\ud800", echoed back in an id or a
     method name) has no UTF-8 form: such a message is written with ASCII
     escapes instead, still valid JSON, still the same value.
     """

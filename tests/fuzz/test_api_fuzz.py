@@ -1,6 +1,6 @@
 """Whatever a client sends, every request with an id is answered with an api.md code.
 
-Client text includes lone surrogates (JSON's "\ud800" escape decodes to
+Client text includes lone surrogates (JSON's "\\ud800" escape decodes to
 one): echoed into an answer, or used as a file name, they once made
 `dispatch` raise or answer -32603; the tests at the end pin those cases.
 
