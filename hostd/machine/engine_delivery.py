@@ -88,7 +88,6 @@ class EngineDelivery(EngineConsole):
         finally:
             self._delivering = False
             self._handing_out = False
-            self._hand_over = False  # a command that wrote nothing hands nothing over
         self._changed.set()
         self._arm_timer()
 
@@ -115,6 +114,7 @@ class EngineDelivery(EngineConsole):
         if link is None:
             return
         ok = True
+        handed = False
         job = (self.console or self.console_but_job) and self._all_data_is_job(writes)
         batch: list[bytes] = []
         batch_lane: Lane | None = None
@@ -126,8 +126,12 @@ class EngineDelivery(EngineConsole):
                 ok = self._write_batch(link, batch_lane, batch, job) and ok
             if lane is Lane.REALTIME:
                 ok = link.write_realtime(data) and ok
-                if self._hand_over:  # the operator's byte: its board reads it first
-                    self._hand_over = False
+                # Every realtime byte but the daemon's own status poll: its board reads it
+                # before the daemon goes on (`Link.hand_over`), once a write. An operator's
+                # hold or override, a fault's stop, and a resume the session kept back
+                # until the board stood still, written from a read.
+                if not handed and not self.session.status_traffic(data, True):
+                    handed = True
                     link.hand_over()
                 self._tx(link, lane, [data])
                 batch, batch_lane = [], None

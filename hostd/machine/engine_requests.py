@@ -87,29 +87,21 @@ class EngineRequests(EngineDelivery):
         if self.link is None or self.link_state is LinkState.DOWN:
             raise NotConnected(f"{self.id} is not connected")
         self.session.realtime(command)
-        self._deliver_handing_over()
+        self._deliver()
         if self._write_failed:
             raise NotConnected(f"{self.id}: not connected")
-
-    def _deliver_handing_over(self) -> None:
-        """`_deliver` for an operator's realtime command (a hold, a kill, a reset, an
-        override): the link hands the CPU over once the byte is written, so that a
-        board at the other end of a pty reads it before the daemon goes on
-        (`Link.hand_over`). The daemon's own polls are delivered without it."""
-        self._hand_over = True
-        self._deliver()
 
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
         """Feed, rapid and spindle overrides, in percent, written now (realtime)."""
         self.session.override(feed, rapid, spindle)
-        self._deliver_handing_over()
+        self._deliver()
 
     def safety_door(self) -> None:
         """The safety door opened, as the host says (grbl's 0x84)."""
         self.session.safety_door()
-        self._deliver_handing_over()
+        self._deliver()
 
     def query_status(self) -> None:
         """Ask the board for a full status report now."""
@@ -145,7 +137,7 @@ class EngineRequests(EngineDelivery):
         self._restart_deadline = time.monotonic() + timeout
         self._ready.clear()
         self.session.reset()
-        self._deliver_handing_over()
+        self._deliver()
         try:
             async with asyncio.timeout(timeout):
                 await self._ready.wait()
@@ -175,12 +167,12 @@ class EngineRequests(EngineDelivery):
     def pause_stream(self) -> None:
         """The job's pause: `!`, and none of its lines is written until `resume_stream`."""
         self.session.pause_stream()
-        self._deliver_handing_over()
+        self._deliver()
 
     def resume_stream(self) -> None:
         """The job's resume: `~`, and its lines flow again."""
         self.session.resume_stream()
-        self._deliver_handing_over()
+        self._deliver()
 
     def release_stream(self) -> None:
         """Pass the job's hold point (a tool change answered): its lines flow again."""
@@ -195,7 +187,6 @@ class EngineRequests(EngineDelivery):
         self._command(lambda: self._stop_stream(code, text))
 
     def _stop_stream(self, code: int, text: str) -> None:
-        self._hand_over = True  # the fault's feedhold: its board reads it first
         self.session.stop_stream(code, text)
 
     # -- views -----------------------------------------------------------

@@ -68,9 +68,6 @@ class EngineState:
         self._handing_out = False  # events go up now: a command given meanwhile is queued
         self._deferred: list[Callable[[], None]] = []  # run once the events are handed out
         self._write_failed = False
-        # An operator's realtime command is being written: the link hands the CPU over
-        # once it is (`Link.hand_over`); the daemon's own polls do not.
-        self._hand_over = False
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at: float | None = None
         self._closed: asyncio.Future[str] | None = None  # this connection's end, with why

@@ -654,3 +654,43 @@ async def test_an_operators_realtime_byte_hands_the_cpu_over_and_a_status_poll_d
         assert log[log.index(b"!") + 1] == b"yield"
         assert log[log.index(b"~") + 1] == b"yield"
         assert all(log[i + 1] != b"yield" for i, byte in enumerate(log[:-1]) if byte == b"?")
+
+
+async def test_a_resume_kept_back_until_the_board_stands_still_hands_the_cpu_over_as_it_goes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A `~` asked while the board still decelerates (Hold:1) is kept back and goes from
+    the read of the report that says Hold:0 (grbl/holds.py): that byte is the operator's
+    too, and the CPU is handed over after it, not after the `?` asked meanwhile."""
+    # Moves long enough that a hold decelerates the whole `feedhold_decel` (one near its
+    # end would stop at the end of the move, at once: sim/motion.py `begin_hold`).
+    slow = GrblConfig(flavour="grbl", feedhold_decel=0.3)
+    async with grbl_bench(tmp_path, slow) as bench:
+        engine = bench.machine.engine
+        link = engine.link
+        assert link is not None
+        log: list[bytes] = []
+        write_realtime = link.write_realtime
+
+        def recorded(data: bytes) -> bool:
+            log.append(data)
+            return write_realtime(data)
+
+        monkeypatch.setattr(link, "write_realtime", recorded)
+        monkeypatch.setattr(os, "sched_yield", lambda: log.append(b"yield"))
+        bench.write("job.nc", "G1 X60 F6000\nG1 X0\nG1 X60\n")  # 0.6 s a move
+        job = await bench.machine.start_make("job.nc")
+        await state(bench, S.RUN)
+        bench.machine.feedhold()
+        async with asyncio.timeout(5):
+            await engine.wait_for(lambda: engine.model.board_state == "Hold:1")
+        asked = len(log)
+        bench.machine.cycle_start()
+        assert b"~" not in log[asked:]  # kept back: the board still stops
+        async with asyncio.timeout(5):
+            await engine.wait_for(lambda: b"~" in log[asked:])
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed"
+        kept = asked + log[asked:].index(b"~")
+        assert log[kept + 1] == b"yield"
+        assert all(log[i + 1] != b"yield" for i, byte in enumerate(log[:-1]) if byte == b"?")
