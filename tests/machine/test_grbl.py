@@ -613,6 +613,23 @@ async def test_grblhal_snapshot_reads_the_coordinate_system_not_scaling(tmp_path
         assert bench.machine.snapshot()["wcs"] == "G55"
 
 
+def realtime_and_yields(bench: GrblBench, monkeypatch: pytest.MonkeyPatch) -> list[bytes]:
+    """Every realtime byte the link writes from now on, and `yield` where the CPU is
+    handed over (`os.sched_yield`), in order."""
+    link = bench.machine.engine.link
+    assert link is not None
+    log: list[bytes] = []
+    write_realtime = link.write_realtime
+
+    def recorded(data: bytes) -> bool:
+        log.append(data)
+        return write_realtime(data)
+
+    monkeypatch.setattr(link, "write_realtime", recorded)
+    monkeypatch.setattr(os, "sched_yield", lambda: log.append(b"yield"))
+    return log
+
+
 async def test_an_operators_realtime_byte_hands_the_cpu_over_and_a_status_poll_does_not(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -621,25 +638,15 @@ async def test_an_operators_realtime_byte_hands_the_cpu_over_and_a_status_poll_d
     an override), before what the byte sets off. Its own `?` polls never do."""
     slow = GrblConfig(flavour="grbl", speed_factor=5.0, feedhold_decel=0.02)
     async with grbl_bench(tmp_path, slow) as bench:
-        link = bench.machine.engine.link
-        assert link is not None
-        log: list[bytes] = []
-        write_realtime = link.write_realtime
-
-        def recorded(data: bytes) -> bool:
-            log.append(data)
-            return write_realtime(data)
-
-        monkeypatch.setattr(link, "write_realtime", recorded)
-        monkeypatch.setattr(os, "sched_yield", lambda: log.append(b"yield"))
+        log = realtime_and_yields(bench, monkeypatch)
         bench.write("job.nc", "".join(f"G1 X{i % 20} F3000\n" for i in range(60)))
         job = await bench.machine.start_make("job.nc")
         await state(bench, S.RUN)
         bench.machine.feedhold()  # the job's pause
         await state(bench, S.HOLD)
-        # The hold complete, so that the resume's `~` goes at once: while the board still
-        # decelerates (Hold:1) the session keeps the `~` back and asks `?` instead
-        # (grbl/holds.py), and a loaded machine made that race about once in a CI run.
+        # The hold complete, so that the resume's `~` goes at once, from the request: while
+        # the board still decelerates (Hold:1) the session keeps it back and asks `?`
+        # (grbl/holds.py), the next test's case.
         engine = bench.machine.engine
         async with asyncio.timeout(5):
             await engine.wait_for(lambda: engine.model.board_state == "Hold:0")
@@ -667,17 +674,7 @@ async def test_a_resume_kept_back_until_the_board_stands_still_hands_the_cpu_ove
     slow = GrblConfig(flavour="grbl", feedhold_decel=0.3)
     async with grbl_bench(tmp_path, slow) as bench:
         engine = bench.machine.engine
-        link = engine.link
-        assert link is not None
-        log: list[bytes] = []
-        write_realtime = link.write_realtime
-
-        def recorded(data: bytes) -> bool:
-            log.append(data)
-            return write_realtime(data)
-
-        monkeypatch.setattr(link, "write_realtime", recorded)
-        monkeypatch.setattr(os, "sched_yield", lambda: log.append(b"yield"))
+        log = realtime_and_yields(bench, monkeypatch)
         bench.write("job.nc", "G1 X60 F6000\nG1 X0\nG1 X60\n")  # 0.6 s a move
         job = await bench.machine.start_make("job.nc")
         await state(bench, S.RUN)
