@@ -87,7 +87,25 @@ system-deps:
 	apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$cmd -qq >/dev/null
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .venv-3.* .pytest_cache .mypy_cache .ruff_cache
+
+# The suite on each other Python 3.11+ this machine has, each in a .venv-<version> of its
+# own: Debian 12's 3.11.2 and 3.13 each broke hostd in a way no other Python showed
+# (docs/gcode.md, tests/test_docstrings.py). Not part of `make test`, whose time it
+# multiplies. PYTHONS=... names them; by default every python3.1x under /usr/bin and
+# /usr/local/bin and pyenv's, one of each version, the one `make test` runs left out.
+PYTHONS ?= $(wildcard /usr/bin/python3.1[1-9] /usr/local/bin/python3.1[1-9] $(HOME)/.pyenv/versions/3.1[1-9]*/bin/python3)
+.PHONY: test-pythons
+test-pythons: $(STAMP)
+	@seen="$$($(BIN)/python -c 'import sys; print("%d.%d.%d" % sys.version_info[:3])')"; \
+	for py in $(PYTHONS); do \
+	    v=$$($$py -c 'import sys; print("%d.%d.%d" % sys.version_info[:3]) if sys.version_info >= (3, 11) else None' 2>/dev/null); \
+	    case "$$v" in ""|None) continue;; esac; case " $$seen " in *" $$v "*) continue;; esac; \
+	    seen="$$seen $$v"; echo "== Python $$v ($$py)"; \
+	    [ -x .venv-$$v/bin/python ] || $$py -m venv .venv-$$v || exit 1; \
+	    .venv-$$v/bin/pip install --quiet --upgrade pip && .venv-$$v/bin/pip install --quiet -e '.[test]' || exit 1; \
+	    PYTHONDONTWRITEBYTECODE= .venv-$$v/bin/pytest -n $(TEST_WORKERS) || exit 1; \
+	done
 
 # Performance figures beside their baselines (bench/run.py); BENCH_ARGS=--quick to try things.
 # docs/openrpc.json: the API's OpenRPC document, as `rpc.discover` serves it (made from the
