@@ -23,15 +23,13 @@ from hostd.protocol.gcode import plain_match, plain_numbered_block
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line, numbered_block
 from hostd.protocol.relaxed import parse_relaxed
-from hostd.protocol.states import MachineState
+from hostd.protocol.states import LOCKOUTS, MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
 
 # The states in which none of a job's lines is written: a lockout (the board drains and
 # rejects them) and a hold. One set, asked once a read (`_job_lines_wait`).
-_NO_JOB_LINES = frozenset(
-    {state for state in MachineState if state.is_lockout} | {MachineState.HOLD}
-)
+_NO_JOB_LINES = LOCKOUTS | {MachineState.HOLD}
 
 
 class G2Flow(G2Holds):

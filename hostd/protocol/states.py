@@ -28,7 +28,7 @@ class MachineState(IntEnum):
     @property
     def is_lockout(self) -> bool:
         """ALARM, SHUTDOWN and PANIC: the controller drains and rejects actions."""
-        return self in _LOCKOUT
+        return self in LOCKOUTS
 
     @property
     def is_resting(self) -> bool:
@@ -36,7 +36,8 @@ class MachineState(IntEnum):
         return self in _RESTING
 
 
-_LOCKOUT = frozenset({MachineState.ALARM, MachineState.SHUTDOWN, MachineState.PANIC})
+# The lockout states (`is_lockout`), as a set for the gates that add states of their own.
+LOCKOUTS = frozenset({MachineState.ALARM, MachineState.SHUTDOWN, MachineState.PANIC})
 _RESTING = frozenset({MachineState.READY, MachineState.PROGRAM_STOP, MachineState.PROGRAM_END})
 
 

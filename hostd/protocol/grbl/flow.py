@@ -22,7 +22,7 @@ from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.books import _MAY_STORE, _REFUSED_BY_ALARM, GrblBooks
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.program import MAX_LINE_NUMBER, NOT_PREFIXED, number_line, numbered_block
-from hostd.protocol.states import MachineState
+from hostd.protocol.states import LOCKOUTS, MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Context, Lane, Phase, Queued
 
@@ -253,7 +253,4 @@ class GrblFlow(GrblBooks):
 
 
 # The states in which none of a job's lines is written: a lockout, a hold, a door open.
-_NO_JOB_LINES = frozenset(
-    {state for state in MachineState if state.is_lockout}
-    | {MachineState.HOLD, MachineState.INTERLOCK}
-)
+_NO_JOB_LINES = LOCKOUTS | {MachineState.HOLD, MachineState.INTERLOCK}
