@@ -132,12 +132,11 @@ def possessive_groups(pattern: str | bytes, flags: int) -> list[str]:
 
 
 def every_pattern() -> list[tuple[str, str | bytes, int]]:
-    found = [found for path in source_files() for found in literal_patterns(path)]
+    found: list[tuple[str, str | bytes, int]] = []
     for path in source_files():
-        name = module_name(path)
-        if name.endswith("__main__"):
-            continue
-        found += compiled_patterns(name)
+        found += literal_patterns(path)
+        if not (name := module_name(path)).endswith("__main__"):
+            found += compiled_patterns(name)
     return found
 
 
