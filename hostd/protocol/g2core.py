@@ -58,7 +58,8 @@ another:
     g2books.py       G2Books       the state, declared once; the lines written
                                    and not yet answered
 
-Below them all, g2words.py's `G2Words`: the operator's words on g2core.
+Below them all, g2words.py's `G2Words`: the operator's words on g2core (on
+words.py's `Words`, which every dialect's words build on).
 Method lookups through the layers are cached per class by Python, so the
 layers cost a line nothing.
 """

@@ -25,12 +25,13 @@ from hostd.protocol.model import MachineModel
 from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.settings import set_lines
 from hostd.protocol.status import message
+from hostd.protocol.words import Words
 
 _LIMIT_AXES = ("x", "y", "z")
 _OFFSET_GROUPS = ("g54", "g55", "g56", "g57", "g58", "g59")
 
 
-class G2Words:
+class G2Words(Words):
     """The operator's words on g2core, for `G2Session`."""
 
     # The session's: its machine's id, the board's build rules (from its `fb`) and what

@@ -24,14 +24,14 @@ from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.probing import ProbeInput, number
-from hostd.protocol.session import gcode_number
 from hostd.protocol.toolchange import without_m6
+from hostd.protocol.words import Words, gcode_number
 
 _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 _OFFSET_KINDS = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G92"})
 
 
-class GrblWords:
+class GrblWords(Words):
     """The operator's words on grbl, for `GrblSession`."""
 
     # What the session's handshake read: the receive buffer (`[OPT:]`) and `$$`.
