@@ -110,6 +110,10 @@ class GrblBoard:
         self.traversed: deque[Traversed] = deque(maxlen=config.history)
         # The spindle/laser output over time: (clock, S after overrides), one entry a change.
         self.beam: deque[tuple[float, float]] = deque([(0.0, 0.0)], maxlen=config.history)
+        # Feed, rapid and spindle overrides after every main-loop pass that changed them.
+        self.overrides_run: deque[tuple[int, int, int]] = deque(
+            [(100, 100, 100)], maxlen=config.history
+        )
         self.power_on()
 
     # --- power, reset
@@ -153,6 +157,8 @@ class GrblBoard:
         self._cancel_after_stop = False  # jog cancel / classic hold in jog: flush when stopped
         self.blocking = False  # a critical alarm: only reset gets out
         self.feed_ovr = self.rapid_ovr = self.spindle_ovr = 100
+        if self.overrides_run[-1] != (100, 100, 100):
+            self.overrides_run.append((100, 100, 100))
         self.flood = self.mist = False
         self.modal.reset()
         self.modal.position = dict(self.position)
@@ -162,6 +168,9 @@ class GrblBoard:
         self._nvs_dirty = False  # HAL: settings changed, written to flash once idle
         self._wco_counter = self._ovr_counter = 0  # report_init_message zeroes them
         self._report_flags: set[str] = {"overrides"}  # report_add_realtime(Report_Overrides)
+        # `$481`'s next report, due whatever the host asks (GrblConfig.auto_report).
+        every = self.config.auto_report
+        self._auto_report_at = self._clock() + every if every else None
 
     def _startup(self) -> None:
         """The banner, then protocol_main_loop's start-up checks."""
@@ -404,6 +413,10 @@ class GrblBoard:
             held, self._held = bytes(self._held), bytearray()
             self.receive(held)
             return True
+        if self._auto_report_at is not None and now >= self._auto_report_at:
+            self._auto_report_at = now + self.config.auto_report
+            self._send_status()
+            return True
         if motion_control.advance(self, now):
             return True
         if self.blocking:
@@ -428,6 +441,8 @@ class GrblBoard:
         times: list[float] = []
         if self._deaf_until is not None:
             times.append(self._deaf_until)
+        elif self._auto_report_at is not None:
+            times.append(self._auto_report_at)
         if self.active is not None:
             times.append(self.active.end)
         if self._wait is not None and self._wait.kind in ("dwell", "home", "store"):

@@ -57,6 +57,13 @@ class GrblConfig:
     False for grbl, whose UART brings a byte at a time (87 us apart at 115200
     baud), so each is acted on as it arrives. Reset and jog cancel act at once
     either way (mc_reset and cancel_read_buffer run in the interrupt).
+
+    `auto_report`: grblHAL's `$481`, in seconds (0: off, its default,
+    config.h DEFAULT_AUTOREPORT_INTERVAL): a status report every so often that
+    no `?` asked for (grbllib.c:160-167 sets EXEC_STATUS_REPORT from a delayed
+    task). A `?` is still answered besides (protocol.c:987-990; only 0x80 is
+    ignored while auto-reporting, :871-875). The firmware takes 100 to 1000 ms
+    (settings.c:2449); tests may take less.
     """
 
     flavour: Flavour = "grbl"
@@ -78,6 +85,7 @@ class GrblConfig:
     reset_on_open: bool | None = None
     report_first: bool | None = None
     line_numbers: bool = False
+    auto_report: float = 0.0
     history: int | None = None  # entries kept in `received` / `sent`; None keeps all
 
     def __post_init__(self) -> None:
@@ -93,6 +101,8 @@ class GrblConfig:
             raise ValueError("storage_write and homing_time are seconds, not negative")
         if self.homing_init_lock and self.flavour != "grblhal":
             raise ValueError("homing_init_lock (ALARM:11) is a grblHAL setting")
+        if self.auto_report < 0 or (self.auto_report and self.flavour != "grblhal"):
+            raise ValueError("auto_report ($481) is a grblHAL setting, in seconds, not negative")
 
     @property
     def hal(self) -> bool:

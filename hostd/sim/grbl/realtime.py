@@ -138,6 +138,9 @@ def overrides(board: GrblBoard, chars: list[int]) -> None:
         _hal_overrides(board, chars)
     else:
         _classic_overrides(board, set(chars))
+    now = (board.feed_ovr, board.rapid_ovr, board.spindle_ovr)
+    if now != board.overrides_run[-1]:
+        board.overrides_run.append(now)
     # Coolant toggles: a flag bit each on classic grbl (once a pass), a ring on grblHAL.
     coolant = [c for c in chars if c in COOLANT_OVR]
     for char in set(coolant) if not board.hal else coolant[:HAL_RING]:
