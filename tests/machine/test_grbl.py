@@ -286,6 +286,64 @@ async def test_an_override_takes_no_report_to_an_older_question_for_its_answer(
         assert read.count(b"\x91") == 5  # one round: never a step past what was asked
 
 
+AUTO = GrblConfig(flavour="grblhal", speed_factor=5.0, feedhold_decel=0.02, auto_report=0.05)
+
+
+def reports_sent(sim: GrblSimController) -> int:
+    return sum(r.data.startswith(b"<") for r in sim.sent)
+
+
+async def test_a_grblhal_that_reports_by_itself_streams_holds_and_overrides_as_asked(
+    tmp_path: Path,
+) -> None:
+    """grblHAL with `$481` set prints a report every interval that no `?` asked for
+    (grbllib.c:160-167), and still answers `?` (protocol.c:987-990): the host connects,
+    a job streams, holds, resumes and completes, the overrides asked mid-job are the
+    ones in force, and the link is never taken for lost."""
+    async with grbl_bench(tmp_path, AUTO) as bench:
+        sim = bench.board
+        bench.write("job.nc", "".join(f"G1 X{i % 2 * 5} F3000\n" for i in range(60)))
+        job = await bench.machine.start_make("job.nc")
+        await sim.wait_state("Run")
+        for feed, spindle in ((173, 57), (100, 100), (11, 199)):
+            got = await operations.override(bench.machine, feed, None, spindle)
+            assert got == {"feed": feed, "spindle": spindle, "rapid": 100}
+            assert (sim.board.feed_ovr, sim.board.spindle_ovr) == (feed, spindle)
+        bench.machine.feedhold()
+        await state(bench, S.HOLD)
+        bench.machine.resume()
+        done = await bench.job_ended(job.id)
+        assert done.state == "completed" and done.lines_acked == 60
+        assert not link_downs(bench)  # never taken for lost
+        asked = b"".join(r.data for r in sim.received).count(b"?")
+        assert reports_sent(sim) > asked  # the board did report by itself
+
+
+async def test_an_override_read_late_among_reports_nobody_asked_for_is_never_overshot(
+    tmp_path: Path,
+) -> None:
+    """grblHAL's upstream Simulator with `$481=200`, mid-job: its reports kept coming
+    while the host's override bytes waited behind the job's lines (it feeds its firmware
+    a byte a pass), and a round that stepped on from such a report took an override
+    asked at 173 to 200 and spindle 57 to 14 (docs/dialects.md). Here the bytes wait
+    unread until several reports have gone: the board never runs past what was asked,
+    and the answer is what it runs."""
+    async with grbl_bench(tmp_path, AUTO, heartbeat=5.0, link_silence=60.0) as bench:
+        sim = bench.board
+        sim.queue_input()
+        asked = asyncio.create_task(operations.override(bench.machine, 173, None, 57))
+        await sim.wait_for(lambda: b"?" in (sim.board.queued or b""))
+        held = reports_sent(sim)
+        await sim.wait_for(lambda: reports_sent(sim) >= held + 4)
+        sim.queue_input(False)
+        got = await asked
+        assert got == {"feed": 173, "spindle": 57, "rapid": 100}
+        assert (sim.board.feed_ovr, sim.board.spindle_ovr) == (173, 57)
+        ran = sim.board.overrides_run
+        assert max(feed for feed, _, _ in ran) == 173, ran
+        assert min(spindle for _, _, spindle in ran) == 57, ran
+
+
 async def test_a_limit_switch_mid_job_fails_it_and_only_a_reset_then_unlock_clears(
     tmp_path: Path,
 ) -> None:

@@ -16,7 +16,7 @@ from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.connection import BANNER_WAIT
 from hostd.protocol.grbl.liveness import STORAGE_QUIET
-from hostd.protocol.grbl.overrides import OVERRIDE_ROUNDS
+from hostd.protocol.grbl.overrides import OVERRIDE_HAL_ROUNDS, OVERRIDE_RING, OVERRIDE_ROUNDS
 from hostd.protocol.grbl.session import GrblSession
 from hostd.protocol.grbl.stops import STOP_TIMEOUT
 from hostd.protocol.grbl.words import homing_time_bound
@@ -847,23 +847,120 @@ def test_an_override_written_while_a_request_is_out_reads_one_report_more() -> N
     assert grbl.feed(ov("110,100,100")) == rt(b"\x91", b"?")
 
 
-def test_a_grblhal_override_round_is_what_its_rings_hold() -> None:
-    """grblHAL queues override bytes in rings of 15 (override.c:35-43), feed and rapid in
-    one (protocol.c:941-950), and drops what does not fit: 100 to 199 is 19 bytes."""
+def hal_grbl() -> Grbl:
     grbl = Grbl()
     grbl.connect(opt="VNMHSL,35,1024,3,0", hal=True)
     assert grbl.session.flavour == "GrblHAL"  # from `$I`, no banner
+    return grbl
+
+
+FEED_RESET, FEED_UP_10, FEED_UP_1, FEED_DOWN_1 = b"\x90", b"\x91", b"\x93", b"\x94"
+SPINDLE_RESET, SPINDLE_DOWN_10, SPINDLE_UP_1 = b"\x99", b"\x9b", b"\x9c"
+
+
+def test_a_grblhal_override_round_is_a_reset_and_the_fewest_steps_its_rings_hold() -> None:
+    """grblHAL queues override bytes in rings of 15 (override.c:35-43), feed and rapid in
+    one (protocol.c:941-950), and drops what does not fit. A round is a reset, then the
+    fewest steps, never leaving 10..200: 100 to 199 is ten tens and one down (12
+    bytes), not nine and nine (19)."""
+    grbl = hal_grbl()
     grbl.session.override(feed=199, rapid=25, spindle=11)
-    first = grbl.pump()
-    motion = [b"\x97", b"\x90", *[b"\x91"] * 9, *[b"\x93"] * 4]
-    accessory = [b"\x99", *[b"\x9b"] * 8, *[b"\x9d"] * 6]
-    assert first == rt(*motion, *accessory, b"?")
+    motion = [b"\x97", FEED_RESET, *[FEED_UP_10] * 10, FEED_DOWN_1]
+    accessory = [SPINDLE_RESET, *[SPINDLE_DOWN_10] * 9, SPINDLE_UP_1]
+    assert grbl.pump() == rt(*motion, *accessory, b"?")
+    # Three reports: one nobody asked for, the one read with the bytes, then one after.
     assert grbl.feed(ov("100,100,100")) == rt(b"?")
-    assert grbl.feed(ov("194,25,14")) == rt(*[b"\x93"] * 5, *[b"\x9d"] * 3, b"?")
-    assert grbl.feed(ov("194,25,14")) == rt(b"?")
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
     assert grbl.feed(ov("199,25,11")) == []
     assert grbl.session.override_answers == 1
     assert grbl.session.model.overrides == {"feed": 199, "rapid": 25, "spindle": 11}
+
+
+@pytest.mark.parametrize("what", ["feed", "spindle"])
+def test_a_round_from_a_reset_sets_any_value_from_any_within_one_ring(what: str) -> None:
+    """`override_from_reset`, applied as grblHAL applies each byte (clamped to 10..200,
+    protocol.c:631-722): every value from every value, in at most 15 bytes (one ring),
+    no step clamped (the board would lose the count), and the same bytes again change
+    nothing."""
+    low, high = codec.OVERRIDE_RANGE
+    names = {byte: name for name, byte in codec.OVERRIDES.items()}
+
+    def apply(value: int, data: list[bytes]) -> int:
+        for byte in data:
+            name = names[byte]
+            if name.endswith("_reset"):
+                value = 100
+                continue
+            step = int(name.rsplit("_", 1)[1]) * (1 if "_plus_" in name else -1)
+            assert low <= value + step <= high, (name, value)
+            value += step
+        return value
+
+    for target in range(low, high + 1):
+        data = codec.override_from_reset(target, what)
+        assert len(data) <= OVERRIDE_RING
+        for start in (low, 100, target, high):
+            assert apply(apply(start, data), data) == target
+    assert len(codec.override_from_reset(195, what)) == OVERRIDE_RING  # the longest
+
+
+def test_a_grblhal_round_over_its_ring_is_cut_and_the_rest_goes_from_a_reset() -> None:
+    """Rapid and 100 to 195 (a reset, nine tens, five ones) are 16 bytes for the ring of
+    15: the round writes 15; the next, rapid in force, the feed alone from a reset."""
+    grbl = hal_grbl()
+    grbl.session.override(feed=195, rapid=50)
+    feed = [FEED_RESET, *[FEED_UP_10] * 9, *[FEED_UP_1] * 5]
+    assert grbl.pump() == rt(b"\x96", *feed[:14], b"?")
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.feed(ov("194,50,100")) == rt(*feed, b"?")
+    for _ in range(2):
+        assert grbl.feed(ov("194,50,100")) == rt(b"?")
+    assert grbl.feed(ov("195,50,100")) == []
+    assert grbl.session.model.overrides == {"feed": 195, "rapid": 50, "spindle": 100}
+
+
+def test_a_grblhal_override_read_too_early_is_written_again_never_stepped_past() -> None:
+    """grblHAL prints reports nobody asked for (its `$481` auto-report, grbllib.c:160-167;
+    one as a homing cycle starts or a tool change ends): one may come between the host's
+    bytes and the pass that reads them, and the report to the round's `?` may be read
+    in that pass, before they act. Against the upstream Simulator with `$481=200`,
+    stepping on from such a report took an override asked at 173 to 200. A round is
+    written from a reset again, never stepped from a report that may be old."""
+    grbl = hal_grbl()
+    grbl.session.override(feed=173, spindle=57)
+    first = grbl.pump()
+    assert first == rt(
+        FEED_RESET, *[FEED_UP_10] * 7, *[FEED_UP_1] * 3,
+        SPINDLE_RESET, *[SPINDLE_DOWN_10] * 4, *[b"\x9d"] * 3, b"?",
+    )  # fmt: skip
+    # An auto-report, then the one read with the bytes: both before the bytes act.
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    assert grbl.feed(ov("100,100,100")) == rt(b"?")
+    # Later still, the board had not read them (a slow reader, as the Simulator is):
+    # the next round is the same bytes, from a reset, not steps from this 100.
+    assert grbl.feed(ov("100,100,100")) == first
+    for _ in range(2):
+        assert grbl.feed(ov("173,100,57")) == rt(b"?")
+    assert grbl.feed(ov("173,100,57")) == []
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 173, "rapid": 100, "spindle": 57}
+
+
+def test_a_grblhal_board_that_keeps_other_values_is_answered_after_its_rounds() -> None:
+    """A build with other bounds (MAX_FEED_RATE_OVERRIDE 120, grbl.h) clamps every round:
+    after OVERRIDE_HAL_ROUNDS, the answer is what it said, with a warning."""
+    grbl = hal_grbl()
+    grbl.session.override(feed=150)
+    round_ = [FEED_RESET, *[FEED_UP_10] * 5, b"?"]
+    assert grbl.pump() == rt(*round_)
+    for n in range(1, OVERRIDE_HAL_ROUNDS + 1):
+        assert grbl.feed(ov("120,100,100")) == rt(b"?")
+        assert grbl.feed(ov("120,100,100")) == rt(b"?")
+        out = grbl.feed(ov("120,100,100"))
+        assert out == (rt(*round_) if n < OVERRIDE_HAL_ROUNDS else [])
+    assert grbl.session.override_answers == 1
+    assert grbl.session.model.overrides == {"feed": 120, "rapid": 100, "spindle": 100}
 
 
 def test_an_override_the_board_stops_moving_towards_is_answered_as_it_says() -> None:

@@ -76,6 +76,29 @@ def override_steps(percent: int, what: str, start: int | None = None) -> list[by
     ]
 
 
+def override_from_reset(percent: int, what: str) -> list[bytes]:
+    """The bytes that set a feed or spindle override to `percent` whatever it was: a
+    reset to 100, then the fewest steps there, tens then ones (tens to the multiple of
+    ten that leaves the fewest), none leaving 10..200. At most a reset and 14 steps
+    (100 to 195: nine tens, five ones), so one grblHAL ring (OVERRIDE_RING, 15) holds
+    them. Written again, they set the same value: no report the host reads too early
+    can make them overshoot."""
+    check_override(percent, what)
+    low, high = OVERRIDE_RANGE
+    tens = min(
+        range((low - 100) // 10, (high - 100) // 10 + 1),  # every 100 + 10k in low..high
+        key=lambda k: abs(k) + abs(percent - 100 - 10 * k),
+    )
+    ones = percent - 100 - 10 * tens
+    coarse = "plus" if tens >= 0 else "minus"
+    fine = "plus" if ones >= 0 else "minus"
+    return [
+        OVERRIDES[f"{what}_reset"],
+        *[OVERRIDES[f"{what}_{coarse}_10"]] * abs(tens),
+        *[OVERRIDES[f"{what}_{fine}_1"]] * abs(ones),
+    ]
+
+
 def rapid_override(percent: int) -> bytes:
     if percent not in _RAPIDS:
         raise InvalidCommand(

@@ -5,8 +5,10 @@ steps, and neither firmware takes many at once (classic grbl one of a kind a
 main-loop pass, grblHAL a 16-slot ring): `override` writes them in rounds
 (`_Rounds`, `_override_round`), each followed by `?`s, until a report that
 postdates the round's bytes shows the values asked (`_override_seen`), or a
-round brings them no nearer. OVERRIDE_ROUNDS, OVERRIDE_RING and
-OVERRIDE_ASKS bound it; `override`'s docstring cites the firmware.
+round brings them no nearer (classic grbl; on grblHAL every round is from a
+reset, and a bound of rounds ends it). OVERRIDE_ROUNDS, OVERRIDE_HAL_ROUNDS,
+OVERRIDE_RING, UNASKED_REPORTS and OVERRIDE_ASKS bound it; `override`'s
+docstring cites the firmware.
 """
 
 from __future__ import annotations
@@ -31,6 +33,19 @@ OVERRIDE_ROUNDS = 20
 # grblHAL's override rings (override.h OVERRIDE_BUFSIZE 16, override.c:37-42: a byte
 # arriving at a full ring is dropped): 15 usable. Feed and rapid share one (protocol.c:941-950).
 OVERRIDE_RING = 15
+
+# Reports grblHAL prints that no `?` asked for, one of which may come between the host's
+# override bytes and the pass that reads them: its auto-report every `$481` ms
+# (grbllib.c:160-167; the `?` is still answered besides, protocol.c:987-990), and the
+# ones it forces as a homing cycle starts (motion_control.c:919-922) and as a tool change
+# ends (state_machine.c:478-479). Classic grbl prints a report only for a `?`
+# (gnea/grbl serial.c:152).
+UNASKED_REPORTS = 1
+
+# grblHAL's rounds are absolute (a reset, then steps): one is enough unless a byte was
+# lost or the build has other bounds, or the round's report was read too early; more
+# than this many means the board keeps other values.
+OVERRIDE_HAL_ROUNDS = 3
 
 
 @dataclass(slots=True)
@@ -72,9 +87,16 @@ class GrblOverrides(GrblHolds):
         grblHAL queues them in 16-slot rings (override.c:35-43), feed and rapid in
         one (protocol.c:941-950), and drops a byte that finds its ring full: the
         19 bytes of 100 to 199 lose their last. So a round writes what one pass
-        takes (classic: one byte of a kind; grblHAL: OVERRIDE_RING a ring), the
-        first from a reset, the next ones from what a report said, up to
-        OVERRIDE_ROUNDS (`_Rounds`, `_override_round`).
+        takes (classic: one byte of a kind; grblHAL: OVERRIDE_RING a ring). On
+        classic grbl the first is from a reset and the next ones step from what a
+        report said, up to OVERRIDE_ROUNDS (`_Rounds`, `_override_round`). On
+        grblHAL every round is from a reset, by the fewest steps, which a ring
+        holds (`codec.override_from_reset`), up to OVERRIDE_HAL_ROUNDS: grblHAL
+        prints reports nobody asked for (UNASKED_REPORTS), so a report the host
+        takes for the round's may still predate its bytes, and a round that
+        stepped from it would overshoot (asked 173, the upstream Simulator went
+        to 200; docs/dialects.md). Written from a reset, the round sets the same
+        values again.
 
         A `?` read in the same pass as the bytes is answered before they act
         (gnea/grbl protocol.c:250-253 before :405; grblHAL protocol.c:604-605
@@ -98,18 +120,21 @@ class GrblOverrides(GrblHolds):
         self._override_round(None)
 
     def _override_round(self, now: dict[str, float] | None) -> None:
-        """One round's bytes (see `override`), then a `?`: from a reset when `now`, the
-        values the board last reported, is None (the first round), else steps from them.
+        """One round's bytes (see `override`), then a `?`: on classic grbl from a reset
+        when `now`, the values the board last reported, is None (the first round), else
+        steps from them; on grblHAL always from a reset (`codec.override_from_reset`).
 
         The bytes are realtime: they go now, whatever line waits. The report that
         answers the round's `?` may predate them, as may each that answers an older
         `?` still unanswered (`_asks_open`: a board reading slowly answers the ones the
-        heartbeat asked again one by one): `hops` reports are read, a `?` asked after
-        each, before one surely postdates them.
+        heartbeat asked again one by one), and on grblHAL one nobody asked for
+        (UNASKED_REPORTS): `hops` reports are read, a `?` asked after each, before one
+        surely postdates them.
         """
         rounds = self._override
         assert rounds is not None
         wanted = rounds.wanted
+        hal = self.flavour == "GrblHAL"
         motion: list[bytes] = []  # feed and rapid: one ring on grblHAL
         accessory: list[bytes] = []
         if "rapid" in wanted and (now is None or now.get("rapid") != wanted["rapid"]):
@@ -120,8 +145,11 @@ class GrblOverrides(GrblHolds):
             value = None if now is None else now.get(what)
             start = None if value is None else int(value)
             if start is None or start != wanted[what]:
-                ring += codec.override_steps(wanted[what], what, start)
-        if self.flavour == "GrblHAL":
+                if hal:  # absolute: a round read too early is written again, not overshot
+                    ring += codec.override_from_reset(wanted[what], what)
+                else:
+                    ring += codec.override_steps(wanted[what], what, start)
+        if hal:
             motion, accessory = motion[:OVERRIDE_RING], accessory[:OVERRIDE_RING]
         else:  # one byte of a kind; in the order protocol.c applies them (reset, 10s, 1s)
             motion, accessory = list(dict.fromkeys(motion)), list(dict.fromkeys(accessory))
@@ -129,7 +157,7 @@ class GrblOverrides(GrblHolds):
         rounds.rounds += 1
         # Each `?` still unanswered may bring a report that predates the bytes, then
         # the round's own may (same pass): the one after those surely follows them.
-        rounds.hops = 2 + self._asks_open()
+        rounds.hops = 2 + self._asks_open() + (UNASKED_REPORTS if hal else 0)
         rounds.asks = OVERRIDE_ASKS
         self._ask_report()
 
@@ -158,6 +186,13 @@ class GrblOverrides(GrblHolds):
             why = "the board reports no overrides"
         elif rounds.final:
             why = "the controller was reset meanwhile"
+        elif self.flavour == "GrblHAL":
+            # Each round sets the values whatever the board held: a round that brings
+            # none nearer may have been read too early, and is written again.
+            if rounds.rounds < OVERRIDE_HAL_ROUNDS:
+                self._override_round(now)
+                return
+            why = f"not there after {OVERRIDE_HAL_ROUNDS} rounds"
         elif rounds.gap is not None and gap >= rounds.gap:
             why = "the last round brought them no nearer"
         elif rounds.rounds >= OVERRIDE_ROUNDS:
