@@ -62,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="hostd", description="Host daemon for g2core CNC and laser controllers."
+        prog="hostd", description="Host daemon for g2core and grbl CNC and laser controllers."
     )
     parser.add_argument("--version", action="version", version=f"hostd {__version__}")
     _client_options(parser, default=None)
