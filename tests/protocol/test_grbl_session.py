@@ -418,6 +418,34 @@ def test_cancel_holds_then_resets_once_motion_rests() -> None:
     assert grbl.session.model.homed is not False  # it had stopped: nothing lost
 
 
+def test_a_stop_takes_no_report_that_may_predate_its_feedhold_for_rest() -> None:
+    """A report printed before the board read the stop's `!` may say Idle while lines it
+    holds are about to start a move; a reset then would stop the move dead (ALARM:3,
+    position lost). The answer to a `?` already out is such a report; so, on grblHAL,
+    is one nobody asked for (its `$481` auto-report). Only a later one says rest."""
+    for hal in (False, True):
+        grbl = Grbl()
+        if hal:
+            grbl.connect(opt="VNMHSL,35,1024,3,0", hal=True)
+        else:
+            grbl.connect()
+        stream = moves(50)
+        grbl.session.start_stream(stream)
+        grbl.pump()
+        grbl.feed("ok", "<Idle|MPos:1.000,0.000,0.000|FS:0,0>")  # between two moves
+        if not hal:
+            grbl.session.query_status()  # a poll, written; its answer still on the wire
+            assert grbl.pump()[-1] == (Lane.REALTIME, b"?")
+        grbl.session.realtime(Realtime.JOB_KILL)
+        grbl.pump()
+        assert grbl.realtime()[-2:] == [b"!", b"?"]
+        grbl.feed("<Idle|MPos:1.000,0.000,0.000|FS:0,0>")  # printed before the `!`
+        assert b"\x18" not in grbl.realtime()
+        assert grbl.realtime()[-1] == b"?"  # asked again
+        grbl.feed("<Hold:0|MPos:1.000,0.000,0.000|FS:0,0>")
+        assert grbl.realtime()[-1] == b"\x18"
+
+
 def test_a_stop_that_never_rests_resets_anyway_and_says_position_unknown() -> None:
     grbl = Grbl()
     grbl.connect()

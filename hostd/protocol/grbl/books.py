@@ -111,6 +111,9 @@ class GrblBooks(GrblWords, SessionBase):
         self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
         self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then
+        # Reports read after a stop's `!` that may still predate it, and so say nothing of
+        # its rest (`_begin_stop`): the answers to older `?`s, and on grblHAL one unasked.
+        self._stop_skips = 0
         # A `!` of ours written, and no report since shows its hold complete (Hold:0) or
         # the board out of motion: a `~` now would be dropped (`_realtime`).
         self._hold_settling = False

@@ -207,8 +207,12 @@ class GrblSession(GrblLiveness):
         waiters, self._report_waiters = self._report_waiters, []
         for token in waiters:
             self._settle(token, Response({"report": grbl_named(report)}, 0, 0, b"?"))
-        if self._stopping is not None and self._at_rest_for_reset(report):
-            self._stop_reset()
+        if self._stopping is not None:
+            if self._stop_skips:  # it may predate the stop's `!` (`_begin_stop`): ask again
+                self._stop_skips -= 1
+                self._ask_report()
+            elif self._at_rest_for_reset(report):
+                self._stop_reset()
         if self._awaiting_rest:
             self._check_stream_complete(reported=True)
             if self._awaiting_rest and report.state == "Run":  # the job's last moves run
