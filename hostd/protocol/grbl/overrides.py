@@ -155,8 +155,9 @@ class GrblOverrides(GrblHolds):
             motion, accessory = list(dict.fromkeys(motion)), list(dict.fromkeys(accessory))
         self._out += [(Lane.REALTIME, b) for b in motion + accessory]
         rounds.rounds += 1
-        # Each `?` still unanswered may bring a report that predates the bytes, then
-        # the round's own may (same pass): the one after those surely follows them.
+        # Each `?` still unanswered may bring a report that predates the bytes, so may
+        # one nobody asked for (grblHAL), then the round's own may (same pass): the one
+        # after those surely follows them.
         rounds.hops = 2 + self._asks_open() + (UNASKED_REPORTS if hal else 0)
         rounds.asks = OVERRIDE_ASKS
         self._ask_report()
