@@ -908,8 +908,9 @@ def test_a_grblhal_override_round_is_a_reset_and_the_fewest_steps_its_rings_hold
 def test_a_round_from_a_reset_sets_any_value_from_any_within_one_ring(what: str) -> None:
     """`override_from_reset`, applied as grblHAL applies each byte (clamped to 10..200,
     protocol.c:631-722): every value from every value, in at most 15 bytes (one ring),
-    no step clamped (the board would lose the count), and the same bytes again change
-    nothing."""
+    no step clamped (the board would lose the count), the same bytes again change
+    nothing, and no step passes the value unless the steps that do not would overfill
+    the ring (then within the pass that drains it)."""
     low, high = codec.OVERRIDE_RANGE
     names = {byte: name for name, byte in codec.OVERRIDES.items()}
 
@@ -924,12 +925,26 @@ def test_a_round_from_a_reset_sets_any_value_from_any_within_one_ring(what: str)
             value += step
         return value
 
+    def passes(data: list[bytes], target: int) -> bool:
+        value, seen = 100, []
+        for byte in data[1:]:
+            value = apply(value, [byte])
+            seen.append(value)
+        return any((v - target) * (100 - target) < 0 for v in seen)  # beyond it, from 100
+
+    passing = []
     for target in range(low, high + 1):
-        data = codec.override_from_reset(target, what)
+        data = codec.override_from_reset(target, what, OVERRIDE_RING)
         assert len(data) <= OVERRIDE_RING
         for start in (low, 100, target, high):
             assert apply(apply(start, data), data) == target
-    assert len(codec.override_from_reset(195, what)) == OVERRIDE_RING  # the longest
+        if passes(data, target):
+            passing.append(target)
+            # Only where the steps that never pass it would not fit the ring.
+            tens, ones = divmod(abs(target - 100), 10)
+            assert 1 + tens + ones > OVERRIDE_RING
+    assert len(codec.override_from_reset(195, what, OVERRIDE_RING)) == OVERRIDE_RING
+    assert 199 in passing and 11 in passing and 173 not in passing and 57 not in passing
 
 
 def test_a_grblhal_round_over_its_ring_is_cut_and_the_rest_goes_from_a_reset() -> None:

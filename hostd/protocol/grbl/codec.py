@@ -76,19 +76,22 @@ def override_steps(percent: int, what: str, start: int | None = None) -> list[by
     ]
 
 
-def override_from_reset(percent: int, what: str) -> list[bytes]:
+def override_from_reset(percent: int, what: str, most: int) -> list[bytes]:
     """The bytes that set a feed or spindle override to `percent` whatever it was: a
-    reset to 100, then the fewest steps there, tens then ones (tens to the multiple of
-    ten that leaves the fewest), none leaving 10..200. At most a reset and 14 steps
-    (100 to 195: nine tens, five ones), so one grblHAL ring (OVERRIDE_RING, 15) holds
-    them. Written again, they set the same value: no report the host reads too early
-    can make them overshoot."""
+    reset to 100, then steps of ten and of one, none leaving 10..200. The steps never
+    pass `percent` when they and the reset make at most `most` bytes (grblHAL's ring);
+    else they are the fewest, a step of ten past it and ones back (100 to 199: ten tens
+    and one down, 12 bytes, not nine and nine, 19). At most a reset and 14 steps (100 to
+    195: nine tens, five ones), so a ring of 15 always holds them. Written again, they
+    set the same value: no report the host reads too early makes them overshoot."""
     check_override(percent, what)
     low, high = OVERRIDE_RANGE
-    tens = min(
-        range((low - 100) // 10, (high - 100) // 10 + 1),  # every 100 + 10k in low..high
-        key=lambda k: abs(k) + abs(percent - 100 - 10 * k),
-    )
+    tens = int((percent - 100) / 10)  # towards 100: never past `percent`
+    if 1 + abs(tens) + abs(percent - 100 - 10 * tens) > most:
+        tens = min(
+            range((low - 100) // 10, (high - 100) // 10 + 1),  # every 100 + 10k in range
+            key=lambda k: abs(k) + abs(percent - 100 - 10 * k),
+        )
     ones = percent - 100 - 10 * tens
     coarse = "plus" if tens >= 0 else "minus"
     fine = "plus" if ones >= 0 else "minus"

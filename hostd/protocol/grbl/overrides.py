@@ -146,7 +146,7 @@ class GrblOverrides(GrblHolds):
             start = None if value is None else int(value)
             if start is None or start != wanted[what]:
                 if hal:  # absolute: a round read too early is written again, not overshot
-                    ring += codec.override_from_reset(wanted[what], what)
+                    ring += codec.override_from_reset(wanted[what], what, OVERRIDE_RING)
                 else:
                     ring += codec.override_steps(wanted[what], what, start)
         if hal:
