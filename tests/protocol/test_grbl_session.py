@@ -925,12 +925,14 @@ def test_a_round_from_a_reset_sets_any_value_from_any_within_one_ring(what: str)
             value += step
         return value
 
-    def passes(data: list[bytes], target: int) -> bool:
-        value, seen = 100, []
+    def passes(data: list[bytes], target: int) -> int:
+        """How far past `target` (seen from 100) the steps go on their way."""
+        value, past = 100, 0
         for byte in data[1:]:
             value = apply(value, [byte])
-            seen.append(value)
-        return any((v - target) * (100 - target) < 0 for v in seen)  # beyond it, from 100
+            if (value - target) * (100 - target) < 0:
+                past = max(past, abs(value - target))
+        return past
 
     passing = []
     for target in range(low, high + 1):
@@ -938,8 +940,9 @@ def test_a_round_from_a_reset_sets_any_value_from_any_within_one_ring(what: str)
         assert len(data) <= OVERRIDE_RING
         for start in (low, 100, target, high):
             assert apply(apply(start, data), data) == target
-        if passes(data, target):
+        if past := passes(data, target):
             passing.append(target)
+            assert past <= 4  # the multiple of ten nearest beyond it (196 by 200)
             # Only where the steps that never pass it would not fit the ring.
             tens, ones = divmod(abs(target - 100), 10)
             assert 1 + tens + ones > OVERRIDE_RING
