@@ -70,6 +70,11 @@ class _Rounds:
 class GrblOverrides(GrblHolds):
     """machine.override by rounds (see `GrblSession`)."""
 
+    def _unasked_reports(self) -> int:
+        """Reports the board may print between the host's realtime bytes and the pass
+        that reads them, no `?` asking (UNASKED_REPORTS: grblHAL's; classic grbl none)."""
+        return UNASKED_REPORTS if self.flavour == "GrblHAL" else 0
+
     def override(
         self, feed: int | None = None, rapid: int | None = None, spindle: int | None = None
     ) -> None:
@@ -158,7 +163,7 @@ class GrblOverrides(GrblHolds):
         # Each `?` still unanswered may bring a report that predates the bytes, so may
         # one nobody asked for (grblHAL), then the round's own may (same pass): the one
         # after those surely follows them.
-        rounds.hops = 2 + self._asks_open() + (UNASKED_REPORTS if hal else 0)
+        rounds.hops = 2 + self._asks_open() + self._unasked_reports()
         rounds.asks = OVERRIDE_ASKS
         self._ask_report()
 

@@ -19,7 +19,7 @@ from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import Busy, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.books import _REFUSED_BY_SHUTDOWN
-from hostd.protocol.grbl.overrides import UNASKED_REPORTS, GrblOverrides
+from hostd.protocol.grbl.overrides import GrblOverrides
 from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.states import MachineState
 from hostd.protocol.vocabulary import Context, Excepted, Lane, Queued, StreamEnd
@@ -43,10 +43,9 @@ class GrblStops(GrblOverrides):
         # A report printed before the board read the `!` may say Idle while lines it
         # still holds are about to start a move: a reset on its word would stop that move
         # dead (ALARM:3, position lost). Those reports are the answers to `?`s already
-        # out, and on grblHAL one nobody asked for (UNASKED_REPORTS); the one to the `?`
+        # out, and on grblHAL one nobody asked for (`_unasked_reports`); the one to the `?`
         # written with the `!` comes from the pass that holds, or a later one.
-        unasked = UNASKED_REPORTS if self.flavour == "GrblHAL" else 0
-        self._stop_skips = self._asks_open() + unasked
+        self._stop_skips = self._asks_open() + self._unasked_reports()
         self._ask_report()
 
     @staticmethod
