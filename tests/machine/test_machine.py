@@ -13,9 +13,10 @@ import pytest
 
 from hostd.machine.events import JobChanged
 from hostd.machine.jobrunner import PUBLISH_EVERY
-from hostd.machine.machine import NoSuchFile, setting_lines
+from hostd.machine.machine import NoSuchFile
 from hostd.machine.supervisor import Refused
 from hostd.machine.supervisor import State as Sup
+from hostd.protocol.settings import set_lines
 from hostd.protocol.states import MachineState as S
 from tests.machine.conftest import Bench, bench_for, long_moves
 
@@ -158,7 +159,7 @@ async def test_jog_stop_drops_the_rest_and_still_restores_absolute(bench: Bench)
 
 
 async def test_settings_are_read_and_written_as_one_operation(bench: Bench) -> None:
-    job, bodies = await bench.machine.settings(setting_lines({"xvm": 12000, "yvm": 11000}))
+    job, bodies = await bench.machine.settings(set_lines({"xvm": 12000, "yvm": 11000}))
     assert bodies == [{"xvm": 12000}, {"yvm": 11000}]
     assert (job.kind, job.lines_total) == ("settings", 2)
     row = await bench.store.get(job.id)

@@ -1,0 +1,209 @@
+"""The Machine's core: its fields, its lifecycle, the supervisor following the
+engine, and the fault table.
+
+The lowest layer of `Machine` (machine.py lists the layers). The engine tells
+the Machine everything through one callback (`_on_engine`); the Machine
+publishes each fact to the hub before what it causes. The Machine's task
+(`serve`) owns a task group: the engine's connection runs in it, and so
+does the follower of every streaming job; it returns only once they all have.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import structlog
+
+from hostd.machine.config import MachineConfig
+from hostd.machine.engine import Engine
+from hostd.machine.events import (
+    EngineEvent,
+    FaultChanged,
+    FaultDetected,
+    Hub,
+    LinkChanged,
+    StatusChanged,
+    SupervisorChanged,
+)
+from hostd.machine.faults import Fault, FaultTable
+from hostd.machine.jobrunner import JobRunner
+from hostd.machine.jobstore import Job, JobStore
+from hostd.machine.signals import fault_conditions
+from hostd.machine.supervisor import Event as SupEvent
+from hostd.machine.supervisor import State as SupState
+from hostd.machine.supervisor import Supervisor, Transition
+from hostd.protocol.errors import FaultActive
+from hostd.protocol.states import MachineState
+
+if TYPE_CHECKING:
+    from hostd.machine.toolchange import ToolChanger
+
+log = structlog.get_logger(__name__)
+
+
+class MachineCore:
+    """Every field, the lifecycle, the supervisor and the faults (see `Machine`)."""
+
+    # The job's M6s, by the tool_change policy: made by `Machine`, whose whole
+    # surface the tool changer works through.
+    tools: ToolChanger
+
+    def __init__(
+        self,
+        config: MachineConfig,
+        store: JobStore,
+        jobs_dir: Path,
+        *,
+        hub: Hub | None = None,
+    ) -> None:
+        self.config = config
+        self.id = config.id
+        self.store = store
+        self.jobs_dir = jobs_dir
+        self.hub = hub or Hub()
+        self.engine = Engine(config, self._on_engine)
+        self.supervisor = Supervisor(self._on_transition)
+        self.jobs = JobRunner(
+            self.id,
+            self.engine,
+            store,
+            self.hub,
+            begin_operation=self._begin_operation,
+            end_operation=self._operation_stopped,
+        )
+        self.faults = FaultTable()
+        self._signal_values: dict[str, Any] = {}  # the last value of every signal key
+        self._signals: dict[str, bool] = {}
+        self._disconnect_asked = False
+        self._log = log.bind(machine=self.id)
+
+    # -- lifecycle ---------------------------------------------------------
+
+    async def serve(self) -> None:
+        """Run the engine and every streaming job's follower until cancelled.
+
+        They live in one task group: cancelled, it cancels the followers (each
+        writes its job's end) and returns only once every one has.
+        """
+        async with asyncio.TaskGroup() as group:
+            with self.jobs.serving(group):
+                await self.engine.serve()
+
+    @property
+    def job(self) -> Job | None:
+        """The current or last operation's row."""
+        return self.jobs.job
+
+    async def connect(self) -> None:
+        self._disconnect_asked = False
+        await self.engine.connect()
+
+    async def disconnect(self) -> None:
+        self._disconnect_asked = True
+        await self.engine.disconnect()
+
+    # -- the supervisor follows the engine --------------------------------
+
+    def _on_engine(self, event: EngineEvent) -> None:
+        """The engine's one way up. A fact is published before what it causes: a status
+        report before the supervisor change and the faults it brings (clients read them
+        in that order). A fault the engine detected is the fault table's to decide."""
+        if isinstance(event, FaultDetected):
+            now_ = time.time()
+            self._fault_changed(
+                self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
+            )
+            return
+        self.hub.publish(event)
+        if isinstance(event, LinkChanged):
+            if event.up and self.supervisor.can(SupEvent.CONNECT):
+                self.supervisor.fire(SupEvent.CONNECT)
+            elif not event.up and self.supervisor.state is not SupState.DISCONNECTED:
+                asked = self._disconnect_asked
+                self.supervisor.fire(SupEvent.DISCONNECT if asked else SupEvent.DISCONNECTED)
+            self._settle()
+        elif isinstance(event, StatusChanged):
+            self._on_signals(event.report)
+            self._settle()
+
+    def _settle(self) -> None:
+        """Busy against idle, from what the board says and what the host has queued."""
+        state = self.engine.model.state
+        resting = (
+            self.engine.ready and state is not None and state.is_resting and self.engine.quiet()
+        )
+        if self.supervisor.state is SupState.BUSY and resting:
+            self.supervisor.fire(SupEvent.WENT_IDLE)
+        elif self.supervisor.state is SupState.IDLE and not resting:
+            self.supervisor.fire(SupEvent.WENT_BUSY)
+
+    def _on_transition(self, t: Transition) -> None:
+        self._log.info("supervisor", source=t.source.value, target=t.target.value, on=t.event.value)
+        # From start-operation to operation-stopped no client action fits (1003), even
+        # before the job streams or while a settings batch or a jog runs.
+        self.engine.set_operation(t.target in (SupState.OPERATION, SupState.PAUSED))
+        self.hub.publish(SupervisorChanged(self.id, t.source.value, t.target.value, t.event.value))
+
+    # -- faults ------------------------------------------------------------
+
+    def _on_signals(self, report: dict[str, Any]) -> None:
+        """Signals from the report's keys (it carries only changes), then the fault rules."""
+        signals = self.config.signals
+        keys = signals.keys()
+        self._signal_values.update((k, v) for k, v in report.items() if k in keys)
+        self._signals = signals.evaluate(self._signal_values, self._signals)
+        conditions = fault_conditions(self._signals)
+        # The controller's SHUTDOWN (its e-stop input) is always an e-stop source.
+        shutdown = self.engine.model.state is MachineState.SHUTDOWN
+        conditions["estop"] = conditions.get("estop", False) or shutdown
+        now_ = time.time()
+        for fault_id, active in conditions.items():
+            self._fault_changed(self.faults.set(fault_id, active, now=now_))
+
+    def _fault_changed(self, fault: Fault | None) -> None:
+        """Publish a change and apply its effect on a running job."""
+        if fault is None:
+            return
+        self._log.warning("fault", fault=fault.id, active=fault.active, value=fault.value)
+        self.hub.publish(FaultChanged(self.id, fault.to_json()))
+        blocking = self.faults.blocking()
+        if blocking and self.jobs.live() is not None:
+            ids = ", ".join(f.id for f in blocking)
+            self.engine.stop_stream(FaultActive.code, f"fault active: {ids}")
+
+    def override_fault(self, fault_id: str, on: bool) -> Fault:
+        fault = self.faults.override(fault_id, on)
+        self._fault_changed(fault)
+        return fault
+
+    def clear_fault(self, fault_id: str) -> Fault:
+        before = self.faults.get(fault_id)
+        fault = self.faults.clear(fault_id)
+        if fault != before:
+            self._fault_changed(fault)
+        return fault
+
+    def _refuse_if_faulted(self) -> None:
+        blocking = self.faults.blocking()
+        if blocking:
+            ids = [f.id for f in blocking]
+            raise FaultActive(f"{self.id}: fault active: {', '.join(ids)}", ids)
+
+    async def reset(self) -> None:
+        """0x18 and re-synchronisation; the back end's own faults are cleared with it."""
+        await self.engine.reset()
+        for fault in self.faults.reset():
+            self._fault_changed(fault)
+
+    # -- the operations' hooks (machine_operations.py) -----------------------
+
+    def _begin_operation(self) -> None:
+        """The job runner's: an operation may begin, or this raises why not."""
+        raise NotImplementedError
+
+    def _operation_stopped(self) -> None:
+        """The job runner's: the operation's row has reached its end."""
+        raise NotImplementedError

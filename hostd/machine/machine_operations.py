@@ -1,0 +1,203 @@
+"""The Machine's operations: make jobs, programs, jogs and settings batches, and
+the board's settings, limits and offsets read for them.
+
+A layer of `Machine` (machine.py lists the layers). Operations (`make`,
+`jog`, `settings`) start only from idle, each recorded as a job row by the
+job runner (jobrunner.py); `make` streams a file from the jobs directory and
+is the only pausable one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+from hostd.machine.jobstore import Job
+from hostd.machine.machine_core import MachineCore
+from hostd.machine.supervisor import Event as SupEvent
+from hostd.protocol.commands import InvalidCommand
+from hostd.protocol.errors import Busy, MachineError
+from hostd.protocol.gcodestate.resume import Board
+from hostd.protocol.limits import MachineLimits
+from hostd.protocol.program import program_blocks, program_lines
+from hostd.protocol.vocabulary import StreamEnd, StreamResult
+
+
+class NoSuchFile(MachineError):
+    code = 1004
+
+
+class MachineOperations(MachineCore):
+    """The operations a machine runs, and what they read from the board (see `Machine`)."""
+
+    async def start_make(
+        self,
+        file: str,
+        start_line: int = 1,
+        preamble: list[str] | None = None,
+        *,
+        counted: int | None = None,
+    ) -> Job:
+        """Stream a file of the jobs directory (its name is checked by the API layer).
+
+        `preamble`: lines sent first, before `start_line` (a resume's restore and
+        approach, hostd.protocol.gcodestate.resume); they are file line 0, and the row
+        keeps them. Every line goes with its file line number as an N word. `counted`:
+        the file's sendable lines from `start_line`, if the job's check just counted
+        them on a worker (preflight.prepare_start); else they are counted here.
+        """
+        path = self.jobs_dir / file
+        if not await asyncio.to_thread(path.is_file):
+            raise NoSuchFile(f"no file {file!r} in the jobs directory")
+        total = counted
+        if total is None:
+            total = await asyncio.to_thread(_count_lines, path, start_line)
+        before = [(0, line) for line in preamble or ()]
+        handle = path.open(encoding="utf-8", errors="replace")
+        try:
+            lines = itertools.chain(before, program_lines(handle, start_line))
+            return await self._start_make(
+                file,
+                total + len(before),
+                lines,
+                handle,
+                start_line=start_line if start_line > 1 or preamble else None,
+                preamble=preamble,
+            )
+        except BaseException:
+            handle.close()
+            raise
+
+    async def start_program(self, lines: list[str]) -> Job:
+        """Lines the daemon made (a macro's, a frame's), run as a make job with no file:
+        admitted, numbered, paused, resumed and cancelled as any make job. The caller has
+        checked the lines as a file's are checked (hostd/machine/macros.py)."""
+        return await self._start_make(None, len(lines), enumerate(lines, start=1), None)
+
+    async def _start_make(
+        self,
+        file: str | None,
+        total: int,
+        lines: Iterator[tuple[int, str]],
+        handle: TextIO | None,
+        *,
+        start_line: int | None = None,
+        preamble: list[str] | None = None,
+    ) -> Job:
+        """A make job, its M6s read by the tool-change policy (toolchange.py)."""
+        lines = self.tools.lines(lines)
+        holds = self.tools.holds(lines)
+        job = await self.jobs.start(
+            "make",
+            file,
+            total,
+            lines,
+            handle,
+            start_line=start_line,
+            preamble=preamble,
+            holds=holds,
+        )
+        if holds is not None:
+            self.tools.follow(self.jobs.live(), holds)
+        return job
+
+    async def jog(self, axes: dict[str, float], feed: float) -> Job:
+        lines = self.engine.session.jog_lines(axes, feed)
+        if self.tools.holding() and self.job is not None:
+            if not self.tools.operator_may_move():
+                raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
+            # A job waits at a tool change: the jog is its own lines, no operation of its own.
+            self.tools.operator_acted()
+            for line in lines:
+                await self.engine.send(line, operation=True)
+            return self.job
+        # g2core jogs in G-code and puts G90 back as its last line; a stopped jog needs it too.
+        restore = lines[-1] if len(lines) > 1 else None
+        return await self.jobs.start(
+            "jog", None, len(lines), enumerate(lines, start=1), None, if_stopped=restore
+        )
+
+    async def read_settings(self, keys: list[str]) -> dict[str, Any]:
+        """Read settings: queries, so served in every state while the link is up; no job row."""
+        session = self.engine.session
+        lines = session.settings_read(keys)
+        answers = await asyncio.gather(*(self.engine.send(line) for line in lines))
+        return session.settings_found(keys, [response.body for response in answers])
+
+    async def limits(self) -> MachineLimits:
+        """Travel, traverse rates and accelerations, from the board's settings (its dialect's)."""
+        session = self.engine.session
+        return session.machine_limits(await self.read_settings(session.limit_settings()))
+
+    async def board_offsets(self) -> Board:
+        """The board's stored offsets (G54..), its G92 and spindle speed, in mm: what a
+        resume plans from (hostd.protocol.gcodestate.resume). Queries: any state."""
+        session = self.engine.session
+        answers = await asyncio.gather(*(self.engine.send(q) for q in session.offset_reads()))
+        return session.board_offsets([response.body for response in answers])
+
+    def safe_height(self, limits: MachineLimits | None) -> float | None:
+        """`safe_z` from the config, else the top of the Z travel (mm, machine coordinates).
+
+        The travel's top is a place only once the machine is homed: before, machine
+        coordinates count from wherever the board was switched on, and `G53 G0 Z<top>`
+        could drive Z down to that height, or up into its end stop. Unhomed and without
+        `safe_z`, the safe height is unknown (None), and whoever needs it refuses.
+        """
+        if self.config.safe_z is not None:
+            return self.config.safe_z
+        homed = self.engine.model.homed is True
+        if homed and limits is not None and "z" in limits.travel:
+            return limits.travel["z"][1]
+        return None
+
+    async def write_settings(
+        self, values: dict[str, bool | int | float | str]
+    ) -> tuple[Job, list[dict[str, Any]]]:
+        """`settings` with the lines the board's dialect writes these values with."""
+        return await self.settings(self.engine.session.settings_write(values))
+
+    async def settings(self, lines: list[str]) -> tuple[Job, list[dict[str, Any]]]:
+        """A batch of settings lines run as one operation; the bodies the board answered.
+
+        The row says `completed` only when every line was answered with
+        status 0; anything else, even the request being abandoned, is `failed`.
+        """
+        job = await self.jobs.begin("settings", None, len(lines))
+        bodies: list[dict[str, Any]] = []
+        result = StreamResult(StreamEnd.FAILED, 1005, "the settings operation was abandoned")
+        try:
+            for line in lines:
+                response = await self.engine.send(line, operation=True)
+                bodies.append(response.body)
+                await self.jobs.save(lines_sent=len(bodies), lines_acked=len(bodies))
+            result = StreamResult(StreamEnd.COMPLETED)
+        except MachineError as exc:
+            result = StreamResult(StreamEnd.FAILED, exc.code, exc.message)
+            raise
+        except InvalidCommand as exc:
+            result = StreamResult(StreamEnd.FAILED, -32602, exc.message)
+            raise
+        finally:
+            await asyncio.shield(self.jobs.end(result))
+        return job, bodies
+
+    def _begin_operation(self) -> None:
+        """An operation may begin: a locked-out board is the first thing to say
+        (204/205/206), then a fault (1007), then "busy" (1003, unless idle)."""
+        self.engine.admit_action()
+        self._refuse_if_faulted()
+        self.supervisor.fire(SupEvent.START_OPERATION)
+
+    def _operation_stopped(self) -> None:
+        if self.supervisor.can(SupEvent.OPERATION_STOPPED):
+            self.supervisor.fire(SupEvent.OPERATION_STOPPED)
+        self._settle()
+
+
+def _count_lines(path: Path, start_line: int) -> int:
+    with path.open(encoding="utf-8", errors="replace") as f:
+        return sum(map(len, program_blocks(f, start_line)))  # a block at a time, not a line
