@@ -15,6 +15,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
+import structlog
+
 from hostd.machine.jobstore import Job
 from hostd.machine.machine_core import MachineCore
 from hostd.machine.supervisor import Event as SupEvent
@@ -24,6 +26,8 @@ from hostd.protocol.gcodestate.resume import Board
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_blocks, program_lines
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
+
+log = structlog.get_logger(__name__)
 
 
 class NoSuchFile(MachineError):
@@ -47,7 +51,7 @@ class MachineOperations(MachineCore):
         approach, hostd.protocol.gcodestate.resume); they are file line 0, and the row
         keeps them. Every line goes with its file line number as an N word. `counted`:
         the file's sendable lines from `start_line`, if the job's check just counted
-        them on a worker (preflight.prepare_start); else they are counted here.
+        them on a worker (jobstart.prepare_start); else they are counted here.
         """
         path = self.jobs_dir / file
         if not await asyncio.to_thread(path.is_file):
@@ -131,6 +135,15 @@ class MachineOperations(MachineCore):
         """Travel, traverse rates and accelerations, from the board's settings (its dialect's)."""
         session = self.engine.session
         return session.machine_limits(await self.read_settings(session.limit_settings()))
+
+    async def known_limits(self) -> MachineLimits | None:
+        """`limits`, or None when the board cannot say (not connected, refused): what a
+        check, a plan or a tool change goes without."""
+        try:
+            return await self.limits()
+        except MachineError as exc:
+            log.info("machine limits not read", machine=self.id, error=exc.message)
+            return None
 
     async def board_offsets(self) -> Board:
         """The board's stored offsets (G54..), its G92 and spindle speed, in mm: what a

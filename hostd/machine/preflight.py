@@ -1,31 +1,28 @@
-"""Before a job moves anything: its analysis against the machine, and a resume's plan.
+"""Before a job moves anything: its analysis against the machine.
 
-The G-code rules are in `hostd.protocol.gcodestate` (the model, the analysis, the
-resume plan) and the dialect's settings in its session (`limit_settings`,
-`machine_limits`); this module reads the file off the event loop and puts them
-together for one machine. Reading a file runs on the daemon's worker processes
+The G-code rules are in `hostd.protocol.gcodestate` (the model, the analysis)
+and `hostd.protocol.jobcheck` (the lines a board would refuse), and the
+dialect's settings in its session (`limit_settings`, `machine_limits`); this
+module reads the file off the event loop and puts them together for one
+machine. Reading a file runs on the daemon's worker processes
 (`workers.WorkerPool`), never in the daemon's interpreter: a hostile or huge
 file costs a worker its time and memory limit, and the event loop nothing.
-The functions that take a `Machine` (`analyze_for`,
-`prepare_start`, `plan_for`, `recovery_for`) read what they need of it
-themselves: its board's limits (none when the board cannot say), its work
-offset, safe height and dwell.
+`analyze_for` reads what it needs of a `Machine` itself: its board's limits
+(none when the board cannot say) and its work offset.
+
+A job's start (`jobstart.py`) and a resume's plan (`resumes.py`) build on this.
 """
 
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import structlog
-
 from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
-from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
 from hostd.protocol import dialects
@@ -38,15 +35,10 @@ from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.blocks import unsupported_text
 from hostd.protocol.gcodestate.figures import DEFAULT_RAPID
 from hostd.protocol.gcodestate.model import ProgramError
-from hostd.protocol.gcodestate.resume import Board, ResumeError, ResumePlan, plan_resume
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.jobcheck import Findings, check_program
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
-
-log = structlog.get_logger(__name__)
-
-RESUMABLE = ("interrupted", "failed", "cancelled")
 
 
 class OutOfTravel(MachineError):
@@ -62,12 +54,6 @@ class NotRunnable(MachineError):
     too, since a client handles it as the travel refusal (look, then force or fix)."""
 
     code = 1008
-
-
-class NotResumable(MachineError):
-    """No safe resume: the job, the file or the position does not allow one."""
-
-    code = 1011
 
 
 class BadProgram(MachineError):
@@ -282,98 +268,6 @@ def _analysis(
         )
 
 
-def _recovery_line(job: Job) -> tuple[int, list[str]]:
-    """Where `job` should resume, and what is unsure about that line.
-
-    The resume line is `line_executed`: the line the board was running, which
-    is run again from its start.
-    """
-    if job.kind != "make" or job.file is None:
-        raise NotResumable(f"job {job.id} is a {job.kind} operation, not a make job")
-    if job.state not in RESUMABLE:
-        raise NotResumable(f"job {job.id} is {job.state}: only {', '.join(RESUMABLE)} resume")
-    line = job.line_executed
-    if line is None:
-        about = "the board never said which line it ran: resuming at the job's start"
-        return job.start_line or 1, [about]
-    about = (
-        f"line {line} is the last the board reported running, at most a status "
-        f"interval before the stop (or the M6 a tool change held the job at: every "
-        f"line before it ran); it answered {job.lines_acked} of the job's lines, "
-        "so it may have gone further"
-    )
-    return line, [about]
-
-
-async def plan_at(
-    path: Path,
-    line: int,
-    dialect: DialectSpec,
-    *,
-    board: Board | None,
-    safe_z: float | None,
-    dwell: float,
-    plunge_feed: float | None = None,
-    laser: bool = False,
-    pool: WorkerPool,
-) -> ResumePlan:
-    """The plan to resume the file at `line` (or the first line to send after it), on a
-    board that holds `board` (its stored offsets, G92 and speed, read just before)."""
-    try:
-        return await pool.run(
-            f"planning a resume of {path.name}",
-            _plan_file,
-            path,
-            line,
-            dialect.gcode,
-            board,
-            safe_z,
-            dwell,
-            plunge_feed,
-            laser,
-        )
-    except ResumeError as exc:
-        raise NotResumable(str(exc)) from None
-    except ProgramError as exc:
-        raise BadProgram.of(path, exc) from None
-    except FileNotFoundError:
-        raise NotResumable(f"the file {path.name!r} is gone") from None
-
-
-def _plan_file(
-    path: Path,
-    line: int,
-    gcode: GcodeDialect,
-    board: Board | None,
-    safe_z: float | None,
-    dwell: float,
-    plunge_feed: float | None,
-    laser: bool,
-) -> ResumePlan:
-    """`plan_at`'s work, on a worker process."""
-    with path.open(encoding="utf-8", errors="replace") as f:
-        plan = plan_resume(
-            f,
-            line,
-            gcode,
-            board=board,
-            safe_z=safe_z,
-            dwell=dwell,
-            plunge_feed=plunge_feed,
-            laser=laser,
-        )
-    with path.open(encoding="utf-8", errors="replace") as f:
-        first = next(program_lines(f, line), None)
-    if first is None:
-        raise ResumeError(f"nothing to run at or after line {line}")
-    return plan if first[0] == line else _at(plan, first[0])
-
-
-def _at(plan: ResumePlan, line: int) -> ResumePlan:
-    """The same plan, starting at the first sendable line (blank and comment lines skipped)."""
-    return dataclasses.replace(plan, line=line)
-
-
 # -- for one machine ----------------------------------------------------------
 
 
@@ -385,7 +279,7 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
         found = await check_file(path, spec, MAX_LINE_BYTES + 1, None, pool=pool)
         analysed = await analyze_file(path, spec, pool=pool)
         return replace(analysed, findings=found, dialect=spec.gcode.name)
-    limits = await _limits(machine)
+    limits = await machine.known_limits()
     offset = work_offset(machine.snapshot())
     found = await check_file(
         path,
@@ -397,132 +291,3 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
     )
     analysis = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
     return replace(analysis, findings=found, dialect=machine.config.spec.gcode.name)
-
-
-@dataclass(frozen=True, slots=True)
-class Start:
-    """What `prepare_start` found a make job needs."""
-
-    preamble: list[str] | None  # a resume's lines, sent before the file's
-    # The file's sendable lines from the start line, as the check counted them in its
-    # pass over the file; None when no check ran (`force`): the job counts them itself.
-    lines: int | None
-
-
-async def prepare_start(
-    machine: Machine,
-    path: Path,
-    start_line: int,
-    *,
-    restore: bool,
-    force: bool,
-    pool: WorkerPool,
-    notes: list[str] | None = None,
-) -> Start:
-    """What a make job of `path` from `start_line` needs before it starts: the preamble,
-    and the count of its lines if the check read them.
-
-    `notes`, if given, gets what the job will do that the file does not say (the
-    M6s a "ignore" policy strips), one line each, for job.start's `warnings`.
-
-    Refuses a program whose moves leave the machine's travel (OutOfTravel)
-    unless `force`, when the check can run (the travel known, the machine
-    homed). From `start_line` > 1 with `restore`, returns the resume
-    plan's lines (the modal state restored, a safe approach) to send before
-    the file's; else None.
-    """
-    counted = None
-    if not force:
-        # Lines the board would refuse, or must not run: a job that would fail at its
-        # 20,000th line for what the host can see now fails before anything moves.
-        found = await check_file(
-            path,
-            machine.config.spec,
-            line_limit(machine),
-            tool_change_policy(machine),
-            start_line,
-            pool=pool,
-            numbered=numbers_lines(machine),
-        )
-        if notes is not None:
-            notes += [f"line {f.line}: {f.text}" for f in found.notes]
-            if found.notes_total > len(found.notes):
-                notes.append(f"and {found.notes_total - len(found.notes)} more M6 lines")
-        if found:
-            raise NotRunnable(
-                f"{path.name} cannot run on {machine.id}: {found.summary()}",
-                {
-                    "problems": [f.to_json() for f in found.found],
-                    "problems_total": found.total,
-                    "force": "true starts it anyway",
-                },
-            )
-        counted = found.lines
-    limits = await _limits(machine) if not force or start_line > 1 else None
-    offset = work_offset(machine.snapshot())
-    if not force and limits is not None and limits.travel and offset:
-        # Only a check that can run is worth reading the file for: the travel
-        # is known and so is the work offset (the machine is homed).
-        check = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
-        if check.beyond:
-            raise OutOfTravel(
-                f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
-                {"beyond_travel": check.beyond, "force": "true runs it anyway"},
-            )
-    preamble = None
-    if start_line > 1 and restore:
-        preamble = (await _plan(machine, path, start_line, limits, pool)).lines
-    return Start(preamble, counted)
-
-
-async def plan_for(machine: Machine, path: Path, line: int, *, pool: WorkerPool) -> ResumePlan:
-    """The plan `prepare_start` would send to resume `path` at `line` on `machine`."""
-    return await _plan(machine, path, line, await _limits(machine), pool)
-
-
-async def recovery_for(
-    machine: Machine, path: Path, job: Job, *, pool: WorkerPool
-) -> tuple[ResumePlan, list[str]]:
-    """Where `job` should resume on `machine`, and the plan that gets there safely.
-
-    Returns the plan and what is unsure about its line (`_recovery_line`);
-    NotResumable when the job or the file allows no safe resume.
-    """
-    line, about = _recovery_line(job)  # a job that cannot resume asks the board nothing
-    return await _plan(machine, path, line, await _limits(machine), pool), about
-
-
-async def _plan(
-    machine: Machine, path: Path, line: int, limits: MachineLimits | None, pool: WorkerPool
-) -> ResumePlan:
-    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell and
-    plunge feed, in machine coordinates from the offsets its board holds now."""
-    config = machine.config
-    try:
-        board = await machine.board_offsets()
-    except MachineError as exc:
-        raise NotResumable(
-            f"{machine.id}: its board's offsets could not be read ({exc.message}): "
-            "a resume is planned from them"
-        ) from None
-    laser = config.laser or machine.snapshot().get("laser_mode") is True
-    return await plan_at(
-        path,
-        line,
-        config.spec,
-        board=board,
-        safe_z=machine.safe_height(limits),
-        dwell=config.spindle_dwell,
-        plunge_feed=config.plunge_feed,
-        laser=laser,
-        pool=pool,
-    )
-
-
-async def _limits(machine: Machine) -> MachineLimits | None:
-    """The board's travel and speeds; None when it cannot say (not connected, refused)."""
-    try:
-        return await machine.limits()
-    except MachineError as exc:
-        log.info("machine limits not read", machine=machine.id, error=exc.message)
-        return None

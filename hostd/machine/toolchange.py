@@ -298,7 +298,7 @@ class ToolChanger:
         assert config is not None and config.tool_sensor is not None  # the config insists
         engine = machine.engine
         session = engine.session
-        safe = machine.safe_height(await _limits(machine))
+        safe = machine.safe_height(await machine.known_limits())
         if safe is None:
             raise Busy(
                 f"{machine.id}: no safe height known to reach the tool sensor: set safe_z, "
@@ -391,13 +391,6 @@ async def _first(*aws: Any) -> None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-
-
-async def _limits(machine: Machine) -> Any:
-    try:
-        return await machine.limits()
-    except MachineError:
-        return None
 
 
 def _n(value: float) -> str:

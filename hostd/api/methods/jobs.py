@@ -9,7 +9,8 @@ from pydantic import Field, model_validator
 from hostd.api.files import check_name
 from hostd.api.methods.params import Id, JobFile, MachineId, MachineParams, Params
 from hostd.api.rpc import Methods, RpcError
-from hostd.machine.preflight import plan_for, prepare_start, recovery_for
+from hostd.machine.jobstart import prepare_start
+from hostd.machine.resumes import plan_for, recovery_for
 
 if TYPE_CHECKING:
     from hostd.api.methods.base import Api
