@@ -236,6 +236,65 @@ async def test_the_preview_draws_arcs_zooms_pans_and_shows_z_from_the_side(
         await screenshot(page, tmp_path, "preview-side")
 
 
+# Rows 1 mm apart, each a 10 mm move at file line 1 + 2 * row, joined at alternate ends.
+ROWS = "G21 G90 F300\n" + "".join(
+    f"G1 X{10 * (row % 2 == 0)} Y{row}\nG1 X{10 * (row % 2)} Y{row}\n" for row in range(1, 61)
+)
+
+
+async def test_the_preview_shows_done_only_what_the_board_ran_not_what_it_planned(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """The preview's green ("done") ends at the line the board says it is running
+    (`line_executed`), not at the last line it answered: an answer means the move is in
+    the planner, and the planner holds many moves ahead of the tool."""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "rows.nc", ROWS)
+        await page.click("#start")
+        # The board runs row 7 or later, and has answered at least twelve lines beyond it.
+        await page.wait_for_function(
+            """() => {
+                const job = view.snapshots.get(view.machine).job;
+                return job && job.line_executed >= 15 && job.lines_acked >= job.line_executed + 12;
+            }"""
+        )
+        seen = await page.evaluate(
+            """() => {
+                const job = view.snapshots.get(view.machine).job;
+                drawPreview();  // as the page drew it for this job state, read in the same turn
+                const canvas = document.getElementById('preview');
+                const ratio = window.devicePixelRatio || 1;
+                const g = canvas.getContext('2d');
+                const green = (x, y) => {  // the most green-over-red-and-blue within 2 px
+                    const [cx, cy] = view.preview.toCanvas(x, y);
+                    const [left, top] = [(cx - 2) * ratio, (cy - 2) * ratio].map(Math.round);
+                    const side = Math.round(5 * ratio);
+                    const d = g.getImageData(left, top, side, side).data;
+                    let most = -255;
+                    for (let i = 0; i < d.length; i += 4) {
+                        if (d[i + 3] < 128) continue;
+                        most = Math.max(most, d[i + 1] - Math.max(d[i], d[i + 2]));
+                    }
+                    return most;
+                };
+                const rows = [];
+                for (let row = 1; row <= 60; row += 1) rows.push([1 + 2 * row, green(5, row)]);
+                return { executed: job.line_executed, acked: job.lines_acked, rows };
+            }"""
+        )
+        executed, acked = seen["executed"], seen["acked"]  # every line of ROWS is sendable
+        ran = [green for line, green in seen["rows"] if line < executed - 4]
+        planned = [green for line, green in seen["rows"] if executed + 4 < line <= acked]
+        assert ran and planned, seen
+        assert all(green > 40 for green in ran), seen  # --done, #1a7f37: 72 over red and blue
+        assert all(green < 10 for green in planned), seen  # --left, grey: none
+        rpc = await web.hostd.client()
+        await rpc.call("job.cancel", machine="sim1")
+        await rpc.close()
+
+
 async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:

@@ -313,7 +313,9 @@ function parseProgram(name, text) {
   let absolute = true, arcAbsolute = false, scale = 1, feed = null, motion = 0, plane = 17;
   let sendable = 0, seconds = 0;
   const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  let fileLine = 0; // numbered as the daemon numbers a file's lines (line_executed)
   for (const raw of text.split("\n")) {
+    fileLine += 1;
     const line = raw.replace(/\([^)]*\)/g, "").replace(/;.*/, "").trim().toUpperCase();
     if (!line || line.startsWith("%")) continue;
     sendable += 1;
@@ -348,7 +350,7 @@ function parseProgram(name, text) {
       const scaled = offset.map((v) => (v === null ? null : v * scale));
       points = arcPoints(start, end, motion === 2, PLANES[plane], scaled, radius === null ? null : radius * scale, arcAbsolute);
     }
-    moves.push({ points, rapid: motion === 0, at: sendable });
+    moves.push({ points, rapid: motion === 0, line: fileLine });
     let length = 0;
     for (let i = 0; i < points.length; i += 1) {
       const p = points[i];
@@ -509,7 +511,10 @@ function drawPreview() {
   drawGrid(g, width, height, scale, pv, style, [h, v]);
   const snap = view.snapshots.get(view.machine);
   const job = snap && snap.job && snap.job.file === program.name ? snap.job : null;
-  const done = job ? job.lines_acked : 0;
+  // Done is what the board ran: the lines before the one it last said it was running
+  // (line_executed, a lower bound, never ahead; docs/api.md). Not the lines it answered:
+  // an answer means planned, and a planner holds many moves ahead of the tool.
+  const done = !job ? 0 : job.state === "completed" ? Infinity : job.line_executed || 0;
   const stroke = (moves, color, dash) => {
     g.beginPath();
     g.strokeStyle = color;
@@ -522,8 +527,8 @@ function drawPreview() {
     g.stroke();
   };
   g.lineWidth = 2; // at least one whole pixel wide, wherever it falls
-  const left = program.moves.filter((m) => m.at > done);
-  const past = program.moves.filter((m) => m.at <= done);
+  const left = program.moves.filter((m) => m.line >= done);
+  const past = program.moves.filter((m) => m.line < done);
   stroke(left.filter((m) => m.rapid), style.getPropertyValue("--rapid"), [3, 4]);
   stroke(left.filter((m) => !m.rapid), style.getPropertyValue("--left"), []);
   stroke(past, style.getPropertyValue("--done"), []);
