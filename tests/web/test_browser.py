@@ -57,6 +57,9 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
         await expect(page.locator("#confirm")).to_be_visible()
         await page.click("#confirm-yes")
         await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
+        # The job kill, 0x04, is named as g2core names it ("Job killed by ^d"), not a box.
+        await expect(page.locator("#console")).to_contain_text("→ ^D\n")
+        assert "\x04" not in await page.text_content("#console")
 
         sim.set_analog(1, 0.2)  # the coolant stops: an alert
         await expect(page.locator("#indicator")).not_to_have_attribute("data-level", "normal")

@@ -671,9 +671,14 @@ async function refreshHistory() {
   updateEnabled();
 }
 
+// A control byte shown as its caret name, as the boards' own messages name them ("Job
+// killed by ^d"): the job kill 0x04 is ^D, grbl's reset 0x18 ^X. As text it drew a box.
+const visible = (text) =>
+  text.replace(/[\x00-\x08\x0a-\x1f\x7f]/g, (c) => `^${String.fromCharCode(c.charCodeAt(0) ^ 0x40)}`);
+
 function showConsole(params) {
   if (params.machine !== view.machine) return;
-  view.console.push(`${params.direction === "tx" ? "→" : "←"} ${params.text}`);
+  view.console.push(`${params.direction === "tx" ? "→" : "←"} ${visible(params.text)}`);
   if (view.console.length > 300) view.console.splice(0, view.console.length - 300);
   const pre = $("console");
   const atEnd = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
