@@ -60,6 +60,15 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
         # The job kill, 0x04, is named as g2core names it ("Job killed by ^d"), not a box.
         await expect(page.locator("#console")).to_contain_text("→ ^D\n")
         assert "\x04" not in await page.text_content("#console")
+        # The cancelled job's Resume… is inside its card, not scrolled out of it (the
+        # start's whole date once pushed it past the edge at 1280 px).
+        await expect(page.locator("#history tbody tr button").first).to_have_text("Resume…")
+        right, edge = await page.evaluate(  # in one turn: the table is redrawn as news comes
+            """() => [document.querySelector('#history tbody tr button'),
+                      document.getElementById('history').parentElement]
+                     .map((element) => element.getBoundingClientRect().right)"""
+        )
+        assert right <= edge, (right, edge)
 
         sim.set_analog(1, 0.2)  # the coolant stops: an alert
         await expect(page.locator("#indicator")).not_to_have_attribute("data-level", "normal")

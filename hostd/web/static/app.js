@@ -642,18 +642,27 @@ async function refreshFiles(select) {
   updateEnabled();
 }
 
+// When a job started, short enough that the row's Resume button stays in the card: the time
+// for today's jobs, the day and time for older ones.
+function shortTime(at) {
+  const today = at.toDateString() === new Date().toDateString();
+  const clock = { hour: "2-digit", minute: "2-digit" };
+  return at.toLocaleString([], today ? clock : { month: "short", day: "numeric", ...clock });
+}
+
 async function refreshHistory() {
   const jobs = await act("job.list", { machine: view.machine, limit: 20 });
   if (!jobs) return;
   $("history").tBodies[0].replaceChildren(...jobs.map((job) => {
     const tr = document.createElement("tr");
     const lines = job.lines_total ? `${job.lines_acked}/${job.lines_total}` : String(job.lines_acked);
-    const started = job.started_at ? new Date(job.started_at).toLocaleString() : "–";
-    for (const text of [job.id, job.file || "–", job.kind, job.state, lines, started]) {
+    const at = job.started_at ? new Date(job.started_at) : null;
+    for (const text of [job.id, job.file || "–", job.kind, job.state, lines, at ? shortTime(at) : "–"]) {
       const td = document.createElement("td");
       td.textContent = text;
       tr.append(td);
     }
+    if (at) tr.cells[5].title = at.toLocaleString(); // the whole date and time on hover
     const td = document.createElement("td");
     td.className = "control";
     if (job.kind === "make" && ["interrupted", "failed", "cancelled"].includes(job.state)) {
