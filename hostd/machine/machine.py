@@ -54,6 +54,8 @@ __all__ = ["Machine", "NoSuchFile"]
 
 
 class Machine(MachineOperations):
+    """One configured machine, and the only way down to its engine (see the module)."""
+
     def __init__(
         self,
         config: MachineConfig,
@@ -63,7 +65,7 @@ class Machine(MachineOperations):
         hub: Hub | None = None,
     ) -> None:
         super().__init__(config, store, jobs_dir, hub=hub)
-        self.tools = ToolChanger(self)
+        self.tools = ToolChanger(self)  # the job's M6s, by the tool_change policy
 
     # -- commands the API gives: the machine is the only way down ------------
 
