@@ -295,6 +295,24 @@ async def test_the_preview_shows_done_only_what_the_board_ran_not_what_it_planne
         await rpc.close()
 
 
+async def test_a_job_whose_lines_are_all_answered_is_finishing_not_at_zero_seconds(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """Three long moves: all answered at once, the board runs them for seconds. The ETA
+    says so ("finishing"); left to its count of lines it said "0 s"."""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "long-moves.nc", "G1 X300 F300\nG1 X0\nG1 X300\n")
+        await page.click("#start")
+        await expect(page.locator("#job-lines")).to_have_text("3 / 3")
+        await expect(page.locator("#job-eta")).to_have_text("finishing")
+        await expect(page.locator("#supervisor")).to_have_text("operation")  # still moving
+        rpc = await web.hostd.client()
+        await rpc.call("job.cancel", machine="sim1")
+        await rpc.close()
+
+
 async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:

@@ -279,9 +279,13 @@ function showJob(job) {
   }
   const perSecond = view.rate.perSecond;
   $("job-rate").textContent = perSecond === null ? "–" : `${perSecond.toFixed(1)} lines/s`;
+  // Every line answered is not the end: the board still runs what its planner holds, and
+  // the job is running until it rests. Said so, not "0 s".
   const left = total - job.lines_acked;
   $("job-eta").textContent =
-    job.state !== "running" ? "–" : perSecond > 0 ? duration(left / perSecond) : "…";
+    job.state !== "running" ? "–"
+      : total && left <= 0 ? "finishing"
+        : perSecond > 0 ? duration(left / perSecond) : "…";
   // The preview shows the file picked in the list, never the job's behind its back
   // (that once made the preview and Start disagree).
   if (["completed", "failed", "cancelled", "interrupted"].includes(job.state)) refreshHistory();
