@@ -7,7 +7,9 @@ If the notifications go quiet it asks `job.get` itself, so a lost or late
 event can delay the display but never hang the client.
 
 On a terminal the display is a rich progress bar (lines answered of the
-total, percentage, rate, ETA, machine state). Elsewhere it is a plain line
+total, percentage, rate, ETA, machine state); once every line is answered
+and the job still runs, the ETA says "finishing" (the board's planner still
+holds moves; `RemainingColumn`), as the dashboard does. Elsewhere it is a plain line
 on every job state change and every tenth of the way: logs and pipes get
 a readable history instead of a redrawn bar.
 
@@ -64,6 +66,17 @@ class RateColumn(ProgressColumn):
         return Text("   - lines/s" if speed is None else f"{speed:5.0f} lines/s")
 
 
+class RemainingColumn(TimeRemainingColumn):
+    """The time left at the current rate, until every line is answered: then the job is
+    "finishing" while it runs (the board works through what its planner holds; a job
+    completes only when the board rests), where a countdown would say 0:00:00."""
+
+    def render(self, task: Task) -> Text:
+        if task.total is not None and task.completed >= task.total and task.fields.get("running"):
+            return Text("finishing", style="progress.remaining")
+        return super().render(task)
+
+
 class JobDisplay:
     """The job's progress where the user can see it: a live bar, or plain lines."""
 
@@ -82,13 +95,15 @@ class JobDisplay:
                 MofNCompleteColumn(),
                 TaskProgressColumn(),
                 RateColumn(),
-                TimeRemainingColumn(),
+                RemainingColumn(),
                 TextColumn("{task.fields[where]}"),
                 console=console,
                 transient=False,
             )
             name = f"#{job.get('id')} {job.get('file') or ''}".strip()
-            self._task_id = self._progress.add_task(name, total=job.get("lines_total"), where="")
+            self._task_id = self._progress.add_task(
+                name, total=job.get("lines_total"), where="", running=self._state == "running"
+            )
 
     def __enter__(self) -> JobDisplay:
         if self._progress is not None:
@@ -119,7 +134,13 @@ class JobDisplay:
             where = (
                 self._machine_state if state == "running" else f"{state} · {self._machine_state}"
             )
-            self._progress.update(self._task_id, completed=self._acked, total=total, where=where)
+            self._progress.update(
+                self._task_id,
+                completed=self._acked,
+                total=total,
+                where=where,
+                running=state == "running",
+            )
             return
         if state != self._state:
             self._state = state

@@ -7,6 +7,7 @@ import io
 from rich.console import Console
 
 from hostd.cli import render
+from hostd.cli.progress import JobDisplay, RemainingColumn
 
 
 def plain() -> tuple[Console, io.StringIO]:
@@ -59,3 +60,25 @@ def test_a_send_answer_reads_as_status_then_key_value_lines() -> None:
     assert render.answer_lines({"status": 0, "r": {}}) == ["ok"]
     report = {"status": 0, "r": {"report": {"state": "Idle", "FS": [0, 0]}}}
     assert render.answer_lines(report) == ["ok", "report.state: Idle", "report.FS: [0,0]"]
+
+
+def test_the_live_bar_says_finishing_once_every_line_is_answered_and_the_job_runs() -> None:
+    """A job completes only when the board rests: its last answered lines may still be
+    minutes of motion, which a countdown showed as 0:00:00."""
+    buffer = io.StringIO()
+    console = Console(file=buffer, width=120, force_terminal=True)
+    job = {"id": 7, "file": "long.nc", "state": "running", "lines_total": 3, "lines_acked": 0}
+    display = JobDisplay(console, job)
+    progress = display._progress
+    assert progress is not None  # a terminal: the live bar
+    column = next(c for c in progress.columns if isinstance(c, RemainingColumn))
+
+    def remaining() -> str:
+        return column.render(progress.tasks[0]).plain
+
+    display.update({**job, "lines_acked": 2}, "RUN")
+    assert remaining() != "finishing"
+    display.update({**job, "lines_acked": 3}, "RUN")
+    assert remaining() == "finishing"
+    display.update({**job, "lines_acked": 3, "state": "completed"}, "STOP")
+    assert remaining() != "finishing"
