@@ -13,7 +13,7 @@ import pytest
 
 from hostd import daemon
 from tests.daemon.conftest import Rpc, RpcFailure
-from tests.web.conftest import log_in, running_web, screenshot
+from tests.web.conftest import Web, log_in, running_web, screenshot
 
 pytestmark = pytest.mark.asyncio(loop_scope="session")  # `browser` (conftest)
 expect = playwright.expect
@@ -48,6 +48,13 @@ async def upload(page: playwright.Page, tmp_path: Path, name: str, text: str) ->
     await page.click("#upload button")
     await expect(page.locator("#files")).to_have_value(name)
     await expect(page.locator("#analysis")).to_contain_text(f"{name}:")
+
+
+async def cancel_job(web: Web) -> None:
+    """End the test's job at once (its moves would run on for seconds)."""
+    rpc = await web.hostd.client()
+    await rpc.call("job.cancel", machine="sim1")
+    await rpc.close()
 
 
 async def refused(rpc: Rpc, method: str, **params: Any) -> int:
@@ -290,9 +297,7 @@ async def test_the_preview_shows_done_only_what_the_board_ran_not_what_it_planne
         assert ran and planned, seen
         assert all(green > 40 for green in ran), seen  # --done, #1a7f37: 72 over red and blue
         assert all(green < 10 for green in planned), seen  # --left, grey: none
-        rpc = await web.hostd.client()
-        await rpc.call("job.cancel", machine="sim1")
-        await rpc.close()
+        await cancel_job(web)
 
 
 async def test_a_job_whose_lines_are_all_answered_is_finishing_not_at_zero_seconds(
@@ -308,9 +313,7 @@ async def test_a_job_whose_lines_are_all_answered_is_finishing_not_at_zero_secon
         await expect(page.locator("#job-lines")).to_have_text("3 / 3")
         await expect(page.locator("#job-eta")).to_have_text("finishing")
         await expect(page.locator("#supervisor")).to_have_text("operation")  # still moving
-        rpc = await web.hostd.client()
-        await rpc.call("job.cancel", machine="sim1")
-        await rpc.close()
+        await cancel_job(web)
 
 
 async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(
