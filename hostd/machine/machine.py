@@ -21,7 +21,9 @@ reach an upper one it declares a hook (raising NotImplementedError):
                                             following the engine; the faults
                                             and `reset`; the hooks
                                             `_begin_operation`,
-                                            `_operation_stopped`
+                                            `_operation_stopped` (the
+                                            operations') and `_tool_changer`
+                                            (Machine's)
   machine_operations.py  MachineOperations  make jobs, programs, jogs and
                                             settings batches, and the board's
                                             settings, limits and offsets
@@ -35,12 +37,9 @@ This module keeps `Machine` and `NoSuchFile` where every importer finds them.
 from __future__ import annotations
 
 import asyncio
-from pathlib import Path
 from typing import Any
 
-from hostd.machine.config import MachineConfig
-from hostd.machine.events import Hub
-from hostd.machine.jobstore import Job, JobStore, ToolChange
+from hostd.machine.jobstore import Job, ToolChange
 from hostd.machine.machine_operations import MachineOperations, NoSuchFile
 from hostd.machine.stream import JobStream
 from hostd.machine.supervisor import Event as SupEvent
@@ -56,16 +55,8 @@ __all__ = ["Machine", "NoSuchFile"]
 class Machine(MachineOperations):
     """One configured machine, and the only way down to its engine (see the module)."""
 
-    def __init__(
-        self,
-        config: MachineConfig,
-        store: JobStore,
-        jobs_dir: Path,
-        *,
-        hub: Hub | None = None,
-    ) -> None:
-        super().__init__(config, store, jobs_dir, hub=hub)
-        self.tools = ToolChanger(self)  # the job's M6s, by the tool_change policy
+    def _tool_changer(self) -> ToolChanger:
+        return ToolChanger(self)
 
     # -- commands the API gives: the machine is the only way down ------------
 

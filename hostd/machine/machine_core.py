@@ -47,10 +47,6 @@ log = structlog.get_logger(__name__)
 class MachineCore:
     """Every field, the lifecycle, the supervisor and the faults (see `Machine`)."""
 
-    # The job's M6s, by the tool_change policy: made by `Machine`, whose whole
-    # surface the tool changer works through.
-    tools: ToolChanger
-
     def __init__(
         self,
         config: MachineConfig,
@@ -79,6 +75,7 @@ class MachineCore:
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
         self._log = log.bind(machine=self.id)
+        self.tools = self._tool_changer()  # the job's M6s, by the tool_change policy
 
     # -- lifecycle ---------------------------------------------------------
 
@@ -198,7 +195,12 @@ class MachineCore:
         for fault in self.faults.reset():
             self._fault_changed(fault)
 
-    # -- the operations' hooks (machine_operations.py) -----------------------
+    # -- the upper layers' hooks ------------------------------------------------
+
+    def _tool_changer(self) -> ToolChanger:
+        """`Machine`'s: the tool changer works through the whole machine (it holds and
+        releases the job, jogs, probes)."""
+        raise NotImplementedError
 
     def _begin_operation(self) -> None:
         """The job runner's: an operation may begin, or this raises why not."""
