@@ -300,6 +300,19 @@ async def test_the_preview_shows_done_only_what_the_board_ran_not_what_it_planne
         await cancel_job(web)
 
 
+async def test_the_preview_numbers_lines_as_the_daemon_does_whatever_ends_them(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """A lone CR ends a line for the daemon (Python's universal newlines), so it does for
+    the preview: its moves carry the file lines `line_executed` names."""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await upload(page, tmp_path, "cr.nc", "G21 G90\rG1 X10 F300\r\nG1 Y5\n(done)\rG1 X20\r")
+        assert await page.evaluate("view.program.moves.map((m) => m.line)") == [2, 3, 5]
+        assert await page.evaluate("view.program.bounds.hi[0]") == 20
+
+
 async def test_a_job_whose_lines_are_all_answered_is_finishing_not_at_zero_seconds(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:

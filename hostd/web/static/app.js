@@ -317,8 +317,9 @@ function parseProgram(name, text) {
   let absolute = true, arcAbsolute = false, scale = 1, feed = null, motion = 0, plane = 17;
   let sendable = 0, seconds = 0;
   const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-  let fileLine = 0; // numbered as the daemon numbers a file's lines (line_executed)
-  for (const raw of text.split("\n")) {
+  let fileLine = 0; // numbered as the daemon numbers a file's lines (line_executed): a
+  // line ends at \n, \r\n or a lone \r, as Python reads a text file (universal newlines)
+  for (const raw of text.split(/\r\n|\r|\n/)) {
     fileLine += 1;
     const line = raw.replace(/\([^)]*\)/g, "").replace(/;.*/, "").trim().toUpperCase();
     if (!line || line.startsWith("%")) continue;
