@@ -292,6 +292,13 @@ async def test_the_preview_shows_done_only_what_the_board_ran_not_what_it_planne
             }"""
         )
         executed, acked = seen["executed"], seen["acked"]  # every line of ROWS is sendable
+        # The job card says where the board is: the line it runs, not the last it answered.
+        shown, running, answered = await page.evaluate(
+            """() => { const job = view.snapshots.get(view.machine).job;
+                       return [document.getElementById('job-at').textContent,
+                               job.line_executed, job.lines_acked]; }"""
+        )
+        assert shown == str(running) and running < answered, (shown, running, answered)
         ran = [green for line, green in seen["rows"] if line < executed - 4]
         planned = [green for line, green in seen["rows"] if executed + 4 < line <= acked]
         assert ran and planned, seen

@@ -259,7 +259,7 @@ function showJob(job) {
   if (!job) {
     $("job-title").textContent = "no job";
     $("job-progress").value = 0;
-    for (const id of ["job-lines", "job-rate", "job-eta"]) $(id).textContent = "–";
+    for (const id of ["job-lines", "job-at", "job-rate", "job-eta"]) $(id).textContent = "–";
     view.rate = null;
     return;
   }
@@ -267,6 +267,9 @@ function showJob(job) {
   const total = job.lines_total || 0;
   $("job-progress").value = total ? job.lines_acked / total : 0;
   $("job-lines").textContent = total ? `${job.lines_acked} / ${total}` : String(job.lines_acked);
+  // Answered is planned, not run: the line the board says it runs is the job's true place
+  // (a lower bound; none where the board never says, grbl 1.1 without Ln: or Bf:).
+  $("job-at").textContent = typeof job.line_executed === "number" ? String(job.line_executed) : "–";
   const now = performance.now() / 1000;
   if (!view.rate || view.rate.job !== job.id) {
     if (view.rate) refreshHistory();
