@@ -7,7 +7,8 @@ If the notifications go quiet it asks `job.get` itself, so a lost or late
 event can delay the display but never hang the client.
 
 On a terminal the display is a rich progress bar (lines answered of the
-total, percentage, rate, ETA, machine state); once every line is answered
+total, percentage, rate, ETA, machine state and the line the board says it
+runs, `line_executed`); once every line is answered
 and the job still runs, the ETA says "finishing" (the board's planner still
 holds moves; `RemainingColumn`), as the dashboard does. Elsewhere it is a plain line
 on every job state change and every tenth of the way: logs and pipes get
@@ -134,6 +135,9 @@ class JobDisplay:
             where = (
                 self._machine_state if state == "running" else f"{state} · {self._machine_state}"
             )
+            at = job.get("line_executed")
+            if isinstance(at, int) and state in ("running", "paused"):
+                where += f" · line {at}"  # the board's place: answered lines are only planned
             self._progress.update(
                 self._task_id,
                 completed=self._acked,

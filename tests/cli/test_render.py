@@ -82,3 +82,16 @@ def test_the_live_bar_says_finishing_once_every_line_is_answered_and_the_job_run
     assert remaining() == "finishing"
     display.update({**job, "lines_acked": 3, "state": "completed"}, "STOP")
     assert remaining() != "finishing"
+
+
+def test_the_live_bar_says_the_line_the_board_runs() -> None:
+    """Lines answered are only planned: the bar also says where the board is."""
+    console = Console(file=io.StringIO(), width=120, force_terminal=True)
+    job = {"id": 7, "file": "long.nc", "state": "running", "lines_total": 300, "lines_acked": 90}
+    display = JobDisplay(console, job)
+    progress = display._progress
+    assert progress is not None
+    display.update({**job, "line_executed": 41}, "RUN")
+    assert progress.tasks[0].fields["where"] == "RUN · line 41"
+    display.update({**job, "line_executed": None}, "RUN")  # a board that never says
+    assert progress.tasks[0].fields["where"] == "RUN"
