@@ -7,7 +7,8 @@ to write, runs the one timer the session asks for, and delivers the
 session's events: answers to the futures that wait for them, a job's end
 to its JobStream, and everything else up to its Machine, through one typed
 callback (`on_event`, an `EngineEvent`). The Machine decides what becomes
-public (hostd/machine/machine.py); the engine never publishes.
+public (hostd/machine/machine_core.py, `Machine._on_engine`); the engine never
+publishes.
 
 Events are delivered only after the step that raised them is over (the
 lines of one read; a request taken; a timer). A command the Machine gives
