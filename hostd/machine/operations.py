@@ -352,7 +352,7 @@ async def frame(
                 {"beyond_travel": beyond},
             )
     laser = machine.is_laser()
-    homed = machine.snapshot().get("homed") is True
+    homed = machine.engine.model.homed is True
     safe_z = None if laser else machine.safe_height(limits)  # unhomed: safe_z or none
     if not laser and safe_z is None:
         raise InvalidCommand(

@@ -159,7 +159,6 @@ async def plan_with(
             f"{machine.id}: its board's offsets could not be read ({exc.message}): "
             "a resume is planned from them"
         ) from None
-    laser = config.laser or machine.snapshot().get("laser_mode") is True
     return await plan_at(
         path,
         line,
@@ -168,6 +167,6 @@ async def plan_with(
         safe_z=machine.safe_height(limits),
         dwell=config.spindle_dwell,
         plunge_feed=config.plunge_feed,
-        laser=laser,
+        laser=machine.is_laser(),
         pool=pool,
     )
