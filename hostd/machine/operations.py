@@ -26,13 +26,12 @@ import structlog
 from hostd.machine import macros, rest
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
-from hostd.machine.preflight import OutOfTravel, analyze_for, work_offset
+from hostd.machine.preflight import OutOfTravel, analyze_for
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.workers import WorkerPool
 from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
 from hostd.protocol.gcode import axes_words, short_number
-from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
@@ -342,15 +341,13 @@ async def frame(
             Refusal.UNREADABLE, f"{path.name} moves in no X and Y: no box to frame"
         )
     box = {"x": bounds["x"], "y": bounds["y"]}
+    if check.frame_beyond:
+        raise OutOfTravel(
+            f"the frame of {path.name} leaves {machine.id}'s travel: "
+            + "; ".join(check.frame_beyond),
+            {"beyond_travel": check.frame_beyond},
+        )
     limits = check.limits
-    offset = work_offset(machine.snapshot())
-    if limits is not None and limits.travel and offset:
-        beyond = beyond_travel(box, offset, limits.travel)
-        if beyond:
-            raise OutOfTravel(
-                f"the frame of {path.name} leaves {machine.id}'s travel: " + "; ".join(beyond),
-                {"beyond_travel": beyond},
-            )
     laser = machine.is_laser()
     homed = machine.engine.model.homed is True
     safe_z = None if laser else machine.safe_height(limits)  # unhomed: safe_z or none

@@ -18,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +66,9 @@ class BadProgram(MachineError):
         return cls(f"{path.name}, {error}", {"line": error.line, "reason": error.message})
 
 
+# The axes a frame traces (`operations.frame`): a program's XY box.
+FRAMED = ("x", "y")
+
 # Analyses kept, by the file's digest, dialect and speeds (each is a few kilobytes:
 # the model bounds its warnings and tools).
 ANALYSES_KEPT = 16
@@ -80,6 +83,9 @@ class Preflight:
     checked: bool = False  # the travel and the work offset were known: the check ran
     findings: Findings | None = None  # lines the board would refuse (jobcheck.py)
     dialect: str | None = None  # the G-code dialect's name the analysis ran with
+    # `beyond` for the program's X and Y only: where its frame (`machine.frame`, the XY
+    # box, Z never lowered) would leave the travel
+    frame_beyond: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
         """file.analyze's answer: api.md's keys (`duration_s`, `warnings` as text) and ours.
@@ -128,6 +134,7 @@ class Preflight:
             "warnings": [_warning_text(w) for w in details],
             "warning_details": details,
             "beyond_travel": self.beyond,
+            "frame_beyond_travel": self.frame_beyond,
             "travel_checked": self.checked,
             "limits": None if self.limits is None else self.limits.to_json(),
             "problems": [] if self.findings is None else [f.to_json() for f in self.findings.found],
@@ -203,10 +210,14 @@ async def analyze_file(
     else:
         _analyses.move_to_end(key)
     beyond: list[str] = []
+    frame_beyond: list[str] = []
     checked = limits is not None and bool(limits.travel) and bool(offset)
     if limits is not None and offset:
-        beyond = beyond_travel(analysis.bounds, offset, limits.travel, analysis.bound_lines)
-    return Preflight(analysis, limits, beyond, checked)
+        bounds, lines = analysis.bounds, analysis.bound_lines
+        beyond = beyond_travel(bounds, offset, limits.travel, lines)
+        box = {axis: bounds[axis] for axis in FRAMED if axis in bounds}
+        frame_beyond = beyond_travel(box, offset, limits.travel, lines)
+    return Preflight(analysis, limits, beyond, checked, frame_beyond=frame_beyond)
 
 
 async def check_file(

@@ -292,6 +292,38 @@ async def test_g2core_frames_right_after_power_on(tmp_path: Path, laser: bool) -
         await rpc.close()
 
 
+async def test_frame_is_refused_only_when_its_xy_box_leaves_the_travel(
+    both: tuple[Running, Rpc],
+) -> None:
+    """A frame traces the XY box and never lowers Z: a program that leaves the travel
+    only in Z is refused by job.start but framed; one whose box leaves it in X is
+    refused by both, and file.analyze said so beforehand (the page's Frame button)."""
+    hostd, rpc = both
+    await rpc.call("machine.home", machine=G2)  # the travel check runs on a homed machine
+    await hostd.idle(rpc, G2)
+    (hostd.jobs / "deep.gcode").write_text("G21 G90\nG0 X12 Y7\nG1 Z-5 F100\nG1 X30 Y25 F800\n")
+    (hostd.jobs / "wide.gcode").write_text("G21 G90\nG0 X12 Y7\nG1 X350 Y25 F800\n")
+    deep = await rpc.call("file.analyze", machine=G2, file="deep.gcode")
+    wide = await rpc.call("file.analyze", machine=G2, file="wide.gcode")
+    assert deep["travel_checked"] and wide["travel_checked"]
+    assert [t[0] for t in deep["beyond_travel"]] == ["Z"] and deep["frame_beyond_travel"] == []
+    assert [t[0] for t in wide["frame_beyond_travel"]] == ["X"]
+    assert wide["frame_beyond_travel"] == wide["beyond_travel"]
+
+    before = len(traced(hostd, G2))
+    err = await fails(1008, rpc.call("machine.frame", machine=G2, file="wide.gcode"))
+    assert err.data["beyond_travel"] == wide["frame_beyond_travel"]
+    await fails(1008, rpc.call("job.start", machine=G2, file="deep.gcode"))
+    assert len(traced(hostd, G2)) == before  # neither refusal moved anything
+
+    job = await rpc.call("machine.frame", machine=G2, file="deep.gcode")
+    assert (await job_end(rpc, job["job"]))["state"] == "completed"
+    moves = traced(hostd, G2)[before:]
+    corners = [(round(m.move.target["x"], 3), round(m.move.target["y"], 3)) for m in moves]
+    assert corners[-5:] == [(12, 7), (30, 7), (30, 25), (12, 25), (12, 7)]
+    assert min(m.move.target["z"] for m in moves) >= 0  # never down to the file's Z-5
+
+
 async def test_frame_at_low_power_burns_only_along_the_box(both: tuple[Running, Rpc]) -> None:
     hostd, rpc = both
     (hostd.jobs / "boxed.gcode").write_text(BOXED)

@@ -8,6 +8,7 @@ there too (docs/screenshots is where the README's come from).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import playwright.async_api as playwright
@@ -168,11 +169,22 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         await expect(page.locator("#travel")).to_contain_text("leaves sim1's travel")
         await expect(page.locator("#travel")).to_contain_text("X runs")
         await expect(page.locator("#start")).to_be_disabled()
+        await expect(page.locator("#frame")).to_be_disabled()  # its XY box leaves it too
+        await expect(page.locator("#frame")).to_have_attribute("title", re.compile("outline"))
         await expect(page.locator("#warnings")).to_contain_text("line 3: G38.2 probing")
         await expect(page.locator("#analysis")).to_contain_text("X 0.0…350.0")
         await expect(page.locator("#analysis")).to_contain_text("about 4 s")  # the daemon's
         await screenshot(page, tmp_path, "travel-refused")
         assert await rpc.call("job.list", machine="sim1") == []  # nothing was started
+
+        deep = tmp_path / "deep.nc"  # inside the XY travel, Z below it: framed, not run
+        deep.write_text("G21 G90\nG1 X150 Y10 F6000\nG1 Z-5 F100\nG1 X0\n")
+        await page.set_input_files("#upload-file", deep)
+        await page.click("#upload button")
+        await expect(page.locator("#files")).to_have_value("deep.nc")
+        await expect(page.locator("#travel")).to_contain_text("Z runs")
+        await expect(page.locator("#start")).to_be_disabled()
+        await expect(page.locator("#frame")).to_be_enabled()
 
         fits = tmp_path / "fits.nc"
         fits.write_text("G21 G90\nG1 X150 F6000\nG1 X0\n")
@@ -182,6 +194,7 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         await expect(page.locator("#analysis")).to_contain_text("X 0.0…150.0")
         await expect(page.locator("#travel")).to_be_hidden()
         await expect(page.locator("#start")).to_be_enabled()
+        await expect(page.locator("#frame")).to_be_enabled()
         await expect(page.locator("#warnings li")).to_have_count(0)
         await rpc.close()
 

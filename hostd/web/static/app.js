@@ -174,6 +174,11 @@ function updateEnabled() {
     if (!reason && el.id === "start" && view.analysis && (view.analysis.beyond_travel || []).length) {
       reason = "the program leaves the machine's travel";
     }
+    // The frame is the program's XY box at a safe height: refused (1008) only when that
+    // box leaves the travel. A program only too deep in Z can still be framed.
+    if (!reason && el.id === "frame" && view.analysis && (view.analysis.frame_beyond_travel || []).length) {
+      reason = "the program's outline leaves the machine's travel";
+    }
     if (!reason && ["start", "frame"].includes(el.id) && !$("files").value) reason = "upload or pick a file first";
     if (!reason && el.dataset.pending) reason = "under way…";
     el.disabled = Boolean(reason);
