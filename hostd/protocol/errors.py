@@ -33,14 +33,15 @@ class Busy(MachineError):
 
 
 class ControllerError(MachineError):
-    """The controller answered with a non-zero status."""
+    """The controller answered with a non-zero status; status 0 where it gave none (a
+    line its reset discarded, a cycle that ended in an alarm), and then the message is
+    said alone, not as an answer of 0."""
 
     code = 1005
 
     def __init__(self, status: int, message: str) -> None:
-        super().__init__(
-            f"controller answered {status}: {message}", {"status": status, "msg": message}
-        )
+        text = f"controller answered {status}: {message}" if status else message
+        super().__init__(text, {"status": status, "msg": message})
         self.status = status
 
 

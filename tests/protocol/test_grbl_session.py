@@ -12,7 +12,7 @@ import math
 import pytest
 
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
-from hostd.protocol.errors import Busy, Rejected
+from hostd.protocol.errors import Busy, ControllerError, Rejected
 from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.connection import BANNER_WAIT
 from hostd.protocol.grbl.liveness import STORAGE_QUIET
@@ -734,6 +734,65 @@ def test_a_failed_homing_answered_ok_by_classic_grbl_does_not_say_homed() -> Non
     grbl.pump()
     grbl.feed("ok")  # the next cycle succeeds
     assert grbl.session.model.homed is True
+
+
+def test_a_failed_homing_grblhal_resets_after_says_the_alarm_not_a_status() -> None:
+    """grblHAL answers no `$H` whose cycle failed: it prints the alarm, then resets itself
+    (its banner again). The `$H` is settled with the alarm that caused the reset, status
+    0 (grbl has no code for it: its error:3 is an unknown `$` command), never as an
+    answer the board did not give."""
+    grbl = homing_board()
+    home, move = object(), object()
+    grbl.session.send("$H", home)
+    grbl.session.send("G0 X1", move)
+    grbl.pump()
+    grbl.feed("ALARM:9", "", "GrblHAL 1.1f ['$' or '$HELP' for help]")
+    for token in (home, move):
+        settled = grbl.settled(token)
+        assert settled is not None and isinstance(settled.outcome, ControllerError)
+        error = settled.outcome
+        assert error.status == 0 and error.data == {"status": 0, "msg": error.args[0]}
+        assert error.args[0] == (
+            "not answered: the controller reset itself after ALARM:9 (Homing fail. "
+            "Could not find limit switch within search distances.)"
+        )
+    assert grbl.session.model.homed is False
+
+
+def test_a_reset_with_no_alarm_before_it_says_only_that() -> None:
+    """An alarm answered since (a `$X`'s ok) is not the cause of a later reset."""
+    grbl = homing_board()
+    grbl.feed("ALARM:9")
+    grbl.session.send("$X", object())
+    grbl.pump()
+    grbl.feed("ok")
+    line = object()
+    grbl.session.send("$$", line)
+    grbl.pump()
+    grbl.feed("", "Grbl 1.1h ['$' for help]")
+    settled = grbl.settled(line)
+    assert settled is not None and isinstance(settled.outcome, ControllerError)
+    assert str(settled.outcome.args[0]) == "not answered: the controller reset itself"
+
+
+def test_the_spindle_is_read_from_any_report_that_says_a_and_from_ov_without_it() -> None:
+    """grblHAL says `A:` alone on the report after a change, `A:` empty when all went off;
+    classic grbl only beside `Ov:`, leaving A out when none is on. A report with neither
+    says nothing of the spindle."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500|A:S>")
+    assert grbl.session.model.spindle == {"state": "cw", "speed": 500}
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500>")
+    assert grbl.session.model.spindle == {"state": "cw", "speed": 500}
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500|A:CF>")
+    assert grbl.session.model.spindle == {"state": "ccw", "speed": 500}
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|A:>")
+    assert grbl.session.model.spindle == {"state": "off", "speed": 0}
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,300|Ov:100,100,100|A:S>")
+    assert grbl.session.model.spindle == {"state": "cw", "speed": 300}
+    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>")
+    assert grbl.session.model.spindle == {"state": "off", "speed": 0}
 
 
 def test_help_is_not_homing() -> None:

@@ -108,6 +108,9 @@ class GrblBooks(GrblWords, SessionBase):
         self._silent_asks: list[float] = []  # the first `?`s written since then
         self._homing_lines = 0  # `$H` lines unanswered: the board may be homing
         self._homing_failed = False  # an ALARM came while a `$H` was unanswered
+        # The last ALARM, `ALARM:9 (text)`, while no answer has come since: what a reset
+        # the board makes itself right after it (a failed homing, a limit) is told with.
+        self._alarm_unanswered: str | None = None
         self._storing: InFlight | None = None  # a line writing EEPROM or flash, unanswered
         self._stored_at: float | None = None  # when the last such line was answered
         self._stopping: float | None = None  # a feedhold waiting for rest, until then

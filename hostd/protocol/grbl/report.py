@@ -78,11 +78,17 @@ class ReportReader:
             if key in raw:
                 fields[key.lower()] = raw[key]
         ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
-        if ov is not None and len(ov) == 3:  # sent now and then (report.c's counters)
+        refresh = ov is not None and len(ov) == 3  # sent now and then (report.c's counters)
+        if ov is not None and refresh:
             model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
             model.override_reports += 1
-            # A report with Ov lists the accessories (`A:`, S spindle CW, C CCW) when any
-            # is on, and leaves A out when none is (report.c report_realtime_status).
+        if refresh or "A" in raw:
+            # `A:` is every accessory's state whenever it comes (S spindle CW, C CCW).
+            # Classic grbl sends it only with Ov, and leaves it out when none is on
+            # (gnea/grbl report.c:620-640). grblHAL also sends it alone, on the report
+            # after the spindle, coolant or tool changes (core report.c:1475-1505,
+            # spindle_control.c:750 `report_add_realtime(Report_Spindle)`), and leaves it
+            # out of an Ov report while the spindle is off (report.c:1419).
             turning = _spindle_state(raw.get("A", ""))
             model.spindle = {"state": turning, "speed": (model.spindle or {}).get("speed")}
         if (

@@ -81,7 +81,6 @@ from hostd.protocol.grbl.report import ReportReader, apply_modes, grbl_named, pr
 from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState
-from hostd.protocol.status import Status
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Excepted, Phase, Probed, Reported, StreamEnd
 
@@ -133,6 +132,7 @@ class GrblSession(GrblLiveness):
             return
         entry = self._inflight.popleft()
         self._rx_used -= len(entry.line)
+        self._alarm_unanswered = None
         if entry is self._storing:
             self._storing = None
             self._stored_at = self._heard_at
@@ -262,6 +262,7 @@ class GrblSession(GrblLiveness):
         state = ALARM_STATE.get(code, MachineState.ALARM)
         report = {"alarm": code, "msg": text}
         self.model.last_exception = report
+        self._alarm_unanswered = f"ALARM:{code} ({text})"
         if code in POSITION_LOST:
             self.model.homed = False
         if code in CRITICAL:
@@ -293,8 +294,14 @@ class GrblSession(GrblLiveness):
         self._forget_holds()
         if self.stream is not None and not self.stream.done:
             self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
-        what = "reset" if ours else "reset by itself"
-        self._forget(ControllerError(int(Status.NOOP), f"discarded by the controller's {what}"))
+        # Status 0: grbl gives no code for this (its error:3 is an unknown `$` command).
+        if ours:
+            why = "discarded by the controller's reset"
+        else:  # after an alarm when it came with no answer since: a failed `$H`, a limit
+            alarm = self._alarm_unanswered
+            why = "the controller reset itself" + (f" after {alarm}" if alarm else "")
+        self._alarm_unanswered = None
+        self._forget(ControllerError(0, f"not answered: {why}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
         self._reports = ReportReader()  # a reset clears G92: the offset is read anew
         self._job_log().info("controller reset", ours=ours)

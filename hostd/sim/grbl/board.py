@@ -168,6 +168,7 @@ class GrblBoard:
         self._nvs_dirty = False  # HAL: settings changed, written to flash once idle
         self._wco_counter = self._ovr_counter = 0  # report_init_message zeroes them
         self._report_flags: set[str] = {"overrides"}  # report_add_realtime(Report_Overrides)
+        self._accessories_told = ""  # HAL: the accessories (`A:`) the last report said
         # `$481`'s next report, due whatever the host asks (GrblConfig.auto_report).
         every = self.config.auto_report
         self._auto_report_at = self._clock() + every if every else None

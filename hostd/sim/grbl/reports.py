@@ -133,9 +133,13 @@ def _hal_tail(board: GrblBoard) -> list[str]:
         out.append(f"WCO:{axes(board.modal.wco())}")
     if overrides:
         out.append(f"Ov:{board.feed_ovr},{board.rapid_ovr},{board.spindle_ovr}")
+    # A: on the report after the spindle or coolant changes, whatever it says, even none
+    # (spindle_control.c:750 and coolant_control.c:37 `report_add_realtime`, report.c:
+    # 1475-1505), and with an Ov refresh while any is on (report.c:1419-1420).
     accessories = _accessories(board)
-    if overrides and accessories:
+    if accessories != board._accessories_told or (overrides and accessories):
         out.append(f"A:{accessories}")
+        board._accessories_told = accessories
     if "homed" in flags and board._bits(22) & 1:
         out.append(f"H:{int(board.homed)}")
     board._report_flags = {"wco"} if delayed_wco else set()

@@ -452,6 +452,36 @@ async def test_classic_status_report_fields(classic_host: GrblHost) -> None:
     assert await classic_host.status() == "<Idle|MPos:0.000,0.000,0.000|FS:0,0>"
 
 
+async def test_grblhal_says_the_accessories_on_the_report_after_they_change(
+    hal_host: GrblHost,
+) -> None:
+    """`A:` on the next report after M3, M8 or M5 M9, even empty (spindle_control.c:750,
+    coolant_control.c:37, report.c:1475-1505), not only with an Ov refresh: so the host
+    sees the spindle start before the refresh comes round."""
+    await hal_host.status()  # the first report's Ov refresh is over
+    hal_host.send(b"M3 S500\n")
+    await hal_host.until(is_answer)
+    assert (await hal_host.status()).endswith("|A:S>")
+    assert "|A:" not in await hal_host.status()  # told once
+    hal_host.send(b"M8\n")
+    await hal_host.until(is_answer)
+    assert (await hal_host.status()).endswith("|A:SF>")
+    hal_host.send(b"M5 M9\n")
+    await hal_host.until(is_answer)
+    assert (await hal_host.status()).endswith("|A:>")
+
+
+async def test_classic_says_the_accessories_only_with_its_ov_refresh(
+    classic_host: GrblHost,
+) -> None:
+    """gnea/grbl report.c:620-640: `A:` rides with `Ov:`, and is left out when none is on."""
+    classic_host.send(b"M3 S500\n")
+    await classic_host.until(is_answer)
+    reports = [await classic_host.status() for _ in range(12)]
+    told = [r for r in reports if "|A:" in r]
+    assert told and all("|Ov:" in r and r.endswith("|A:S>") for r in told)
+
+
 async def test_status_is_not_answered_while_homing(tmp_path: Path) -> None:
     config = replace(TIMED_HAL, homing=True)
     async with Board(tmp_path, config) as (sim, host):
