@@ -74,9 +74,9 @@ class Words:
     # False: it answers as the cycle starts, and the cycle ends when the state
     # leaves HOMING (g2core's G28.2).
     homing_answered_at_end = False
-    # A line that asks for a full status report and is answered (g2core's `{sr:n}`),
-    # so the answer comes once the report has: None where `query_status` asks for one
-    # realtime, with no answer (grbl's `?`).
+    # A line that asks for a full status report and is answered once the report has come
+    # (g2core's `{sr:n}`, grbl's `?`): None where the board has none, and `query_status`
+    # asks for one with no answer to wait for.
     report_line: str | None = None
 
     def line_limit(self) -> int:

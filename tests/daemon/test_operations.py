@@ -150,6 +150,11 @@ async def test_zero_then_goto_zero_brings_the_tool_back(
     await jog_to(hostd, rpc, machine, {"x": 7, "y": 4})
     snap = await rpc.call("machine.zero", machine=machine, axes={"x": 0, "y": 1.5})
     assert snap["id"] == machine
+    # The answer is the snapshot after a report that has the new offset in it (grbl: a
+    # `?` asked after the G10's ok), not the one from before the zero.
+    assert snap["work_position"]["x"] == pytest.approx(0, abs=1e-3)
+    assert snap["work_position"]["y"] == pytest.approx(1.5, abs=1e-3)
+    assert snap["machine_position"]["x"] == pytest.approx(7, abs=1e-3)
     assert any(line.startswith(b"G10 L20 P") for line in lines_sent(hostd, machine))
     await rpc.call("subscribe", topics=["status"], machine=machine)
     status = await rpc.notification(

@@ -42,6 +42,12 @@ class GrblWords(Words):
     # `homed` from that answer.
     homing_answered_at_end = True
 
+    # `?` written as a client's line is answered by the next report (`GrblSession.send`):
+    # one asked after a line's `ok` is printed after that line ran, so its position has
+    # the line in it (a G10's new offset: both grbls put WCO in the report after one,
+    # gnea/grbl gcode.c `system_flag_wco_change`, grblHAL the same).
+    report_line = "?"
+
     # No alarm_line or shutdown_line: neither grbl 1.1 (system.c system_execute_line)
     # nor grblHAL (system.c sys_commands) has a command that raises an alarm, and
     # `$SLP` is a maintenance command (maintenance.py), so SessionBase refuses both.
