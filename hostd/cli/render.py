@@ -12,6 +12,7 @@ so the formats can be checked without a daemon.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -110,6 +111,35 @@ def state_name(snapshot: dict[str, Any]) -> str:
     if isinstance(state, dict):
         return str(state.get("name", NONE))
     return NONE
+
+
+# The API's words for what ends a lockout (docs/api.md, "The lockout in the snapshot"),
+# as the commands that say them here.
+_CLI_WORDS = {
+    "machine.clear": "hostd clear",
+    "machine.home": "hostd home",
+    "machine.reset": "hostd reset",
+    "machine.cycle_start": "hostd resume",
+}
+_API_METHOD = re.compile(r"machine\.\w+")
+
+
+def lockout(snapshot: dict[str, Any]) -> str:
+    """`ALARM: what caused it (to end it: hostd clear or hostd home)`, or `none`."""
+    lock = snapshot.get("lockout")
+    if not isinstance(lock, dict):
+        return "none"
+    state, message = str(lock.get("state")), str(lock.get("message") or "")
+    clear = _API_METHOD.sub(lambda m: _CLI_WORDS.get(m[0], m[0]), str(lock.get("clear") or ""))
+    text = state if message.lower() in ("", state.lower()) else f"{state}: {message}"
+    return f"{text} (to end it: {clear})" if clear else text
+
+
+def indicator(snapshot: dict[str, Any]) -> str:
+    """The fault table's light (behaviour.md). A controller lockout is not a fault: beside
+    one, a bare "normal" would read as all well, so it says whose light it is."""
+    text = str(snapshot.get("indicator"))
+    return f"{text} (faults only)" if isinstance(snapshot.get("lockout"), dict) else text
 
 
 def lines(job: dict[str, Any]) -> str:
@@ -218,12 +248,13 @@ def snapshot(console: Console, snap: dict[str, Any]) -> None:
             ("machine", f"{snap.get('id')} ({snap.get('dialect')})"),
             ("supervisor", str(snap.get("supervisor"))),
             ("state", state_name(snap) + code),
+            ("lockout", lockout(snap)),
             ("position", position(snap.get("position"), snap.get("units"))),
             ("line", str(snap.get("line") if snap.get("line") is not None else NONE)),
             ("velocity", _num(snap.get("velocity")) if snap.get("velocity") is not None else NONE),
             ("feed", _num(snap.get("feed")) if snap.get("feed") is not None else NONE),
             ("homed", _yes_no(snap.get("homed"))),
-            ("indicator", str(snap.get("indicator"))),
+            ("indicator", indicator(snap)),
             ("faults", fault_text),
             ("job", _job_long(snap.get("job"))),
             ("last exception", json_line(exception) if exception is not None else "none"),

@@ -95,3 +95,48 @@ def test_the_live_bar_says_the_line_the_board_runs() -> None:
     assert progress.tasks[0].fields["where"] == "RUN · line 41"
     display.update({**job, "line_executed": None}, "RUN")  # a board that never says
     assert progress.tasks[0].fields["where"] == "RUN"
+
+
+def test_a_machine_in_a_lockout_says_it_and_how_to_end_it_in_commands() -> None:
+    """An ALARM is never read as all well: the lockout's cause and the commands that end
+    it, and the fault table's "normal" said to be the faults' only."""
+    console, buffer = plain()
+    console.width = 200
+    snap = {
+        "id": "hal",
+        "dialect": "grbl",
+        "state": {"code": 2, "name": "ALARM"},
+        "indicator": "normal",
+        "lockout": {
+            "state": "ALARM",
+            "message": "Homing fail. Could not find limit switch within search distances.",
+            "clear": "machine.clear or machine.home",
+        },
+    }
+
+    render.snapshot(console, snap)
+
+    fields = dict(line.split(None, 1) for line in buffer.getvalue().splitlines())
+    assert fields["lockout"] == (
+        "ALARM: Homing fail. Could not find limit switch within search distances. "
+        "(to end it: hostd clear or hostd home)"
+    )
+    assert fields["indicator"] == "normal (faults only)"
+    grbl_limit = {
+        "state": "ALARM",
+        "message": "alarm",
+        "clear": "machine.reset, then machine.clear",
+    }
+    assert render.lockout({"lockout": grbl_limit}) == (
+        "ALARM (to end it: hostd reset, then hostd clear)"
+    )
+    door = {
+        "state": "INTERLOCK",
+        "message": "",
+        "clear": "close the interlock, then machine.cycle_start",
+    }
+    assert render.lockout({"lockout": door}) == (
+        "INTERLOCK (to end it: close the interlock, then hostd resume)"
+    )
+    assert render.lockout({"lockout": None}) == "none"
+    assert render.indicator({"indicator": "alert", "lockout": None}) == "alert"
