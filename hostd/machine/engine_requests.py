@@ -174,9 +174,10 @@ class EngineRequests(EngineDelivery):
         self.session.resume_stream()
         self._deliver()
 
-    def release_stream(self) -> None:
-        """Pass the job's hold point (a tool change answered): its lines flow again."""
-        self.session.release_stream()
+    def release_stream(self, tool: int | None = None) -> None:
+        """Pass the job's hold point (a tool change answered, `tool` put in): its lines
+        flow again."""
+        self.session.release_stream(tool)
         self._deliver()
 
     def stop_stream(self, code: int, text: str) -> None:

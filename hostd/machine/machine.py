@@ -223,7 +223,7 @@ class Machine(MachineOperations):
         assert self.job is not None
         changes = [*self.job.tool_changes, change]
         with self.engine.one_step():  # no job line goes out while the supervisor says paused
-            self.engine.release_stream()
+            self.engine.release_stream(change.tool)
             if stream.paused:  # the user's `!` too: its `~`
                 self.engine.resume_stream()
             if self.supervisor.can(SupEvent.UNPAUSE_OPERATION):

@@ -476,13 +476,20 @@ class SessionBase(Words):
         self.realtime(Realtime.CYCLE_START)
         stream.paused = False
 
-    def release_stream(self) -> None:
+    def release_stream(self, tool: int | None = None) -> None:
         """Pass the job's hold point (stream.py: a tool change the operator answered): the
-        line it kept back goes as the flow control has room, unless the job is paused."""
+        line it kept back goes as the flow control has room, unless the job is paused.
+
+        `tool`: the tool the operator put in (the M6's T), the snapshot's `tool` from now
+        on. A board may not know it: grbl is sent the M6 line without its M6, and
+        grblHAL then keeps the T as pending (core gcode.c "[5. Select tool ]"), its `$G`
+        still naming the old tool. A later report of the board's own tool still wins."""
         stream = self._live_stream()
         if stream.held is None:
             raise Busy(f"{self.id}: the job is not held")
         stream.release()
+        if tool is not None:
+            self.model.tool = tool
 
     def stop_stream(self, code: int, text: str) -> None:
         """Fail the running job and stop the board: feedhold, then flush (a fault's effect)."""

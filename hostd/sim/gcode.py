@@ -14,7 +14,8 @@ block in machine coordinates), G10 L2/L20 P0-P6 (the stored offsets,
 P1-P32 (a tool table entry), G54-G59, G61
 G61.1 G64, G80, G90/G91, G90.1/G91.1, G92/G92.1, G93/G94; M0 M1 (accepted,
 no pause), M2/M30 (program end), M3 M4 M5 (the spindle, kept with each move),
-M6 M7 M8 M9 (accepted); F S T and the parameters P I J K R L. Any other
+M6 (the T selected becomes the reported `tool`), M7 M8 M9 (accepted); F S T
+and the parameters P I J K R L. Any other
 G code answers 131, any other M code 132.
 """
 
@@ -189,6 +190,10 @@ class Interpreter:
     # cm->tool_offset, part of the combined offset).
     tools: dict[int, dict[str, float]] = field(default_factory=dict)
     tool_offset: dict[str, float] = field(default_factory=lambda: dict.fromkeys(AXES, 0.0))
+    # T writes the tool to select, M6 makes it the active tool, reported as `tool`
+    # (canonical_machine.cpp:1392-1408 `cm_select_tool`, `_exec_change_tool`).
+    tool_select: int = 0
+    tool: int = 0
 
     def copy(self) -> Interpreter:
         return Interpreter(
@@ -208,6 +213,8 @@ class Interpreter:
             line=self.line,
             tools={n: dict(t) for n, t in self.tools.items()},
             tool_offset=dict(self.tool_offset),
+            tool_select=self.tool_select,
+            tool=self.tool,
         )
 
     @property
@@ -303,6 +310,13 @@ class Interpreter:
             self.feed = params["F"] * self.scale
         if "S" in params:
             self.speed = params["S"]
+        if "T" in params:  # gcode_parser.cpp:962-963: T, then M6, in one block
+            tool = math.trunc(params["T"])  # :855 `(uint8_t)trunc(value)`
+            if not 0 <= tool <= TOOLS:
+                raise _Refused(Status.T_WORD_IS_INVALID)  # cm_select_tool
+            self.tool_select = tool
+        if 6 in mcodes:
+            self.tool = self.tool_select
         for m in mcodes:
             if m in (3, 4, 5):
                 self.spindle = f"M{int(m)}"

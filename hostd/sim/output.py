@@ -323,7 +323,7 @@ class Output:
             "momo": interp.motion if interp.motion is not None else 4,
             "plan": interp.plane - 17,
             "path": interp.path,
-            "tool": 0,
+            "tool": interp.tool,
             "g92e": 1 if any(interp.offsets.values()) else 0,
             "home": 1 if all(self.homed.values()) else 0,
             "qr": self._free,

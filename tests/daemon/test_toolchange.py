@@ -96,6 +96,8 @@ async def test_pause_holds_at_each_m6_and_goes_on_when_told(
     await fails(1003, rpc.call("job.resume", machine=machine))
     job = await rpc.call("job.tool_change_done", machine=machine)
     assert job["id"] == job_id and [c["tool"] for c in job["tool_changes"]] == [1]
+    # The tool the operator put in is the machine's (grbl's `$G` may still say T0).
+    assert (await rpc.call("machine.status", machine=machine))["tool"] == 1
 
     second = await _waiting(rpc, machine, job_id, 6, changes=1)
     assert second["tool_change"] == {"tool": 2, "line": 6}
@@ -120,7 +122,7 @@ async def test_pause_holds_at_each_m6_and_goes_on_when_told(
     assert [(c["tool"], c["line"]) for c in changes] == [(1, 3), (2, 6)]
     assert all(isinstance(c["at"], str) and c["at"].endswith("Z") for c in changes)
     after = await rpc.call("machine.status", machine=machine)
-    assert after["tool_change"] is None
+    assert after["tool_change"] is None and after["tool"] == 2
     assert after["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
 
 

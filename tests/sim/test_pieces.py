@@ -113,6 +113,18 @@ class TestGcode:
         assert out.n == 12
         assert [type(b) for b in out.blocks] == [Dwell, Home, ProgramEnd]
 
+    def test_t_selects_and_m6_makes_it_the_reported_tool(self) -> None:
+        """canonical_machine.cpp:1392-1408: T writes tool_select, M6 sets tool from it."""
+        g = Interpreter()
+        assert g.execute("T3", no_limits).status == Status.OK
+        assert (g.tool_select, g.tool) == (3, 0)  # selected, not yet changed
+        assert g.execute("M6", no_limits).status == Status.OK
+        assert g.tool == 3
+        assert g.execute("T5 M6 (both in one block)", no_limits).status == Status.OK
+        assert g.tool == 5
+        assert g.execute("T33 M6", no_limits).status == Status.T_WORD_IS_INVALID  # > TOOLS
+        assert g.tool == 5
+
     def test_comments_and_percent_are_ignored(self) -> None:
         g = Interpreter()
         assert g.execute("(just a comment)", no_limits).blocks == ()
