@@ -135,6 +135,21 @@ def lockout(snapshot: dict[str, Any]) -> str:
     return f"{text} (to end it: {clear})" if clear else text
 
 
+def _tool_change(snapshot: dict[str, Any]) -> list[tuple[str, str]]:
+    """A row while a job waits for a tool change: which tool, and how to go on."""
+    wait = snapshot.get("tool_change")
+    if not isinstance(wait, dict):
+        return []
+    line = f" at line {wait['line']}" if isinstance(wait.get("line"), int) else ""
+    return [
+        (
+            "tool change",
+            f"waiting for T{wait.get('tool')}{line} "
+            f"(once it is in: hostd tool-change-done {snapshot.get('id')})",
+        )
+    ]
+
+
 def indicator(snapshot: dict[str, Any]) -> str:
     """The fault table's light (behaviour.md). A controller lockout is not a fault: beside
     one, a bare "normal" would read as all well, so it says whose light it is."""
@@ -254,6 +269,8 @@ def snapshot(console: Console, snap: dict[str, Any]) -> None:
             ("velocity", _num(snap.get("velocity")) if snap.get("velocity") is not None else NONE),
             ("feed", _num(snap.get("feed")) if snap.get("feed") is not None else NONE),
             ("homed", _yes_no(snap.get("homed"))),
+            ("tool", f"T{snap['tool']}" if isinstance(snap.get("tool"), int) else NONE),
+            *_tool_change(snap),
             ("indicator", indicator(snap)),
             ("faults", fault_text),
             ("job", _job_long(snap.get("job"))),

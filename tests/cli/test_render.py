@@ -140,3 +140,22 @@ def test_a_machine_in_a_lockout_says_it_and_how_to_end_it_in_commands() -> None:
     )
     assert render.lockout({"lockout": None}) == "none"
     assert render.indicator({"indicator": "alert", "lockout": None}) == "alert"
+
+
+def test_a_machine_waiting_for_a_tool_change_says_which_tool_and_how_to_go_on() -> None:
+    console, buffer = plain()
+    console.width = 200
+    snap = {"id": "hal", "tool": 1, "tool_change": {"tool": 2, "line": 6}, "lockout": None}
+
+    render.snapshot(console, snap)
+
+    rows = dict(line.split("  ", 1) for line in buffer.getvalue().splitlines())
+    rows = {k.strip(): v.strip() for k, v in rows.items()}
+    assert rows["tool"] == "T1"
+    assert (
+        rows["tool change"]
+        == "waiting for T2 at line 6 (once it is in: hostd tool-change-done hal)"
+    )
+    console, buffer = plain()
+    render.snapshot(console, {"id": "hal", "tool": None, "tool_change": None})
+    assert "tool change" not in buffer.getvalue()
