@@ -180,7 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", nargs="?", metavar="NAME")
     p.add_argument("params", nargs="*", metavar="KEY=VALUE")
 
-    p = client("jobs", "jobs", "recent jobs, newest first")
+    p = client("jobs", "jobs", "recent jobs, newest first (of MACHINE, or every machine's)")
+    # MACHINE as the other commands take it; --machine as it always was.
+    p.add_argument("machine_arg", nargs="?", metavar="MACHINE")
     p.add_argument("--machine", "-m", metavar="M")
     p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")
 

@@ -219,6 +219,12 @@ def test_jobs_lists_the_job_run_left(
     rows = json.loads(raw.stdout)
     small = [job for job in rows if job["file"] == "small.gcode"]
     assert small and small[0]["state"] == "completed" and small[0]["lines_acked"] == 5
+    # MACHINE as every other command takes it, the same table.
+    assert idle.cli("jobs", MACHINE, "--limit", "50").stdout == table.stdout
+    other = idle.cli("jobs", "nope")
+    assert other.returncode == 1 and "1001" in other.stderr  # that machine's, not all
+    both = idle.cli("jobs", MACHINE, "--machine", "nope")
+    assert both.returncode != 0 and "two machines" in both.stderr
 
 
 def test_faults_of_a_healthy_machine_is_an_empty_list(idle: Daemon) -> None:

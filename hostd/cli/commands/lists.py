@@ -9,6 +9,7 @@ from hostd.cli import render
 from hostd.cli.client import Client
 from hostd.cli.commands.base import (
     OK,
+    CliError,
     listing,
 )
 from hostd.cli.render import Output
@@ -18,8 +19,11 @@ from hostd.cli.render import Output
 
 async def jobs(c: Client, args: argparse.Namespace, out: Output) -> int:
     params: dict[str, Any] = {"limit": args.limit}
-    if args.machine is not None:
-        params["machine"] = args.machine
+    named = {m for m in (args.machine_arg, args.machine) if m is not None}
+    if len(named) > 1:
+        raise CliError(f"two machines named: {args.machine_arg} and --machine {args.machine}")
+    if named:
+        params["machine"] = named.pop()
     listing(out, await c.call("job.list", **params), render.jobs, "no jobs")
     return OK
 
