@@ -257,6 +257,8 @@ async def laser_test(machine: Machine, power: float, seconds: float) -> None:
     async with _operation(machine):
         engine.admit_action()  # in a lockout: its code (204/205/206), nothing sent
         speed = await full_power(machine) * power / 100.0
+        for read in engine.session.laser_test_reads():
+            await engine.send(read, timeout=ANSWER_WAIT)
         lines = engine.session.laser_test_lines(speed, seconds)
         wait = seconds + BEAM_OFF_WAIT
         sends = [asyncio.ensure_future(engine.send(line, timeout=wait)) for line in lines]

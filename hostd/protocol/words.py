@@ -121,6 +121,11 @@ class Words:
         (a frame at low power); the moves end with `M5`."""
         return f"M3 S{gcode_number(speed)}"
 
+    def laser_test_reads(self) -> list[str]:
+        """Lines to send and have answered before `laser_test_lines`, for what they need
+        to know of the board (grbl: `$G`, its modal feed)."""
+        return []
+
     def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
         """The lines of a test-fire at S `speed` for `seconds`, standing still; the last
         one turns the beam off. They go to the board together, so that its own dwell

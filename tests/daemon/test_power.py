@@ -178,9 +178,16 @@ async def test_a_laser_test_fires_then_always_ends_off(both: tuple[Running, Rpc]
     assert 0.05 * full in powers  # it fired, at 5 % of $30
     assert max(powers) == 0.05 * full  # and never more
     assert powers[-1] == 0.0 and board.beam_power() == 0.0
-    assert [ln for ln in lines_sent(hostd, GRBL) if ln.startswith((b"G1 M3", b"G4", b"M5"))][
-        -3:
-    ] == [b"G1 M3 S50", b"G4 P0.3", b"M5"]
+    # A board fresh from its reset has no feed, and grbl refuses a G1 without one even
+    # standing still (error:22): the G1 defines a slow one.
+    fired = [ln for ln in lines_sent(hostd, GRBL) if ln.startswith((b"G1", b"G4", b"M5"))]
+    assert fired[-3:] == [b"G1 F100 M3 S50", b"G4 P0.3", b"M5"]
+    # A board with a feed of its own keeps it (asked with `$G` first).
+    await rpc.call("machine.send", machine=GRBL, line="F750")
+    assert await rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=0.3) == {}
+    fired = [ln for ln in lines_sent(hostd, GRBL) if ln.startswith((b"G1", b"G4", b"M5"))]
+    assert fired[-3:] == [b"G1 M3 S50", b"G4 P0.3", b"M5"]
+    assert board.beam_power() == 0.0 and max(p for _, p in board.beam) == 0.05 * full
 
 
 async def test_a_laser_test_ends_off_when_the_link_drops_mid_test(

@@ -22,6 +22,7 @@ from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import error_text
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject
+from hostd.protocol.model import MachineModel
 from hostd.protocol.numbers import format_setting
 from hostd.protocol.probing import ProbeInput, number
 from hostd.protocol.toolchange import without_m6
@@ -31,12 +32,18 @@ _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N
 _OFFSET_KINDS = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G92"})
 
 
+# mm/min (or in/min under G20): the feed a laser test's G1 defines on a board with none.
+# It moves nothing; it stays the modal feed, so slow, for a program that never sets one.
+LASER_TEST_FEED = 100.0
+
+
 class GrblWords(Words):
     """The operator's words on grbl, for `GrblSession`."""
 
     # What the session's handshake read: the receive buffer (`[OPT:]`) and `$$`.
     rx_size: int
     settings: dict[str, str]
+    model: MachineModel  # the session's
 
     # grbl answers `$H` only once the cycle has ended (system.c); the session sets
     # `homed` from that answer.
@@ -77,14 +84,25 @@ class GrblWords(Words):
         still), so the beam burns only along the frame's moves."""
         return f"M4 S{gcode_number(speed)}"
 
+    def laser_test_reads(self) -> list[str]:
+        """`$G`: its `[GC:]` says the modal feed `laser_test_lines` needs."""
+        return ["$G"]
+
     def laser_test_lines(self, speed: float, seconds: float) -> list[str]:
         """`G1 M3 S..`, `G4 P..`, `M5`: in laser mode grbl lights M3 standing still only
         when the motion mode is G1/G2/G3 (gnea/grbl gcode.c:868-893: any other motion
         mode sets GC_PARSER_LASER_DISABLE and the sync passes zero power, :917-938;
         a G1 with no axis word moves nothing, :875-879), and keeps it through the dwell
         (mc_dwell only waits); `M5` turns it off (spindle_sync, :945). The motion mode
-        is left at G1."""
-        return [f"G1 M3 S{gcode_number(speed)}", f"G4 P{gcode_number(seconds)}", "M5"]
+        is left at G1.
+
+        A G1 needs a feed defined even when it moves nothing (gcode.c:167 and :664:
+        error:22, as a board fresh from a reset has none): where `$G` said none, the
+        G1 gives `LASER_TEST_FEED`, a slow one, which stays the modal feed. A board
+        that has a feed keeps its own."""
+        feed = self.model.feed
+        f = "" if feed is not None and feed > 0 else f" F{gcode_number(LASER_TEST_FEED)}"
+        return [f"G1{f} M3 S{gcode_number(speed)}", f"G4 P{gcode_number(seconds)}", "M5"]
 
     def line_limit(self) -> int:
         """The receive buffer less one (`[OPT:]`'s, or classic grbl's 128)."""

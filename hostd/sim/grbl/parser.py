@@ -305,6 +305,11 @@ def _block(m: Modal, words: list[tuple[str, float]], travel_ok: TravelCheck, jog
     motion_codes = [g for g in gcodes if _G_GROUP[g] == "motion"]
     if motion_codes:
         m.motion = motion_codes[0]
+        # A motion word in the block is a motion command with or without axes (gcode.c:167),
+        # and every mode but G0 and G80 needs a feed defined by then (:664), even one
+        # that moves nothing (`G1 M3 S100` on a board that has had no F: error:22).
+        if m.motion not in (0.0, 80.0) and m.feed <= 0:
+            raise _Refused(Error.UNDEFINED_FEED_RATE)
     if jog:
         m.motion = 1.0
     if axes and not axes_taken:
