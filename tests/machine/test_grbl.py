@@ -517,6 +517,37 @@ async def test_a_reset_mid_job_fails_it_loses_position_and_resyncs(tmp_path: Pat
         await state(bench, S.READY)
 
 
+@pytest.mark.parametrize(
+    ("flavour", "low"), [("grblhal", (0.0, 200.0)), ("grbl", (-200.0, 0.0))], ids=["hal", "grbl"]
+)
+async def test_the_travel_is_where_homing_puts_the_origin(
+    tmp_path: Path, flavour: str, low: tuple[float, float]
+) -> None:
+    """grblHAL's `$22` bit 3 ("Set machine origin to 0") puts 0 where each axis homes; an
+    axis homing to its low end (`$23`) then runs 0..+travel (machine_limits.c). The
+    travel check and the safe height must read it so, or a program inside the machine
+    is refused and one past its low end passes. Classic grbl's `$22` is 0 or 1."""
+    config = GrblConfig(flavour=flavour, speed_factor=50.0, homing=True)
+    async with grbl_bench(tmp_path, config, idle=False) as bench:
+        engine = bench.machine.engine
+        assert (await engine.send("$X")).ok
+        await state(bench, S.READY)
+        for line in ("$22=9", "$23=3", "$20=1"):  # X and Y home low; soft limits on
+            assert (await engine.send(line)).ok
+        assert (await engine.send("$H")).ok
+        await bench.supervisor(Sup.IDLE)
+        limits = await bench.machine.known_limits()
+        assert limits is not None
+        assert limits.travel["x"] == limits.travel["y"] == low
+        assert limits.travel["z"] == (-200.0, 0.0)  # homes high: as before
+        # The board's own soft limits agree: the move the check allows is run.
+        inside = 50.0 if low[0] == 0.0 else -50.0
+        assert (await engine.send(f"G90 G0 X{inside}")).ok
+        async with asyncio.timeout(5):
+            await engine.wait_for(lambda: engine.model.machine_position.get("x") == inside)
+        assert engine.model.state is not S.ALARM  # no soft limit tripped
+
+
 # --- a live board is never given up; a gone one is (issue 25) -----------------------
 
 # Quick timings, so that the silences below outlast them several times over.

@@ -30,6 +30,15 @@ from hostd.protocol.words import Words, gcode_number
 
 _RATE, _ACCEL, _TRAVEL = (110, 111, 112), (120, 121, 122), (130, 131, 132)  # $N, X Y Z
 _OFFSET_KINDS = frozenset({"G54", "G55", "G56", "G57", "G58", "G59", "G92"})
+_HOMING, _HOMING_DIR = 22, 23  # the homing cycle's flags, the axes that home to their low end
+_FORCE_SET_ORIGIN = 1 << 3  # grblHAL's `$22` "Set machine origin to 0"
+
+
+def _mask(value: object) -> int:
+    """A bit-mask setting as a number read it (`$22=9`, 9.0); 0 when absent or not one."""
+    if isinstance(value, float | int) and math.isfinite(value) and value == int(value) >= 0:
+        return int(value)
+    return 0
 
 
 # mm/min (or in/min under G20): the feed a laser test's G1 defines on a board with none.
@@ -176,14 +185,22 @@ class GrblWords(Words):
         return found
 
     def limit_settings(self) -> list[str]:
-        return [str(n) for n in (*_RATE, *_ACCEL, *_TRAVEL)]
+        return [str(n) for n in (*_RATE, *_ACCEL, *_TRAVEL, _HOMING, _HOMING_DIR)]
 
     def machine_limits(self, found: Mapping[str, Any]) -> MachineLimits:
-        """`$110`.. max rate, `$120`.. acceleration, `$130`.. max travel; grbl's machine
-        coordinates run from -max travel to 0 (limits.c, without HOMING_FORCE_SET_ORIGIN)."""
+        """`$110`.. max rate, `$120`.. acceleration, `$130`.. max travel.
+
+        grbl's machine coordinates run from -max travel to 0 (gnea/grbl limits.c:376-383
+        without HOMING_FORCE_SET_ORIGIN, a build option no setting shows). grblHAL's
+        `$22` bit 3, "Set machine origin to 0" (core settings.h `force_set_origin`),
+        puts 0 where the axis homes: an axis homing to its low end (`$23` bit set) then
+        runs from 0 to +max travel (machine_limits.c:116-139 `limits_set_work_envelope`,
+        settings.c:254: max travel is kept negative). Classic grbl's `$22` is 0 or 1."""
         travel: dict[str, tuple[float, float]] = {}
         velocity: dict[str, float] = {}
         accel: dict[str, float] = {}
+        homing, dirs = (_mask(found.get(str(n))) for n in (_HOMING, _HOMING_DIR))
+        origin_at_home = bool(homing & _FORCE_SET_ORIGIN)
         for i, axis in enumerate(("x", "y", "z")):
             rate, acc, span = (found.get(str(n[i])) for n in (_RATE, _ACCEL, _TRAVEL))
             if isinstance(rate, float | int) and rate > 0:
@@ -191,7 +208,8 @@ class GrblWords(Words):
             if isinstance(acc, float | int) and acc > 0:
                 accel[axis] = float(acc)
             if isinstance(span, float | int) and span > 0:
-                travel[axis] = (-float(span), 0.0)
+                low_end = origin_at_home and bool(dirs & (1 << i))
+                travel[axis] = (0.0, float(span)) if low_end else (-float(span), 0.0)
         return MachineLimits(travel, velocity, accel)
 
     def offset_reads(self) -> list[str]:

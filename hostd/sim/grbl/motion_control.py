@@ -23,10 +23,9 @@ from typing import TYPE_CHECKING
 
 from hostd.sim.config import AXES
 from hostd.sim.gcode import Move
-from hostd.sim.grbl import reports
+from hostd.sim.grbl import envelope, reports
 from hostd.sim.grbl.codes import Alarm, Msg
 from hostd.sim.grbl.parser import Executed, Probe
-from hostd.sim.grbl.settings import HOMING_PULLOFF
 from hostd.sim.motion import Active, Traversed, start_block
 from hostd.sim.probing import contact, sensor_surface
 
@@ -176,7 +175,7 @@ def _after_sync(board: GrblBoard, result: Executed, now: float) -> bool:
 
 
 def homed(board: GrblBoard) -> None:
-    board.position = dict.fromkeys(AXES, -HOMING_PULLOFF)
+    board.position = {axis: envelope.home_position(board, i) for i, axis in enumerate(AXES)}
     board.modal.position = dict(board.position)
     board.homed = True
     if board._status_pending:

@@ -13,8 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hostd.sim.config import AXES
-from hostd.sim.grbl import parser
-from hostd.sim.grbl.settings import HOMING_PULLOFF
+from hostd.sim.grbl import envelope, parser
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -185,7 +184,10 @@ def parameters(board: GrblBoard) -> list[str]:
     zero = dict.fromkeys(AXES, 0.0)
     out += [f"[G28:{axes(zero)}]", f"[G30:{axes(zero)}]", f"[G92:{axes(m.g92)}]"]
     if board.hal and board._bits(22) & 1:
-        home = dict.fromkeys(AXES, -HOMING_PULLOFF if board.homed else 0.0)
+        home = {
+            axis: envelope.home_position(board, i) if board.homed else 0.0
+            for i, axis in enumerate(AXES)
+        }
         out.append(f"[HOME:{axes(home)}:{7 if board.homed else 0}]")
     out.append("[TLO:0.000]")
     out.append(f"[PRB:{axes(m.probe)}:{int(m.probe_ok)}]")

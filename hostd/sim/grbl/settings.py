@@ -17,6 +17,8 @@ DEFAULTS: dict[int, float] = {
     120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
 }  # fmt: skip
 FLOAT_SETTINGS = frozenset({11, 12, 24, 25, 27} | set(range(100, 133)))
+# Classic grbl keeps these as bits of settings.flags: any non-zero value stores 1.
+CLASSIC_FLAGS = frozenset({4, 5, 6, 13, 20, 21, 22, 32})
 # HAL $10 (status report options): machine position, buffer state, line numbers,
 # feed & speed, pin state, WCO, overrides (config.h DEFAULT_REPORT_*).
 HAL_REPORT_MASK = 0b1111111

@@ -13,9 +13,9 @@ from functools import partial
 from typing import TYPE_CHECKING
 
 from hostd.sim.config import AXES
-from hostd.sim.grbl import motion_control, parser, reports
+from hostd.sim.grbl import envelope, motion_control, parser, reports
 from hostd.sim.grbl.codes import Error, Msg
-from hostd.sim.grbl.settings import FLOAT_SETTINGS, setting_text
+from hostd.sim.grbl.settings import CLASSIC_FLAGS, FLOAT_SETTINGS, setting_text
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -134,6 +134,12 @@ def _store(board: GrblBoard, key: int, raw: str) -> Error | None:
         return Error.NEGATIVE_VALUE
     if key == 20 and value and not board.settings[22]:
         return Error.SOFT_LIMIT_ERROR  # settings.c: soft limits need homing
+    if not board.hal and key in CLASSIC_FLAGS:
+        value = float(value != 0)  # a bit of settings.flags: `$$` says 0 or 1 (settings.c:243-296)
+    if key == 22 and not value:
+        board.settings[20] = (
+            0  # "Force disable soft-limits" (settings.c:279; HAL set_homing_enable)
+        )
     board.settings[key] = value if key in FLOAT_SETTINGS else int(value)
     return board._stored(f"${key}={raw}")
 
@@ -207,8 +213,9 @@ def _jog_travel_ok(board: GrblBoard, target: Mapping[str, float]) -> bool:
 
 
 def in_travel(board: GrblBoard, target: Mapping[str, float]) -> bool:
-    """system_check_travel_limits: homing toward +, the envelope is [-max travel, 0]."""
+    """system_check_travel_limits, against `envelope`."""
     for i, axis in enumerate(AXES):
-        if not -board.settings[130 + i] - 1e-6 <= target[axis] <= 1e-6:
+        low, high = envelope.envelope(board, i)
+        if not low - 1e-6 <= target[axis] <= high + 1e-6:
             return False
     return True
