@@ -333,7 +333,10 @@ async def test_a_job_whose_lines_are_all_answered_is_finishing_not_at_zero_secon
         await expect(page.locator("#job-lines")).to_have_text("3 / 3")
         await expect(page.locator("#job-eta")).to_have_text("finishing")
         await expect(page.locator("#supervisor")).to_have_text("operation")  # still moving
+        # The bar is full (lines answered) but pulses: not done.
+        await expect(page.locator("#job-progress")).to_have_class("finishing")
         await cancel_job(web)
+        await expect(page.locator("#job-progress")).not_to_have_class("finishing")
 
 
 async def test_the_preview_shows_the_selected_file_while_a_job_runs_another(

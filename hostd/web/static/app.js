@@ -264,6 +264,7 @@ function showJob(job) {
   if (!job) {
     $("job-title").textContent = "no job";
     $("job-progress").value = 0;
+    $("job-progress").classList.remove("finishing");
     for (const id of ["job-lines", "job-at", "job-rate", "job-eta"]) $(id).textContent = "–";
     view.rate = null;
     return;
@@ -290,10 +291,15 @@ function showJob(job) {
   // Every line answered is not the end: the board still runs what its planner holds, and
   // the job is running until it rests. Said so, not "0 s".
   const left = total - job.lines_acked;
+  const finishing = job.state === "running" && total > 0 && left <= 0;
   $("job-eta").textContent =
     job.state !== "running" ? "–"
-      : total && left <= 0 ? "finishing"
+      : finishing ? "finishing"
         : perSecond > 0 ? duration(left / perSecond) : "…";
+  // A full bar reads as done: while the board still runs what it holds, the bar pulses.
+  const bar = $("job-progress");
+  bar.classList.toggle("finishing", finishing);
+  bar.title = finishing ? "every line is sent; the machine is still running the last ones" : "";
   // The preview shows the file picked in the list, never the job's behind its back
   // (that once made the preview and Start disagree).
   if (["completed", "failed", "cancelled", "interrupted"].includes(job.state)) refreshHistory();
