@@ -122,22 +122,17 @@ def test_a_machine_in_a_lockout_says_it_and_how_to_end_it_in_commands() -> None:
         "(to end it: hostd clear or hostd home)"
     )
     assert fields["indicator"] == "normal (faults only)"
-    grbl_limit = {
-        "state": "ALARM",
-        "message": "alarm",
-        "clear": "machine.reset, then machine.clear",
-    }
-    assert render.lockout({"lockout": grbl_limit}) == (
-        "ALARM (to end it: hostd reset, then hostd clear)"
-    )
-    door = {
-        "state": "INTERLOCK",
-        "message": "",
-        "clear": "close the interlock, then machine.cycle_start",
-    }
-    assert render.lockout({"lockout": door}) == (
-        "INTERLOCK (to end it: close the interlock, then hostd resume)"
-    )
+    for state, message, clear, said in (
+        ("ALARM", "alarm", "machine.reset, then machine.clear", "hostd reset, then hostd clear"),
+        (
+            "INTERLOCK",
+            "",
+            "close the interlock, then machine.cycle_start",
+            "close the interlock, then hostd resume",
+        ),
+    ):
+        lock = {"state": state, "message": message, "clear": clear}
+        assert render.lockout({"lockout": lock}) == f"{state} (to end it: {said})"
     assert render.lockout({"lockout": None}) == "none"
     assert render.indicator({"indicator": "alert", "lockout": None}) == "alert"
 

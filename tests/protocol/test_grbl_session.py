@@ -781,18 +781,16 @@ def test_the_spindle_is_read_from_any_report_that_says_a_and_from_ov_without_it(
     says nothing of the spindle."""
     grbl = Grbl()
     grbl.connect()
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500|A:S>")
-    assert grbl.session.model.spindle == {"state": "cw", "speed": 500}
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500>")
-    assert grbl.session.model.spindle == {"state": "cw", "speed": 500}
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,500|A:CF>")
-    assert grbl.session.model.spindle == {"state": "ccw", "speed": 500}
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|A:>")
-    assert grbl.session.model.spindle == {"state": "off", "speed": 0}
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,300|Ov:100,100,100|A:S>")
-    assert grbl.session.model.spindle == {"state": "cw", "speed": 300}
-    grbl.feed("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>")
-    assert grbl.session.model.spindle == {"state": "off", "speed": 0}
+    for tail, state, speed in (
+        ("FS:0,500|A:S", "cw", 500),  # grblHAL: A alone, on the report after M3
+        ("FS:0,500", "cw", 500),  # neither: unchanged
+        ("FS:0,500|A:CF", "ccw", 500),
+        ("FS:0,0|A:", "off", 0),  # grblHAL: all off
+        ("FS:0,300|Ov:100,100,100|A:S", "cw", 300),
+        ("FS:0,0|Ov:100,100,100", "off", 0),  # classic: Ov without A
+    ):
+        grbl.feed(f"<Idle|MPos:0.000,0.000,0.000|{tail}>")
+        assert grbl.session.model.spindle == {"state": state, "speed": speed}, tail
 
 
 def test_help_is_not_homing() -> None:

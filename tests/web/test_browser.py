@@ -16,6 +16,7 @@ import pytest
 
 from hostd.api.tokens import TokenStore
 from tests.web.conftest import log_in, running_web, screenshot
+from tests.web.test_operator import upload
 
 SIGNALS = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
 LONG = "".join(f"G1 X{i % 40} Y{(i * 7) % 30} F600\n" for i in range(400))
@@ -159,11 +160,10 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         page = await browser.new_page()
         await log_in(page, web)
 
-        wide = tmp_path / "wide.nc"  # X to 350 mm: the simulator's travel is 0..300
-        wide.write_text("G21 G90\nG1 X350 Y10 F6000\nG38.2 Z-5 F100\nG1 X0\n")
-        await page.set_input_files("#upload-file", wide)
-        await page.click("#upload button")
-        await expect(page.locator("#files")).to_have_value("wide.nc")
+        # X to 350 mm: the simulator's travel is 0..300
+        await upload(
+            page, tmp_path, "wide.nc", "G21 G90\nG1 X350 Y10 F6000\nG38.2 Z-5 F100\nG1 X0\n"
+        )
 
         await expect(page.locator("#travel")).to_be_visible()
         await expect(page.locator("#travel")).to_contain_text("leaves sim1's travel")
@@ -177,20 +177,13 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         await screenshot(page, tmp_path, "travel-refused")
         assert await rpc.call("job.list", machine="sim1") == []  # nothing was started
 
-        deep = tmp_path / "deep.nc"  # inside the XY travel, Z below it: framed, not run
-        deep.write_text("G21 G90\nG1 X150 Y10 F6000\nG1 Z-5 F100\nG1 X0\n")
-        await page.set_input_files("#upload-file", deep)
-        await page.click("#upload button")
-        await expect(page.locator("#files")).to_have_value("deep.nc")
+        # Inside the XY travel, Z below it: framed, not run.
+        await upload(page, tmp_path, "deep.nc", "G21 G90\nG1 X150 Y10 F6000\nG1 Z-5 F100\nG1 X0\n")
         await expect(page.locator("#travel")).to_contain_text("Z runs")
         await expect(page.locator("#start")).to_be_disabled()
         await expect(page.locator("#frame")).to_be_enabled()
 
-        fits = tmp_path / "fits.nc"
-        fits.write_text("G21 G90\nG1 X150 F6000\nG1 X0\n")
-        await page.set_input_files("#upload-file", fits)
-        await page.click("#upload button")
-        await expect(page.locator("#files")).to_have_value("fits.nc")
+        await upload(page, tmp_path, "fits.nc", "G21 G90\nG1 X150 F6000\nG1 X0\n")
         await expect(page.locator("#analysis")).to_contain_text("X 0.0…150.0")
         await expect(page.locator("#travel")).to_be_hidden()
         await expect(page.locator("#start")).to_be_enabled()
