@@ -235,3 +235,33 @@ def test_the_preamble_leaves_out_what_the_dialect_refuses_with_its_words() -> No
     plan = _plan(text, 5, GRBL)
     assert plan.preamble[:2] == ["G21", "G17 G90 G91.1 G94"] and "H2" not in plan.preamble
     assert "G43 H2" in _plan(text, 5, G2CORE).preamble
+
+
+CLEARANCE = """\
+G21 G90 G54
+G0 Z10
+G0 X10 Y10
+G1 Z-1 F300
+G1 X60 F1500
+G1 Y40
+"""
+
+
+@pytest.mark.parametrize(("safe_z", "climb"), [(-75.0, "-70"), (-2.0, "-2")])
+def test_the_approach_never_crosses_lower_than_the_file_went_before_the_line(
+    safe_z: float, climb: str
+) -> None:
+    """The file rose to work Z10 (machine -70) before cutting at Z-1. With a safe height
+    below that (-75: set too low, say 5 mm over the stock on a 10 mm clamp) the approach
+    crosses at the file's own clearance, and says so; above it, at the safe height."""
+    plan = _plan(CLEARANCE, 6, safe_z=safe_z)
+    assert plan.approach[0] == f"G90 G53 G0 Z{climb}"
+    assert plan.approach[1] == "G53 G0 X160 Y110"  # across only once up there
+    noted = [u for u in plan.uncertain if "above the safe height" in u]
+    if safe_z < -70:
+        assert noted == [
+            "the file went up to Z-70 mm (machine, line 2), above the safe height Z-75: "
+            "the approach crosses at that height"
+        ]
+    else:
+        assert noted == []

@@ -12,7 +12,9 @@ in order:
    codes the dialect refuses. It never writes an offset the board stores (G10):
    where the file wrote one, the plan says so under `uncertain`;
 2. `G92.1` where the board's G92 offset is not the file's (it is set at 7);
-3. up to the safe height, in machine coordinates (`G53 G0 Z`);
+3. up to the safe height, in machine coordinates (`G53 G0 Z`), or to the highest
+   the file took the tool before the line where that is higher (its own
+   clearance: a safe height set below it would cross the work);
 4. across to the resume point in X and Y, in machine coordinates;
 5. a spindle: on with the speed in force, coolant, a dwell for spin-up;
 6. down to the start depth at the plunge feed: the file's own (its last feed
@@ -97,25 +99,41 @@ class ResumePlan:
         }
 
 
-def state_before(lines: Iterable[str], line: int, dialect: Dialect, board: Board) -> GcodeModel:
-    """The model after reading lines 1 .. line - 1 (streamed, O(1) memory), from `board`.
+@dataclass(slots=True)
+class _Read:
+    """A model reading the file, and the highest machine Z its moves reached."""
+
+    model: GcodeModel
+    top: float = -math.inf  # mm, machine coordinates
+    top_line: int = 0
+
+    def step(self, text: str) -> None:
+        self.model.step(text)
+        z = self.model.pos[2]
+        if z > self.top:  # NaN (not known) never is
+            self.top, self.top_line = z, self.model.line
+
+
+def state_before(lines: Iterable[str], line: int, dialect: Dialect, board: Board) -> _Read:
+    """The model after reading lines 1 .. line - 1 (streamed, O(1) memory), from `board`,
+    with the highest the file took the tool meanwhile.
 
     Which G92 the file started with: none, when the file sets its own before the line
     (the board's may be what the lost job itself set: taken as the start, it would
     shift everything read before the file's G92); else the board's (an operator's,
     set before the job, which the job ran with).
     """
-    own = GcodeModel(dialect, offsets=board.offsets, keep_offsets=True)
+    own = _Read(GcodeModel(dialect, offsets=board.offsets, keep_offsets=True))
     held = None
     if any(board.g92.values()):
-        held = GcodeModel(dialect, offsets=board.offsets, g92=board.g92, keep_offsets=True)
+        held = _Read(GcodeModel(dialect, offsets=board.offsets, g92=board.g92, keep_offsets=True))
     for number, text in enumerate(lines, start=1):
         if number >= line:
             break
         own.step(text)
         if held is not None:
             held.step(text)
-    return own if held is None or own.g92_line is not None else held
+    return own if held is None or own.model.g92_line is not None else held
 
 
 def plan_resume(
@@ -140,7 +158,8 @@ def plan_resume(
             "the board's coordinate offsets are not known (is the machine connected?): "
             "without them the approach cannot be planned in machine coordinates"
         )
-    model = state_before(lines, line, dialect, board)
+    read = state_before(lines, line, dialect, board)
+    model = read.model
     state = model.state()
     uncertain: list[str] = []
     if model.line < line - 1:
@@ -182,7 +201,16 @@ def plan_resume(
     reset_g92 = any(abs(b - f) > 1e-9 for b, f in zip(board_g92, file_g92, strict=True))
     if reset_g92:
         approach.append("G92.1")
-    approach.append(f"G90 G53 G0 Z{_num(safe_z / scale, places)}")
+    # Never across lower than the file itself went before the line: a safe height set
+    # below its clearance (the work's top, a clamp) would drag the tool through them.
+    climb = safe_z
+    if read.top > safe_z + 1e-9:
+        climb = read.top
+        uncertain.append(
+            f"the file went up to Z{_num(read.top, 3)} mm (machine, line {read.top_line}), "
+            f"above the safe height Z{_num(safe_z, 3)}: the approach crosses at that height"
+        )
+    approach.append(f"G90 G53 G0 Z{_num(climb / scale, places)}")
     x, y = (_num(target[a] / scale, places) for a in ("x", "y"))
     approach.append(f"G53 G0 X{x} Y{y}")
     on = _switch_on(state, board, uncertain)
