@@ -331,6 +331,27 @@ async def test_frame_is_refused_only_when_its_xy_box_leaves_the_travel(
     assert min(m.move.target["z"] for m in moves) >= 0  # never down to the file's Z-5
 
 
+async def test_a_mills_frame_crosses_no_lower_than_the_program_goes(tmp_path: Path) -> None:
+    """The program rises to Z20 before it cuts; the machine's safe_z (5) is set lower. The
+    frame climbs to Z20, where the program itself crosses, not to 5."""
+    async with running_daemon(tmp_path, safe_z=5.0) as hostd:
+        rpc = await hostd.client()
+        await rpc.call("subscribe", topics=["job"])
+        await hostd.idle(rpc, G2)
+        text = "G21 G90\nG0 Z20\nG0 X12 Y7\nG1 Z-1 F100\nG1 X30 Y25 F800\nG0 Z20\n"
+        (hostd.jobs / "clear.gcode").write_text(text)
+        before = len(traced(hostd, G2))
+        job = await rpc.call("machine.frame", machine=G2, file="clear.gcode")
+        assert (await job_end(rpc, job["job"]))["state"] == "completed"
+        assert any(line.endswith(b"G53 G0 Z20") for line in lines_sent(hostd, G2))
+        moves = traced(hostd, G2)[before:]
+        corners = [(round(m.move.target["x"], 3), round(m.move.target["y"], 3)) for m in moves]
+        # The box of every move, the first rise at X0 Y0 too.
+        assert corners[-5:] == [(0, 0), (30, 0), (30, 25), (0, 25), (0, 0)]
+        assert {round(m.move.target["z"], 3) for m in moves[-5:]} == {20.0}
+        await rpc.close()
+
+
 async def test_frame_at_low_power_burns_only_along_the_box(both: tuple[Running, Rpc]) -> None:
     hostd, rpc = both
     (hostd.jobs / "boxed.gcode").write_text(BOXED)
