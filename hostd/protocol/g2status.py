@@ -134,23 +134,31 @@ class G2Status(G2Kills):
             self.model.overrides = {**self.model.overrides, "feed": 100.0, "rapid": 100.0}
         stream = self.stream
         if state is MachineState.RUN and stream is not None:
-            stream.program_pause_sent = False
+            stream.at_program_pause = False  # going on from a program pause, if at one
         elif (
             state in _FLUSH_CONFIRMED
             and stream is not None
             and not stream.done
-            and not stream.program_pause_sent
             and self._flush is None
             and not stream.paused  # a pause the board ignored (nothing moving) is no underflow
             and not self._await_report  # the host held the lines back: no starving
             and not self.model.hold  # a hold at rest (101.05+) is no starving either
-            and stream.lines_on_host()  # but a `{`-line, which waits on purpose
-            and self._moved  # a run that moved nothing starved nothing (at rest, M6, G4)
         ):
-            # The board ran out of moves while the job still had lines on the host:
-            # reported with the file line it stopped after (behaviour.md, faults).
-            line = stream.last_acked_line
-            self._detected("underflow", line, f"the controller stopped after file line {line}")
+            if stream.at_program_pause:
+                pass  # still stopped at the program's pause
+            elif stream.program_pauses:
+                # The stop at an M0 the job wrote. Counted, not flagged until RUN: the board
+                # runs the moves before it (RUN reports) after the M0 went out, the first
+                # window's with it, and the stop comes only once it reaches the M0.
+                stream.program_pauses -= 1
+                stream.at_program_pause = True
+            elif stream.lines_on_host() and self._moved:
+                # The board ran out of moves while the job still had lines on the host
+                # (but a `{`-line, which waits on purpose; a run that moved nothing, at
+                # rest, M6, G4, starved nothing): reported with the file line it stopped
+                # after (behaviour.md, faults).
+                line = stream.last_acked_line
+                self._detected("underflow", line, f"the controller stopped after file line {line}")
         if state.is_lockout:
             self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:

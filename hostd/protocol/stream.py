@@ -99,8 +99,11 @@ class Stream:
         self._sent_line = 0  # the highest file line number written
         self._first_line: int | None = None  # the first one (a resume's preamble is line 0)
         self._acked_lines: deque[int | None] = deque(maxlen=_ACKED_KEPT)
-        # An M0/M1/M60 went out: the board stopping now is the program's pause, not an underflow.
-        self.program_pause_sent = False
+        # M0/M1/M60s written that the board has not yet stopped at: its next stop is the
+        # program's pause, not an underflow (g2status.py `_on_state`); and whether it
+        # stands at one now, until a report says it runs again.
+        self.program_pauses = 0
+        self.at_program_pause = False
         self.paused = False  # from the job's `!` to its `~`: none of its lines is written
         self.held: int | None = None  # the file line a hold point keeps back, its turn come
         self.result: StreamResult | None = None
@@ -223,7 +226,7 @@ class Stream:
         assert entry is not None
         line = entry.line
         if (_M in line or _m in line) and _PROGRAM_PAUSE.search(line):
-            self.program_pause_sent = True
+            self.program_pauses += 1
         number = entry.file_line
         assert number is not None
         if number > self._sent_line:  # file lines only grow; a resume's preamble is line 0
@@ -282,7 +285,7 @@ class Stream:
             popleft()
             append(entry)
             if not plain and (_M in line or _m in line) and pause(line):
-                self.program_pause_sent = True
+                self.program_pauses += 1
             number: int = entry.file_line  # type: ignore[assignment]  # a job's line has one
             if number > sent_line:  # file lines only grow; a resume's preamble is line 0
                 if first_line is None:

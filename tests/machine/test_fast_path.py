@@ -56,7 +56,7 @@ RX = 128
 # Job lines: mostly plain moves, and every kind the fast path must leave to the general one.
 PLAIN = ["G1 X1 Y2 F3000", "G0 X10", "G1 X1.5 Y-2.25 S100", "M3 S500", "G1 Z-0.1"]
 SPECIAL = [
-    "M0",  # a program pause: `program_pause_sent`
+    "M0",  # a program pause: `program_pauses`
     "M1",
     "G10 L20 P1 X0",  # grbl: may store (send-response)
     "G28.1",
@@ -299,7 +299,7 @@ async def _run(
             position.discarded,
             position.last_acked_line,
             position.line_executed,
-            position.program_pause_sent,
+            (position.program_pauses, position.at_program_pause),
             position.done,
             str(position.result),
             session._lines_in,  # type: ignore[attr-defined]
