@@ -84,7 +84,7 @@ async def prepare_start(
             )
         counted = found.lines
     limits = await machine.known_limits() if not force or start_line > 1 else None
-    offset = work_offset(machine.snapshot())
+    offset = work_offset(machine)
     if not force and limits is not None and limits.travel and offset:
         # Only a check that can run is worth reading the file for: the travel
         # is known and so is the work offset (the machine is homed).

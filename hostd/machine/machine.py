@@ -259,5 +259,13 @@ class Machine(MachineOperations):
             faults=[f.to_json() for f in self.faults.active()],
             job=self.jobs.current_json(),
             tool_change=self.tools.snapshot(),
+            position_units=self._position_units(),
         )
         return snap
+
+    def _position_units(self) -> dict[str, str]:
+        """What `machine_position` and `work_position` are in, as the board reports them
+        (`position_scales`): not always `units`, the units mode, which g2core's machine
+        position and grbl's both positions do not follow."""
+        machine, work = self.engine.session.position_scales()
+        return {"machine": "mm" if machine == 1.0 else "in", "work": "mm" if work == 1.0 else "in"}

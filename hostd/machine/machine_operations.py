@@ -145,6 +145,17 @@ class MachineOperations(MachineCore):
             log.info("machine limits not read", machine=self.id, error=exc.message)
             return None
 
+    def positions_mm(self) -> tuple[dict[str, float], dict[str, float]]:
+        """The machine and the work position as the board last reported them, in mm:
+        each in the units its dialect reports it in (`position_scales`: g2core's `mpo`
+        is always mm, its `pos` follows G20; grbl's both follow `$13`)."""
+        machine_scale, work_scale = self.engine.session.position_scales()
+        model = self.engine.model
+        return (
+            {a: v * machine_scale for a, v in model.machine_position.items()},
+            {a: v * work_scale for a, v in model.position.items()},
+        )
+
     async def board_offsets(self) -> Board:
         """The board's stored offsets (G54..), its G92 and spindle speed, in mm: what a
         resume plans from (hostd.protocol.gcodestate.resume). Queries: any state."""

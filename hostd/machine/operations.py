@@ -32,7 +32,6 @@ from hostd.machine.workers import WorkerPool
 from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
 from hostd.protocol.gcode import axes_words, short_number
-from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
 
@@ -359,18 +358,18 @@ async def frame(
             f"{machine.id} is not a laser and its safe height is unknown: set safe_z"
             + ("" if homed else ", or home it (the Z travel's top means nothing before)"),
         )
-    model = machine.engine.model
-    scale = MM_PER_INCH if model.units == "in" else 1.0
-    z_now, z_work = model.machine_position.get("z"), model.position.get("z")
+    here, work = machine.positions_mm()
+    z_now, z_work = here.get("z"), work.get("z")
     if safe_z is not None and "z" in bounds and z_now is not None and z_work is not None:
         # Never across lower than the program itself goes (its clearance over the work and
         # the clamps): a safe height set below it would drag the tool through them.
-        top = bounds["z"][1] + (z_now - z_work) * scale
+        top = bounds["z"][1] + z_now - z_work
         if top > safe_z:
             log.info("frame: above the safe height, at the program's top", z=top, safe_z=safe_z)
             safe_z = top
-    if safe_z is not None and z_now is not None and z_now * scale >= safe_z:
+    if safe_z is not None and z_now is not None and z_now >= safe_z:
         safe_z = None  # already at or above it: Z never goes down
+    model = machine.engine.model
     speed = await full_power(machine) * power / 100.0 if power > 0 else None
     lines = frame_lines(
         machine,

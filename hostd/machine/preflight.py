@@ -35,7 +35,6 @@ from hostd.protocol.gcodestate.analysis import beyond_travel
 from hostd.protocol.gcodestate.blocks import unsupported_text
 from hostd.protocol.gcodestate.figures import DEFAULT_RAPID
 from hostd.protocol.gcodestate.model import ProgramError
-from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.jobcheck import Findings, check_program
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.program import program_lines
@@ -158,18 +157,20 @@ def _warning_text(warning: dict[str, Any]) -> str:
     return f"{where}{warning['text']}{times}"
 
 
-def work_offset(snapshot: dict[str, Any]) -> dict[str, float] | None:
+def work_offset(machine: Machine) -> dict[str, float] | None:
     """Machine minus work position (mm) as the board reports them: the offset in force.
 
     None until the machine is homed: machine coordinates mean nothing before (a board
-    counts from wherever it was switched on), so neither does a travel check.
+    counts from wherever it was switched on), so neither does a travel check. Each
+    position in mm as its dialect reports it (`Machine.positions_mm`): until 2026-11-29
+    both were scaled by the units mode, where g2core's machine position is always mm
+    and grbl's positions follow `$13`, not G20: on a board left in G20 the check was
+    off by up to 25 times the machine position.
     """
-    if snapshot.get("homed") is not True:
+    if machine.engine.model.homed is not True:
         return None
-    machine = snapshot.get("machine_position") or {}
-    work = snapshot.get("work_position") or {}
-    scale = MM_PER_INCH if snapshot.get("units") == "in" else 1.0
-    return {a: (machine[a] - work[a]) * scale for a in machine if a in work}
+    here, work = machine.positions_mm()
+    return {a: here[a] - work[a] for a in here if a in work}
 
 
 async def analyze_file(
@@ -291,7 +292,7 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
         analysed = await analyze_file(path, spec, pool=pool)
         return replace(analysed, findings=found, dialect=spec.gcode.name)
     limits = await machine.known_limits()
-    offset = work_offset(machine.snapshot())
+    offset = work_offset(machine)
     found = await check_file(
         path,
         machine.config.spec,

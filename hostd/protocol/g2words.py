@@ -19,6 +19,7 @@ from hostd.protocol.commands import InvalidCommand, Refusal
 from hostd.protocol.g2builds import Build
 from hostd.protocol.gcode import HOME_AXES, axes_words, jog_line
 from hostd.protocol.gcodestate.resume import Board
+from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.limits import MachineLimits
 from hostd.protocol.messages import JsonObject
 from hostd.protocol.model import MachineModel
@@ -41,6 +42,12 @@ class G2Words(Words):
     model: MachineModel
 
     report_line: str | None = "{sr:n}"  # a GET: answered once the report has been printed
+
+    def position_scales(self) -> tuple[float, float]:
+        """`mpo` is absolute and in mm whatever the units mode (canonical_machine.cpp:2066
+        `cm_get_absolute_position`, `_f0`: no conversion); `pos` is in the units mode in
+        force (:575-589 `cm_get_display_position` divides by 25.4 under G20)."""
+        return 1.0, MM_PER_INCH if self.model.units == "in" else 1.0
 
     def spindle_max_setting(self) -> str | None:
         """`th2mxs`, the S of the laser toolhead's full power (edge-preview

@@ -83,6 +83,11 @@ class Words:
         """The longest job line, its LF included, the board takes (g2core: 511 and the LF)."""
         return MAX_LINE_BYTES + 1
 
+    def position_scales(self) -> tuple[float, float]:
+        """mm per unit of the machine position and of the work position the board
+        reports now (the snapshot's `machine_position`, `work_position`)."""
+        return 1.0, 1.0
+
     def known_travel(self) -> dict[str, tuple[float, float]]:
         """The machine's travel per axis (mm) the session already knows, without asking."""
         return {}

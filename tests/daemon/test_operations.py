@@ -189,6 +189,44 @@ async def test_goto_zero_raises_z_to_the_safe_height_first(tmp_path: Path) -> No
         await rpc.close()
 
 
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_the_travel_check_reads_the_positions_in_their_own_units_under_g20(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """A board left in G20 by an inch program: g2core still reports its machine position
+    in mm (only `pos` follows G20), grbl both in mm (only `$13` changes them). The work
+    offset is their difference in mm; scaling both by 25.4, as before, put a program
+    that fits 2.5 m away here (a false refusal), and can put one that does not inside."""
+    hostd, rpc = both
+    assert await rpc.call("machine.home", machine=machine) == {}
+    inside = 100.0 if machine == G2 else -100.0  # g2core's travel 0..300, grbl's -200..0
+    await jog_to(hostd, rpc, machine, {"x": inside - rpc_x(await status(rpc, machine))})
+    await rpc.call("machine.zero", machine=machine, axes={"x": 0})
+    await rpc.call("subscribe", topics=["status"], machine=machine)
+    await rpc.call("machine.send", machine=machine, line="G20")
+    if machine == GRBL:
+        await rpc.call("machine.send", machine=machine, line="$G")  # grbl says it in `$G`
+    await rpc.notification(
+        lambda n: n["method"] == "status" and n["params"]["snapshot"]["units"] == "in"
+    )
+    await rpc.call("file.upload", name="fits.nc", data="G20 G90\nG0 X1\n")  # 25.4 mm over
+    await rpc.call("file.upload", name="far.nc", data="G20 G90\nG0 X-5\n")  # 127 mm under
+    fits = await rpc.call("file.analyze", file="fits.nc", machine=machine)
+    assert fits["travel_checked"] and fits["beyond_travel"] == [], fits["beyond_travel"]
+    far = await rpc.call("file.analyze", file="far.nc", machine=machine)
+    assert [text[0] for text in far["beyond_travel"]] == ["X"]
+    assert f"{inside - 127:.3f}" in far["beyond_travel"][0]  # machine mm, as it would go
+
+
+async def status(rpc: Rpc, machine: str) -> dict[str, Any]:
+    snapshot: dict[str, Any] = await rpc.call("machine.status", machine=machine)
+    return snapshot
+
+
+def rpc_x(snapshot: dict[str, Any]) -> float:
+    return float(snapshot["machine_position"]["x"])
+
+
 @pytest.mark.parametrize("axes", [{}, {"q": 1}, {"x": "1"}, {"x": 1e12}])
 async def test_zero_refuses_bad_axes(both: tuple[Running, Rpc], axes: dict[str, Any]) -> None:
     hostd, rpc = both

@@ -192,6 +192,24 @@ async def test_the_page_shows_the_analysis_its_warnings_and_the_travel_refusal_b
         await rpc.close()
 
 
+async def test_each_position_column_says_its_own_units_when_the_board_is_in_g20(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """g2core in G20 reports the work position in inches and the machine position in
+    mm: one "in" over both columns (as the page had it) misread the machine's."""
+    expect = playwright.expect
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#work-units")).to_have_text("mm")
+        await expect(page.locator("#machine-units")).to_have_text("mm")
+        rpc = await web.hostd.client()
+        await rpc.call("machine.send", machine="sim1", line="G20")
+        await expect(page.locator("#work-units")).to_have_text("in")
+        await expect(page.locator("#machine-units")).to_have_text("mm")
+        await rpc.close()
+
+
 async def test_revoking_the_token_sends_the_open_page_back_to_the_login(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:

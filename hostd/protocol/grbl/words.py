@@ -117,6 +117,13 @@ class GrblWords(Words):
         """The receive buffer less one (`[OPT:]`'s, or classic grbl's 128)."""
         return self.rx_size - 1
 
+    def position_scales(self) -> tuple[float, float]:
+        """`MPos` and `WPos` are in mm, or both in inches with `$13=1`, whatever G20 or
+        G21 is in force (gnea/grbl report.c `report_util_axis_values`; grblHAL the same)."""
+        inches = str(self.settings.get("13", "0")).strip() in ("1", "1.0")
+        scale = 25.4 if inches else 1.0
+        return scale, scale
+
     def known_travel(self) -> dict[str, tuple[float, float]]:
         """The travel of `$130`.. as the handshake's `$$` read them."""
         found: dict[str, Any] = {}

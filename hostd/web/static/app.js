@@ -207,7 +207,11 @@ function showSnapshot(snap) {
     : "–";
   $("feed").textContent = fmt(snap.feed, 0);
   $("velocity").textContent = fmt(snap.velocity, 0);
-  $("units").textContent = snap.units || "";
+  // Each column in what the board reports it in: g2core's machine position is mm under
+  // G20 too, grbl's both follow its $13, not G20 (docs/api.md, position_units).
+  const units = snap.position_units || { work: snap.units, machine: snap.units };
+  $("work-units").textContent = units.work || "";
+  $("machine-units").textContent = units.machine || "";
   $("wcs").textContent = snap.wcs || "";
   const work = snap.work_position || snap.position || {};
   const mach = snap.machine_position || {};
