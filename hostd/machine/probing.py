@@ -91,7 +91,7 @@ async def probe(
             raise Busy(f"{machine.id} is busy now: nothing was moved")
         await _at_rest(machine)  # a fresh report: the modes and where the tool is now
         units, distance = model.units, model.modal.get("distance")
-        start = dict(model.machine_position)
+        start = machine.positions_mm()[0]  # mm, as the G53 moves back are written (G21)
         position: dict[str, float] = {}
         zeroed: list[str] = []
         # Absolute targets, from the work position the board reports at rest before

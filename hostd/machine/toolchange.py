@@ -339,7 +339,8 @@ class ToolChanger:
         )
 
     def _machine_position(self) -> dict[str, float]:
-        return dict(self.machine.engine.model.snapshot().get("machine_position") or {})
+        """Machine mm, as the moves here are written (`G21`), whatever the board reports in."""
+        return self.machine.positions_mm()[0]
 
     def _at(self, **where: float) -> bool:
         """The board stands there (machine mm, to the reports' 0.001)."""
