@@ -198,7 +198,7 @@ async def _send(machine: Machine, line: str) -> None:
 async def _target(machine: Machine, axis: str, delta: float) -> float:
     """The work position `delta` from where the tool rests now (mm: G21 is in force)."""
     await _at_rest(machine)
-    now = machine.engine.model.position.get(axis)
+    now = machine.positions_mm()[1].get(axis)  # mm, as the moves are written (G21)
     if now is None:
         raise ControllerError(0, f"{machine.id} did not report its {axis.upper()} position")
     return now + delta
@@ -221,7 +221,9 @@ async def _touch(machine: Machine, axis: str, distance: float, feed: float) -> f
     if not report["ok"] or where is None:
         raise _missed(machine, axis, distance, report)
     await _at_rest(machine)
-    return float(where)
+    # In the units the board reports its machine position in (grbl's PRB follows $13
+    # as MPos does, report.c; g2core's prb is mm): mm here.
+    return float(where) * machine.engine.session.position_scales()[0]
 
 
 async def _wall(
@@ -286,7 +288,7 @@ async def _zero(machine: Machine, axis: str, value: float, touched: float) -> No
     """`axis` reads `value` at the touch point: at the touch point plus how far the
     board went on past it (grbl decelerates past the trip; g2core backs off to it)."""
     engine = machine.engine
-    now = engine.model.machine_position.get(axis)
+    now = machine.positions_mm()[0].get(axis)
     reading = value + (now - touched if now is not None else 0.0)
     await _send(machine, engine.session.work_zero_line({axis: reading}))
 

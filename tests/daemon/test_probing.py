@@ -94,6 +94,26 @@ async def test_a_z_probe_sets_work_z_to_the_plate_thickness_at_the_touch(
     assert not any(b"G91" in line for line in lines_sent(hostd, machine))
 
 
+async def test_a_grbl_reporting_inches_is_probed_in_mm_all_the_same(
+    both: tuple[Running, Rpc],
+) -> None:
+    """`$13=1`: grbl reports its positions and probe result in inches, whatever G21 says
+    (report.c). The probe's moves are written in mm: read as mm, those inches put the
+    retract, the zero and the moves back 25.4 times too near."""
+    hostd, rpc = both
+    await rpc.call("settings.set", machine=GRBL, values={"13": 1})
+    await hostd.idle(rpc, GRBL)
+    sim_of(hostd, GRBL).touch_plate(TouchPlate(top=TOP))
+    touch(hostd, GRBL)
+    result = await rpc.call("machine.probe", machine=GRBL, kind="z", plate=PLATE, **FAST)
+    # mm, as documented, to the 0.0001 in the board reports in
+    assert result["position"]["z"] == pytest.approx(TOP, abs=0.003)
+    snap = await rpc.call("machine.status", machine=GRBL)
+    assert snap["position_units"] == {"machine": "in", "work": "in"}
+    assert snap["machine_position"]["z"] == pytest.approx((TOP + 2.0) / 25.4, abs=1e-4)
+    assert snap["work_position"]["z"] == pytest.approx((PLATE + 2.0) / 25.4, abs=1e-4)
+
+
 async def test_a_board_in_g91_is_back_in_g91_after_the_probe(both: tuple[Running, Rpc]) -> None:
     hostd, rpc = both
     sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))

@@ -793,6 +793,27 @@ def test_the_spindle_is_read_from_any_report_that_says_a_and_from_ov_without_it(
         assert grbl.session.model.spindle == {"state": state, "speed": speed}, tail
 
 
+@pytest.mark.parametrize(("hal", "held"), [(False, "1"), (True, "9")])
+def test_a_setting_written_is_what_the_session_holds_without_a_new_read(
+    hal: bool, held: str
+) -> None:
+    """`$22=9` answered ok: classic grbl keeps a flag (`$$` would say 1), grblHAL the
+    number; `$32=1` is laser mode at once. A write the board refused changes nothing."""
+    grbl = Grbl()
+    grbl.connect(hal=hal)
+    for line in ("$22=9", "$32=1", "$13=1"):
+        grbl.session.send(line, object())
+        grbl.pump()
+        grbl.feed("ok")
+    assert grbl.session.settings["22"] == held
+    assert grbl.session.model.laser_mode is True
+    assert grbl.session.position_scales() == (25.4, 25.4)  # `$13=1`: reports in inches
+    grbl.session.send("$13=0", object())
+    grbl.pump()
+    grbl.feed("error:3")
+    assert grbl.session.position_scales() == (25.4, 25.4)
+
+
 def test_help_is_not_homing() -> None:
     grbl = Grbl()
     grbl.connect()

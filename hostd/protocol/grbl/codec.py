@@ -183,6 +183,10 @@ Message = Ok | Error | Alarm | Welcome | StatusReport | Feedback | Setting | Oth
 _WELCOME = re.compile(r"(Grbl|GrblHAL) (\S+) \[.*\]")
 _FEEDBACK = re.compile(r"\[([A-Za-z0-9.]+):(.*)\]")
 _SETTING = re.compile(r"\$(N?\d+)=(.*)")
+_SETTING_WRITE = re.compile(rb"\$(\d+)=([^\r\n]*)\n?")
+# Classic grbl keeps these as bits of settings.flags (gnea/grbl settings.c:243-296):
+# any value but 0 written sets the flag, and `$$` says 1.
+CLASSIC_FLAGS = frozenset({"4", "5", "6", "13", "20", "21", "22", "32"})
 _NUMBER = re.compile(r"-?\d+")
 
 
@@ -351,3 +355,11 @@ def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
             Refusal.TOO_LONG, f"longer than the board's receive buffer ({max_bytes} bytes)"
         )
     return code.encode() + b"\n"
+
+
+def setting_write(line: bytes) -> tuple[str, str] | None:
+    """`$110=500.000` as written (its LF or not): the setting's number and the value."""
+    found = _SETTING_WRITE.fullmatch(line)
+    if found is None:
+        return None
+    return found[1].decode("ascii"), found[2].decode("ascii", "replace").strip()

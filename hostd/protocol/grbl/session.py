@@ -112,10 +112,8 @@ class GrblSession(GrblLiveness):
         elif isinstance(msg, codec.Feedback):
             self._on_feedback(msg)
         elif isinstance(msg, codec.Setting):
-            self.settings[msg.key] = msg.value
+            self._setting_seen(msg.key, msg.value)
             self._said.append(f"${msg.key}={msg.value}")
-            if msg.key == "32":
-                self.model.laser_mode = msg.value.strip() == "1"
         elif isinstance(msg, codec.Garbage):
             self._job_log().warning("unparseable controller output", reason=msg.reason, raw=line)
             kind = "serial" if msg.reason == "not valid ASCII" else "lexical"
@@ -149,8 +147,11 @@ class GrblSession(GrblLiveness):
                 # A client's `$H` or a job's. Classic grbl answers a failed cycle `ok`
                 # too, after its ALARM (system.c: `$H` breaks out with STATUS_OK).
                 self.model.homed = True
-        if status == 0 and entry.line.upper() == b"$N\n":
-            self._startup_read()  # ours at connect and after a reset, or a client's
+        if status == 0 and entry.line[:1] == b"$":
+            if entry.line.upper() == b"$N\n":
+                self._startup_read()  # ours at connect and after a reset, or a client's
+            else:
+                self._setting_written(entry.line)
         source = entry.source
         if entry.file_line is not None:
             self._on_job_answer(source, entry, response)
@@ -158,6 +159,25 @@ class GrblSession(GrblLiveness):
             self._own_answered(source, response)
         else:
             self._settle(source, response)
+
+    def _setting_seen(self, key: str, value: str) -> None:
+        """A setting as the board printed it (`$$`, `$n`)."""
+        self.settings[key] = value
+        if key == "32":
+            self.model.laser_mode = value.strip() == "1"
+
+    def _setting_written(self, line: bytes) -> None:
+        """A `$n=v` the board took (answered ok): what it now holds, without a `$$`. Classic
+        grbl keeps its flag settings as bits (gnea/grbl settings.c:243-296: any value but
+        0 sets the flag, `$$` then says 1); grblHAL keeps the number."""
+        found = codec.setting_write(line)
+        if found is None:
+            return
+        key, value = found
+        if self.flavour != "GrblHAL" and key in codec.CLASSIC_FLAGS:
+            number = codec.numbers(value)
+            value = "1" if number and number[0] != 0 else "0"
+        self._setting_seen(key, value)
 
     def _on_job_answer(self, stream: Stream, entry: InFlight, response: Response) -> None:
         if response.ok:

@@ -244,7 +244,8 @@ def _probe_end(board: GrblBoard, *, contact: bool) -> None:
         board.modal.probe = dict(board.position)
     elif wait.result.probe.fail_alarm:
         board._raise(Alarm.PROBE_FAIL_CONTACT)
-    board._emit(f"[PRB:{reports.axes(board.modal.probe)}:{int(board.modal.probe_ok)}]")
+    probe = reports.axes(board.modal.probe, reports.inches(board))
+    board._emit(f"[PRB:{probe}:{int(board.modal.probe_ok)}]")
     board._done()
 
 

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from hostd.sim.config import AXES
 from hostd.sim.grbl import envelope, parser
+from hostd.sim.grbl.parser import MM_PER_INCH
 
 if TYPE_CHECKING:
     from hostd.sim.grbl.board import GrblBoard
@@ -33,9 +34,9 @@ def status_report(board: GrblBoard) -> str:
     state = state_text(board)
     fields = [state]
     if mask & 1:
-        fields.append(f"MPos:{axes(mpos)}")
+        fields.append(f"MPos:{axes(mpos, inches(board))}")
     else:
-        fields.append(f"WPos:{axes({a: mpos[a] - wco[a] for a in AXES})}")
+        fields.append(f"WPos:{axes({a: mpos[a] - wco[a] for a in AXES}, inches(board))}")
     if mask & 2:
         free = board.config.blocks - len(board.planner)
         fields.append(f"Bf:{max(free, 0)},{board.rx_free}")
@@ -50,7 +51,10 @@ def status_report(board: GrblBoard) -> str:
         fields.append(f"Ln:{line}")
     rate = board.active.velocity(now) if board.active is not None else 0.0
     speed = board.modal.speed * board.spindle_ovr / 100 if board.modal.spindle != "M5" else 0.0
-    fields.append(f"FS:{rate:.0f},{speed:.0f}")
+    if inches(board):  # printFloat_RateValue: in/min to 1 place
+        fields.append(f"FS:{rate / MM_PER_INCH:.1f},{speed:.0f}")
+    else:
+        fields.append(f"FS:{rate:.0f},{speed:.0f}")
     pins = _pins(board)
     if board.touch_reads:
         board.touch_reads -= 1  # the operator saw it read and lets go
@@ -94,7 +98,7 @@ def _classic_tail(board: GrblBoard, wco: dict[str, float]) -> list[str]:
         board._wco_counter = (WCO_BUSY if busy else WCO_IDLE) - 1
         if board._ovr_counter == 0:
             board._ovr_counter = 1
-        out.append(f"WCO:{axes(wco)}")
+        out.append(f"WCO:{axes(wco, inches(board))}")
     if board._ovr_counter > 0:
         board._ovr_counter -= 1
     else:
@@ -129,7 +133,7 @@ def _hal_tail(board: GrblBoard) -> list[str]:
         board._wco_counter = WCO_IDLE - 1
     out: list[str] = []
     if wco:
-        out.append(f"WCO:{axes(board.modal.wco())}")
+        out.append(f"WCO:{axes(board.modal.wco(), inches(board))}")
     if overrides:
         out.append(f"Ov:{board.feed_ovr},{board.rapid_ovr},{board.spindle_ovr}")
     # A: on the report after the spindle or coolant changes, whatever it says, even none
@@ -180,17 +184,18 @@ def gc_modes(board: GrblBoard) -> str:
 def parameters(board: GrblBoard) -> list[str]:
     """report_ngc_parameters: `$#`."""
     m = board.modal
-    out = [f"[G{54 + i}:{axes(m.wcs[i])}]" for i in range(6)]
+    out = [f"[G{54 + i}:{axes(m.wcs[i], inches(board))}]" for i in range(6)]
     zero = dict.fromkeys(AXES, 0.0)
-    out += [f"[G28:{axes(zero)}]", f"[G30:{axes(zero)}]", f"[G92:{axes(m.g92)}]"]
+    ins = inches(board)
+    out += [f"[G28:{axes(zero, ins)}]", f"[G30:{axes(zero, ins)}]", f"[G92:{axes(m.g92, ins)}]"]
     if board.hal and board._bits(22) & 1:
         home = {
             axis: envelope.home_position(board, i) if board.homed else 0.0
             for i, axis in enumerate(AXES)
         }
-        out.append(f"[HOME:{axes(home)}:{7 if board.homed else 0}]")
+        out.append(f"[HOME:{axes(home, ins)}:{7 if board.homed else 0}]")
     out.append("[TLO:0.000]")
-    out.append(f"[PRB:{axes(m.probe)}:{int(m.probe_ok)}]")
+    out.append(f"[PRB:{axes(m.probe, ins)}:{int(m.probe_ok)}]")
     return out
 
 
@@ -219,5 +224,14 @@ def help_text(board: GrblBoard) -> str:
     return "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
 
 
-def axes(values: dict[str, float]) -> str:
+def axes(values: dict[str, float], inches: bool = False) -> str:
+    """report_util_axis_values / printFloat_CoordValue: mm to 3 places, or with `$13=1`
+    inches to 4 (gnea/grbl report.c, N_DECIMAL_COORDVALUE_INCH)."""
+    if inches:
+        return ",".join(f"{values[a] / MM_PER_INCH:.4f}" for a in AXES)
     return ",".join(f"{values[a]:.3f}" for a in AXES)
+
+
+def inches(board: GrblBoard) -> bool:
+    """`$13` (report inches): positions and rates in inches, whatever G20 or G21 says."""
+    return bool(board._bits(13) & 1)
