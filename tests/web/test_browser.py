@@ -204,9 +204,13 @@ async def test_each_position_column_says_its_own_units_when_the_board_is_in_g20(
         await expect(page.locator("#work-units")).to_have_text("mm")
         await expect(page.locator("#machine-units")).to_have_text("mm")
         rpc = await web.hostd.client()
+        await expect(page.locator("#jog-units")).to_have_text("mm")
         await rpc.call("machine.send", machine="sim1", line="G20")
         await expect(page.locator("#work-units")).to_have_text("in")
         await expect(page.locator("#machine-units")).to_have_text("mm")
+        # A jog is in the units mode: the step and feed say so.
+        await expect(page.locator("#jog-units")).to_have_text("in")
+        await expect(page.locator("#jog-feed-units")).to_have_text("in/min")
         await rpc.close()
 
 

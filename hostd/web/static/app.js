@@ -212,6 +212,11 @@ function showSnapshot(snap) {
   const units = snap.position_units || { work: snap.units, machine: snap.units };
   $("work-units").textContent = units.work || "";
   $("machine-units").textContent = units.machine || "";
+  // A jog's step and feed are in the units mode in force (api.md: "in the machine's
+  // units"): under G20 a step of 1 is an inch, a feed of 1000 is 1000 in/min.
+  const mode = snap.units === "in" ? "in" : "mm";
+  $("jog-units").textContent = mode;
+  $("jog-feed-units").textContent = `${mode}/min`;
   $("wcs").textContent = snap.wcs || "";
   const work = snap.work_position || snap.position || {};
   const mach = snap.machine_position || {};
