@@ -759,6 +759,20 @@ def test_a_failed_homing_grblhal_resets_after_says_the_alarm_not_a_status() -> N
     assert grbl.session.model.homed is False
 
 
+def test_a_job_the_board_reset_under_says_whether_it_was_ours_and_the_alarm() -> None:
+    """A board that resets itself mid-job with no alarm before (a brown-out, a watchdog)
+    fails the job saying so; not "the controller was reset", which the host's own reset
+    is. (After an alarm the alarm has ended the job already, with its code.)"""
+    grbl = Grbl()
+    grbl.connect()
+    stream = moves(50)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("", "Grbl 1.1h ['$' for help]")  # a power glitch: no alarm before
+    assert stream.result is not None and stream.result.end is StreamEnd.FAILED
+    assert stream.result.message == "the controller reset itself"
+
+
 def test_a_reset_with_no_alarm_before_it_says_only_that() -> None:
     """An alarm answered since (a `$X`'s ok) is not the cause of a later reset."""
     grbl = homing_board()

@@ -312,15 +312,15 @@ class GrblSession(GrblLiveness):
         self._stopping = None
         self._held = None
         self._forget_holds()
-        if self.stream is not None and not self.stream.done:
-            self._end_stream(self.stream, StreamEnd.FAILED, 1005, "the controller was reset")
         # Status 0: grbl gives no code for this (its error:3 is an unknown `$` command).
         if ours:
-            why = "discarded by the controller's reset"
+            what, why = "the controller was reset", "discarded by the controller's reset"
         else:  # after an alarm when it came with no answer since: a failed `$H`, a limit
             alarm = self._alarm_unanswered
-            why = "the controller reset itself" + (f" after {alarm}" if alarm else "")
+            what = why = "the controller reset itself" + (f" after {alarm}" if alarm else "")
         self._alarm_unanswered = None
+        if self.stream is not None and not self.stream.done:
+            self._end_stream(self.stream, StreamEnd.FAILED, 1005, what)
         self._forget(ControllerError(0, f"not answered: {why}"))
         self.model.state = None  # a report will say (an e-stop's SHUTDOWN is over)
         self._reports = ReportReader()  # a reset clears G92: the offset is read anew
