@@ -106,6 +106,13 @@ def position(pos: Any, units: Any = None) -> str:
     return f"{text} {units}" if isinstance(units, str) else text
 
 
+def work_units(snapshot: dict[str, Any]) -> Any:
+    """What the work position is in (`position_units`; before it, the units mode): a grbl
+    in G20 still reports mm, unless its `$13` says inches."""
+    units = snapshot.get("position_units")
+    return units.get("work") if isinstance(units, dict) else snapshot.get("units")
+
+
 def state_name(snapshot: dict[str, Any]) -> str:
     state = snapshot.get("state")
     if isinstance(state, dict):
@@ -264,7 +271,7 @@ def snapshot(console: Console, snap: dict[str, Any]) -> None:
             ("supervisor", str(snap.get("supervisor"))),
             ("state", state_name(snap) + code),
             ("lockout", lockout(snap)),
-            ("position", position(snap.get("position"), snap.get("units"))),
+            ("position", position(snap.get("position"), work_units(snap))),
             ("line", str(snap.get("line") if snap.get("line") is not None else NONE)),
             ("velocity", _num(snap.get("velocity")) if snap.get("velocity") is not None else NONE),
             ("feed", _num(snap.get("feed")) if snap.get("feed") is not None else NONE),

@@ -154,3 +154,11 @@ def test_a_machine_waiting_for_a_tool_change_says_which_tool_and_how_to_go_on() 
     console, buffer = plain()
     render.snapshot(console, {"id": "hal", "tool": None, "tool_change": None})
     assert "tool change" not in buffer.getvalue()
+
+
+def test_the_position_says_the_units_the_board_reports_it_in() -> None:
+    """A grbl left in G20 still reports mm (only `$13` changes that): the row says mm."""
+    grbl_g20 = {"position": {"x": 1.0}, "units": "in", "position_units": {"work": "mm"}}
+    assert render.position(grbl_g20["position"], render.work_units(grbl_g20)) == "x=1.000 mm"
+    older = {"position": {"x": 1.0}, "units": "in"}  # a daemon before position_units
+    assert render.work_units(older) == "in"

@@ -49,7 +49,7 @@ async def zero(c: Client, args: argparse.Namespace, out: Output) -> int:
     if out.json:
         out.print_json(snap)
     else:
-        where = render.position(snap.get("work_position"), snap.get("units"))
+        where = render.position(snap.get("work_position"), render.work_units(snap))
         wcs = snap.get("wcs") or "the active WCS"
         out.out.print(
             f"{args.machine}: {''.join(axes).upper()} zeroed in {wcs}; work position {where}",
@@ -84,7 +84,7 @@ async def probe(c: Client, args: argparse.Namespace, out: Output) -> int:
     snap = await c.call("machine.status", machine=args.machine)
     touched = " ".join(f"{a.upper()}{v:.3f}" for a, v in result.get("position", {}).items())
     zeroed = "".join(result.get("zeroed", [])).upper()
-    where = render.position(snap.get("work_position"), snap.get("units"))
+    where = render.position(snap.get("work_position"), render.work_units(snap))
     out.out.print(
         f"{args.machine}: probed {kind.upper()}, touched at {touched} (machine);"
         f" {zeroed} zeroed in {snap.get('wcs') or 'the active WCS'}; work position {where}",
