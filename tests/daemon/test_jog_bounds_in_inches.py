@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.daemon.conftest import G2, running_daemon
+from tests.daemon.conftest import G2, GRBL, running_daemon
 from tests.daemon.test_api import fails
 from tests.daemon.test_guard import reached
 
@@ -35,5 +35,31 @@ async def test_a_jog_past_any_travel_in_inches_is_refused(tmp_path: Path) -> Non
             odd = rpc.call("machine.jog", machine=G2, axes={"q": 1}, feed=10)
             assert "unknown axes" in (await fails(-32602, odd)).message
             await rpc.call("machine.send", machine=G2, line="G21")
+        finally:
+            await rpc.close()
+
+
+async def test_grbl_knows_a_g20_sent_to_it_and_bounds_its_jogs_in_inches(tmp_path: Path) -> None:
+    """grbl says its units only in `$G`: after a client's G20 the session reads them back,
+    so a 10-unit jog is 254 mm, past the 200 mm of `$130`, and refused; before, the host
+    still took it for 10 mm and sent it (the board would have run 10 inches)."""
+    async with running_daemon(tmp_path, machines=2, per_machine=[{}, {"dialect": "grbl"}]) as d:
+        rpc = await d.client()
+        try:
+            await d.idle(rpc, GRBL)
+            await rpc.call("subscribe", topics=["status"], machine=GRBL)
+            await rpc.call("machine.send", machine=GRBL, line="G20")
+            await rpc.notification(
+                lambda n: n["method"] == "status" and n["params"]["snapshot"]["units"] == "in"
+            )
+            jog = rpc.call("machine.jog", machine=GRBL, axes={"x": 10}, feed=10)
+            assert (await fails(-32602, jog)).data == ABSURD
+            assert not reached(d, GRBL, "X10")
+            await rpc.call("machine.send", machine=GRBL, line="G21")
+            await rpc.notification(
+                lambda n: n["method"] == "status" and n["params"]["snapshot"]["units"] == "mm"
+            )
+            job = await rpc.call("machine.jog", machine=GRBL, axes={"x": -10}, feed=100)
+            assert job["job"]  # 10 mm fits: sent
         finally:
             await rpc.close()

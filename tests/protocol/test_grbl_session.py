@@ -828,6 +828,31 @@ def test_a_setting_written_is_what_the_session_holds_without_a_new_read(
     assert grbl.session.position_scales() == (25.4, 25.4)
 
 
+def test_a_clients_gcode_line_is_followed_by_a_modes_read_and_a_job_end_too() -> None:
+    """grbl says its modes only in `$G`: after a client's `G20` the session asks, and its
+    units are the board's from the answer (a jog's bound is checked in them). A `$` line
+    asks nothing; a completed job asks once."""
+    grbl = Grbl()
+    grbl.connect()
+    grbl.session.send("G20", object())
+    grbl.pump()
+    grbl.feed("ok")
+    assert grbl.lines()[-1] == b"$G\n"
+    grbl.feed("[GC:G0 G54 G17 G20 G90 G94 M5 M9 T0 F0 S0]", "ok")
+    assert grbl.session.model.units == "in"
+    grbl.session.send("$#", object())
+    grbl.pump()
+    grbl.feed("ok")
+    assert grbl.lines()[-1] == b"$#\n"  # no read after a `$` line
+    stream = moves(3)
+    grbl.session.start_stream(stream)
+    grbl.pump()
+    grbl.feed("ok", "ok", "ok", IDLE)
+    assert stream.result is not None and stream.result.end is StreamEnd.COMPLETED
+    grbl.pump()
+    assert grbl.lines()[-1] == b"$G\n"
+
+
 def test_help_is_not_homing() -> None:
     grbl = Grbl()
     grbl.connect()

@@ -159,6 +159,24 @@ class GrblSession(GrblLiveness):
             self._own_answered(source, response)
         else:
             self._settle(source, response)
+            if status == 0 and entry.line[:1] != b"$":
+                self._modes_changed()
+
+    def _modes_changed(self) -> None:
+        """A client's G-code line ran, or a job completed: `$G`, since grbl reports its
+        modes (units, distance, WCS, tool) nowhere else. A jog is in the units mode, and
+        its bound is checked in it (guard.py): after a client's `G20` the session must
+        know. A reset asks anew by itself (the handshake)."""
+        if self.phase is Phase.READY:
+            self._ask_own("$G", _Own.MODES)
+
+    def _end_stream(
+        self, stream: Stream, end: StreamEnd, code: int | None = None, message: str | None = None
+    ) -> None:
+        done = stream.done
+        super()._end_stream(stream, end, code, message)
+        if not done and end is StreamEnd.COMPLETED:
+            self._modes_changed()  # its lines may have left G20, G55, ..
 
     def _setting_seen(self, key: str, value: str) -> None:
         """A setting as the board printed it (`$$`, `$n`)."""
