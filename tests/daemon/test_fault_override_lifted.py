@@ -7,14 +7,13 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 import pytest_asyncio
 
 from hostd.protocol.states import MachineState
 from tests.daemon.conftest import Rpc, Running, running_daemon
-from tests.daemon.test_faults import LONG, SIGNALS
+from tests.daemon.test_faults import LONG, SIGNALS, fault_became
 
 pytestmark = pytest.mark.asyncio
 
@@ -28,18 +27,6 @@ async def laser(tmp_path: Path) -> AsyncIterator[tuple[Running, Rpc]]:
         hostd.daemon.sims["sim1"].set_analog(1, 3.0)  # coolant flowing
         yield hostd, rpc
         await rpc.close()
-
-
-async def fault_became(rpc: Rpc, fault_id: str, active: bool) -> dict[str, Any]:
-    note = await rpc.notification(
-        lambda n: (
-            n["method"] == "fault"
-            and n["params"]["fault"]["id"] == fault_id
-            and n["params"]["fault"]["active"] is active
-        )
-    )
-    fault: dict[str, Any] = note["params"]["fault"]
-    return fault
 
 
 async def test_lifting_an_override_mid_job_stops_the_job_with_1007(

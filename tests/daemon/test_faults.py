@@ -26,6 +26,19 @@ SIGNALS = {
 LONG = "".join(f"G1 X{i % 40} Y{i % 9} F600\n" for i in range(400))
 
 
+async def fault_became(rpc: Rpc, fault_id: str, active: bool) -> dict[str, Any]:
+    """Until the fault topic says this fault became (in)active: the fault."""
+    note = await rpc.notification(
+        lambda n: (
+            n["method"] == "fault"
+            and n["params"]["fault"]["id"] == fault_id
+            and n["params"]["fault"]["active"] is active
+        )
+    )
+    fault: dict[str, Any] = note["params"]["fault"]
+    return fault
+
+
 class Laser:
     def __init__(self, hostd: Running, rpc: Rpc) -> None:
         self.hostd, self.rpc = hostd, rpc
@@ -33,15 +46,7 @@ class Laser:
 
     async def fault(self, fault_id: str, active: bool) -> dict[str, Any]:
         """Until the fault topic says this fault became (in)active."""
-        note = await self.rpc.notification(
-            lambda n: (
-                n["method"] == "fault"
-                and n["params"]["fault"]["id"] == fault_id
-                and n["params"]["fault"]["active"] is active
-            )
-        )
-        fault: dict[str, Any] = note["params"]["fault"]
-        return fault
+        return await fault_became(self.rpc, fault_id, active)
 
     async def indicator(self) -> str:
         snapshot = await self.rpc.call("machine.status", machine="sim1")
