@@ -305,6 +305,9 @@ class ToolChanger:
                 "or home the machine (the Z travel's top means nothing before)"
             )
         start = self._machine_position()
+        # Never down before crossing: where the job left the tool above the safe height
+        # (its own clearance), it crosses there, as a frame does.
+        safe = max(safe, start.get("z", safe))
         sensor = config.tool_sensor
         await self._run(
             [

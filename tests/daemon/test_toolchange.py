@@ -308,6 +308,25 @@ async def test_probe_measures_each_tool_and_offsets_the_longer_one(
         assert end["machine_position"]["x"] == pytest.approx(3.0, abs=0.01)
 
 
+async def test_a_measurement_crosses_no_lower_than_the_job_left_the_tool(
+    tmp_path: Path,
+) -> None:
+    """The job lifts to Z0 before its M6; the machine's safe_z is -10. The measurement
+    goes across to the sensor at Z0, and back at Z0: it never drops to the safe height
+    first, under the job's own clearance."""
+    probe = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+    job = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X1\nM2\n"
+    async with _daemon(tmp_path, "probe", probe=probe, safe_z=-10.0) as (running, rpc):
+        sim = running.daemon.sims[G2]
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, G2, "lifted.nc", job)
+        await _waiting(rpc, G2, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=G2)
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        sent = _unnumbered(lines_sent(running, G2))
+        assert b"G53 G0 Z0" in sent and b"G53 G0 Z-10" not in sent, sent
+
+
 @pytest.mark.parametrize("machine", MACHINES)
 async def test_probe_on_an_unhomed_machine_without_safe_z_moves_nothing(
     tmp_path: Path, machine: str
