@@ -17,6 +17,7 @@ import pytest
 
 from hostd.daemon import DB_NAME
 from tests.daemon.conftest import running_daemon
+from tests.daemon.test_api import job_end
 
 pytestmark = pytest.mark.asyncio
 
@@ -62,6 +63,13 @@ async def test_lines_acked_stays_behind_lines_sent_while_the_board_holds_lines(
                     await asyncio.sleep(0.05)
             live = await rpc.call("job.get", job=job_id)
             assert live["lines_acked"] < live["lines_sent"]
+            # Cancelled with the planner full: the line the board ran is still far behind
+            # the last it answered, and the job's end keeps it so (a resume starts there;
+            # only a completed job ran every line it answered).
             await rpc.call("job.cancel", machine="sim1")
+            ended = await job_end(rpc, job_id)
+            assert ended["state"] == "cancelled"
+            assert isinstance(ended["line_executed"], int)
+            assert ended["line_executed"] < ended["lines_acked"], ended
         finally:
             await rpc.close()
