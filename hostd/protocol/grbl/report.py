@@ -78,10 +78,11 @@ class ReportReader:
             if key in raw:
                 fields[key.lower()] = raw[key]
         ov = codec.numbers(raw["Ov"]) if "Ov" in raw else None
-        refresh = ov is not None and len(ov) == 3  # sent now and then (report.c's counters)
-        if ov is not None and refresh:
+        refresh = False  # an `Ov:` refresh, sent now and then (report.c's counters)
+        if ov is not None and len(ov) == 3:
             model.overrides = dict(zip(("feed", "rapid", "spindle"), ov, strict=True))
             model.override_reports += 1
+            refresh = True
         if refresh or "A" in raw:
             # `A:` is every accessory's state whenever it comes (S spindle CW, C CCW).
             # Classic grbl sends it only with Ov, and leaves it out when none is on

@@ -120,8 +120,8 @@ class GrblWords(Words):
     def position_scales(self) -> tuple[float, float]:
         """`MPos` and `WPos` are in mm, or both in inches with `$13=1`, whatever G20 or
         G21 is in force (gnea/grbl report.c `report_util_axis_values`; grblHAL the same)."""
-        inches = str(self.settings.get("13", "0")).strip() in ("1", "1.0")
-        scale = 25.4 if inches else 1.0
+        found = codec.numbers(self.settings.get("13", ""))
+        scale = 25.4 if found == [1.0] else 1.0
         return scale, scale
 
     def known_travel(self) -> dict[str, tuple[float, float]]:
@@ -225,9 +225,9 @@ class GrblWords(Words):
         return ["$#", "$G"]
 
     def board_offsets(self, bodies: list[JsonObject]) -> Board:
-        """In mm: `$#` reports in inches only with `$13=1` (report_util_axis_values)."""
-        inches = str(self.settings.get("13", "0")).strip() == "1"
-        scale = 25.4 if inches else 1.0
+        """In mm: `$#` reports in inches only with `$13=1`, as the positions do
+        (report_util_axis_values: `position_scales`)."""
+        scale, _ = self.position_scales()
         offsets: dict[str, dict[str, float]] = {}
         g92: dict[str, float] = {}
         speed: float | None = None

@@ -33,10 +33,11 @@ def status_report(board: GrblBoard) -> str:
     wco = board.modal.wco()
     state = state_text(board)
     fields = [state]
+    ins = inches(board)
     if mask & 1:
-        fields.append(f"MPos:{axes(mpos, inches(board))}")
+        fields.append(f"MPos:{axes(mpos, ins)}")
     else:
-        fields.append(f"WPos:{axes({a: mpos[a] - wco[a] for a in AXES}, inches(board))}")
+        fields.append(f"WPos:{axes({a: mpos[a] - wco[a] for a in AXES}, ins)}")
     if mask & 2:
         free = board.config.blocks - len(board.planner)
         fields.append(f"Bf:{max(free, 0)},{board.rx_free}")
@@ -51,7 +52,7 @@ def status_report(board: GrblBoard) -> str:
         fields.append(f"Ln:{line}")
     rate = board.active.velocity(now) if board.active is not None else 0.0
     speed = board.modal.speed * board.spindle_ovr / 100 if board.modal.spindle != "M5" else 0.0
-    if inches(board):  # printFloat_RateValue: in/min to 1 place
+    if ins:  # printFloat_RateValue: in/min to 1 place
         fields.append(f"FS:{rate / MM_PER_INCH:.1f},{speed:.0f}")
     else:
         fields.append(f"FS:{rate:.0f},{speed:.0f}")
@@ -184,9 +185,9 @@ def gc_modes(board: GrblBoard) -> str:
 def parameters(board: GrblBoard) -> list[str]:
     """report_ngc_parameters: `$#`."""
     m = board.modal
-    out = [f"[G{54 + i}:{axes(m.wcs[i], inches(board))}]" for i in range(6)]
-    zero = dict.fromkeys(AXES, 0.0)
     ins = inches(board)
+    out = [f"[G{54 + i}:{axes(m.wcs[i], ins)}]" for i in range(6)]
+    zero = dict.fromkeys(AXES, 0.0)
     out += [f"[G28:{axes(zero, ins)}]", f"[G30:{axes(zero, ins)}]", f"[G92:{axes(m.g92, ins)}]"]
     if board.hal and board._bits(22) & 1:
         home = {
