@@ -257,6 +257,27 @@ def test_hold_stops_a_move_and_resume_finishes_it(idle: Daemon) -> None:
     idle.wait_machine(lambda s: s["supervisor"] == "idle" and s["position"]["x"] == 60, timeout=30)
 
 
+def test_status_in_an_alarm_says_the_lockout_and_the_command_that_ends_it(idle: Daemon) -> None:
+    """An ALARM never reads as all well: the lockout row names it and `hostd clear`, and
+    the fault table's "normal" says it is the faults' only."""
+    idle.call("machine.alarm", machine=MACHINE)
+    idle.wait_machine(lambda s: s["lockout"] is not None)
+    try:
+        result = idle.cli("status", MACHINE)
+        assert result.returncode == 0, result.stderr
+        fields = dict(line.split(None, 1) for line in result.stdout.splitlines() if " " in line)
+        assert (
+            fields["lockout"].startswith("ALARM")
+            and "(to end it: hostd clear)" in fields["lockout"]
+        )
+        assert fields["indicator"] == "normal (faults only)"
+    finally:
+        assert idle.cli("clear", MACHINE).returncode == 0
+    idle.wait_machine(lambda s: s["lockout"] is None)
+    fields = dict(line.split(None, 1) for line in idle.cli("status", MACHINE).stdout.splitlines())
+    assert fields["lockout"] == "none" and fields["indicator"] == "normal"
+
+
 def test_clear_outside_an_alarm_does_nothing(idle: Daemon) -> None:
     result = idle.cli("clear", MACHINE)
 

@@ -39,10 +39,18 @@ def test_without_input_run_says_how_to_answer_and_waits(idle: Daemon, tmp_path: 
     assert cli.process.stdin is not None
     cli.process.stdin.close()  # nobody at the keyboard: a script, a service
     cli.expect(f"then answer with `hostd tool-change-done {MACHINE}`")
+    status = idle.cli("status", MACHINE).stdout
+    assert (
+        f"waiting for T1 at line 3 (once it is in: hostd tool-change-done {MACHINE})" in status
+    ), status
     answered = idle.cli("tool-change-done", MACHINE)
     assert answered.returncode == 0, answered.stderr
     assert "two-tools.nc" in answered.stdout
     cli.expect("Change to tool 2 (line 6), then answer with")
+    status = idle.cli("status", MACHINE).stdout
+    assert "waiting for T2 at line 6" in status, status
+    tool = [line for line in status.splitlines() if line.split()[:1] == ["tool"]]
+    assert tool and tool[0].split()[1] == "T1", status  # the one put in at line 3
     assert idle.cli("tool-change-done", MACHINE).returncode == 0
 
     status, out, err = cli.finish()
