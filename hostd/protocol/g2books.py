@@ -40,6 +40,7 @@ class _Own(OwnLine, Enum):
     CLEAR = auto()  # the clear that ends the ALARM a 100.x board makes of a ^D
     FENCE = auto()  # `{"stat":null}` behind a ^D on the control port: that ^D was read
     OVERRIDES = auto()  # the override factors, read or written (g2builds.py override_keys)
+    SPINDLE = auto()  # the handshake asks which spindle keys the board has (g2handshake.py)
 
 
 class G2Books(G2Words, SessionBase):
@@ -89,6 +90,9 @@ class G2Books(G2Words, SessionBase):
         self._handshake_deadline: float | None = None
         self._identity: float | None = None
         self._to_set: deque[dict[str, Any]] = deque()
+        # The spindle's keys still to ask for, and the set the board has (SPINDLE_KEYS).
+        self._spindle_asks: deque[tuple[str, ...]] = deque()
+        self.spindle_keys: tuple[str, ...] = ()
         self._heartbeat_deadline: float | None = None  # a heartbeat query is unanswered
         # Where the board last rested (its machine position, or work position), and whether a report
         # since showed it elsewhere or moving: a stop that moved nothing is no underflow.

@@ -16,7 +16,12 @@ from hostd.protocol.commands import encode_get, encode_set
 from hostd.protocol.errors import NotConnected
 from hostd.protocol.g2books import _Own
 from hostd.protocol.g2builds import Build
-from hostd.protocol.g2handshake import BANNER_WAIT, check_firmware, protocol_settings
+from hostd.protocol.g2handshake import (
+    BANNER_WAIT,
+    SPINDLE_KEYS,
+    check_firmware,
+    protocol_settings,
+)
 from hostd.protocol.g2lockouts import _LOCKOUT_REJECTIONS, G2Lockouts
 from hostd.protocol.g2words import setting_number
 from hostd.protocol.linemode import InFlight
@@ -85,6 +90,8 @@ class G2Connection(G2Lockouts):
         self._rest_at, self._moved = None, False
         self._auto_sr.clear()  # a board that starts again reports from nothing
         self._to_set.clear()
+        self._spindle_asks.clear()
+        self.spindle_keys = ()
         self._lines_in = 0
         self._out.clear()
         self.model.reset()
@@ -131,8 +138,27 @@ class G2Connection(G2Lockouts):
         self._identity = fb
         assert fb is not None  # check_firmware refuses a board that did not say
         self.build = Build(fb)
-        self._to_set = deque(protocol_settings(self.status_interval, self.signal_keys))
+        self.spindle_keys = ()
+        self._spindle_asks = deque(SPINDLE_KEYS)
+        self._ask_spindle()
+
+    def _ask_spindle(self) -> None:
+        """Which spindle keys the board has (g2handshake.py SPINDLE_KEYS): one GET of each
+        set's first key, until one is answered; then the settings, with that set listed."""
+        if self._spindle_asks:
+            self._ask_own(encode_get(self._spindle_asks[0][0]), _Own.SPINDLE)
+            return
+        keys = self.spindle_keys
+        self._to_set = deque(protocol_settings(self.status_interval, self.signal_keys, keys))
         self._next_setting()
+
+    def _spindle_answered(self, response: Response) -> None:
+        keys = self._spindle_asks.popleft()
+        if response.ok:
+            self.spindle_keys = keys
+            self._spindle_asks.clear()
+            self.model.apply_status(response.body)
+        self._ask_spindle()
 
     def _next_setting(self) -> None:
         if self._to_set:
@@ -145,6 +171,8 @@ class G2Connection(G2Lockouts):
     def _own_answered(self, own: _Own, entry: InFlight, response: Response) -> None:
         if own is _Own.VERSION and self.phase is Phase.HANDSHAKE:
             self._identified(setting_number(response.body.get("fb")))
+        elif own is _Own.SPINDLE and self._spindle_asks:
+            self._spindle_answered(response)
         elif own is _Own.SETTING and self._to_set:
             setting = self._to_set.popleft()
             if response.status in _LOCKOUT_REJECTIONS:

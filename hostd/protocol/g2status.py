@@ -163,7 +163,8 @@ class G2Status(G2Kills):
             self._drain_for_lockout(state, message)
         elif self._settings_pending and self.phase is Phase.READY:
             self._settings_pending = False
-            for setting in protocol_settings(self.status_interval, self.signal_keys):
+            settings = protocol_settings(self.status_interval, self.signal_keys, self.spindle_keys)
+            for setting in settings:
                 self._ask_own(encode_set(setting), _Own.REAPPLY)
         self._recheck_waiting()
 

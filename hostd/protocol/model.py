@@ -27,7 +27,13 @@ _MODAL = {"coor": ("wcs", _WCS), "dist": ("distance", _DISTANCE)}
 _MODAL |= {"frmo": ("feed_mode", _FEED_MODE), "momo": ("motion", _MOTION)}
 # A limit switch unhomes the machine (seed 000); so does SHUTDOWN.
 _UNHOMING_STATUS = frozenset({Status.LIMIT_SWITCH_HIT})
-_SPINDLE_DIRECTION = {0: "off", 1: "cw", 2: "ccw"}
+# g2core's spindle keys (g2handshake.py SPINDLE_KEYS). `spc`: 0 off, 1 CW, 2 CCW, 3 paused
+# in a hold (101.03 spindle.h:49-53). 100.26's `spe` (0 off, 1 on, 2 paused) with `spd`
+# (0 CW, 1 CCW; spindle.h:37-46). A paused spindle is stopped: "off" until the hold ends.
+_SPINDLE_STATE = {0: "off", 1: "cw", 2: "ccw", 3: "off"}
+_SPINDLE_ENABLED = {0: "off", 2: "off"}
+_SPINDLE_DIRECTION = {0: "cw", 1: "ccw"}
+_SPINDLE_KEYS = frozenset({"spc", "sps", "spe", "spd"})
 
 
 @dataclass(slots=True)
@@ -55,6 +61,7 @@ class MachineModel:
     override_reports: int = 0  # how many reports carried the overrides: a fresh one is news
     # The spindle as the board reports it: {"state": "cw"|"ccw"|"off", "speed"}; None unknown.
     spindle: dict[str, Any] | None = None
+    spindle_words: dict[str, int] = field(default_factory=dict)  # 100.26's `spe` and `spd`
     # grbl's `$N` blocks: [{"n", "line", "acts"}], `acts` what it does at a reset (or None).
     startup_blocks: list[dict[str, Any]] | None = None
 
@@ -86,19 +93,27 @@ class MachineModel:
                 self.hold = int(value)
             elif key == "tool" and _is_number(value):
                 self.tool = int(value)
-            elif key in ("spc", "sps") and _is_number(value):
+            elif key in _SPINDLE_KEYS and _is_number(value):
                 self._spindle_field(key, float(value))
         if self.state is MachineState.SHUTDOWN:
             self.homed = False
         return self.state if self.state is not before else None
 
     def _spindle_field(self, key: str, value: float) -> None:
-        """g2core's `spc` (spindle.h spDirection: 0 off, 1 CW, 2 CCW) and `sps` (speed)."""
+        """g2core's `sps` (speed) and `spc`, or 100.26's `spe` and `spd` (see _SPINDLE_STATE)."""
         now = dict(self.spindle or {"state": None, "speed": None})
-        if key == "spc":
-            now["state"] = _SPINDLE_DIRECTION.get(int(value), now["state"])
-        else:
+        if key == "sps":
             now["speed"] = value
+        elif key == "spc":
+            now["state"] = _SPINDLE_STATE.get(int(value), now["state"])
+        else:
+            words = self.spindle_words
+            words[key] = int(value)
+            enable, direction = words.get("spe"), words.get("spd")
+            if enable in _SPINDLE_ENABLED:
+                now["state"] = _SPINDLE_ENABLED[enable]
+            elif enable == 1 and direction in _SPINDLE_DIRECTION:
+                now["state"] = _SPINDLE_DIRECTION[direction]
         self.spindle = now
 
     def apply_exception(self, report: ExceptionReport) -> None:
@@ -131,6 +146,7 @@ class MachineModel:
         self.laser_mode = None
         self.overrides = None
         self.spindle = None
+        self.spindle_words.clear()
         self.startup_blocks = None
 
     def snapshot(self) -> dict[str, Any]:

@@ -174,7 +174,7 @@ class Commands(Planner):
             body[key] = self.settings.get(key)
         elif key in self.unexposed:
             body[key] = None  # gpio.h: a reader with no pin answers TYPE_NULL
-        elif key in reports.SR_KEYS:
+        elif key in self.settings.report_keys:
             body[key] = self._values(self._clock())[key]
             if key == f"in{int(self.settings['prbin'])}" and self.touch_reads:
                 self.touch_reads -= 1  # the operator saw it read and lets go
@@ -186,7 +186,9 @@ class Commands(Planner):
         body[key] = _echo(value)
         if key in ("clear", "clr", "alarm", "shutd", "panic"):
             return self._get(key, body)  # functions run the same either way
-        if key in reports.SR_KEYS:
+        if key in self.settings.report_keys:
+            # The spindle's `spd` (100.26) and `spc` (101.03) have setters on the board;
+            # hostd never writes them, and this board keeps them read-only.
             return Status.PARAMETER_IS_READ_ONLY
         if key == "defa":
             return self._defaults(value, body)

@@ -36,6 +36,8 @@ LOADING_MESSAGE = "Loading configs from EEPROM"  # report.cpp
 # States of a cycle under way, which ends in PROGRAM_STOP once nothing is left to run.
 CYCLES = (MachineState.RUN, MachineState.HOMING, MachineState.PROBE)
 # cmMachineState (`macs`) for each combined state [4].
+# `spc` (101.03 spindle.h:49-53): 0 off, 1 CW, 2 CCW (3, paused in a hold, is not simulated).
+_SPINDLE_STATE = {"M5": 0, "M3": 1, "M4": 2}
 _MACS = {
     MachineState.INITIALIZING: 0,
     MachineState.READY: 1,
@@ -328,6 +330,7 @@ class Output:
             "home": 1 if all(self.homed.values()) else 0,
             "qr": self._free,
         }
+        values |= self._spindle(active)
         values |= self.inputs
         if self.settings["prbin"]:
             values[f"in{int(self.settings['prbin'])}"] = int(self.probe_closed())
@@ -339,6 +342,20 @@ class Output:
             values[f"hom{axis}"] = 1 if self.homed[axis] else 0
         out = {key: reports.number(v, reports.places(key)) for key, v in values.items()}
         return out | self.glitches
+
+    def _spindle(self, active: Active | None) -> dict[str, float | int]:
+        """The spindle as the running move has it (g2core queues M3/M4/M5 with the moves),
+        else as the last line read left it; in the keys of this board's build
+        (reports.spindle_keys). 100.26's `spd` here follows M3/M4 only while on: the
+        board keeps the last direction through an M5, which `spe` 0 makes moot."""
+        move = active.move if active is not None else None
+        spindle, speed = (
+            (move.spindle, move.speed) if move else (self.interp.spindle, self.interp.speed)
+        )
+        if "spc" in self.settings.report_keys:
+            return {"spc": _SPINDLE_STATE.get(spindle, 0), "sps": speed}
+        on = spindle in ("M3", "M4")
+        return {"spe": int(on), "spd": int(spindle == "M4"), "sps": speed}
 
     def _emit(self, obj: dict[str, Any]) -> None:
         self._emit_line(_dumps(obj))

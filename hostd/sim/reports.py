@@ -54,6 +54,19 @@ SR_KEYS: tuple[str, ...] = (
     "qr",
     *INPUT_KEYS,
 )
+# The spindle's keys, by the branch the build is of: master's 100.26 `spe` (enable), `spd`
+# (direction), `sps` (config_app.cpp:863-865); edge's 101.03 on `spc` (state), `sps`
+# (101.03 config_app.cpp:718-719; edge-preview spindle.cpp:487-488).
+_SPINDLE_KEYS_MASTER = ("spe", "spd", "sps")
+_SPINDLE_KEYS_EDGE = ("spc", "sps")
+_EDGE_FROM = 101.0
+
+
+def spindle_keys(fb: float) -> tuple[str, ...]:
+    """The spindle keys of the simulated build: 100.26 is master's, 101 on edge's."""
+    return _SPINDLE_KEYS_EDGE if fb >= _EDGE_FROM else _SPINDLE_KEYS_MASTER
+
+
 DEFAULT_SR: tuple[str, ...] = ("line", "posx", "posy", "posz", "feed", "vel", "unit", "stat")
 MAX_SR_KEYS = 39  # NV_MAX_OBJECTS
 

@@ -55,6 +55,8 @@ class Settings:
             self._values[f"{axis}tn"] = 0.0
             self._values[f"{axis}tm"] = float(config.travel.get(axis, 0.0))
         self.sr_keys: list[str] = list(reports.DEFAULT_SR)
+        # What a status report, a GET, or the report list may name: the spindle's by build.
+        self.report_keys = frozenset((*reports.SR_KEYS, *reports.spindle_keys(config.fb)))
         # The override factors and their enables, named as the build names them
         # (g2builds.py): factors 1.0; 100.26's enables off, 101.02+'s on.
         build = Build(config.fb)
@@ -163,7 +165,7 @@ class Settings:
             return Status.UNSUPPORTED_TYPE
         keys: list[str] = []
         for key, flag in value.items():
-            if key not in reports.SR_KEYS:
+            if key not in self.report_keys:
                 return Status.UNRECOGNIZED_NAME
             if flag is not True:
                 return Status.UNSUPPORTED_TYPE

@@ -71,8 +71,9 @@ async def finished(stream: JobStream) -> None:
 
 async def test_handshake_sets_the_board_up_and_reads_its_state(rig: Rig) -> None:
     lines = rig.received_lines()
-    assert lines[:2] == [b'{"ej":1}', b'{"jv":4}']
-    assert any(line.startswith(b'{"sr":{"stat":true') for line in lines)
+    assert lines[:3] == [b'{"spc":null}', b'{"ej":1}', b'{"jv":4}']
+    (report_list,) = [line for line in lines if line.startswith(b'{"sr":{"stat":true')]
+    assert b'"spc":true,"sps":true' in report_list  # the sim's build (101.06) has them
     assert lines[-1] == b'{"sr":null}'
     assert rig.engine.ready
     assert rig.engine.model.state is S.READY

@@ -67,8 +67,10 @@ def test_nothing_is_written_before_the_banner_then_settings_one_at_a_time(fb: fl
     assert wire.pump() == []
     wire.feed(BANNER)
     first = wire.lines()
-    assert first == [b'{"ej":1}\n']  # the next setting waits for this answer
-    wire.answer(first[0])
+    assert first == [b'{"spc":null}\n']  # which spindle keys the board has, first
+    wire.answer(first[0], {"spc": 0})
+    assert wire.lines()[-1] == b'{"ej":1}\n'  # the next setting waits for this answer
+    wire.answer(wire.lines()[-1])
     assert wire.lines()[-1] == b'{"jv":4}\n'
 
 
@@ -80,10 +82,10 @@ def test_the_handshake_ends_ready_after_settings_home_and_a_report(fb: float) ->
         wire.answer(wire.unanswered[0])
     sent = [json.loads(x) for x in wire.lines()]
     # ... with the overrides in force asked before the last report (BANNER's build: fro..)
-    names = ["ej", "jv", "sv", "qv", "si", "sr", "fro", "home", "sr"]
+    names = ["spc", "ej", "jv", "sv", "qv", "si", "sr", "fro", "home", "sr"]
     assert [next(iter(x)) for x in sent] == names
-    assert sent[4] == {"si": 100}
-    assert sent[5]["sr"]["in1"] is True and sent[5]["sr"]["mpox"] is True
+    assert sent[5] == {"si": 100}
+    assert sent[6]["sr"]["in1"] is True and sent[6]["sr"]["mpox"] is True
     assert wire.of(Ready) == [Ready()]
     assert wire.session.model.homed is True and wire.session.model.state is S.READY
 
@@ -94,7 +96,7 @@ def test_a_board_that_prints_no_banner_is_asked_its_version(fb: float) -> None:
     assert wire.session.next_deadline() == BANNER_WAIT
     assert wire.at(BANNER_WAIT) == [(Lane.CONTROL, b'{"fv":null,"fb":null}\n')]
     wire.answer(wire.unanswered[0], {"fv": 1.0, "fb": 101.06})
-    assert wire.lines()[-1] == b'{"ej":1}\n'
+    assert wire.lines()[-1] == b'{"spc":null}\n'
 
 
 def test_after_a_reset_only_the_banner_will_do(fb: float) -> None:
@@ -122,6 +124,7 @@ def test_a_refused_setting_fails_the_handshake_with_its_status(fb: float) -> Non
     wire = Wire(fb)
     wire.session.open()
     wire.feed(BANNER)
+    wire.answer(wire.unanswered[0], {"spc": 0})
     wire.answer(wire.unanswered[0], {}, status=100)
     (closing,) = wire.of(Closing)
     assert "controller refused {'ej': 1}: 100" in closing.reason
@@ -141,6 +144,7 @@ def test_settings_refused_in_alarm_are_sent_again_once_it_is_cleared(fb: float) 
     wire.clear()
     wire.report(stat=1)
     assert [next(iter(json.loads(x))) for x in wire.lines()] == ["ej", "jv", "sv", "qv", "si", "sr"]
+    assert {"spc", "sps"} <= json.loads(wire.lines()[-1])["sr"].keys()  # the board's, kept
 
 
 # -- flow control --------------------------------------------------------------

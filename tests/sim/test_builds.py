@@ -250,3 +250,33 @@ async def test_a_program_end_puts_feed_and_traverse_back(tmp_path: Path) -> None
         settings = sim._board.settings
         assert (settings.override("feed"), settings.override("rapid")) == (1.0, 1.0)
         assert settings.override("spindle") == 0.7  # cm_reset_overrides leaves spo alone
+
+
+# -- the spindle's keys: master's 100.26 `spe`/`spd`/`sps`, edge's 101.03 on `spc`/`sps` --
+
+
+async def test_100_26_reports_its_spindle_as_enable_and_direction(tmp_path: Path) -> None:
+    async with single(tmp_path, replace(INSTANT, fb=100.26)) as (_sim, host):
+        assert (await host.ask(b"{spc:n}\n"))["f"][1] == 100  # no such key on master
+        assert (await host.ask(b"{sr:{stat:t,spc:t}}\n"))["f"][1] == 100  # nor in the list
+        assert (await host.ask(b"{sr:{stat:t,spe:t,spd:t,sps:t}}\n"))["f"][1] == 0
+        await host.ask(b"M4 S9000\n")
+        got = await host.until(lambda m: m.get("sr", {}).get("spe") == 1)
+        assert got[-1]["sr"]["spd"] == 1 and got[-1]["sr"]["sps"] == 9000
+        await host.ask(b"M5\n")
+        await host.until(lambda m: m.get("sr", {}).get("spe") == 0)
+
+
+@pytest.mark.parametrize("fb", [101.03, 101.06])
+async def test_edge_reports_its_spindle_as_one_state(tmp_path: Path, fb: float) -> None:
+    async with single(tmp_path, replace(INSTANT, fb=fb)) as (_sim, host):
+        assert (await host.ask(b"{spe:n}\n"))["f"][1] == 100  # master's keys are gone
+        assert (await host.ask(b"{spc:n}\n"))["r"] == {"spc": 0}
+        assert (await host.ask(b"{sr:{stat:t,spc:t,sps:t}}\n"))["f"][1] == 0
+        await host.ask(b"M3 S12000\n")
+        got = await host.until(lambda m: m.get("sr", {}).get("spc") == 1)
+        assert got[-1]["sr"]["sps"] == 12000
+        await host.ask(b"M4\n")
+        await host.until(lambda m: m.get("sr", {}).get("spc") == 2)
+        await host.ask(b"M5\n")
+        await host.until(lambda m: m.get("sr", {}).get("spc") == 0)
