@@ -39,7 +39,7 @@ import structlog
 
 from hostd.machine.events import Event, StatusChanged
 from hostd.machine.machine import Machine
-from hostd.machine.operations import _operation
+from hostd.machine.operations import _fresh_report, _operation
 from hostd.machine.rest import at_rest
 from hostd.machine.supervisor import State as SupState
 from hostd.protocol.commands import InvalidCommand, Refusal
@@ -219,7 +219,7 @@ async def _touch(machine: Machine, axis: str, distance: float, feed: float) -> f
     report = await _probe_move(machine, line, abs(distance), feed)
     where = report["position"].get(axis)
     if not report["ok"] or where is None:
-        raise _missed(machine, axis, distance, report)
+        raise await _missed(machine, axis, distance)
     await _at_rest(machine)
     # In the units the board reports its machine position in (grbl's PRB follows $13
     # as MPos does, report.c; g2core's prb is mm): mm here.
@@ -270,16 +270,25 @@ async def _probe_move(machine: Machine, line: str, travel: float, feed: float) -
     return model.probe
 
 
-def _missed(machine: Machine, axis: str, distance: float, report: dict[str, Any]) -> MachineError:
+async def _missed(machine: Machine, axis: str, distance: float) -> MachineError:
+    """What a probe that did not touch tells the operator: where the board stopped, read
+    from a status report asked now. Not from the probe report: grbl's `[PRB:]` after a
+    miss still holds the last touch (gnea motion_control.c:296-298 copies the position
+    only on a touch or with G38.3/.5), where g2core's `prb` is where it stopped
+    (cycle_probing.cpp:117, :424)."""
     model = machine.engine.model
-    stopped = ", ".join(f"{a.upper()}{v:.3f}" for a, v in report["position"].items() if a in "xyz")
+    with contextlib.suppress(MachineError, TimeoutError):
+        await _fresh_report(machine)
+    stopped = ", ".join(
+        f"{a.upper()}{v:.3f}" for a, v in machine.positions_mm()[0].items() if a in "xyz"
+    )
     state = model.state.name if model.state is not None else "an unknown state"
     exc = model.last_exception or {}
     status = exc.get("st") if isinstance(exc.get("st"), int) else 0
     return ControllerError(
         int(status or 0),
         f"the {axis.upper()} probe did not touch within {abs(distance):g} mm: the board stopped"
-        f" at {stopped} (machine) and is in {state}; nothing more was sent. Check the plate"
+        f" at {stopped} (machine, mm) and is in {state}; nothing more was sent. Check the plate"
         " is under the bit and its clip is on, then clear the alarm",
     )
 

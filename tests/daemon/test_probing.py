@@ -114,6 +114,18 @@ async def test_a_grbl_reporting_inches_is_probed_in_mm_all_the_same(
     assert snap["work_position"]["z"] == pytest.approx((PLATE + 2.0) / 25.4, abs=1e-4)
 
 
+async def test_a_miss_on_a_grbl_reporting_inches_says_where_it_stopped_in_mm(
+    both: tuple[Running, Rpc],
+) -> None:
+    hostd, rpc = both
+    await rpc.call("settings.set", machine=GRBL, values={"13": 1})
+    await hostd.idle(rpc, GRBL)
+    touch(hostd, GRBL)  # works when touched, but no plate is under the bit
+    err = await fails(1005, rpc.call("machine.probe", machine=GRBL, kind="z", plate=PLATE, **FAST))
+    # The board said Z-0.3937 (inches): the operator reads the mm the probe was asked in.
+    assert "the board stopped at X0.000, Y0.000, Z-10.000 (machine, mm)" in err.message
+
+
 async def test_a_board_in_g91_is_back_in_g91_after_the_probe(both: tuple[Running, Rpc]) -> None:
     hostd, rpc = both
     sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
@@ -193,6 +205,7 @@ async def test_a_probe_that_does_not_touch_fails_clearly_and_stays_where_the_boa
         1005, rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, **FAST)
     )
     assert "did not touch within 10 mm" in err.message and "ALARM" in err.message
+    assert "Z-10.000 (machine, mm)" in err.message  # where it stopped
     assert sim.position["z"] == pytest.approx(-10.0)  # the end of its travel
     assert moves_sent(hostd, machine)[-1] == b"G38.2 Z-10 F600"  # nothing after it
     snap = await rpc.call("machine.status", machine=machine)

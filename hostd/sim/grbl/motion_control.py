@@ -240,9 +240,12 @@ def _probe_end(board: GrblBoard, *, contact: bool) -> None:
     board.state = "Idle"
     board.modal.position = dict(board.position)
     board.modal.probe_ok = contact
-    if contact:
+    # mc_probe_cycle: classic keeps the position on a touch or where a G38.3/.5 ended,
+    # and a G38.2/.4 that missed keeps the last touch's (gnea motion_control.c:296-298);
+    # HAL keeps where the cycle ended either way (grblHAL motion_control.c:1104-1107).
+    if contact or board.hal or not wait.result.probe.fail_alarm:
         board.modal.probe = dict(board.position)
-    elif wait.result.probe.fail_alarm:
+    if not contact and wait.result.probe.fail_alarm:
         board._raise(Alarm.PROBE_FAIL_CONTACT)
     probe = reports.axes(board.modal.probe, reports.inches(board))
     board._emit(f"[PRB:{probe}:{int(board.modal.probe_ok)}]")

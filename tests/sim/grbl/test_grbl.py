@@ -407,6 +407,20 @@ async def test_a_probe_that_misses_the_plate_is_alarm_5(
     assert classic.state == "Alarm"
 
 
+async def test_a_miss_reports_where_it_stopped_on_hal_and_after_a_g38_3(
+    classic_host: GrblHost, classic: GrblSimController, hal_host: GrblHost
+) -> None:
+    """Classic copies the position after a miss only for G38.3/.5 (motion_control.c:297);
+    grblHAL after any (motion_control.c:1105)."""
+    assert await hal_host.ask(b"G38.2 Z-10 F600\n") == [
+        "ALARM:5",
+        "[PRB:0.000,0.000,-10.000:0]",
+        "ok",
+    ]
+    assert await classic_host.ask(b"G38.3 Z-4 F600\n") == ["[PRB:0.000,0.000,-4.000:0]", "ok"]
+    assert classic.state == "Idle"  # no alarm: the no-error probe
+
+
 async def test_a_corner_plates_wall_meets_the_bit_by_its_radius(
     hal_host: GrblHost, hal: GrblSimController
 ) -> None:
