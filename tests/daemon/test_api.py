@@ -281,6 +281,7 @@ async def test_jog_and_settings(rpc: Rpc) -> None:
         ("machine.jog", {"axes": {"x": 1}, "feed": 1e300}),
         ("machine.jog", {"axes": {"x": 1}, "feed": 1e-300}),
         ("machine.jog", {"axes": {"x": 1}, "feed": 2**53}),
+        ("machine.jog", {"axes": {"x": 1}, "feed": 1_000_000.001}),  # MAX_FEED, just past
         ("job.start", {"file": "a.gcode", "start_line": 2**53}),
         ("settings.set", {"values": {"xvm": "9" * 600}}),
         ("settings.set", {"values": {"flash": 1}}),
@@ -292,6 +293,7 @@ async def test_jog_and_settings(rpc: Rpc) -> None:
         "jog-feed-huge",
         "jog-feed-tiny",
         "jog-feed-past-2**53",
+        "jog-feed-just-past-its-bound",
         "start-line-past-2**53",
         "setting-over-511-bytes",
         "set-bootloader",
