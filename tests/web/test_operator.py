@@ -643,3 +643,20 @@ async def test_grbl_homes_out_of_an_alarm_from_the_page_where_its_firmware_allow
         await expect(page.locator("#indicator-text")).to_have_text("normal")
         await expect(page.locator("[data-zero=x]")).to_be_enabled()
         await rpc.close()
+
+
+async def test_a_g2core_spindle_started_from_the_page_shows_as_it_runs(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """g2core's spindle, read from the keys the board has (docs/protocol.md, "The
+    spindle's keys"): before, the panel said "–" on every g2core whatever it ran."""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#spindle")).to_have_text("off · S0")
+        await page.fill("#spindle-speed", "12000")
+        await page.click("[data-spindle=ccw]")
+        await expect(page.locator("#spindle")).to_have_text("ccw · S12000")
+        await screenshot(page, tmp_path, "g2core-spindle")
+        await page.click("[data-spindle=off]")
+        await expect(page.locator("#spindle")).to_have_text("off · S12000")
