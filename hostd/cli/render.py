@@ -202,6 +202,24 @@ def when(stamp: Any) -> str:
     return local.strftime("%Y-%m-%d %H:%M:%S")
 
 
+def spindle(value: Any) -> str:
+    """The snapshot's `spindle` as the board reported it: "cw, S12000", "off", or "-"."""
+    if not isinstance(value, dict) or value.get("state") is None:
+        return NONE
+    speed = value.get("speed")
+    if value["state"] == "off" or not isinstance(speed, float | int):
+        return str(value["state"])
+    return f"{value['state']}, S{speed:g}"
+
+
+def overrides(value: Any) -> str:
+    """The snapshot's `overrides` (percent): "feed 120%, spindle 100%, rapid 25%", or "-"."""
+    if not isinstance(value, dict):
+        return NONE
+    shown = [f"{k} {value[k]:g}%" for k in ("feed", "spindle", "rapid") if value.get(k) is not None]
+    return ", ".join(shown) or NONE
+
+
 def _num(value: Any) -> str:
     if isinstance(value, float | int) and not isinstance(value, bool):
         return f"{value:.3f}"
@@ -278,6 +296,8 @@ def snapshot(console: Console, snap: dict[str, Any]) -> None:
             ("homed", _yes_no(snap.get("homed"))),
             ("tool", f"T{snap['tool']}" if isinstance(snap.get("tool"), int) else NONE),
             *_tool_change(snap),
+            ("spindle", spindle(snap.get("spindle"))),
+            ("overrides", overrides(snap.get("overrides"))),
             ("indicator", indicator(snap)),
             ("faults", fault_text),
             ("job", _job_long(snap.get("job"))),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -127,6 +128,8 @@ def test_spindle_on_grbl_shows_in_its_snapshot(daemon: Daemon) -> None:
     result = daemon.cli("spindle", LASER, "on", "--speed", "300")
     assert result.returncode == 0, result.stderr
     laser_until(daemon, lambda snap: (snap["spindle"] or {}).get("state") == "cw")
+    # S300 as the board runs it: an earlier test may have left a spindle override on.
+    assert re.search(r"^spindle +cw, S\d+$", daemon.cli("status", LASER).stdout, re.M)
     assert daemon.cli("spindle", LASER, "off").returncode == 0
     laser_until(daemon, lambda snap: (snap["spindle"] or {}).get("state") == "off")
 

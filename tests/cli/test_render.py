@@ -162,3 +162,23 @@ def test_the_position_says_the_units_the_board_reports_it_in() -> None:
     assert render.position(grbl_g20["position"], render.work_units(grbl_g20)) == "x=1.000 mm"
     older = {"position": {"x": 1.0}, "units": "in"}  # a daemon before position_units
     assert render.work_units(older) == "in"
+
+
+def test_the_spindle_and_the_overrides_are_said_as_the_board_reports_them() -> None:
+    console, buffer = plain()
+    console.width = 200
+    snap = {
+        "id": "mill",
+        "spindle": {"state": "ccw", "speed": 12000.0},
+        "overrides": {"feed": 120, "spindle": 100, "rapid": 25},
+    }
+
+    render.snapshot(console, snap)
+
+    rows = dict(line.split("  ", 1) for line in buffer.getvalue().splitlines())
+    rows = {k.strip(): v.strip() for k, v in rows.items()}
+    assert rows["spindle"] == "ccw, S12000"
+    assert rows["overrides"] == "feed 120%, spindle 100%, rapid 25%"
+    assert render.spindle({"state": "off", "speed": 12000.0}) == "off"  # the S kept is moot
+    assert render.spindle({"state": None, "speed": None}) == render.spindle(None) == "-"
+    assert render.overrides(None) == "-"
