@@ -43,7 +43,8 @@ class UploadParams(FileName):
     append: bool = False
     final: bool = True
     upload: UploadId | None = None  # from the first chunk's answer; continues that upload
-    offset: Annotated[int, Field(ge=0)] | None = None  # where this chunk's bytes start
+    # Where this chunk's bytes start: a JSON integer (strict: not "6", 6.0 nor true).
+    offset: Annotated[int, Field(strict=True, ge=0)] | None = None
 
 
 class FileAnalyzeParams(Params):
