@@ -149,6 +149,22 @@ async def test_an_offset_that_is_not_a_json_integer_is_invalid_params(
 
 
 @pytest.mark.asyncio
+@pytest.mark.parametrize("flag", ["final", "append"])
+@pytest.mark.parametrize("value", ["false", 0, 1])
+async def test_a_flag_that_is_not_a_json_boolean_is_invalid_params(
+    client: tuple[Running, Rpc], flag: str, value: Any
+) -> None:
+    """`final: "false"` was read as false and `append: 1` as true (lax booleans): a client
+    that meant otherwise had its file left unpublished, or appended to."""
+    hostd, rpc = client
+    refused = await fails(
+        -32602, rpc.call("file.upload", name="a.gcode", data="G0", **{flag: value})
+    )
+    assert flag in refused.message
+    assert staged(hostd.jobs) == {} and await rpc.call("file.list") == []
+
+
+@pytest.mark.asyncio
 @pytest.mark.parametrize("offset", [7, 106])
 async def test_an_empty_chunk_past_the_staged_bytes_is_refused_with_the_expected_offset(
     client: tuple[Running, Rpc], offset: int

@@ -172,6 +172,13 @@ async def test_coolant_temperature_is_a_hardware_fault_that_can_be_overridden(
     laser.sim.set_analog(2, 35.0)
     await laser.fault("water_temp", True)
     assert (await laser.refused_start()).data == ["water_temp"]
+    # Only a JSON true overrides a safety fault: "false" and 1 were read as false and true.
+    for lax in ("false", "true", 1):
+        await fails(
+            -32602,
+            laser.rpc.call("fault.override", machine="sim1", fault="water_temp", override=lax),
+        )
+    assert (await laser.refused_start()).data == ["water_temp"]
     await laser.rpc.call("fault.override", machine="sim1", fault="water_temp", override=True)
     job_id = await laser.start("ok.gcode", "G0 X1\n")
     assert (await laser.job_end(job_id))["state"] == "completed"

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
+
+from pydantic import Field
 
 from hostd.api.methods.params import MachineParams
 from hostd.api.rpc import Methods
@@ -16,7 +18,7 @@ class FaultParams(MachineParams):
 
 
 class FaultOverrideParams(FaultParams):
-    override: bool
+    override: Annotated[bool, Field(strict=True)]  # "false" or 0 is -32602, not false
 
 
 class FaultMethods:

@@ -40,8 +40,9 @@ class FileName(Params):
 class UploadParams(FileName):
     data: str
     encoding: Literal["utf-8", "base64"] = "utf-8"
-    append: bool = False
-    final: bool = True
+    # Strict, as every other flag of the API: "false" or 0 is -32602, not read as false.
+    append: Annotated[bool, Field(strict=True)] = False
+    final: Annotated[bool, Field(strict=True)] = True
     upload: UploadId | None = None  # from the first chunk's answer; continues that upload
     # Where this chunk's bytes start: a JSON integer (strict: not "6", 6.0 nor true).
     offset: Annotated[int, Field(strict=True, ge=0)] | None = None
