@@ -293,10 +293,26 @@ def _parse(line: bytes) -> Any:
         raise RpcError(PARSE_ERROR, f"parse error: {e}") from None
 
 
+def _unique_object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object whose names are unique (RFC 8259, 4): `{"method":"machine.status",
+    "method":"machine.reset"}` is refused, not read as its last name says."""
+    obj = dict(pairs)
+    if len(obj) != len(pairs):
+        seen: set[str] = set()
+        for name, _ in pairs:
+            if name in seen:
+                raise ValueError(f"the name {json.dumps(name)} is given twice in one object")
+            seen.add(name)
+    return obj
+
+
 # Made once: `json.loads` with any option builds a JSONDecoder and its scanner every call
 # (the same decoder, so the same values and errors).
 _DECODER = json.JSONDecoder(
-    parse_constant=_reject_constant, parse_int=_parse_int, parse_float=_parse_float
+    parse_constant=_reject_constant,
+    parse_int=_parse_int,
+    parse_float=_parse_float,
+    object_pairs_hook=_unique_object,
 )
 
 

@@ -153,3 +153,23 @@ async def test_an_exception_whose_code_is_not_an_error_code_is_an_internal_error
     answer = await _answer(_raising(_Odd(code, message)))
     assert answer["error"] == {"code": INTERNAL_ERROR, "message": "internal error"}
     assert answer["id"] == 3
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        b'{"jsonrpc":"2.0","method":"echo","method":"add","params":{"a":1,"b":2},"id":1}\n',
+        b'{"jsonrpc":"2.0","method":"add","params":{"a":1,"a":5,"b":2},"id":1}\n',
+        b'[{"jsonrpc":"2.0","method":"echo","params":{"text":"x"},"id":1,"id":2}]\n',
+    ],
+    ids=["method-twice", "param-twice", "id-twice-in-a-batch"],
+)
+async def test_a_name_given_twice_in_one_object_is_a_parse_error(conn: Conn, line: bytes) -> None:
+    """RFC 8259: names SHOULD be unique, and a reader may take the first or the last. A
+    request that names two methods, or one param twice, runs neither."""
+    await conn.send_raw(line)
+    answer = await conn.recv()
+    assert answer["id"] is None
+    assert answer["error"]["code"] == -32700
+    assert "given twice in one object" in answer["error"]["message"]
+    assert (await conn.call("add", {"a": 1, "b": 2}))["result"] == 3  # the connection goes on
