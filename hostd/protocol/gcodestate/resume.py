@@ -109,7 +109,10 @@ class _Read:
 
     def step(self, text: str) -> None:
         self.model.step(text)
-        z = self.model.pos[2]
+        # Where the machine's Z went: the programmed point plus the tool length offset
+        # (G43.1's; under G43 the machine's table holds it, not known: the point alone).
+        tlo = self.model.tlo
+        z = self.model.pos[2] + (0.0 if math.isnan(tlo) else tlo)
         if z > self.top:  # NaN (not known) never is
             self.top, self.top_line = z, self.model.line
 
