@@ -91,6 +91,20 @@ def test_under_g43_the_tool_goes_down_to_the_files_own_depth(text: str, down: li
     assert plan.machine["z"] is None  # the machine's Z needs the table's value
 
 
+def test_under_g43_the_plan_says_the_files_clearance_is_not_known() -> None:
+    """G43 H moves the file's heights by the tool table's offset, which hostd cannot read:
+    a positive one lifts the file's clearance above what its lines say, and the approach,
+    at the safe height or the programmed clearance, may cross below it. The plan says so,
+    with the height it crosses at, for the operator to check."""
+    text = "G21 G90 G54\nG43 H1\nG0 X10 Y10 Z5\nS9000 M3\nG1 Z-1 F200\nG1 X30 F900\n"
+    plan = _plan(text, 6)
+    (said,) = [t for t in plan.uncertain if "clearance" in t]
+    assert said.startswith("the file ran under G43 from line 3: its heights moved by")
+    assert "the approach crosses at Z-2 mm (machine)" in said
+    plain = _plan(text.replace("G43 H1\n", "G49\n"), 6)
+    assert not any("clearance" in t for t in plain.uncertain)
+
+
 def test_under_g43_a_g92_the_board_holds_counts_in_the_plunge() -> None:
     """An operator's G92 Z2, held by the board and not set by the file: not cleared, so
     the plunge in the file's coordinates goes to the file's Z-1, not 2 mm off it."""

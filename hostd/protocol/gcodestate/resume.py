@@ -106,13 +106,19 @@ class _Read:
     model: GcodeModel
     top: float = -math.inf  # mm, machine coordinates
     top_line: int = 0
+    # The first line whose Z the machine's tool table offset (G43) moved by an amount
+    # hostd cannot read: from there the file's highest machine Z is not known.
+    table_offset_line: int | None = None
 
     def step(self, text: str) -> None:
         self.model.step(text)
         # Where the machine's Z went: the programmed point plus the tool length offset
         # (G43.1's; under G43 the machine's table holds it, not known: the point alone).
         tlo = self.model.tlo
-        z = self.model.pos[2] + (0.0 if math.isnan(tlo) else tlo)
+        point = self.model.pos[2]
+        if math.isnan(tlo) and self.table_offset_line is None and not math.isnan(point):
+            self.table_offset_line = self.model.line
+        z = point + (0.0 if math.isnan(tlo) else tlo)
         if z > self.top:  # NaN (not known) never is
             self.top, self.top_line = z, self.model.line
 
@@ -212,6 +218,13 @@ def plan_resume(
         uncertain.append(
             f"the file went up to Z{_num(read.top, 3)} mm (machine, line {read.top_line}), "
             f"above the safe height Z{_num(safe_z, 3)}: the approach crosses at that height"
+        )
+    if read.table_offset_line is not None:
+        uncertain.append(
+            f"the file ran under G43 from line {read.table_offset_line}: its heights moved by "
+            "the tool table's length offset, which hostd cannot read, so its clearance in "
+            f"machine Z is not known; the approach crosses at Z{_num(climb, 3)} mm (machine): "
+            "check that it clears the work and the clamps with this tool"
         )
     approach.append(f"G90 G53 G0 Z{_num(climb / scale, places)}")
     x, y = (_num(target[a] / scale, places) for a in ("x", "y"))
