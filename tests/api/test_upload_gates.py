@@ -25,25 +25,12 @@ from structlog.testing import capture_logs
 from hostd.api import uploads
 from hostd.api.files import JobsDir
 from hostd.api.uploads import STAGING, ChunkError, Uploads
-from tests.daemon.conftest import Rpc, RpcFailure, Running, running_daemon
+from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.test_api import fails
+from tests.daemon.test_uploads import Clock
 from tests.web.conftest import Web, running_web
 
 BOUND = 10.0  # seconds: a bound for a test that would otherwise hang, not a timing check
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
-async def fails(code: int, call: Any) -> RpcFailure:
-    with pytest.raises(RpcFailure) as err:
-        await call
-    assert err.value.code == code, err.value
-    return err.value
 
 
 def staged(jobs: Path) -> dict[str, bytes]:
