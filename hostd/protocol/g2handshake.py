@@ -3,8 +3,9 @@
 G2Session (g2connection.py) runs the steps (g2core.md section 10) on every open
 and after every reset: the SYSTEM READY banner, or after `BANNER_WAIT` on a
 link that prints none a version request; the firmware build checked
-(`check_firmware`); the protocol settings (`protocol_settings`), one at a
-time; `{home:n}`; a full status report. Only then is the board ready.
+(`check_firmware`); which spindle keys it has (`SPINDLE_KEYS`); the protocol
+settings (`protocol_settings`), one at a time; `{home:n}`; a full status
+report. Only then is the board ready.
 """
 
 from __future__ import annotations
