@@ -277,7 +277,7 @@ async def _missed(machine: Machine, axis: str, distance: float) -> MachineError:
     only on a touch or with G38.3/.5), where g2core's `prb` is where it stopped
     (cycle_probing.cpp:117, :424)."""
     model = machine.engine.model
-    with contextlib.suppress(MachineError, TimeoutError):
+    with contextlib.suppress(MachineError):  # unanswered: the last report it gave, then
         await _fresh_report(machine)
     stopped = ", ".join(
         f"{a.upper()}{v:.3f}" for a, v in machine.positions_mm()[0].items() if a in "xyz"

@@ -183,7 +183,6 @@ Message = Ok | Error | Alarm | Welcome | StatusReport | Feedback | Setting | Oth
 _WELCOME = re.compile(r"(Grbl|GrblHAL) (\S+) \[.*\]")
 _FEEDBACK = re.compile(r"\[([A-Za-z0-9.]+):(.*)\]")
 _SETTING = re.compile(r"\$(N?\d+)=(.*)")
-_SETTING_WRITE = re.compile(rb"\$(\d+)=([^\r\n]*)\n?")
 # Classic grbl keeps these as bits of settings.flags (gnea/grbl settings.c:243-296):
 # any value but 0 written sets the flag, and `$$` says 1.
 CLASSIC_FLAGS = frozenset({"4", "5", "6", "13", "20", "21", "22", "32"})
@@ -358,8 +357,9 @@ def encode(text: str, *, max_bytes: int = CLASSIC_RX_BUFFER - 1) -> bytes:
 
 
 def setting_write(line: bytes) -> tuple[str, str] | None:
-    """`$110=500.000` as written (its LF or not): the setting's number and the value."""
-    found = _SETTING_WRITE.fullmatch(line)
-    if found is None:
+    """`$110=500.000` as written (its LF or not): the setting's number and the value, read
+    as the board's own `$110=..` lines are (`_SETTING`); a `$N0=` startup block is none."""
+    found = _SETTING.fullmatch(line.decode("ascii", "replace").removesuffix("\n"))
+    if found is None or found[1].startswith("N"):
         return None
-    return found[1].decode("ascii"), found[2].decode("ascii", "replace").strip()
+    return found[1], found[2].strip()

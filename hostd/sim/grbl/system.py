@@ -137,9 +137,8 @@ def _store(board: GrblBoard, key: int, raw: str) -> Error | None:
     if not board.hal and key in CLASSIC_FLAGS:
         value = float(value != 0)  # a bit of settings.flags: `$$` says 0 or 1 (settings.c:243-296)
     if key == 22 and not value:
-        board.settings[20] = (
-            0  # "Force disable soft-limits" (settings.c:279; HAL set_homing_enable)
-        )
+        # "Force disable soft-limits" (settings.c:279; HAL set_homing_enable).
+        board.settings[20] = 0
     board.settings[key] = value if key in FLOAT_SETTINGS else int(value)
     return board._stored(f"${key}={raw}")
 
