@@ -21,7 +21,8 @@ Decisions beyond JSON-RPC 2.0 itself:
 - `"params": null` is treated like absent params (lenient; some clients send it).
 - A method with a params model takes params by name only: an object, or
   nothing/null/`[]`/`{}` (validated as `{}`). A non-empty array is -32602.
-- Requests are parsed as strict JSON: UTF-8 only, no NaN/Infinity. Results are
+- Requests are parsed as strict JSON (`strictjson.py`): UTF-8 only, no
+  NaN/Infinity, no name given twice in an object. Results are
   written as strict JSON too: a NaN in a result is a bug (-32603, logged).
 - Numbers are I-JSON's (RFC 7493): integers within +-(2**53 - 1), floats
   finite. Those are the numbers every JSON implementation reads the same; a
@@ -46,7 +47,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 from collections.abc import Awaitable, Callable, Iterator, Mapping
 from contextvars import ContextVar
 from dataclasses import dataclass
@@ -55,6 +55,9 @@ from typing import Any, Final, TypeVar, overload
 import structlog
 from pydantic import BaseModel, ValidationError
 from pydantic_core import to_jsonable_python
+
+from hostd.api import strictjson
+from hostd.api.strictjson import OutOfRange
 
 log = structlog.get_logger(__name__)
 
@@ -71,7 +74,7 @@ SERVER_FULL: Final = -32000
 # unbounded number of handlers. The server passes its per-client limit instead.
 MAX_BATCH: Final = 1000
 # The largest integer every JSON implementation represents exactly (2**53 - 1).
-MAX_SAFE_INTEGER: Final = 9_007_199_254_740_991
+MAX_SAFE_INTEGER: Final = strictjson.MAX_SAFE_INTEGER
 
 P = TypeVar("P", bound=BaseModel)
 
@@ -240,44 +243,6 @@ def _encode_failure(exc: RpcError, id: Id, method: str) -> bytes:
 # --- decoding and validation ------------------------------------------------
 
 
-class OutOfRange:
-    """A number of a request beyond I-JSON's range, kept as its text and never used.
-
-    The parser makes one of these instead of the number, so that the request
-    can still be read and answered with its own id (-32602), and no handler
-    or pydantic model ever sees 10**400 or infinity.
-    """
-
-    __slots__ = ("text",)
-
-    def __init__(self, text: str) -> None:
-        self.text = text if len(text) <= 24 else text[:20] + "..."
-
-    def __repr__(self) -> str:
-        return f"OutOfRange({self.text!r})"
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not JSON")
-
-
-def _parse_int(text: str) -> int | OutOfRange:
-    # JSON has no leading zeros: 15 digits always fit, 16 may (2**53 - 1 has 16). The
-    # length test comes first so that 5000 digits never reach int() (and its digit limit).
-    if len(text) <= 15:
-        return int(text)
-    if len(text) <= 17:
-        value = int(text)
-        if -MAX_SAFE_INTEGER <= value <= MAX_SAFE_INTEGER:
-            return value
-    return OutOfRange(text)
-
-
-def _parse_float(text: str) -> float | OutOfRange:
-    value = float(text)
-    return value if math.isfinite(value) else OutOfRange(text)  # 1e400 is inf to float()
-
-
 def _parse(line: bytes) -> Any:
     """The JSON value on the line, or RpcError(-32700)."""
     try:
@@ -285,35 +250,12 @@ def _parse(line: bytes) -> Any:
     except UnicodeDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: not UTF-8 at byte {e.start}") from None
     try:
-        return _DECODER.decode(text)
+        return strictjson.read(text)
     except json.JSONDecodeError as e:
         raise RpcError(PARSE_ERROR, f"parse error: {e.msg} at column {e.colno}") from None
     except (ValueError, RecursionError) as e:
-        # NaN/Infinity, nesting too deep for the parser.
+        # NaN/Infinity, a name given twice, nesting too deep for the parser.
         raise RpcError(PARSE_ERROR, f"parse error: {e}") from None
-
-
-def _unique_object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """An object whose names are unique (RFC 8259, 4): `{"method":"machine.status",
-    "method":"machine.reset"}` is refused, not read as its last name says."""
-    obj = dict(pairs)
-    if len(obj) != len(pairs):
-        seen: set[str] = set()
-        for name, _ in pairs:
-            if name in seen:
-                raise ValueError(f"the name {json.dumps(name)} is given twice in one object")
-            seen.add(name)
-    return obj
-
-
-# Made once: `json.loads` with any option builds a JSONDecoder and its scanner every call
-# (the same decoder, so the same values and errors).
-_DECODER = json.JSONDecoder(
-    parse_constant=_reject_constant,
-    parse_int=_parse_int,
-    parse_float=_parse_float,
-    object_pairs_hook=_unique_object,
-)
 
 
 def _valid_id(value: Any) -> bool:
