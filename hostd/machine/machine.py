@@ -39,8 +39,9 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+from hostd.machine.jobfile import NoSuchFile
 from hostd.machine.jobstore import Job, ToolChange
-from hostd.machine.machine_operations import MachineOperations, NoSuchFile
+from hostd.machine.machine_operations import MachineOperations
 from hostd.machine.stream import JobStream
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState

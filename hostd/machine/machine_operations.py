@@ -12,11 +12,11 @@ from __future__ import annotations
 import asyncio
 import itertools
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any, TextIO
 
 import structlog
 
+from hostd.machine.jobfile import open_text
 from hostd.machine.jobstore import Job
 from hostd.machine.machine_core import MachineCore
 from hostd.machine.supervisor import Event as SupEvent
@@ -28,10 +28,6 @@ from hostd.protocol.program import program_blocks, program_lines
 from hostd.protocol.vocabulary import StreamEnd, StreamResult
 
 log = structlog.get_logger(__name__)
-
-
-class NoSuchFile(MachineError):
-    code = 1004
 
 
 class MachineOperations(MachineCore):
@@ -54,13 +50,15 @@ class MachineOperations(MachineCore):
         them on a worker (jobstart.prepare_start); else they are counted here.
         """
         path = self.jobs_dir / file
-        if not await asyncio.to_thread(path.is_file):
-            raise NoSuchFile(f"no file {file!r} in the jobs directory")
-        total = counted
-        if total is None:
-            total = await asyncio.to_thread(_count_lines, path, start_line)
+        handle = await asyncio.to_thread(open_text, path)  # NoSuchFile unless a regular file
+        try:
+            total = counted
+            if total is None:
+                total = await asyncio.to_thread(_count_lines, handle, start_line)
+        except BaseException:
+            handle.close()
+            raise
         before = [(0, line) for line in preamble or ()]
-        handle = path.open(encoding="utf-8", errors="replace")
         try:
             lines = itertools.chain(before, program_lines(handle, start_line))
             return await self._start_make(
@@ -222,6 +220,9 @@ class MachineOperations(MachineCore):
         self._settle()
 
 
-def _count_lines(path: Path, start_line: int) -> int:
-    with path.open(encoding="utf-8", errors="replace") as f:
-        return sum(map(len, program_blocks(f, start_line)))  # a block at a time, not a line
+def _count_lines(handle: TextIO, start_line: int) -> int:
+    """The sendable lines from `start_line` of the file open in `handle`, which is left at
+    its start again: counted and streamed are the same file, whatever the name is now."""
+    count = sum(map(len, program_blocks(handle, start_line)))  # a block at a time, not a line
+    handle.seek(0)
+    return count

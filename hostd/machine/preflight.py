@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
+from hostd.machine.jobfile import open_binary, open_text
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
 from hostd.protocol import dialects
@@ -191,7 +192,7 @@ async def analyze_file(
     """
 
     def digest() -> bytes:
-        with path.open("rb") as f:
+        with open_binary(path) as f:
             return hashlib.file_digest(f, "blake2b").digest()
 
     velocity = tuple(sorted(limits.velocity.items())) if limits else ()
@@ -254,7 +255,7 @@ def _check_file(
     numbered: bool,
 ) -> Findings:
     """`check_file`'s work, on a worker process."""
-    with path.open(encoding="utf-8", errors="replace") as f:
+    with open_text(path) as f:
         return check_program(
             program_lines(f, start_line),
             dialect=dialect,
@@ -271,7 +272,7 @@ def _analysis(
     acceleration: tuple[tuple[str, float], ...],
 ) -> Analysis:
     """A file's analysis: run on a worker process."""
-    with path.open(encoding="utf-8", errors="replace") as f:
+    with open_text(path) as f:
         return analyze(
             f,
             gcode,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from hostd.machine.jobfile import open_text
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import BadProgram
@@ -88,8 +89,6 @@ async def plan_at(
         raise NotResumable(str(exc)) from None
     except ProgramError as exc:
         raise BadProgram.of(path, exc) from None
-    except FileNotFoundError:
-        raise NotResumable(f"the file {path.name!r} is gone") from None
 
 
 def _plan_file(
@@ -103,7 +102,7 @@ def _plan_file(
     laser: bool,
 ) -> ResumePlan:
     """`plan_at`'s work, on a worker process."""
-    with path.open(encoding="utf-8", errors="replace") as f:
+    with open_text(path) as f:
         plan = plan_resume(
             f,
             line,
@@ -114,7 +113,7 @@ def _plan_file(
             plunge_feed=plunge_feed,
             laser=laser,
         )
-    with path.open(encoding="utf-8", errors="replace") as f:
+    with open_text(path) as f:
         first = next(program_lines(f, line), None)
     if first is None:
         raise ResumeError(f"nothing to run at or after line {line}")

@@ -15,6 +15,7 @@ from typing import Any, TypeVar, cast
 
 import pytest
 
+from hostd.machine.jobfile import NoSuchFile
 from hostd.machine.jobstore import Job, JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.resumes import NotResumable, _recovery_line, plan_at, plan_with
@@ -139,8 +140,8 @@ async def test_a_resume_with_nothing_to_run_after_it_or_no_file_is_refused(
     args: dict[str, Any] = {"board": BOARD, "safe_z": -2.0, "dwell": 1.0, "pool": POOL}
     with pytest.raises(NotResumable, match="nothing to run at or after line 5"):
         await plan_at(path, 5, lookup("grbl"), **args)
-    with pytest.raises(NotResumable, match=r"the file 'gone\.nc' is gone"):
-        await plan_at(tmp_path / "gone.nc", 2, lookup("grbl"), **args)
+    with pytest.raises(NoSuchFile, match=r"no file 'gone\.nc' in the jobs directory"):
+        await plan_at(tmp_path / "gone.nc", 2, lookup("grbl"), **args)  # api.md's 1004
 
 
 # -- the machine ---------------------------------------------------------------------

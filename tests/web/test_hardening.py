@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import socket
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -265,3 +266,26 @@ async def test_an_upload_past_the_quota_leaves_no_staging(tmp_path: Path) -> Non
         async with web.session.post(f"{web.url}/files/big.nc", data=body, headers=web.auth()) as r:
             assert r.status == 507
         assert staging(web) == []
+
+
+async def test_a_program_is_served_as_it_is_and_a_link_or_fifo_never(
+    web: Web, tmp_path: Path
+) -> None:
+    """The preview's `GET /files/<name>`: a job file's bytes; a link planted in the jobs
+    directory (to a file the daemon may read and the browser may not) or a FIFO is 404,
+    checked on what was opened, not on the name beforehand (hostd/machine/jobfile.py)."""
+    jobs = Path(web.hostd.daemon.jobs_dir)
+    (jobs / "part.nc").write_bytes(b"G0 X1\nG1 Y2 F300\n")
+    secret = tmp_path / "secret.txt"
+    secret.write_text("not for the browser\n")
+    (jobs / "link.nc").symlink_to(secret)
+    os.mkfifo(jobs / "fifo.nc")
+    async with web.session.get(f"{web.url}/files/part.nc", headers=web.auth()) as r:
+        assert r.status == 200
+        assert r.headers["Content-Type"] == "text/plain; charset=utf-8"
+        assert await r.read() == b"G0 X1\nG1 Y2 F300\n"
+    for name in ("link.nc", "fifo.nc", "none.nc"):
+        async with asyncio.timeout(WAIT):
+            async with web.session.get(f"{web.url}/files/{name}", headers=web.auth()) as r:
+                assert r.status == 404, name
+                assert "not for the browser" not in await r.text()

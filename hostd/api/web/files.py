@@ -9,16 +9,18 @@ another site's `Origin`, and are off when the web API is watch only.
 from __future__ import annotations
 
 import asyncio
+import os
 from typing import Final
 
 import structlog
 from aiohttp import web
 
-from hostd.api.files import FileNameError, JobsDir, NoSuchFileError, check_name
+from hostd.api.files import FileNameError, JobsDir, check_name
 from hostd.api.uploads import NoSuchUpload, StorageError
 from hostd.api.web.auth import Auth
 from hostd.api.web.responses import error
 from hostd.api.webconfig import WebConfig
+from hostd.machine.jobfile import NoSuchFile, open_binary
 
 log = structlog.get_logger(__name__)
 
@@ -34,14 +36,30 @@ class FileRoutes:
         self._auth = auth
 
     async def download(self, request: web.Request) -> web.StreamResponse:
-        """A program's text, for the page's preview (the daemon's own jobs directory only)."""
+        """A program's text, for the page's preview (the daemon's own jobs directory only).
+
+        The file is opened as `JobsDir.resolve` checks it, on the descriptor
+        (jobfile.py: a link or a FIFO swapped in after a check is refused, not
+        followed), and what is sent is what was opened.
+        """
         try:
-            path = await asyncio.to_thread(self._jobs.resolve, request.match_info["name"])
+            name = check_name(request.match_info["name"])
+            file = await asyncio.to_thread(open_binary, self._jobs.path / name)
         except FileNameError as exc:
             return error(400, str(exc))
-        except NoSuchFileError as exc:
-            return error(404, str(exc))
-        return web.FileResponse(path, headers={"Content-Type": "text/plain; charset=utf-8"})
+        except NoSuchFile as exc:
+            return error(404, exc.message)
+        try:
+            response = web.StreamResponse(headers={"Content-Type": "text/plain; charset=utf-8"})
+            left = response.content_length = os.fstat(file.fileno()).st_size
+            await response.prepare(request)
+            while left and (chunk := await asyncio.to_thread(file.read, min(CHUNK, left))):
+                await response.write(chunk)
+                left -= len(chunk)
+            await response.write_eof()
+            return response
+        finally:
+            file.close()
 
     async def upload(self, request: web.Request) -> web.StreamResponse:
         """The body, streamed into staging a chunk at a time, published when it ends."""

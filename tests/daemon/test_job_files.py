@@ -1,0 +1,109 @@
+"""A job file is read as what the API checked it to be: a regular file of the jobs
+directory. A link or a FIFO put in its place after the check is refused where the file
+is opened (hostd/machine/jobfile.py), never followed or waited on."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from pathlib import Path
+
+import pytest
+
+from hostd.machine.jobfile import NoSuchFile, open_binary, open_text
+from tests.daemon.conftest import Rpc, Running, running_daemon
+from tests.daemon.test_api import fails
+
+pytestmark = pytest.mark.asyncio
+
+# What a job directory's writer must not get the daemon to read for it.
+SECRET = "G0 X123.456 (a file outside the jobs directory)\n"
+
+
+def outside(tmp_path: Path) -> Path:
+    secret = tmp_path / "outside.nc"
+    secret.write_text(SECRET)
+    return secret
+
+
+async def test_a_regular_file_opens_and_reads_whole(tmp_path: Path) -> None:
+    path = tmp_path / "a.nc"
+    path.write_bytes(b"G0 X1\nG1 \xff Y2\n")
+    with open_binary(path) as f:
+        assert f.read() == b"G0 X1\nG1 \xff Y2\n"
+    with open_text(path) as f:  # as a job's lines are read: an undecodable byte replaced
+        assert f.read() == "G0 X1\nG1 \ufffd Y2\n"
+
+
+async def test_a_link_a_directory_or_nothing_is_no_job_file(tmp_path: Path) -> None:
+    link = tmp_path / "link.nc"
+    link.symlink_to(outside(tmp_path))
+    (tmp_path / "dir.nc").mkdir()
+    for name, says in (
+        ("link.nc", "'link.nc' is not a regular file (a link)"),
+        ("dir.nc", "'dir.nc' is not a regular file"),
+        ("gone.nc", "no file 'gone.nc' in the jobs directory"),
+    ):
+        with pytest.raises(NoSuchFile) as refused:
+            open_text(tmp_path / name)
+        assert refused.value.code == 1004 and refused.value.message == says
+
+
+async def test_a_fifo_is_refused_at_once_not_waited_on(tmp_path: Path) -> None:
+    """A FIFO's open for reading waits for a writer, forever if none comes: in a worker
+    thread, that is a thread and a job start lost."""
+    fifo = tmp_path / "fifo.nc"
+    os.mkfifo(fifo)
+    opening = asyncio.create_task(asyncio.to_thread(open_binary, fifo))
+    done, _ = await asyncio.wait({opening}, timeout=10)
+    if not done:  # unblock the thread before failing, or the test run hangs at its end
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        pytest.fail("the open of a FIFO waited for a writer")
+    with pytest.raises(NoSuchFile, match="is not a regular file"):
+        opening.result()
+
+
+async def test_a_link_swapped_in_after_the_check_is_not_streamed(
+    hostd: Running, rpc: Rpc, tmp_path: Path
+) -> None:
+    """`job.start` checks the name; the machine opens it afterwards. A link put there in
+    between is refused where the machine opens it: nothing of its target goes out."""
+    (hostd.jobs / "swapped.nc").symlink_to(outside(tmp_path))
+    machine = hostd.api.machine("sim1")
+    with pytest.raises(NoSuchFile, match="a link"):
+        await machine.start_make("swapped.nc")
+    status = await rpc.call("machine.status", machine="sim1")
+    assert status["supervisor"] == "idle" and status["job"] is None
+    assert await rpc.call("job.list", machine="sim1") == []
+
+
+async def test_a_recovery_never_plans_from_a_link_put_in_the_files_place(tmp_path: Path) -> None:
+    """`job.recovery` of a job by its id reads the file the job ran, by its name: a link
+    in its place now is a missing file (1004), not a plan of the link's target."""
+    async with running_daemon(tmp_path, safe_z=0.0) as hostd:
+        rpc = await hostd.client()
+        try:
+            await hostd.idle(rpc)
+            await _recovery_refuses_a_link(hostd, rpc, tmp_path)
+        finally:
+            await rpc.close()
+
+
+async def _recovery_refuses_a_link(hostd: Running, rpc: Rpc, tmp_path: Path) -> None:
+    program = "G21 G90\nG0 X0 Y0 Z5\n" + "".join(f"G1 X{i % 30} Y1 Z5 F1200\n" for i in range(400))
+    await rpc.call("file.upload", name="long.nc", data=program)
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    started = await rpc.call("job.start", machine="sim1", file="long.nc")
+    await rpc.notification(
+        lambda n: n["method"] == "job" and (n["params"]["job"]["line_executed"] or 0) >= 20, 30
+    )
+    cancelled = await rpc.call("job.cancel", machine="sim1")
+    assert cancelled["state"] == "cancelled" and cancelled["id"] == started["job"]
+    plan = await rpc.call("job.recovery", job=started["job"])  # the file as it ran: a plan
+    assert plan["job"] == started["job"]
+
+    (hostd.jobs / "long.nc").unlink()
+    (hostd.jobs / "long.nc").symlink_to(outside(tmp_path))
+    refused = await fails(1004, rpc.call("job.recovery", job=started["job"]))
+    assert "'long.nc' is not a regular file (a link)" in refused.message
+    assert "123.456" not in refused.message
