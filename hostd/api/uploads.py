@@ -227,8 +227,12 @@ class Uploads:
             try:
                 while source is not None and self._open[upload_id].size < size:
                     block = os.read(source, min(1 << 20, size - self._open[upload_id].size))
-                    if not block:
-                        raise ChunkError(f"{name!r} changed while it was copied", 0)
+                    if not block:  # cut in place: appending goes on from its size now
+                        now = os.fstat(source).st_size
+                        raise ChunkError(
+                            f"{name!r} changed while it was copied: it has {now} bytes now",
+                            now,
+                        )
                     self._append(fd, staging, upload_id, block)
             except BaseException:
                 self._discard(staging, upload_id)

@@ -351,8 +351,10 @@ def test_a_file_that_shrinks_while_an_append_copies_it_is_refused_not_a_hang(
 
     monkeypatch.setattr(Uploads, "_published", published)
 
-    with pytest.raises(ChunkError):
+    with pytest.raises(ChunkError) as refused:
         jobs.upload("a.gcode", b"x", append=True, offset=10)
+    # The hint (`expected_offset`) is where an append may go on from: the file's size now.
+    assert refused.value.expected == 3 and "it has 3 bytes now" in str(refused.value)
 
     assert (tmp_path / "jobs" / "a.gcode").read_bytes() == b"012"
     assert staged(tmp_path / "jobs") == {}
