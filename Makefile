@@ -52,7 +52,7 @@ typecheck: $(STAMP)
 # Bytecode caches are written even where the environment sets PYTHONDONTWRITEBYTECODE
 # (this machine's does): without them each worker rewrote every test module's asserts
 # again (8 of its 13 s of CPU to collect) and each daemon process compiled hostd again
-# (docs/performance.md, "The suite's own time"). They go to __pycache__ (.gitignore).
+# (docs/testing.md, "The suite's own time"). They go to __pycache__ (.gitignore).
 TEST_WORKERS ?= 4
 unit: $(STAMP)
 	PYTHONDONTWRITEBYTECODE= $(BIN)/pytest -n $(TEST_WORKERS)

@@ -2,7 +2,7 @@
 
 Why: inside a busy daemon each stage of a `!` request (decode, checks,
 params) took 5-20 times its `timeit` figure, on the CPU, not waiting
-(docs/performance.md, "The realtime path under load"): the path runs once in
+(docs/performance-log.md, "The realtime path under load"): the path runs once in
 a while and everything else the daemon and the machine do evicts it. This
 times each piece once after walking ~10 MB of other objects, the median of
 40 such calls, beside its median hot (200 calls in a row).

@@ -119,7 +119,7 @@ ATTACH_POLL = 0.001  # s between looks for a host while none has the port open
 BANNER_FALLBACK = 0.05  # s: a host that opens without a tcflush still gets its banner
 # s: the longest the process sleeps while lines wait for a block. A safety net only, in
 # addition to the deadlines (a block's free time, or "at once" when one is free): a board
-# that slept through its deadlines once stalled a P8 window (docs/performance.md, "The
+# that slept through its deadlines once stalled a P8 window (docs/performance-log.md, "The
 # bench's boards blocked in a read of the port"). A wake that finds lines it should have
 # planned earlier is counted (`rescued` in the dump): that is a bug here, not the host.
 WAITING_LOOK = 0.05

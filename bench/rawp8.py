@@ -5,7 +5,7 @@
 P8 asks whether a daemon held to a quarter of one core keeps four grbl lasers
 (1,000 lines/s each) or two g2core boards (2,000 lines/s each) fed. What it
 pays a line there is mostly what this machine charges a process for waking
-up, not what hostd's Python does (docs/performance.md, "P8's floor: a bare
+up, not what hostd's Python does (docs/performance-log.md, "P8's floor: a bare
 host in the same cgroup"). So P8 measures, in the same run, the least any
 host of this shape could pay: this program, which does nothing but stream.
 

@@ -920,7 +920,7 @@ class Bench:
         with `p8_holds` feedhold and cycle-start pairs on the first one.
 
         Why two: the holds (a pair every 25 ms or so, to time the `!` at p99) cost the
-        daemon 3-4 ms of CPU each (docs/performance.md, "What P8's holds cost"), far
+        daemon 3-4 ms of CPU each (docs/performance-log.md, "What P8's holds cost"), far
         more than an operator's hand. Measured in one window, they hid what the budget
         gives a fleet that only streams; each window now has its own row.
         """

@@ -50,7 +50,7 @@ settings.load_profile("hostd")
 # serve` does by default (`[daemon] log_level = "info"`), not at structlog's default of
 # everything: each debug line was rendered for the console, timestamped, written, captured
 # and carried in the test's report to the xdist controller (about 36 kB a test in
-# tests/daemon), some 14 % of those tests' CPU (docs/performance.md, "Third round").
+# tests/daemon), some 14 % of those tests' CPU (docs/testing.md, "Third round").
 # Info, warnings and errors still show with a failure; HOSTD_TEST_LOG_LEVEL=debug shows
 # the rest. `structlog.testing.capture_logs` sees the same events (none asserted is debug).
 LOG_LEVEL = logging.getLevelNamesMapping()[os.environ.get("HOSTD_TEST_LOG_LEVEL", "info").upper()]
@@ -81,7 +81,7 @@ multiprocessing.set_forkserver_preload(["hostd.machine.preflight"])
 # on two processes. With the caches there it only reads each file's hash (0.2 s). Only
 # where `make unit` lets bytecode be written; skipped where pytest would rewrite
 # differently (the assertion-pass hook) or its rewriting functions moved (a cache
-# only: the workers then write it as before). docs/performance.md, "Fourth round".
+# only: the workers then write it as before). docs/testing.md, "Fourth round".
 ROOT = Path(__file__).resolve().parents[1]
 _REWRITTEN = re.compile(r"(^|/)(test_[^/]*|conftest)\.py$")
 
@@ -238,7 +238,7 @@ class OneAtATime(LoadScopeScheduling):
 
     `load` gave each worker its first quarter of the tests in one block: LONGEST_FIRST
     all went to the first worker, which ran them one after another (400 s of the whole
-    run's 450 at load average 7; docs/performance.md, "The suite's own time"). Here a
+    run's 450 at load average 7; docs/testing.md, "The suite's own time"). Here a
     worker holds up to three units (a test; a module of ONE_WORKER_PER_MODULE) and takes
     the next as it finishes one. Kept in collection order: not reordered by size.
     """
@@ -258,7 +258,7 @@ class OneAtATime(LoadScopeScheduling):
     # `tests_finished` and `has_pending`), and finds each test's index with `list.index`:
     # both grow with the tests run, quadratic over the suite's ~3,200 one-test units.
     # A finished unit is dropped (the pending counts are the same without it) and the
-    # indices are looked up in a dict (docs/performance.md, "Third round").
+    # indices are looked up in a dict (docs/testing.md, "Third round").
 
     def mark_test_complete(self, node: Any, item_index: int, duration: float = 0) -> None:
         nodeid = self.registered_collections[node][item_index]

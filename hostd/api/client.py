@@ -16,7 +16,7 @@ with whatever was staged before it. A topic's notification (`send_notice`)
 waits up to `NOTICE_DELAY` for the client's next message, so that what a
 hold, a status report and a job's progress tell within it reaches each
 subscriber in one write and one wake-up of the daemon, not one each
-(docs/performance.md, "Notifications written together"). Once
+(docs/performance-log.md, "Notifications written together"). Once
 the socket lags (its buffer holds bytes), messages go to one bounded
 queue emptied by the writer task, which drains each batch within
 `write_timeout`. A full queue, or a write that cannot drain within

@@ -181,7 +181,7 @@ class Shape:
     Why: on a busy daemon the fast path runs with its code and data out of the
     CPU's caches (the job's lines and the fan-out evicted them), and there the
     JSON decoder, the request checks and the params model cost about 130 us
-    of the 200 from the request's read to the Machine (docs/performance.md,
+    of the 200 from the request's read to the Machine (docs/performance-log.md,
     "The realtime path under load"). This regular expression, and the params
     validated once a machine (`FastPath`), bring the 200 to about 65.
 

@@ -193,7 +193,7 @@ class Link:
 
         A pty's byte reaches that process only when a kernel worker and then the
         process get a CPU; on a small computer the daemon's own next half
-        millisecond is often the CPU they wait for (docs/performance.md, "the CPU
+        millisecond is often the CPU they wait for (docs/performance-log.md, "the CPU
         handed over after a `!`"). A USB device takes the byte in the write itself:
         nothing is given up for one.
         """

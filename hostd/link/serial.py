@@ -24,13 +24,13 @@ here, as serialx's own `write` would write them first (one `os.write`, the
 rest, if the device took only part, handed to the transport to hold). That is
 the same system call with seven Python calls fewer (serialx's checks and its
 debug logging) on every write: every `!` and every batch of a job's lines
-(docs/performance.md, "the port written directly").
+(docs/performance-log.md, "the port written directly").
 
 The descriptor is read here too: the channel's own reader replaces serialx's
 on the event loop once the port is open (`connection_made`), and reads as
 serialx's would (one `os.read` of up to READ_SIZE; EAGAIN is nothing to
 read; 0 bytes or an error is the device gone), without its two debug calls a
-read (docs/performance.md, "the express step as one call"). serialx still
+read (docs/performance-log.md, "the express step as one call"). serialx still
 opens, configures and closes the port, and removes the reader when it closes
 the descriptor.
 """

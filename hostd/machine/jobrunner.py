@@ -320,7 +320,7 @@ class JobRunner:
 
         Why: every status report's snapshot and every progress tell carries the
         job; its pydantic copy and dump were about 40% of a snapshot's cost
-        (docs/performance.md, "The job told without a copy"). The row's own dump is
+        (docs/performance-log.md, "The job told without a copy"). The row's own dump is
         made once a row (a change makes a new `Job`), and the live counts, plain
         integers, go over it. The dict is the caller's; what it holds is shared.
         """

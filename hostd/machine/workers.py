@@ -33,7 +33,7 @@ thread of its own, a daemon thread (the interpreter's exit does not join it,
 as it joins `asyncio.to_thread`'s), and an executor killed while it starts is
 shut down by that thread once `submit` has returned, never by the loop. A
 daemon stopped then (SIGTERM, or a failed bind while the prewarm starts) kills
-the forkserver, which ends the `submit` at once (docs/performance.md, "Flaky
+the forkserver, which ends the `submit` at once (docs/testing.md, "Flaky
 tests under load"): it does not wait seconds for the server's imports, nor
 leave it and a worker behind.
 """

@@ -22,7 +22,7 @@ from tests.daemon.conftest import Rpc, RpcFailure, config_data
 # together on two cores (a bound against a hang, not a timing check).
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(180)]
 # A daemon's exit on SIGTERM, bounded against a hang: it took past 20 s once at load
-# average 12 on two cores (docs/performance.md, "Flaky tests under load").
+# average 12 on two cores (docs/testing.md, "Flaky tests under load").
 EXIT_WAIT = 45
 
 SERVE = [sys.executable, "-m", "hostd.service"]
@@ -246,7 +246,7 @@ async def test_sigterm_while_the_first_analysis_worker_starts_exits_at_once(
 ) -> None:
     """The worker's start is a `submit` holding the executor's lock until the forkserver has
     done its imports; a stop then must neither block the loop on that lock nor wait for
-    the imports on the way out (docs/performance.md, "Flaky tests under load")."""
+    the imports on the way out (docs/testing.md, "Flaky tests under load")."""
     config = write_config(tmp_path)  # prewarm_workers: the default
     async with (
         held_forkserver(tmp_path) as forkserver,

@@ -255,7 +255,7 @@ def numeric_requests(draw: st.DrawFn) -> tuple[bytes, str]:
 
 
 # 200, not 500: integers past 2**53 or 1e400 let through failed it within 50 examples
-# (docs/performance.md, "Fourth round").
+# (docs/testing.md, "Fourth round").
 @fuzz(200)
 @given(numeric_requests())
 @example((b'{"jsonrpc":"2.0","id":1,"method":"job.get","params":{"job":1' + b"0" * 30 + b"}}", "1"))

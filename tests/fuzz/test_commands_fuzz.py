@@ -45,7 +45,7 @@ def test_any_text_is_one_safe_line_or_refused(text: str) -> None:
 
 # 300, not 800: its examples are the generator's CPU, not the check's; the cut that
 # lets a control byte through past the 12th character failed it within 80
-# (docs/performance.md, "Fourth round").
+# (docs/testing.md, "Fourth round").
 @fuzz(300)
 @given(commandish)
 def test_command_shaped_text_is_one_safe_line_or_refused(text: str) -> None:

@@ -53,7 +53,7 @@ def test_any_bytes_are_one_message_that_keeps_them(raw: bytes) -> None:
 
 
 # 200, not 600: nearly all its CPU is hypothesis drawing nested JSON; a parser that
-# read a non-object "r" body failed it within 60 examples (docs/performance.md,
+# read a non-object "r" body failed it within 60 examples (docs/testing.md,
 # "Fourth round").
 @fuzz(200)
 @given(board_lines)
