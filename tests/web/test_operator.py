@@ -445,6 +445,14 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         # The bar still shows the last job's progress until this one's first report.
         await expect(page.locator("#job-title")).to_contain_text("deep.nc · running")
         await page.wait_for_function(PROGRESS_OVER, arg=0.05)
+        # And the board past line 3 (its `G0 X0 Y0`): a resume needs X and Y set before
+        # its line. The bar counts lines answered, which run ahead of the board's.
+        await rpc.call("subscribe", topics=["job"], machine="sim1")
+        if ((await rpc.call("job.list", machine="sim1"))[0]["line_executed"] or 0) < 4:
+            await rpc.notification(
+                lambda n: n["method"] == "job" and (n["params"]["job"]["line_executed"] or 0) >= 4,
+                30,
+            )
         await page.click("[data-action=cancel]")
         await page.click("#confirm-yes")
         await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
