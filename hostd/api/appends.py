@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from hostd.api.client import Client
-from hostd.api.uploads import Version
+from hostd.machine.jobfile import Version
 
 MAX_NAMES: Final = 64  # names one connection is remembered to have published
 

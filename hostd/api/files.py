@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from hostd.api.uploads import DEFAULT_EXPIRY, Uploaded, Uploads, Version
+from hostd.api.uploads import DEFAULT_EXPIRY, Uploaded, Uploads
+from hostd.machine.jobfile import Version
 
 MAX_NAME = 200  # file systems stop at 255
 

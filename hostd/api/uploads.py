@@ -47,6 +47,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from hostd.machine.jobfile import Version
+
 STAGING = ".staging"
 DEFAULT_EXPIRY = 3600.0  # seconds without a chunk before an upload is abandoned
 _FULL = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
@@ -75,12 +77,6 @@ class StorageError(Exception):
         super().__init__(message)
         self.reason = reason
         self.message = message
-
-
-# A published file as one upload left it: (st_dev, st_ino, st_size, st_mtime_ns). Each
-# publish renames a new staging file: another upload's version is another inode, and
-# should the file system reuse a freed inode, it is written at another nanosecond.
-Version = tuple[int, int, int, int]
 
 
 @dataclass(frozen=True, slots=True)

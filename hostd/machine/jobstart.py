@@ -3,15 +3,18 @@
 job.start's logic (api/methods/jobs.py): the file checked for lines the board
 would refuse (preflight.check_file) and for moves that leave the travel
 (preflight.analyze_file), and from a later line the resume plan's lines
-(resumes.py) sent before the file's.
+(resumes.py) sent before the file's. The file's version is taken first: the
+job streams the version its checks read, or nothing (jobfile.py).
 """
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
 from pathlib import Path
 
 from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
+from hostd.machine.jobfile import Version, version_of
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import (
     NotRunnable,
@@ -32,6 +35,9 @@ class Start:
     # The file's sendable lines from the start line, as the check counted them in its
     # pass over the file; None when no check ran (`force`): the job counts them itself.
     lines: int | None
+    # The file as it was before the checks read it: the job streams this version or
+    # nothing (`start_make`'s `version`; jobfile.py).
+    version: Version
 
 
 async def prepare_start(
@@ -56,6 +62,7 @@ async def prepare_start(
     plan's lines (the modal state restored, a safe approach) to send before
     the file's; else None.
     """
+    version = await asyncio.to_thread(version_of, path)
     counted = None
     if not force:
         # Lines the board would refuse, or must not run: a job that would fail at its
@@ -97,4 +104,4 @@ async def prepare_start(
     preamble = None
     if start_line > 1 and restore:
         preamble = (await plan_with(machine, path, start_line, limits, pool)).lines
-    return Start(preamble, counted)
+    return Start(preamble, counted, version)

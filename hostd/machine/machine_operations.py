@@ -16,7 +16,7 @@ from typing import Any, TextIO
 
 import structlog
 
-from hostd.machine.jobfile import open_text
+from hostd.machine.jobfile import Version, open_text
 from hostd.machine.jobstore import Job
 from hostd.machine.machine_core import MachineCore
 from hostd.machine.supervisor import Event as SupEvent
@@ -40,6 +40,7 @@ class MachineOperations(MachineCore):
         preamble: list[str] | None = None,
         *,
         counted: int | None = None,
+        version: Version | None = None,
     ) -> Job:
         """Stream a file of the jobs directory (its name is checked by the API layer).
 
@@ -48,9 +49,12 @@ class MachineOperations(MachineCore):
         keeps them. Every line goes with its file line number as an N word. `counted`:
         the file's sendable lines from `start_line`, if the job's check just counted
         them on a worker (jobstart.prepare_start); else they are counted here.
+        `version`: the file's version those checks read; another is not streamed
+        (FileChanged, jobfile.py).
         """
         path = self.jobs_dir / file
-        handle = await asyncio.to_thread(open_text, path)  # NoSuchFile unless a regular file
+        # NoSuchFile unless a regular file; FileChanged unless `version`, when given.
+        handle = await asyncio.to_thread(open_text, path, version)
         try:
             total = counted
             if total is None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from hostd.machine.jobfile import open_text
+from hostd.machine.jobfile import NoSuchFile, open_text
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import BadProgram
@@ -89,6 +89,8 @@ async def plan_at(
         raise NotResumable(str(exc)) from None
     except ProgramError as exc:
         raise BadProgram.of(path, exc) from None
+    except NoSuchFile as exc:  # gone, or no longer a regular file: no safe resume (1011)
+        raise NotResumable(exc.message) from None
 
 
 def _plan_file(

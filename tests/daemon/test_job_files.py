@@ -7,10 +7,12 @@ from __future__ import annotations
 import asyncio
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from hostd.machine.jobfile import NoSuchFile, open_binary, open_text
+from hostd.machine import jobstart
+from hostd.machine.jobfile import FileChanged, NoSuchFile, open_binary, open_text, version_of
 from tests.daemon.conftest import Rpc, Running, running_daemon
 from tests.daemon.test_api import fails
 
@@ -78,8 +80,9 @@ async def test_a_link_swapped_in_after_the_check_is_not_streamed(
 
 
 async def test_a_recovery_never_plans_from_a_link_put_in_the_files_place(tmp_path: Path) -> None:
-    """`job.recovery` of a job by its id reads the file the job ran, by its name: a link
-    in its place now is a missing file (1004), not a plan of the link's target."""
+    """`job.recovery` of a job by its id reads the file the job ran, by its name: with a
+    link in its place now there is no safe resume (1011), not a plan of the link's
+    target."""
     async with running_daemon(tmp_path, safe_z=0.0) as hostd:
         rpc = await hostd.client()
         try:
@@ -104,6 +107,52 @@ async def _recovery_refuses_a_link(hostd: Running, rpc: Rpc, tmp_path: Path) -> 
 
     (hostd.jobs / "long.nc").unlink()
     (hostd.jobs / "long.nc").symlink_to(outside(tmp_path))
-    refused = await fails(1004, rpc.call("job.recovery", job=started["job"]))
+    refused = await fails(1011, rpc.call("job.recovery", job=started["job"]))  # no safe resume
     assert "'long.nc' is not a regular file (a link)" in refused.message
     assert "123.456" not in refused.message
+
+
+async def test_a_version_taken_is_the_one_opened_or_none(tmp_path: Path) -> None:
+    path = tmp_path / "a.nc"
+    path.write_text("G0 X1\n")
+    version = version_of(path)
+    with open_text(path, version) as f:
+        assert f.read() == "G0 X1\n"
+    newer = tmp_path / "b.nc"
+    newer.write_text("G0 X1\n")  # the same bytes, another file: another version
+    os.replace(newer, path)
+    with pytest.raises(FileChanged) as refused:
+        open_text(path, version)
+    assert refused.value.code == 1004 and "changed while its start was checked" in str(
+        refused.value
+    )
+
+
+async def test_a_version_uploaded_during_a_start_s_checks_is_never_streamed(
+    hostd: Running, rpc: Rpc, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two clients race: one starts `part.nc`, the other uploads a new `part.nc` while the
+    first one's checks run. The job streams the version that was checked or nothing; here
+    nothing, and the next start checks the new version (which the check refuses: an M6
+    on a machine with no tool-change policy)."""
+    await rpc.call("file.upload", name="part.nc", data="G21 G90\nG0 X1 Y1\n")
+    checked = jobstart.check_file
+
+    async def check_then_upload(*args: Any, **kwargs: Any) -> Any:
+        found = await checked(*args, **kwargs)
+        other = await hostd.client()  # the second client's upload lands now
+        try:
+            await other.call("file.upload", name="part.nc", data="G0 X2\nM6 T2\n")
+        finally:
+            await other.close()
+        return found
+
+    monkeypatch.setattr(jobstart, "check_file", check_then_upload)
+    refused = await fails(1004, rpc.call("job.start", machine="sim1", file="part.nc"))
+    assert "'part.nc' changed while its start was checked" in refused.message
+    assert await rpc.call("job.list", machine="sim1") == []
+    assert (await rpc.call("machine.status", machine="sim1"))["supervisor"] == "idle"
+
+    monkeypatch.undo()
+    again = await fails(1008, rpc.call("job.start", machine="sim1", file="part.nc"))
+    assert "line 2" in again.message and "M6" in again.message  # the new version, checked

@@ -15,7 +15,6 @@ from typing import Any, TypeVar, cast
 
 import pytest
 
-from hostd.machine.jobfile import NoSuchFile
 from hostd.machine.jobstore import Job, JobStore
 from hostd.machine.machine import Machine
 from hostd.machine.resumes import NotResumable, _recovery_line, plan_at, plan_with
@@ -140,8 +139,8 @@ async def test_a_resume_with_nothing_to_run_after_it_or_no_file_is_refused(
     args: dict[str, Any] = {"board": BOARD, "safe_z": -2.0, "dwell": 1.0, "pool": POOL}
     with pytest.raises(NotResumable, match="nothing to run at or after line 5"):
         await plan_at(path, 5, lookup("grbl"), **args)
-    with pytest.raises(NoSuchFile, match=r"no file 'gone\.nc' in the jobs directory"):
-        await plan_at(tmp_path / "gone.nc", 2, lookup("grbl"), **args)  # api.md's 1004
+    with pytest.raises(NotResumable, match=r"no file 'gone\.nc' in the jobs directory"):
+        await plan_at(tmp_path / "gone.nc", 2, lookup("grbl"), **args)
 
 
 # -- the machine ---------------------------------------------------------------------

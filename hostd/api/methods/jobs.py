@@ -70,7 +70,9 @@ class JobMethods:
             pool=self.api.daemon.workers,
             notes=warnings,
         )
-        job = await machine.start_make(p.file, p.start_line, start.preamble, counted=start.lines)
+        job = await machine.start_make(
+            p.file, p.start_line, start.preamble, counted=start.lines, version=start.version
+        )
         answer: dict[str, Any] = {"job": job.id, "preamble": start.preamble}
         if warnings:  # what the job does that the file does not say (M6s ignored)
             answer["warnings"] = warnings
