@@ -75,6 +75,7 @@ async def prepare_start(
             start_line,
             pool=pool,
             numbered=numbers_lines(machine),
+            version=version,
         )
         if notes is not None:
             notes += [f"line {f.line}: {f.text}" for f in found.notes]
@@ -95,7 +96,9 @@ async def prepare_start(
     if not force and limits is not None and limits.travel and offset:
         # Only a check that can run is worth reading the file for: the travel
         # is known and so is the work offset (the machine is homed).
-        check = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
+        check = await analyze_file(
+            path, machine.config.spec, limits, offset, pool=pool, version=version
+        )
         if check.beyond:
             raise OutOfTravel(
                 f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
@@ -103,5 +106,5 @@ async def prepare_start(
             )
     preamble = None
     if start_line > 1 and restore:
-        preamble = (await plan_with(machine, path, start_line, limits, pool)).lines
+        preamble = (await plan_with(machine, path, start_line, limits, pool, version)).lines
     return Start(preamble, counted, version)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
-from hostd.machine.jobfile import open_binary, open_text
+from hostd.machine.jobfile import Version, open_binary, open_text, version_of
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
 from hostd.protocol import dialects
@@ -181,18 +181,23 @@ async def analyze_file(
     offset: dict[str, float] | None = None,
     *,
     pool: WorkerPool,
+    version: Version | None = None,
 ) -> Preflight:
     """The file's figures, its estimate with the machine's speeds, and its travel check.
 
     Kept while the file holds the same bytes: running one program on workpiece
     after workpiece analyses it once (hashing a file costs about a hundredth of
     analysing it, and releases the GIL); a file uploaded again with other bytes
-    is analysed afresh. BadProgram for a line no board may run; AnalysisLimit
-    past the worker's limits.
+    is analysed afresh. The hash and the analysis read one version of the file
+    (`version`, or the one there now), else FileChanged: an analysis is never
+    kept under another version's bytes. BadProgram for a line no board may run;
+    AnalysisLimit past the worker's limits.
     """
+    if version is None:
+        version = await asyncio.to_thread(version_of, path)
 
     def digest() -> bytes:
-        with open_binary(path) as f:
+        with open_binary(path, version) as f:
             return hashlib.file_digest(f, "blake2b").digest()
 
     velocity = tuple(sorted(limits.velocity.items())) if limits else ()
@@ -202,7 +207,13 @@ async def analyze_file(
     if analysis is None:
         try:
             analysis = await pool.run(
-                f"analysing {path.name}", _analysis, path, dialect.gcode, velocity, acceleration
+                f"analysing {path.name}",
+                _analysis,
+                path,
+                version,
+                dialect.gcode,
+                velocity,
+                acceleration,
             )
         except ProgramError as exc:
             raise BadProgram.of(path, exc) from None
@@ -231,13 +242,16 @@ async def check_file(
     *,
     pool: WorkerPool,
     numbered: bool = True,
+    version: Version | None = None,
 ) -> Findings:
     """The lines of `path` (from `start_line`) the board would refuse or must not run;
-    `numbered`: as the job writes them, each with its `N<line>` (`numbers_lines`)."""
+    `numbered`: as the job writes them, each with its `N<line>` (`numbers_lines`);
+    `version`: of that version of the file, else FileChanged."""
     return await pool.run(
         f"checking {path.name}",
         _check_file,
         path,
+        version,
         dialect,
         max_line_bytes,
         tool_change,
@@ -248,6 +262,7 @@ async def check_file(
 
 def _check_file(
     path: Path,
+    version: Version | None,
     dialect: DialectSpec,
     max_line_bytes: int,
     tool_change: str | None,
@@ -255,7 +270,7 @@ def _check_file(
     numbered: bool,
 ) -> Findings:
     """`check_file`'s work, on a worker process."""
-    with open_text(path) as f:
+    with open_text(path, version) as f:
         return check_program(
             program_lines(f, start_line),
             dialect=dialect,
@@ -267,12 +282,13 @@ def _check_file(
 
 def _analysis(
     path: Path,
+    version: Version,
     gcode: GcodeDialect,
     velocity: tuple[tuple[str, float], ...],
     acceleration: tuple[tuple[str, float], ...],
 ) -> Analysis:
     """A file's analysis: run on a worker process."""
-    with open_text(path) as f:
+    with open_text(path, version) as f:
         return analyze(
             f,
             gcode,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from hostd.machine.jobfile import NoSuchFile, open_text
+from hostd.machine.jobfile import FileChanged, NoSuchFile, Version, open_text
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import BadProgram
@@ -69,14 +69,17 @@ async def plan_at(
     plunge_feed: float | None = None,
     laser: bool = False,
     pool: WorkerPool,
+    version: Version | None = None,
 ) -> ResumePlan:
     """The plan to resume the file at `line` (or the first line to send after it), on a
-    board that holds `board` (its stored offsets, G92 and speed, read just before)."""
+    board that holds `board` (its stored offsets, G92 and speed, read just before);
+    `version`: of that version of the file, else FileChanged."""
     try:
         return await pool.run(
             f"planning a resume of {path.name}",
             _plan_file,
             path,
+            version,
             line,
             dialect.gcode,
             board,
@@ -89,12 +92,15 @@ async def plan_at(
         raise NotResumable(str(exc)) from None
     except ProgramError as exc:
         raise BadProgram.of(path, exc) from None
+    except FileChanged:
+        raise  # a start's version replaced: 1004, as the start's other checks say it
     except NoSuchFile as exc:  # gone, or no longer a regular file: no safe resume (1011)
         raise NotResumable(exc.message) from None
 
 
 def _plan_file(
     path: Path,
+    version: Version | None,
     line: int,
     gcode: GcodeDialect,
     board: Board | None,
@@ -103,8 +109,9 @@ def _plan_file(
     plunge_feed: float | None,
     laser: bool,
 ) -> ResumePlan:
-    """`plan_at`'s work, on a worker process."""
-    with open_text(path) as f:
+    """`plan_at`'s work, on a worker process: the plan, and the line it starts at, read
+    from one open file."""
+    with open_text(path, version) as f:
         plan = plan_resume(
             f,
             line,
@@ -115,7 +122,7 @@ def _plan_file(
             plunge_feed=plunge_feed,
             laser=laser,
         )
-    with open_text(path) as f:
+        f.seek(0)
         first = next(program_lines(f, line), None)
     if first is None:
         raise ResumeError(f"nothing to run at or after line {line}")
@@ -148,10 +155,16 @@ async def recovery_for(
 
 
 async def plan_with(
-    machine: Machine, path: Path, line: int, limits: MachineLimits | None, pool: WorkerPool
+    machine: Machine,
+    path: Path,
+    line: int,
+    limits: MachineLimits | None,
+    pool: WorkerPool,
+    version: Version | None = None,
 ) -> ResumePlan:
-    """Resuming `path` at `line` on `machine`: from its safe height, with its dwell and
-    plunge feed, in machine coordinates from the offsets its board holds now."""
+    """Resuming `path` (`version` of it, if given) at `line` on `machine`: from its safe
+    height, with its dwell and plunge feed, in machine coordinates from the offsets its
+    board holds now."""
     config = machine.config
     try:
         board = await machine.board_offsets()
@@ -170,4 +183,5 @@ async def plan_with(
         plunge_feed=config.plunge_feed,
         laser=machine.is_laser(),
         pool=pool,
+        version=version,
     )

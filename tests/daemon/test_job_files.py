@@ -6,17 +6,21 @@ from __future__ import annotations
 
 import asyncio
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import pytest
 
-from hostd.machine import jobstart
+from hostd.machine import jobstart, preflight, resumes
 from hostd.machine.jobfile import FileChanged, NoSuchFile, open_binary, open_text, version_of
+from hostd.machine.workers import WorkerPool
+from hostd.protocol import dialects
 from tests.daemon.conftest import Rpc, Running, running_daemon
 from tests.daemon.test_api import fails
 
 pytestmark = pytest.mark.asyncio
+T = TypeVar("T")
 
 # What a job directory's writer must not get the daemon to read for it.
 SECRET = "G0 X123.456 (a file outside the jobs directory)\n"
@@ -156,3 +160,60 @@ async def test_a_version_uploaded_during_a_start_s_checks_is_never_streamed(
     monkeypatch.undo()
     again = await fails(1008, rpc.call("job.start", machine="sim1", file="part.nc"))
     assert "line 2" in again.message and "M6" in again.message  # the new version, checked
+
+
+class _Racing:
+    """A worker pool that runs in this process, after another version of `path` is
+    published: the moment between what the caller read and what the worker reads."""
+
+    def __init__(self, path: Path, text: str) -> None:
+        self.path, self.text = path, text
+
+    async def run(self, what: str, fn: Callable[..., T], *args: Any) -> T:
+        newer = self.path.with_name("newer.tmp")
+        newer.write_text(self.text)
+        os.replace(newer, self.path)  # as an upload publishes
+        return fn(*args)
+
+
+class _Here:
+    async def run(self, what: str, fn: Callable[..., T], *args: Any) -> T:
+        return fn(*args)
+
+
+async def test_an_analysis_is_never_kept_under_another_version_s_hash(tmp_path: Path) -> None:
+    """The analysis is kept by the file's hash. A version published between the hash and
+    the analysis must not be analysed under the first one's hash: the same bytes
+    uploaded again would get the other version's bounds, and its travel check."""
+    path = tmp_path / "part.nc"
+    path.write_text("G21 G90\nG0 X10 Y10\n")
+    spec = dialects.lookup("grbl")
+    racing = cast(WorkerPool, _Racing(path, "G21 G90\nG0 X900 Y10\n"))
+    with pytest.raises(FileChanged):
+        await preflight.analyze_file(path, spec, pool=racing)
+    path.write_text("G21 G90\nG0 X10 Y10\n")  # the first bytes again
+    analysed = await preflight.analyze_file(path, spec, pool=cast(WorkerPool, _Here()))
+    assert analysed.analysis.bounds["x"] == (10.0, 10.0)
+
+
+async def test_a_check_or_a_plan_of_a_start_reads_its_version_or_refuses(tmp_path: Path) -> None:
+    path = tmp_path / "part.nc"
+    path.write_text("G21 G90\nG0 X10 Y10 Z5\nG1 Z-1 F300\nG1 X20\n")
+    version = version_of(path)
+    spec = dialects.lookup("grbl")
+    with pytest.raises(FileChanged):
+        await preflight.check_file(
+            path, spec, 128, None, pool=cast(WorkerPool, _Racing(path, "M6 T2\n")), version=version
+        )
+    path.write_text("G21 G90\nG0 X10 Y10 Z5\nG1 Z-1 F300\nG1 X20\n")
+    with pytest.raises(FileChanged):  # 1004 as the start's other checks, not 1011
+        await resumes.plan_at(
+            path,
+            3,
+            spec,
+            board=None,
+            safe_z=5.0,
+            dwell=0.0,
+            pool=cast(WorkerPool, _Racing(path, "G0 X1\n")),
+            version=version_of(path),
+        )
