@@ -122,16 +122,20 @@ class JobRunner:
         preamble: list[str] | None = None,
         if_stopped: str | None = None,
         holds: Container[int] | None = None,
+        file_sha256: str | None = None,
     ) -> Job:
         """Begin a streaming operation and follow it in the machine's task group.
 
         `if_stopped`: a line sent when the job ends other than completed (a jog's G90).
         `holds`: file lines the job holds before (JobStream; a tool change's M6).
+        `file_sha256`: the streamed file's, kept in the row (`Job.file_sha256`).
         """
         group = self._group
         if group is None:
             raise NotConnected(f"{self.id} is not running")
-        job = await self.begin(kind, file, total, start_line=start_line, preamble=preamble)
+        job = await self.begin(
+            kind, file, total, start_line=start_line, preamble=preamble, file_sha256=file_sha256
+        )
         stream = JobStream(lines, job.id, numbered=kind == "make", holds=holds)
         try:
             self.engine.start_stream(stream)
@@ -154,12 +158,19 @@ class JobRunner:
         *,
         start_line: int | None = None,
         preamble: list[str] | None = None,
+        file_sha256: str | None = None,
     ) -> Job:
         """Take the machine to `operation` first, then write the row: never half-applied."""
         self._begin_operation()
         try:
             job = await self.store.create(
-                self.id, kind, file, total, start_line=start_line, preamble=preamble
+                self.id,
+                kind,
+                file,
+                total,
+                start_line=start_line,
+                preamble=preamble,
+                file_sha256=file_sha256,
             )
         except BaseException:
             self._end_operation()

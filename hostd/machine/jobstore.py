@@ -61,11 +61,12 @@ _ADDED = (
     ("start_line", "INTEGER"),
     ("preamble", "TEXT"),
     ("tool_changes", "TEXT"),  # issue 29: JSON, [{"tool", "line", "at"}]
+    ("file_sha256", "TEXT"),  # the bytes a make job streamed (2026-11-29)
 )
 _COLUMNS = (
     "id, machine, file, kind, state, lines_total, lines_sent, lines_acked, "
     "started_at, ended_at, error_code, error_message, line_executed, start_line, preamble, "
-    "tool_changes"
+    "tool_changes, file_sha256"
 )
 
 
@@ -100,11 +101,14 @@ class Job(BaseModel):
     start_line: int | None = None  # a resumed job's first file line
     preamble: list[str] | None = None  # what a resumed job sent before it
     tool_changes: list[ToolChange] = []  # each tool change the operator made, in order
+    # A make job's file as it streamed it, its SHA-256 in hex: a resume of the job must
+    # find these bytes (resumes.py). None for other jobs and rows from before 2026-11-29.
+    file_sha256: str | None = None
 
     @classmethod
     def from_row(cls, row: tuple[Any, ...]) -> Job:
         (id_, machine, file, kind, state, total, sent, acked, start, end, code, msg) = row[:12]
-        executed, start_line, preamble, changes = row[12:16]
+        executed, start_line, preamble, changes, sha256 = row[12:17]
         error = JobError(code=code, message=msg or "") if code is not None else None
         return cls(
             id=id_,
@@ -122,6 +126,7 @@ class Job(BaseModel):
             start_line=start_line,
             preamble=json.loads(preamble) if preamble else None,
             tool_changes=json.loads(changes) if changes else [],
+            file_sha256=sha256,
         )
 
 
@@ -166,9 +171,10 @@ class JobStore:
         *,
         start_line: int | None = None,
         preamble: list[str] | None = None,
+        file_sha256: str | None = None,
     ) -> Job:
         return await asyncio.to_thread(
-            self._create, machine, kind, file, lines_total, start_line, preamble
+            self._create, machine, kind, file, lines_total, start_line, preamble, file_sha256
         )
 
     async def update(self, job_id: int, **fields: Any) -> Job:
@@ -208,11 +214,12 @@ class JobStore:
         total: int | None,
         start_line: int | None,
         preamble: list[str] | None,
+        file_sha256: str | None,
     ) -> Job:
         with self._lock:
             cur = self._db.execute(
                 "INSERT INTO jobs (machine, file, kind, state, lines_total, started_at, "
-                "start_line, preamble) VALUES (?, ?, ?, 'running', ?, ?, ?, ?)",
+                "start_line, preamble, file_sha256) VALUES (?, ?, ?, 'running', ?, ?, ?, ?, ?)",
                 (
                     machine,
                     file,
@@ -221,6 +228,7 @@ class JobStore:
                     now(),
                     start_line,
                     None if preamble is None else json.dumps(preamble),
+                    file_sha256,
                 ),
             )
             job_id = cur.lastrowid

@@ -10,6 +10,7 @@ is the only pausable one.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import itertools
 from collections.abc import Iterator
 from typing import Any, TextIO
@@ -56,9 +57,7 @@ class MachineOperations(MachineCore):
         # NoSuchFile unless a regular file; FileChanged unless `version`, when given.
         handle = await asyncio.to_thread(open_text, path, version)
         try:
-            total = counted
-            if total is None:
-                total = await asyncio.to_thread(_count_lines, handle, start_line)
+            sha256, total = await asyncio.to_thread(_survey, handle, start_line, counted)
         except BaseException:
             handle.close()
             raise
@@ -72,6 +71,7 @@ class MachineOperations(MachineCore):
                 handle,
                 start_line=start_line if start_line > 1 or preamble else None,
                 preamble=preamble,
+                file_sha256=sha256,
             )
         except BaseException:
             handle.close()
@@ -92,6 +92,7 @@ class MachineOperations(MachineCore):
         *,
         start_line: int | None = None,
         preamble: list[str] | None = None,
+        file_sha256: str | None = None,
     ) -> Job:
         """A make job, its M6s read by the tool-change policy (toolchange.py)."""
         lines = self.tools.lines(lines)
@@ -105,6 +106,7 @@ class MachineOperations(MachineCore):
             start_line=start_line,
             preamble=preamble,
             holds=holds,
+            file_sha256=file_sha256,
         )
         if holds is not None:
             self.tools.follow(self.jobs.live(), holds)
@@ -224,9 +226,18 @@ class MachineOperations(MachineCore):
         self._settle()
 
 
-def _count_lines(handle: TextIO, start_line: int) -> int:
-    """The sendable lines from `start_line` of the file open in `handle`, which is left at
-    its start again: counted and streamed are the same file, whatever the name is now."""
+def _survey(handle: TextIO, start_line: int, counted: int | None) -> tuple[str, int]:
+    """The SHA-256 of the file open in `handle` (the row keeps it: a resume of the job
+    must find these bytes) and its sendable lines from `start_line` (`counted` if the
+    check counted them), read from the one open file the job streams, which is left at
+    its start again: whatever the name is now."""
+    digest = hashlib.sha256()
+    while chunk := handle.buffer.read(1 << 20):
+        digest.update(chunk)
+    sha256 = digest.hexdigest()
+    handle.seek(0)
+    if counted is not None:
+        return sha256, counted
     count = sum(map(len, program_blocks(handle, start_line)))  # a block at a time, not a line
     handle.seek(0)
-    return count
+    return sha256, count

@@ -5,15 +5,26 @@ reads the file on the daemon's worker processes (`workers.WorkerPool`, as
 preflight.py does) and gives the plan what it needs of one machine, read
 from it: its board's stored offsets and speeds, safe height, dwell and
 plunge feed (`plan_for`, `recovery_for`; job.start's preamble,
-jobstart.py).
+jobstart.py). A lost job's resume plans from the bytes the job streamed or not
+at all (`Job.file_sha256`): another program under its name would be run from
+its middle on the job's workpiece.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import hashlib
 from pathlib import Path
 
-from hostd.machine.jobfile import FileChanged, NoSuchFile, Version, open_text
+from hostd.machine.jobfile import (
+    FileChanged,
+    NoSuchFile,
+    Version,
+    open_binary,
+    open_text,
+    version_of,
+)
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
 from hostd.machine.preflight import BadProgram
@@ -151,7 +162,34 @@ async def recovery_for(
     NotResumable when the job or the file allows no safe resume.
     """
     line, about = _recovery_line(job)  # a job that cannot resume asks the board nothing
-    return await plan_with(machine, path, line, await machine.known_limits(), pool), about
+    version = await asyncio.to_thread(_ran_version, path, job)
+    if job.file_sha256 is None:
+        about.append(
+            f"which version of {job.file} job {job.id} ran was not recorded (a job from "
+            f"before 2026-11-29): check that the file is the one it ran"
+        )
+    limits = await machine.known_limits()
+    return await plan_with(machine, path, line, limits, pool, version), about
+
+
+def _ran_version(path: Path, job: Job) -> Version:
+    """The version of `path` now, if it holds the bytes `job` streamed (or the job kept
+    none to compare); else NotResumable: a resume of the job would run another program
+    from the middle, on the job's workpiece."""
+    try:
+        version = version_of(path)
+        if job.file_sha256 is None:
+            return version
+        with open_binary(path, version) as f:
+            now = hashlib.file_digest(f, "sha256").hexdigest()
+    except NoSuchFile as exc:
+        raise NotResumable(exc.message) from None
+    if now != job.file_sha256:
+        raise NotResumable(
+            f"{job.file} is not the file job {job.id} ran: it changed since (another "
+            "upload?). To resume this version, plan it by machine, file and line"
+        )
+    return version
 
 
 async def plan_with(

@@ -48,6 +48,7 @@ JOB_KEYS = {
     "start_line",
     "preamble",
     "tool_changes",
+    "file_sha256",
 }
 
 

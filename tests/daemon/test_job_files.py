@@ -5,7 +5,9 @@ is opened (hostd/machine/jobfile.py), never followed or waited on."""
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import os
+import sqlite3
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar, cast
@@ -217,3 +219,53 @@ async def test_a_check_or_a_plan_of_a_start_reads_its_version_or_refuses(tmp_pat
             pool=cast(WorkerPool, _Racing(path, "G0 X1\n")),
             version=version_of(path),
         )
+
+
+async def test_a_resume_of_a_job_must_find_the_bytes_the_job_ran(tmp_path: Path) -> None:
+    """A lost job's row keeps the SHA-256 of the file it streamed. Its resume by id plans
+    only from those bytes: another program under the same name would be run from the
+    middle on this job's workpiece. The same bytes uploaded again resume; a plan by
+    machine, file and line is the operator's own choice and is not compared."""
+    async with running_daemon(tmp_path, safe_z=0.0) as hostd:
+        rpc = await hostd.client()
+        try:
+            await hostd.idle(rpc)
+            await _resume_by_bytes(hostd, rpc)
+        finally:
+            await rpc.close()
+
+
+async def _resume_by_bytes(hostd: Running, rpc: Rpc) -> None:
+    program = "G21 G90\nG0 X0 Y0 Z5\n" + "".join(f"G1 X{i % 30} Y1 Z5 F1200\n" for i in range(400))
+    other = program.replace("Y1 Z5", "Y2 Z5")  # the next part: same lines, another Y
+    await rpc.call("file.upload", name="part.nc", data=program)
+    await rpc.call("subscribe", topics=["job"], machine="sim1")
+    job_id = (await rpc.call("job.start", machine="sim1", file="part.nc"))["job"]
+    await rpc.notification(
+        lambda n: n["method"] == "job" and (n["params"]["job"]["line_executed"] or 0) >= 20, 30
+    )
+    await rpc.call("job.cancel", machine="sim1")
+    job = await rpc.call("job.get", job=job_id)
+    assert job["file_sha256"] == hashlib.sha256(program.encode()).hexdigest()
+
+    await rpc.call("file.upload", name="part.nc", data=other)
+    refused = await fails(1011, rpc.call("job.recovery", job=job_id))
+    assert f"part.nc is not the file job {job_id} ran: it changed since" in refused.message
+    line = (await rpc.call("job.get", job=job_id))["line_executed"]
+    chosen = await rpc.call("job.recovery", machine="sim1", file="part.nc", line=line)
+    assert chosen["line"] == line  # by file and line: this version, as asked
+
+    await rpc.call("file.upload", name="part.nc", data=program)  # the job's bytes again
+    plan = await rpc.call("job.recovery", job=job_id)
+    assert plan["line"] == line and not any("not recorded" in u for u in plan["uncertain"])
+
+    # A row an older hostd wrote has no SHA-256: the plan says the file is unchecked.
+    store = hostd.daemon.store
+    assert store is not None
+    with sqlite3.connect(store.path) as db:
+        db.execute("UPDATE jobs SET file_sha256 = NULL WHERE id = ?", (job_id,))
+    plan = await rpc.call("job.recovery", job=job_id)
+    assert any(
+        f"which version of part.nc job {job_id} ran was not recorded" in u
+        for u in plan["uncertain"]
+    )
