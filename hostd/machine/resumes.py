@@ -187,7 +187,7 @@ def _ran_version(path: Path, job: Job) -> Version:
     if now != job.file_sha256:
         raise NotResumable(
             f"{job.file} is not the file job {job.id} ran: it changed since (another "
-            "upload?). To resume this version, plan it by machine, file and line"
+            "upload?). To resume this version, plan it from its file and a line"
         )
     return version
 

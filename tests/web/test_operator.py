@@ -468,6 +468,15 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         await page.click("#plan button[value=no]")  # Back: nothing starts
         await expect(page.locator("#plan")).to_be_hidden()
         assert (await rpc.call("job.list", machine="sim1"))[0]["id"] == cancelled["id"]
+
+        # Another program uploaded under the job's name: its row's resume is refused, and
+        # the operator is told why, rather than shown a plan of the other program.
+        await rpc.call("file.upload", name="deep.nc", data=DEEP.replace("Z-1", "Z-3"))
+        await page.locator("#history tbody tr").first.get_by_role("button").click()
+        await expect(page.locator("#toast")).to_contain_text(
+            f"deep.nc is not the file job {cancelled['id']} ran: it changed since"
+        )
+        await expect(page.locator("#plan")).to_be_hidden()
         await rpc.close()
 
 
