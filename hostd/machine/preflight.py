@@ -302,11 +302,13 @@ def _analysis(
 
 async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) -> Preflight:
     """`path` against `machine`: its dialect, speeds and travel; without one, the default
-    dialect's rules (dialects.DEFAULT)."""
+    dialect's rules (dialects.DEFAULT). The check and the analysis read one version of
+    the file, else FileChanged."""
+    version = await asyncio.to_thread(version_of, path)
     if machine is None:
         spec = dialects.lookup(dialects.DEFAULT)
-        found = await check_file(path, spec, MAX_LINE_BYTES + 1, None, pool=pool)
-        analysed = await analyze_file(path, spec, pool=pool)
+        found = await check_file(path, spec, MAX_LINE_BYTES + 1, None, pool=pool, version=version)
+        analysed = await analyze_file(path, spec, pool=pool, version=version)
         return replace(analysed, findings=found, dialect=spec.gcode.name)
     limits = await machine.known_limits()
     offset = work_offset(machine)
@@ -317,6 +319,9 @@ async def analyze_for(machine: Machine | None, path: Path, *, pool: WorkerPool) 
         tool_change_policy(machine),
         pool=pool,
         numbered=numbers_lines(machine),
+        version=version,
     )
-    analysis = await analyze_file(path, machine.config.spec, limits, offset, pool=pool)
+    analysis = await analyze_file(
+        path, machine.config.spec, limits, offset, pool=pool, version=version
+    )
     return replace(analysis, findings=found, dialect=machine.config.spec.gcode.name)
