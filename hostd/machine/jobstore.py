@@ -193,10 +193,14 @@ class JobStore:
     # The blocking halves.
 
     def _recover(self) -> list[Job]:
+        """The rows as they are on disk once ended: end time and error included."""
         with self._lock:
-            rows = self._db.execute(
-                f"SELECT {_COLUMNS} FROM jobs WHERE state IN (?, ?)", ACTIVE_STATES
-            ).fetchall()
+            ids = [
+                row[0]
+                for row in self._db.execute(
+                    "SELECT id FROM jobs WHERE state IN (?, ?)", ACTIVE_STATES
+                ).fetchall()
+            ]
             self._db.execute(
                 "UPDATE jobs SET state = 'interrupted', ended_at = ?, "
                 "error_code = COALESCE(error_code, 1002), "
@@ -204,7 +208,11 @@ class JobStore:
                 "WHERE state IN (?, ?)",
                 (now(), *ACTIVE_STATES),
             )
-        return [Job.from_row(r).model_copy(update={"state": "interrupted"}) for r in rows]
+            rows = [
+                self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (i,)).fetchone()
+                for i in ids
+            ]
+        return [Job.from_row(r) for r in rows]
 
     def _create(
         self,

@@ -407,7 +407,7 @@ async def test_the_next_start_finds_a_lost_job_interrupted_with_why(tmp_path: Pa
         row = await store.get(job.id)
     finally:
         store.close()
-    assert (lost.id, lost.state) == (job.id, "interrupted")
+    assert lost == row  # told as it is on disk: its end time and its error too
     assert row is not None and row.state == "interrupted" and row.ended_at is not None
     assert row.error is not None
     assert (row.error.code, row.error.message) == (1002, "the daemon stopped during the job")
