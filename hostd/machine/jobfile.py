@@ -90,8 +90,8 @@ def _open(path: Path, version: Version | None) -> int:
             raise NoSuchFile(f"{path.name!r} is not a regular file")
         if version is not None and _version(st) != version:
             raise FileChanged(
-                f"{path.name!r} changed while its start was checked (uploaded again?): "
-                "nothing was sent; start it again to check the new version"
+                f"{path.name!r} changed while it was being checked (uploaded again?): "
+                "nothing was sent; ask again to check the new version"
             )
         os.set_blocking(fd, True)
     except BaseException:

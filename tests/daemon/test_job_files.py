@@ -129,9 +129,7 @@ async def test_a_version_taken_is_the_one_opened_or_none(tmp_path: Path) -> None
     os.replace(newer, path)
     with pytest.raises(FileChanged) as refused:
         open_text(path, version)
-    assert refused.value.code == 1004 and "changed while its start was checked" in str(
-        refused.value
-    )
+    assert refused.value.code == 1004 and "changed while it was being checked" in str(refused.value)
 
 
 async def test_a_version_uploaded_during_a_start_s_checks_is_never_streamed(
@@ -155,7 +153,7 @@ async def test_a_version_uploaded_during_a_start_s_checks_is_never_streamed(
 
     monkeypatch.setattr(jobstart, "check_file", check_then_upload)
     refused = await fails(1004, rpc.call("job.start", machine="sim1", file="part.nc"))
-    assert "'part.nc' changed while its start was checked" in refused.message
+    assert "'part.nc' changed while it was being checked" in refused.message
     assert await rpc.call("job.list", machine="sim1") == []
     assert (await rpc.call("machine.status", machine="sim1"))["supervisor"] == "idle"
 
