@@ -1,0 +1,278 @@
+"""Tool changes and probing: what the operator would notice that test_toolchange.py and
+test_probing.py leave open (a hand-run mutation campaign on hostd/machine/toolchange.py
+and hostd/machine/probing.py found each of these unpinned).
+
+A real daemon with a simulated g2core (sim1) and a simulated grbl (sim2) on real ptys,
+reached through the real socket.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Coroutine
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hostd.machine import probing
+from hostd.sim.probing import TouchPlate
+from tests.daemon.conftest import G2, GRBL, Rpc, RpcFailure, Running
+from tests.daemon.test_api import fails, job_end
+from tests.daemon.test_operations import lines_sent
+from tests.daemon.test_probing import FAST, PLATE, TOP, moves_sent, sim_of, touch
+from tests.daemon.test_toolchange import (
+    MACHINES,
+    SENSOR_Z,
+    _daemon,
+    _spindle_of,
+    _start,
+    _unnumbered,
+    _waiting,
+)
+
+pytestmark = pytest.mark.asyncio
+
+# A sensor whose X and Y differ (test_toolchange.py's sits at X-5 Y-5): a measurement
+# that mixed them up would go down beside it.
+SENSOR = {"x": -5.0, "y": -8.0}
+PROBE = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
+# Tool 2's change comes with the tool at X2 Y1; the job's next line moves only Z.
+OFF_AXIS = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X2 Y1\nT2 M6\nG0 Z-5\nM2\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_measured_tool_goes_down_over_the_sensor_and_comes_back_where_it_stopped(
+    tmp_path: Path, machine: str
+) -> None:
+    """The sensor at X-5 Y-8: the tool goes down over it, not at X-8 Y-5 (beside it,
+    into the table), and after the measuring it comes back over X2 Y1, where the job
+    left it, not X1 Y2: the job's next cut starts where the program says."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "offaxis.nc", OFF_AXIS)
+        await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=machine)
+        waiting = await _waiting(rpc, machine, job_id, 5, changes=1)
+        assert waiting["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+        assert waiting["machine_position"]["y"] == pytest.approx(1.0, abs=0.01)
+        await rpc.call("job.tool_change_done", machine=machine)
+        measured = await rpc.call("machine.status", machine=machine)
+        assert measured["probe"]["ok"] is True
+        assert measured["probe"]["position"]["z"] == pytest.approx(SENSOR_Z, abs=0.01)
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        end = await rpc.call("machine.status", machine=machine)
+        assert end["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
+        assert end["machine_position"]["y"] == pytest.approx(1.0, abs=0.01)
+        assert end["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_tool_change_cannot_be_answered_while_the_operators_jog_still_moves(
+    tmp_path: Path, machine: str
+) -> None:
+    """The operator jogs up at a tool change and answers before the jog has ended: the
+    answer is refused (1003, "let it come to rest"), the job keeps waiting, and once
+    the board rests the same answer goes through."""
+    async with _daemon(tmp_path, "pause", safe_z=0.0) as (_, rpc):
+        job_id = await _start(rpc, machine, "two.nc", "G0 X1\nT1 M6\nG0 X0\n")
+        await _waiting(rpc, machine, job_id, 2)
+        await rpc.call("subscribe", topics=["status"], machine=machine)
+        await rpc.call("machine.jog", machine=machine, axes={"z": 3.0}, feed=60)
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status"
+                and 0.1 < n["params"]["snapshot"]["machine_position"]["z"] < 2.5
+            )
+        )
+        err = await fails(1003, rpc.call("job.tool_change_done", machine=machine))
+        assert "rest" in err.message
+        still = await rpc.call("machine.status", machine=machine)
+        assert still["tool_change"] == {"tool": 1, "line": 2}
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status"
+                and n["params"]["snapshot"]["state"]["name"] in ("READY", "PROGRAM_STOP", "IDLE")
+                and n["params"]["snapshot"]["machine_position"]["z"] == pytest.approx(3.0)
+            )
+        )
+        job = await rpc.call("job.tool_change_done", machine=machine)
+        assert [c["tool"] for c in job["tool_changes"]] == [1]
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+
+
+# The laser on (M4, dynamic power) when the job reaches its M6 (line 4).
+LASER = "G21 G90\nM4 S500\nG1 X1 F3000\nT2 M6\nG1 X2\nM5\nM2\n"
+
+
+async def test_a_laser_comes_back_on_after_a_tool_change_without_a_spin_up_dwell(
+    tmp_path: Path,
+) -> None:
+    """The simulated grbl is a laser ($32=1): its beam has no speed to reach, so no
+    `spindle_dwell` is waited after `M4` (a standing beam would burn a spot)."""
+    async with _daemon(tmp_path, "pause", spindle_dwell=0.5) as (running, rpc):
+        assert (await rpc.call("machine.status", machine=GRBL))["laser_mode"] is True
+        job_id = await _start(rpc, GRBL, "laser.nc", LASER)
+        await _waiting(rpc, GRBL, job_id, 4)
+        before = len(lines_sent(running, GRBL))
+        await rpc.call("job.tool_change_done", machine=GRBL)
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        after = [ln for ln in _unnumbered(lines_sent(running, GRBL))[before:] if ln != b"$G"]
+        assert after[0] == b"M4 S500", after
+        assert not any(line.startswith(b"G4") for line in after), after
+
+
+async def test_ignore_sends_g2core_the_m6_line_without_its_m6(tmp_path: Path) -> None:
+    """Under "ignore" the M6 is taken out as the job is read: g2core runs the line's
+    other words (its T) and no tool change of its own."""
+    async with _daemon(tmp_path, "ignore") as (running, rpc):
+        job_id = await _start(rpc, G2, "two.nc", "G0 X1\nT2 M6\nG0 X0\n")
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        sent = _unnumbered(lines_sent(running, G2))
+        assert b"T2" in sent and not any(b"M6" in line for line in sent), sent
+
+
+async def test_a_spindle_the_operator_started_before_the_job_is_stopped_at_its_tool_change(
+    tmp_path: Path,
+) -> None:
+    """The job's lines never turn the spindle on, but the operator did (`M3 S5000` before
+    starting it) and the board reports it running: it is stopped (`M5`) before the
+    operator is told to change the tool, and not turned on again after."""
+    async with _daemon(tmp_path, "pause") as (running, rpc):
+        await rpc.call("subscribe", topics=["status"], machine=G2)
+        await rpc.call("machine.send", machine=G2, line="M3 S5000")
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status"
+                and (n["params"]["snapshot"]["spindle"] or {}).get("state") == "cw"
+            )
+        )
+        job_id = await _start(rpc, G2, "plain.nc", "G0 X1\nT2 M6\nG0 X0\n")
+        await _waiting(rpc, G2, job_id, 2)
+        assert _spindle_of(running, G2) == "M5"
+        await rpc.call("job.tool_change_done", machine=G2)
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        assert _spindle_of(running, G2) == "M5"
+
+
+# One tool, measured at the job's start; the job then goes down to Z-5.
+ONE_TOOL = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 Z-5\nM2\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_each_job_measures_its_own_reference_tool(tmp_path: Path, machine: str) -> None:
+    """Between two jobs the operator puts in a tool 3 mm longer and sets work Z for it:
+    the second job's first measurement is its own reference, so its Z-5 is Z-5, not
+    3 mm higher for the difference to the first job's tool."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        sim = running.daemon.sims[machine]
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        for name, length in (("first.nc", 0.0), ("second.nc", 3.0)):
+            sim.tool_length(length)
+            job_id = await _start(rpc, machine, name, ONE_TOOL)
+            await _waiting(rpc, machine, job_id, 3)
+            await rpc.call("job.tool_change_done", machine=machine)
+            measured = await rpc.call("machine.status", machine=machine)
+            assert measured["probe"]["position"]["z"] == pytest.approx(SENSOR_Z + length, abs=0.01)
+            assert (await job_end(rpc, job_id))["state"] == "completed"
+            end = await rpc.call("machine.status", machine=machine)
+            assert end["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01), name
+            await running.idle(rpc, machine)
+
+
+SETTLE = 0.0125  # a pause no other part of the daemon asks for
+
+
+async def test_the_probe_waits_for_the_operators_hands_to_leave_the_plate_before_moving(
+    both: tuple[Running, Rpc], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Seen working (closed, then open), the probe first gives the operator's hands
+    `SETTLE` seconds off the plate: nothing moves before that pause."""
+    hostd, rpc = both
+    monkeypatch.setattr(probing, "SETTLE", SETTLE)
+    real_sleep = asyncio.sleep
+    moved_at_pause: list[int] = []
+
+    def sleep(delay: float, *args: Any, **kwargs: Any) -> Coroutine[Any, Any, Any]:
+        if delay == SETTLE:
+            moved_at_pause.append(len(moves_sent(hostd, G2)))
+        return real_sleep(delay, *args, **kwargs)
+
+    monkeypatch.setattr(asyncio, "sleep", sleep)
+    sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
+    touch(hostd, G2)
+    await rpc.call("machine.probe", machine=G2, kind="z", plate=PLATE, **FAST)
+    assert moved_at_pause == [0]
+
+
+# The spindle on at 8000 rpm when the job reaches its M6 (line 4).
+SPINNING = "G21 G90\nG0 X0 Y0 Z0\nM3 S8000\nT2 M6\nG0 X2\nM5\nM2\n"
+
+
+async def test_a_second_answer_while_the_first_is_under_way_is_refused(tmp_path: Path) -> None:
+    """Two operators (or a double click) answer the same tool change: the one the
+    daemon takes first goes on, the other is 1003 "already being answered", and the
+    job records the change once."""
+    async with _daemon(tmp_path, "pause", spindle_dwell=0.05) as (running, rpc):
+        engine = running.daemon.machines[G2].engine
+        send = engine.send
+        entered, release = asyncio.Event(), asyncio.Event()
+
+        async def held_send(line: str, **kwargs: Any) -> Any:
+            if line.startswith("M3"):  # the first answer turns the spindle back on
+                entered.set()
+                await release.wait()
+            return await send(line, **kwargs)
+
+        job_id = await _start(rpc, G2, "spin.nc", SPINNING)
+        await _waiting(rpc, G2, job_id, 4)
+        engine.send = held_send  # type: ignore[method-assign]
+        try:
+            first = asyncio.create_task(rpc.call("job.tool_change_done", machine=G2))
+            await entered.wait()
+            other = await running.client()
+            err = await fails(
+                1003, asyncio.wait_for(other.call("job.tool_change_done", machine=G2), 10)
+            )
+            assert "already being answered" in err.message
+            await other.close()
+        finally:
+            release.set()
+            engine.send = send  # type: ignore[method-assign]
+        job = await first
+        assert [c["tool"] for c in job["tool_changes"]] == [2]
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed" and len(done["tool_changes"]) == 1
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_job_cancelled_while_its_tool_is_measured_does_not_start_the_spindle(
+    tmp_path: Path, machine: str
+) -> None:
+    """The job had the spindle on at its M6; the operator cancels while the new tool
+    is on its way to the sensor: the answer fails, the job ends cancelled, and the
+    spindle stays off (it comes back on only for a job that goes on)."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        if machine == GRBL:  # the simulated grbl is a laser ($32=1): make it a mill
+            await rpc.call("settings.set", machine=machine, values={"32": 0})
+            await rpc.call("settings.get", machine=machine, keys=["32"])
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "spin.nc", SPINNING)
+        await _waiting(rpc, machine, job_id, 4)
+        assert _spindle_of(running, machine) == "M5"
+        await rpc.call("subscribe", topics=["status"], machine=machine)
+        answering = asyncio.create_task(rpc.call("job.tool_change_done", machine=machine))
+        await rpc.notification(
+            lambda n: (
+                n["method"] == "status" and n["params"]["snapshot"]["machine_position"]["x"] < -1
+            )
+        )
+        await rpc.call("job.cancel", machine=machine)
+        assert (await job_end(rpc, job_id))["state"] == "cancelled"
+        with pytest.raises(RpcFailure):
+            await answering
+        await running.idle(rpc, machine)
+        assert _spindle_of(running, machine) == "M5"
+        sent = _unnumbered(lines_sent(running, machine))
+        assert sent.count(b"M3 S8000") == 1, sent
