@@ -133,19 +133,20 @@ async def test_ignore_sends_g2core_the_m6_line_without_its_m6(tmp_path: Path) ->
         assert b"T2" in sent and not any(b"M6" in line for line in sent), sent
 
 
+@pytest.mark.parametrize(("line", "state"), [("M3 S5000", "cw"), ("M4 S5000", "ccw")])
 async def test_a_spindle_the_operator_started_before_the_job_is_stopped_at_its_tool_change(
-    tmp_path: Path,
+    tmp_path: Path, line: str, state: str
 ) -> None:
-    """The job's lines never turn the spindle on, but the operator did (`M3 S5000` before
-    starting it) and the board reports it running: it is stopped (`M5`) before the
+    """The job's lines never turn the spindle on, but the operator did (`M3` or `M4`
+    before starting it) and the board reports it running: it is stopped (`M5`) before the
     operator is told to change the tool, and not turned on again after."""
     async with _daemon(tmp_path, "pause") as (running, rpc):
         await rpc.call("subscribe", topics=["status"], machine=G2)
-        await rpc.call("machine.send", machine=G2, line="M3 S5000")
+        await rpc.call("machine.send", machine=G2, line=line)
         await rpc.notification(
             lambda n: (
                 n["method"] == "status"
-                and (n["params"]["snapshot"]["spindle"] or {}).get("state") == "cw"
+                and (n["params"]["snapshot"]["spindle"] or {}).get("state") == state
             )
         )
         job_id = await _start(rpc, G2, "plain.nc", "G0 X1\nT2 M6\nG0 X0\n")
@@ -276,3 +277,52 @@ async def test_a_job_cancelled_while_its_tool_is_measured_does_not_start_the_spi
         assert _spindle_of(running, machine) == "M5"
         sent = _unnumbered(lines_sent(running, machine))
         assert sent.count(b"M3 S8000") == 1, sent
+
+
+# The job leaves the tool at Z-5 (under the safe height, Z0) before its M6 at line 4.
+LOW = "G21 G90\nG0 X0 Y0 Z0\nG0 X2 Z-5\nT1 M6\nG0 X3\nM2\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_measurement_lifts_to_the_safe_height_before_crossing_to_the_sensor(
+    tmp_path: Path, machine: str
+) -> None:
+    """The tool stands at Z-5, down in the work: it goes straight up to the safe height
+    first, and only then across to the sensor (never across at Z-5, through clamps)."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "low.nc", LOW)
+        await _waiting(rpc, machine, job_id, 4)
+        before = len(lines_sent(running, machine))
+        await rpc.call("job.tool_change_done", machine=machine)
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        moves = [
+            line
+            for line in _unnumbered(lines_sent(running, machine))[before:]
+            if line.startswith(b"G53")
+        ]
+        assert moves[:2] == [b"G53 G0 Z0", b"G53 G0 X-5 Y-8"], moves
+
+
+# An inch program: X0.1 is 2.54 mm. Its M6 at line 3.
+INCHES = "G20 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X0.1\nM2\n"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_tool_of_an_inch_program_is_measured_in_mm_and_the_program_stays_in_inches(
+    tmp_path: Path, machine: str
+) -> None:
+    """The sensor's place and the probe's travel are mm: in a G20 program they are
+    still reached (not 25.4 times as far), and the program's next X0.1 is 2.54 mm."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, machine, "inches.nc", INCHES)
+        await _waiting(rpc, machine, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=machine)
+        measured = await rpc.call("machine.status", machine=machine)
+        assert measured["probe"]["ok"] is True
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        end = await rpc.call("machine.status", machine=machine)
+        assert end["units"] == "in"
+        scale = 25.4 if end["position_units"]["machine"] == "in" else 1.0
+        assert end["machine_position"]["x"] * scale == pytest.approx(2.54, abs=0.01)
