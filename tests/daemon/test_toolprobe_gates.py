@@ -288,7 +288,8 @@ async def test_a_measurement_lifts_to_the_safe_height_before_crossing_to_the_sen
     tmp_path: Path, machine: str
 ) -> None:
     """The tool stands at Z-5, down in the work: it goes straight up to the safe height
-    first, and only then across to the sensor (never across at Z-5, through clamps)."""
+    first, and only then across to the sensor (never across at Z-5, through clamps),
+    and goes down onto it at the probe's feed."""
     async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
         running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
         job_id = await _start(rpc, machine, "low.nc", LOW)
@@ -296,12 +297,11 @@ async def test_a_measurement_lifts_to_the_safe_height_before_crossing_to_the_sen
         before = len(lines_sent(running, machine))
         await rpc.call("job.tool_change_done", machine=machine)
         assert (await job_end(rpc, job_id))["state"] == "completed"
-        moves = [
-            line
-            for line in _unnumbered(lines_sent(running, machine))[before:]
-            if line.startswith(b"G53")
-        ]
+        sent = _unnumbered(lines_sent(running, machine))[before:]
+        moves = [line for line in sent if line.startswith(b"G53")]
         assert moves[:2] == [b"G53 G0 Z0", b"G53 G0 X-5 Y-8"], moves
+        # Down at the probe's feed (a sensor is not a thing to rush into), within its travel.
+        assert b"G91 G38.2 Z-25 F600" in sent, sent
 
 
 # An inch program: X0.1 is 2.54 mm. Its M6 at line 3.
