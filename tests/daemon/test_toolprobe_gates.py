@@ -326,3 +326,27 @@ async def test_a_tool_of_an_inch_program_is_measured_in_mm_and_the_program_stays
         assert end["units"] == "in"
         scale = 25.4 if end["position_units"]["machine"] == "in" else 1.0
         assert end["machine_position"]["x"] * scale == pytest.approx(2.54, abs=0.01)
+
+
+# A CAM program that applies each tool's length itself (`G43 H<tool>`) after its M6.
+CAM = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG43 H1\nG0 X1\nT2 M6\nG43 H2\nG0 Z-5\nM2\n"
+
+
+async def test_g2core_keeps_each_measured_length_in_its_tools_own_table_entry(
+    tmp_path: Path,
+) -> None:
+    """g2core: tool 2's measured length goes into tool table entry 2, so the program's
+    own `G43 H2` after the change keeps the 3 mm longer tool 3 mm higher (entry 1 would
+    leave entry 2 empty, and the program's Z-5 would cut 3 mm too deep)."""
+    async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
+        sim = running.daemon.sims[G2]
+        sim.tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
+        job_id = await _start(rpc, G2, "cam.nc", CAM)
+        await _waiting(rpc, G2, job_id, 3)
+        await rpc.call("job.tool_change_done", machine=G2)
+        await _waiting(rpc, G2, job_id, 6, changes=1)
+        sim.tool_length(3.0)
+        await rpc.call("job.tool_change_done", machine=G2)
+        assert (await job_end(rpc, job_id))["state"] == "completed"
+        end = await rpc.call("machine.status", machine=G2)
+        assert end["machine_position"]["z"] == pytest.approx(-2.0, abs=0.01)
