@@ -37,8 +37,8 @@ pytestmark = pytest.mark.asyncio
 # that mixed them up would go down beside it.
 SENSOR = {"x": -5.0, "y": -8.0}
 PROBE = {"feed": 600.0, "max_travel": 25.0, "tool_sensor": SENSOR}
-# Tool 2's change comes with the tool at X2 Y1; the job's next line moves only Z.
-OFF_AXIS = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X2 Y1\nT2 M6\nG0 Z-5\nM2\n"
+# Tool 2's change comes with the tool at X2.345 Y1.25; the job's next line moves only Z.
+OFF_AXIS = "G21 G90\nG0 X0 Y0 Z0\nT1 M6\nG0 X2.345 Y1.25\nT2 M6\nG0 Z-5\nM2\n"
 
 
 @pytest.mark.parametrize("machine", MACHINES)
@@ -46,16 +46,16 @@ async def test_a_measured_tool_goes_down_over_the_sensor_and_comes_back_where_it
     tmp_path: Path, machine: str
 ) -> None:
     """The sensor at X-5 Y-8: the tool goes down over it, not at X-8 Y-5 (beside it,
-    into the table), and after the measuring it comes back over X2 Y1, where the job
-    left it, not X1 Y2: the job's next cut starts where the program says."""
+    into the table), and after the measuring it comes back over X2.345 Y1.25, where the
+    job left it (not swapped, nor rounded): the job's next cut starts where the program says."""
     async with _daemon(tmp_path, "probe", probe=PROBE, safe_z=0.0) as (running, rpc):
         running.daemon.sims[machine].tool_sensor(SENSOR["x"], SENSOR["y"], SENSOR_Z)
         job_id = await _start(rpc, machine, "offaxis.nc", OFF_AXIS)
         await _waiting(rpc, machine, job_id, 3)
         await rpc.call("job.tool_change_done", machine=machine)
         waiting = await _waiting(rpc, machine, job_id, 5, changes=1)
-        assert waiting["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
-        assert waiting["machine_position"]["y"] == pytest.approx(1.0, abs=0.01)
+        assert waiting["machine_position"]["x"] == pytest.approx(2.345, abs=0.002)
+        assert waiting["machine_position"]["y"] == pytest.approx(1.25, abs=0.002)
         await rpc.call("job.tool_change_done", machine=machine)
         measured = await rpc.call("machine.status", machine=machine)
         assert measured["probe"]["ok"] is True
@@ -63,8 +63,8 @@ async def test_a_measured_tool_goes_down_over_the_sensor_and_comes_back_where_it
         done = await job_end(rpc, job_id)
         assert done["state"] == "completed", done
         end = await rpc.call("machine.status", machine=machine)
-        assert end["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
-        assert end["machine_position"]["y"] == pytest.approx(1.0, abs=0.01)
+        assert end["machine_position"]["x"] == pytest.approx(2.345, abs=0.002)
+        assert end["machine_position"]["y"] == pytest.approx(1.25, abs=0.002)
         assert end["machine_position"]["z"] == pytest.approx(-5.0, abs=0.01)
 
 
