@@ -350,3 +350,41 @@ async def test_g2core_keeps_each_measured_length_in_its_tools_own_table_entry(
         assert (await job_end(rpc, job_id))["state"] == "completed"
         end = await rpc.call("machine.status", machine=G2)
         assert end["machine_position"]["z"] == pytest.approx(-2.0, abs=0.01)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_board_in_inches_is_back_in_inches_after_the_probe(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """The probe moves in mm (`G21`); a board the operator had in G20 is given G20
+    back, so their next `G0 X1` is still an inch."""
+    hostd, rpc = both
+    sim_of(hostd, machine).touch_plate(TouchPlate(top=TOP))
+    await rpc.call("machine.send", machine=machine, line="G20")
+    touch(hostd, machine)
+    result = await rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, **FAST)
+    assert result["position"]["z"] == pytest.approx(TOP, abs=0.003)
+    assert [line for line in lines_sent(hostd, machine) if line[:1] == b"G"][-1] == b"G20"
+    assert (await rpc.call("machine.status", machine=machine))["units"] == "in"
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_corner_probe_backs_off_each_wall_away_from_the_plate(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """After touching a wall (probing towards +X, then +Y) the bit backs off `retract`
+    away from it, the way it came, before it rises: not on into the plate."""
+    hostd, rpc = both
+    plate = TouchPlate(top=TOP, x_face=-2.5, y_face=-2.5, tool_radius=1.5)
+    sim_of(hostd, machine).touch_plate(plate)
+    touch(hostd, machine)
+    await rpc.call(
+        "machine.probe", machine=machine, kind="xyz", plate=PLATE, tool_diameter=3.0, **FAST
+    )
+    moves = moves_sent(hostd, machine)
+    for axis in (b"X", b"Y"):
+        wall = next(i for i, m in enumerate(moves) if m.startswith(b"G38.2 " + axis))
+        back = next(m for m in moves[wall + 1 :] if m.startswith(b"G0 "))
+        assert back.startswith(b"G0 " + axis), moves
+        # Zeroed for the wall: the touch reads -(plate + radius) = -11.5; backed off, less.
+        assert float(back[4:]) == pytest.approx(-(PLATE + 1.5) - FAST["retract"], abs=0.01)
