@@ -388,3 +388,29 @@ async def test_a_corner_probe_backs_off_each_wall_away_from_the_plate(
         assert back.startswith(b"G0 " + axis), moves
         # Zeroed for the wall: the touch reads -(plate + radius) = -11.5; backed off, less.
         assert float(back[4:]) == pytest.approx(-(PLATE + 1.5) - FAST["retract"], abs=0.01)
+
+
+async def test_a_board_that_alarms_while_the_operators_hands_leave_the_plate_is_not_probed(
+    both: tuple[Running, Rpc], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The input was seen working, and during the pause for the operator's hands the
+    board goes into its alarm (an e-stop, a limit): the probe stops there, 1003
+    "nothing was moved", and not one line of it is sent."""
+    hostd, rpc = both
+    engine = hostd.daemon.machines[G2].engine
+    monkeypatch.setattr(probing, "SETTLE", SETTLE)
+    real_sleep = asyncio.sleep
+
+    async def sleep(delay: float, *args: Any, **kwargs: Any) -> Any:
+        if delay == SETTLE:
+            await engine.alarm()
+            await engine.wait_for(engine.session.locked)
+        return await real_sleep(delay, *args, **kwargs)
+
+    sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
+    touch(hostd, G2)
+    monkeypatch.setattr(asyncio, "sleep", sleep)
+    err = await fails(1003, rpc.call("machine.probe", machine=G2, kind="z", plate=PLATE, **FAST))
+    assert "nothing was moved" in err.message
+    sent = lines_sent(hostd, G2)
+    assert b"G21 G90" not in sent and not any(line.startswith(b"G38") for line in sent), sent
