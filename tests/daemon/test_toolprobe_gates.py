@@ -414,3 +414,53 @@ async def test_a_board_that_alarms_while_the_operators_hands_leave_the_plate_is_
     assert "nothing was moved" in err.message
     sent = lines_sent(hostd, G2)
     assert b"G21 G90" not in sent and not any(line.startswith(b"G38") for line in sent), sent
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_corner_probe_started_too_far_from_the_corner_stops_on_the_plate(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """The bit starts 8 mm in from each wall, more than half the travel (5 mm): going
+    down beside the plate it meets the plate's top instead. The probe stops there
+    (1003, "start it over the plate nearer the corner") and never drives sideways
+    into a wall it is not beside."""
+    hostd, rpc = both
+    plate = TouchPlate(top=TOP, x_face=-8.0, y_face=-8.0, tool_radius=1.5)
+    sim_of(hostd, machine).touch_plate(plate)
+    touch(hostd, machine)
+    err = await fails(
+        1003,
+        rpc.call(
+            "machine.probe", machine=machine, kind="xyz", plate=PLATE, tool_diameter=3.0, **FAST
+        ),
+    )
+    assert "met the plate going down beside it" in err.message
+    assert not any(m.startswith((b"G38.2 X", b"G38.2 Y")) for m in moves_sent(hostd, machine))
+
+
+async def test_a_slow_probe_is_waited_for_as_long_as_its_travel_takes(
+    both: tuple[Running, Rpc],
+) -> None:
+    """At 1.5 mm/min the 3 mm down to the plate take longer than a line's answer is
+    waited for (10 s, even on the quickened simulator): the probe waits for its touch
+    all the same, for as long as its travel at its feed takes."""
+    hostd, rpc = both
+    sim_of(hostd, G2).touch_plate(TouchPlate(top=TOP))
+    touch(hostd, G2)
+    slow = {**FAST, "feed": 1.5, "max_travel": 4.0}
+    result = await rpc.call("machine.probe", machine=G2, kind="z", plate=PLATE, **slow)
+    assert result["position"]["z"] == pytest.approx(TOP)
+
+
+@pytest.mark.parametrize(("machine", "status"), [(G2, 250), (GRBL, 0)])
+async def test_a_probe_that_misses_carries_the_boards_own_status(
+    both: tuple[Running, Rpc], machine: str, status: int
+) -> None:
+    """A miss is 1005 with the board's status in its data: g2core's 250 (its probe
+    alarm), grbl's alarm has none (0)."""
+    hostd, rpc = both
+    touch(hostd, machine)  # works when touched, but no plate is under the bit
+    err = await fails(
+        1005, rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, **FAST)
+    )
+    assert err.data["status"] == status, err.data
