@@ -464,3 +464,54 @@ async def test_a_probe_that_misses_carries_the_boards_own_status(
         1005, rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, **FAST)
     )
     assert err.data["status"] == status, err.data
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_corner_probe_over_an_old_work_zero_sets_the_new_one_and_comes_back(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """A work zero from the last job is still set (work X, Y, Z read 5 at machine 0):
+    the probe zeroes from the machine positions all the same, and goes back to where
+    it started in machine coordinates, not to the old work zero's numbers."""
+    hostd, rpc = both
+    await _old_work_zero(rpc, machine)
+    plate = TouchPlate(top=TOP, x_face=-2.5, y_face=-2.5, tool_radius=1.5)
+    sim_of(hostd, machine).touch_plate(plate)
+    touch(hostd, machine)
+    await rpc.call(
+        "machine.probe", machine=machine, kind="xyz", plate=PLATE, tool_diameter=3.0, **FAST
+    )
+    snap = await rpc.call("machine.status", machine=machine)
+    assert snap["machine_position"]["x"] == pytest.approx(0.0, abs=0.001)
+    assert snap["machine_position"]["y"] == pytest.approx(0.0, abs=0.001)
+    assert snap["work_position"]["x"] == pytest.approx(-7.5, abs=0.001)
+    assert snap["work_position"]["y"] == pytest.approx(-7.5, abs=0.001)
+    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
+
+
+@pytest.mark.parametrize("machine", MACHINES)
+async def test_a_miss_over_an_old_work_zero_says_where_it_stopped_in_machine_mm(
+    both: tuple[Running, Rpc], machine: str
+) -> None:
+    """The miss says where the board stopped in machine coordinates, as it says it
+    does, whatever the work zero left from the last job."""
+    hostd, rpc = both
+    await _old_work_zero(rpc, machine)
+    touch(hostd, machine)
+    err = await fails(
+        1005, rpc.call("machine.probe", machine=machine, kind="z", plate=PLATE, **FAST)
+    )
+    assert "the board stopped at X0.000, Y0.000, Z-10.000 (machine, mm)" in err.message
+
+
+async def _old_work_zero(rpc: Rpc, machine: str) -> None:
+    """Work X, Y and Z read 5 where the tool stands (machine 0): G54's offsets -5."""
+    p = 0 if machine == GRBL else 1
+    await rpc.call("subscribe", topics=["status"], machine=machine)
+    await rpc.call("machine.send", machine=machine, line=f"G10 L20 P{p} X5 Y5 Z5")
+    await rpc.notification(
+        lambda n: (
+            n["method"] == "status"
+            and n["params"]["snapshot"]["work_position"]["z"] == pytest.approx(5.0, abs=0.001)
+        )
+    )
