@@ -8,8 +8,10 @@
   `tool_change` names the tool and the line. The operator may jog (`machine.jog`)
   and send lines (`machine.send`) while it holds: they go as the job's own
   operation lines, through the same command-class admission as any line.
-  `job.tool_change_done` turns the spindle back on as the job had it at the M6
-  (`Modes`: M3/M4 and its S), gives it `spindle_dwell` (none on a laser),
+  `job.tool_change_done` turns the spindle back on as the job has it once the M6
+  line runs (`Modes`: M3/M4 and its S, the line's own words first: `T2 M5 M6`
+  leaves it off, `T2 M6 M4 S900` turns it on CCW at 900), gives it
+  `spindle_dwell` (none on a laser),
   records the change in the job's `tool_changes` and lets the job go on with
   the M6 line as its session sends it
   (`SessionBase.tool_change_line`: grbl without the M6, g2core as written).
@@ -91,7 +93,7 @@ class ToolChangeLines:
         self.policy = policy
         self._rewrite = rewrite
         # file line -> the tool its M6 loads, and the program's modes there
-        self.marks: dict[int, tuple[int | None, Modes]] = {}
+        self.marks: dict[int, Mark] = {}
         self.stripped = 0  # M6s the "ignore" policy took out
         self._tool: int | None = None  # the last T word read
         self._modes = Modes()
@@ -111,11 +113,25 @@ class ToolChangeLines:
             return number, text
         tool = self._tool
         if self.policy in HOLDS:
-            self.marks[number] = (tool, modes)  # the modes before the line: it runs after
+            # The modes before the line (it runs after the change); the spindle as the line
+            # leaves it: its own M3/M4/M5 and S are what the program wants once it runs.
+            self.marks[number] = Mark(tool, modes, self._modes)
             return number, self._rewrite(text, tool)
         self.stripped += 1
         self._log.warning("M6 ignored (tool_change = ignore)", line=number, tool=tool)
         return number, without_m6(text) or self._rewrite(text, tool)
+
+
+@dataclass(frozen=True, slots=True)
+class Mark:
+    """A job's M6 line, as its lines were read: the tool it loads, the program's modes
+    before it (`before`), and after it (`after`: the spindle the answer turns back on,
+    so that `T2 M5 M6` is not spun up only to be stopped, nor `T2 M6 M4` run clockwise
+    first)."""
+
+    tool: int | None
+    before: Modes = field(default_factory=Modes)
+    after: Modes = field(default_factory=Modes)
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +140,8 @@ class Waiting:
     tool: int | None
     # the program's units, distance mode and feed at the M6
     modes: Modes = field(default_factory=Modes)
+    # the spindle the program has once the M6 line ran (`Mark.after`)
+    spindle: Modes = field(default_factory=Modes)
 
     def to_json(self) -> dict[str, Any]:
         return {"tool": self.tool, "line": self.line}
@@ -135,7 +153,7 @@ class ToolChanger:
     def __init__(self, machine: Machine) -> None:
         self.machine = machine
         self.stream: JobStream | None = None
-        self.marks: dict[int, tuple[int | None, Modes]] = {}  # the followed job's M6 lines
+        self.marks: dict[int, Mark] = {}  # the followed job's M6 lines
         self.waiting: Waiting | None = None
         self.reference: float | None = None  # the first tool's probed Z (machine, mm)
         self._answering = False
@@ -154,13 +172,13 @@ class ToolChanger:
         return ToolChangeLines(lines, str(self.policy), session.tool_change_line, self.machine.id)
 
     @staticmethod
-    def holds(lines: Iterator[tuple[int, str]]) -> dict[int, tuple[int | None, Modes]] | None:
+    def holds(lines: Iterator[tuple[int, str]]) -> dict[int, Mark] | None:
         """The file lines a job of these lines holds before (filled as they are read)."""
         if not isinstance(lines, ToolChangeLines) or lines.policy not in HOLDS:
             return None
         return lines.marks
 
-    def follow(self, stream: JobStream | None, marks: dict[int, tuple[int | None, Modes]]) -> None:
+    def follow(self, stream: JobStream | None, marks: dict[int, Mark]) -> None:
         """Follow a job that holds at its M6s, in the machine's task group."""
         if stream is None:
             return
@@ -183,17 +201,17 @@ class ToolChanger:
                 line = stream.held
                 if line is None:
                     continue
-                tool, modes = self.marks.pop(line, (None, Modes()))
+                mark = self.marks.pop(line, Mark(None))
                 await self._board_done(stream)
                 if stream.done or stream.held != line:
                     return
-                await self._spindle_off(modes)
+                await self._spindle_off(mark.before)
                 if stream.done:
                     return
                 self._acted = False
-                self.waiting = Waiting(line, tool, modes)
+                self.waiting = Waiting(line, mark.tool, mark.before, mark.after)
                 stream.waits_at(line)  # a lost link from now on resumes at the M6
-                self._log.info("tool change: waiting for the operator", line=line, tool=tool)
+                self._log.info("tool change: waiting for the operator", line=line, tool=mark.tool)
                 self.machine.tool_change_held()
                 await _first(self._answered(stream), stream.result)
         except MachineError as exc:  # the link went: the stream ends interrupted with it
@@ -257,7 +275,7 @@ class ToolChanger:
                 await self._run(waiting.modes.lines(), lambda: True)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
-            await self._spindle_back(waiting.modes)
+            await self._spindle_back(waiting.spindle)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
             change = ToolChange(tool=waiting.tool, line=waiting.line, at=now())
@@ -277,8 +295,9 @@ class ToolChanger:
             await self._run(["M5"], lambda: True)
 
     async def _spindle_back(self, modes: Modes) -> None:
-        """The spindle as the job had it at the M6 (M3/M4 and its S), then the machine's
-        `spindle_dwell` for it to reach its speed (none on a laser: no spin-up)."""
+        """The spindle as the job has it once its M6 line ran (M3/M4 and its S: the
+        line's own words, else as before it), then the machine's `spindle_dwell` for
+        it to reach its speed (none on a laser: no spin-up)."""
         dwell = 0.0 if self.machine.is_laser() else self.machine.config.spindle_dwell
         lines = modes.spindle_lines(dwell)
         if lines:

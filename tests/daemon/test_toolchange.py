@@ -522,3 +522,31 @@ async def test_the_operators_jog_and_lines_at_a_pause_leave_the_jobs_modes_as_th
     assert end["units"] == "mm"
     assert end["machine_position"]["x"] == pytest.approx(2.0, abs=0.01)
     assert end["machine_position"]["z"] == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize(
+    ("m6_line", "back", "spindle"),
+    [
+        ("T2 M5 M6", [], "M5"),  # the program stops it with the change: never spun up
+        ("T2 M6 M4 S900", [b"M4 S900", b"G4 P0.05"], "M4"),  # not clockwise first
+    ],
+)
+async def test_a_spindle_word_on_the_m6_line_is_the_spindle_the_answer_restores(
+    tmp_path: Path, m6_line: str, back: list[bytes], spindle: str
+) -> None:
+    """The spindle comes back as the program has it once its M6 line runs, that line's
+    own M3/M4/M5 and S first: `T2 M5 M6` would otherwise spin the new tool up for the
+    dwell only to stop it, and `T2 M6 M4` run it clockwise, then reverse it."""
+    program = f"G21 G90\nG0 X0 Y0 Z5\nM3 S8000\nG1 X1 F600\n{m6_line}\nG0 X2\n"
+    async with _daemon(tmp_path, "pause", spindle_dwell=0.05) as (running, rpc):
+        job_id = await _start(rpc, G2, "spin.nc", program)
+        await _waiting(rpc, G2, job_id, 5)
+        assert _spindle_of(running, G2) == "M5"  # off while the operator's hands are there
+        before = len(lines_sent(running, G2))
+        await rpc.call("job.tool_change_done", machine=G2)
+        done = await job_end(rpc, job_id)
+        assert done["state"] == "completed", done
+        after = _unnumbered(lines_sent(running, G2))[before:]
+        restored = after[: after.index(next(ln for ln in after if b"M6" in ln))]
+        assert [ln for ln in restored if ln[:2] in (b"M3", b"M4", b"G4")] == back, after
+        assert _spindle_of(running, G2) == spindle
