@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import pytest_asyncio
@@ -157,11 +158,7 @@ async def test_a_corner_probe_zeroes_the_work_corner_for_the_plate_and_the_bit(
     snap = await rpc.call("machine.status", machine=machine)
     # Back over the plate where it started (machine 0); the work's edges are behind the
     # walls, a plate's thickness on from their faces: X0 and Y0 at machine 7.5.
-    assert snap["machine_position"]["x"] == pytest.approx(0.0, abs=0.001)
-    assert snap["machine_position"]["y"] == pytest.approx(0.0, abs=0.001)
-    assert snap["work_position"]["x"] == pytest.approx(-7.5, abs=0.001)
-    assert snap["work_position"]["y"] == pytest.approx(-7.5, abs=0.001)
-    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
+    assert_zeroed_over_the_plate(snap)
 
 
 @pytest.mark.parametrize("machine", MACHINES)
@@ -334,3 +331,14 @@ async def test_the_plate_and_feeds_come_from_the_machines_config(
         snap = await rpc.call("machine.status", machine="sim1")
         assert snap["work_position"]["z"] == pytest.approx(5.0 + 1.0, abs=0.001)
         await rpc.close()
+
+
+def assert_zeroed_over_the_plate(snap: dict[str, Any]) -> None:
+    """An xyz probe's end on the simulated plate, started at machine 0: back over the
+    plate where it started, the work's edges behind the walls (a plate's thickness on
+    from their faces: X0 and Y0 at machine 7.5), Z0 the plate's top less its height."""
+    assert snap["machine_position"]["x"] == pytest.approx(0.0, abs=0.001)
+    assert snap["machine_position"]["y"] == pytest.approx(0.0, abs=0.001)
+    assert snap["work_position"]["x"] == pytest.approx(-7.5, abs=0.001)
+    assert snap["work_position"]["y"] == pytest.approx(-7.5, abs=0.001)
+    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)

@@ -20,7 +20,15 @@ from hostd.sim.probing import TouchPlate
 from tests.daemon.conftest import G2, GRBL, Rpc, RpcFailure, Running
 from tests.daemon.test_api import fails, job_end
 from tests.daemon.test_operations import lines_sent
-from tests.daemon.test_probing import FAST, PLATE, TOP, moves_sent, sim_of, touch
+from tests.daemon.test_probing import (
+    FAST,
+    PLATE,
+    TOP,
+    assert_zeroed_over_the_plate,
+    moves_sent,
+    sim_of,
+    touch,
+)
 from tests.daemon.test_toolchange import (
     MACHINES,
     SENSOR_Z,
@@ -485,11 +493,7 @@ async def test_a_corner_probe_over_an_old_work_zero_sets_the_new_one_and_comes_b
         "machine.probe", machine=machine, kind="xyz", plate=PLATE, tool_diameter=3.0, **FAST
     )
     snap = await rpc.call("machine.status", machine=machine)
-    assert snap["machine_position"]["x"] == pytest.approx(0.0, abs=0.001)
-    assert snap["machine_position"]["y"] == pytest.approx(0.0, abs=0.001)
-    assert snap["work_position"]["x"] == pytest.approx(-7.5, abs=0.001)
-    assert snap["work_position"]["y"] == pytest.approx(-7.5, abs=0.001)
-    assert snap["work_position"]["z"] == pytest.approx(PLATE + 2.0, abs=0.001)
+    assert_zeroed_over_the_plate(snap)
 
 
 @pytest.mark.parametrize("machine", MACHINES)
