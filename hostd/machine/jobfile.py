@@ -23,11 +23,12 @@ that version still there (`open_text(path, version)`), or nothing is sent
 from __future__ import annotations
 
 import errno
+import hashlib
 import io
 import os
 import stat
 from pathlib import Path
-from typing import TextIO
+from typing import IO, TextIO
 
 from hostd.protocol.errors import MachineError
 
@@ -64,11 +65,22 @@ def open_text(path: Path, version: Version | None = None) -> TextIO:
 
 def version_of(path: Path) -> Version:
     """The version of the job file at `path` now; NoSuchFile if it is not one."""
-    fd = _open(path, None)
-    try:
-        return _version(os.fstat(fd))
-    finally:
-        os.close(fd)
+    with open_binary(path) as f:
+        return file_version(f)
+
+
+def file_version(file: IO[bytes] | IO[str]) -> Version:
+    """The version of the job file open in `file`."""
+    return _version(os.fstat(file.fileno()))
+
+
+def sha256(file: IO[bytes]) -> str:
+    """The SHA-256, in hex, of what `file` holds from where it stands: a job file's
+    bytes, as a job's row keeps them (`Job.file_sha256`) and its analysis is kept by."""
+    digest = hashlib.sha256()
+    while chunk := file.read(1 << 20):
+        digest.update(chunk)
+    return digest.hexdigest()
 
 
 def _version(st: os.stat_result) -> Version:

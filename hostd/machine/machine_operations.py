@@ -10,14 +10,13 @@ is the only pausable one.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import itertools
 from collections.abc import Iterator
 from typing import Any, TextIO
 
 import structlog
 
-from hostd.machine.jobfile import Version, open_text
+from hostd.machine.jobfile import Version, open_text, sha256
 from hostd.machine.jobstore import Job
 from hostd.machine.machine_core import MachineCore
 from hostd.machine.supervisor import Event as SupEvent
@@ -231,13 +230,10 @@ def _survey(handle: TextIO, start_line: int, counted: int | None) -> tuple[str, 
     must find these bytes) and its sendable lines from `start_line` (`counted` if the
     check counted them), read from the one open file the job streams, which is left at
     its start again: whatever the name is now."""
-    digest = hashlib.sha256()
-    while chunk := handle.buffer.read(1 << 20):
-        digest.update(chunk)
-    sha256 = digest.hexdigest()
+    digest = sha256(handle.buffer)
     handle.seek(0)
     if counted is not None:
-        return sha256, counted
+        return digest, counted
     count = sum(map(len, program_blocks(handle, start_line)))  # a block at a time, not a line
     handle.seek(0)
-    return sha256, count
+    return digest, count

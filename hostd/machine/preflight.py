@@ -16,14 +16,13 @@ A job's start (`jobstart.py`) and a resume's plan (`resumes.py`) build on this.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from hostd.machine.guard import line_limit, numbers_lines, tool_change_policy
-from hostd.machine.jobfile import Version, open_binary, open_text, version_of
+from hostd.machine.jobfile import Version, open_binary, open_text, sha256, version_of
 from hostd.machine.machine import Machine
 from hostd.machine.workers import WorkerPool
 from hostd.protocol import dialects
@@ -196,9 +195,9 @@ async def analyze_file(
     if version is None:
         version = await asyncio.to_thread(version_of, path)
 
-    def digest() -> bytes:
+    def digest() -> str:
         with open_binary(path, version) as f:
-            return hashlib.file_digest(f, "blake2b").digest()
+            return sha256(f)
 
     velocity = tuple(sorted(limits.velocity.items())) if limits else ()
     acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()

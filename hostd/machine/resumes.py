@@ -14,16 +14,16 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import hashlib
 from pathlib import Path
 
 from hostd.machine.jobfile import (
     FileChanged,
     NoSuchFile,
     Version,
+    file_version,
     open_binary,
     open_text,
-    version_of,
+    sha256,
 )
 from hostd.machine.jobstore import Job
 from hostd.machine.machine import Machine
@@ -177,11 +177,11 @@ def _ran_version(path: Path, job: Job) -> Version:
     none to compare); else NotResumable: a resume of the job would run another program
     from the middle, on the job's workpiece."""
     try:
-        version = version_of(path)
-        if job.file_sha256 is None:
-            return version
-        with open_binary(path, version) as f:
-            now = hashlib.file_digest(f, "sha256").hexdigest()
+        with open_binary(path) as f:
+            version = file_version(f)
+            if job.file_sha256 is None:
+                return version
+            now = sha256(f)
     except NoSuchFile as exc:
         raise NotResumable(exc.message) from None
     if now != job.file_sha256:
