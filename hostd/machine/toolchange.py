@@ -136,15 +136,13 @@ class Mark:
 
 @dataclass(frozen=True, slots=True)
 class Waiting:
+    """The change the job holds for: at file line `line`, its M6 as read (`Mark`)."""
+
     line: int
-    tool: int | None
-    # the program's units, distance mode and feed at the M6
-    modes: Modes = field(default_factory=Modes)
-    # the spindle the program has once the M6 line ran (`Mark.after`)
-    spindle: Modes = field(default_factory=Modes)
+    mark: Mark
 
     def to_json(self) -> dict[str, Any]:
-        return {"tool": self.tool, "line": self.line}
+        return {"tool": self.mark.tool, "line": self.line}
 
 
 class ToolChanger:
@@ -209,7 +207,7 @@ class ToolChanger:
                 if stream.done:
                     return
                 self._acted = False
-                self.waiting = Waiting(line, mark.tool, mark.before, mark.after)
+                self.waiting = Waiting(line, mark)
                 stream.waits_at(line)  # a lost link from now on resumes at the M6
                 self._log.info("tool change: waiting for the operator", line=line, tool=mark.tool)
                 self.machine.tool_change_held()
@@ -272,13 +270,13 @@ class ToolChanger:
             elif self._acted:
                 # The operator's lines ran as the job's (a g2core jog is `G91 G1 .. F..`
                 # then `G90`): the program's modes back before its next line.
-                await self._run(waiting.modes.lines(), lambda: True)
+                await self._run(waiting.mark.before.lines(), lambda: True)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
-            await self._spindle_back(waiting.spindle)
+            await self._spindle_back(waiting.mark.after)
             if stream.done:
                 raise Busy(f"{self.machine.id}: the job ended during the tool change")
-            change = ToolChange(tool=waiting.tool, line=waiting.line, at=now())
+            change = ToolChange(tool=waiting.mark.tool, line=waiting.line, at=now())
             self.waiting = None
             self.machine.tool_change_answered(stream, change)
         finally:
@@ -349,14 +347,15 @@ class ToolChanger:
         if self.reference is None:
             self.reference = touched
         delta = touched - self.reference
-        self._log.info("tool measured", tool=waiting.tool, z=touched, offset=delta)
+        mark = waiting.mark
+        self._log.info("tool measured", tool=mark.tool, z=touched, offset=delta)
         back = [f"G53 G0 Z{_n(safe)}"]
         there: dict[str, float] = {"z": safe}
         if "x" in start and "y" in start:
             back.append(f"G53 G0 X{_n(start['x'])} Y{_n(start['y'])}")
             there.update(x=start["x"], y=start["y"])
         await self._run(
-            [*session.tool_length_lines(waiting.tool or 1, delta), *back, *waiting.modes.lines()],
+            [*session.tool_length_lines(mark.tool or 1, delta), *back, *mark.before.lines()],
             lambda: self._at(**there),
         )
 
