@@ -208,11 +208,7 @@ class JobStore:
                 "WHERE state IN (?, ?)",
                 (now(), *ACTIVE_STATES),
             )
-            rows = [
-                self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE id = ?", (i,)).fetchone()
-                for i in ids
-            ]
-        return [Job.from_row(r) for r in rows]
+        return [job for job_id in ids if (job := self._get(job_id)) is not None]
 
     def _create(
         self,
