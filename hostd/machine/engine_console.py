@@ -3,7 +3,8 @@
 A layer of `Engine` (engine.py). A `Console` event is made for a line only
 while someone listens (`console`), or listens without a running job's own
 lines and the board's plain answers to them (`console_but_job`); status
-polls and reports among them only with `console_status`. Whether a line is
+polls and reports among them (`SessionBase.status_traffic`, asked of a line read
+before the session takes it) only with `console_status`. Whether a line is
 the job's is told from the job's own counts: its `sent` moved by exactly the
 write's data lines (`_all_data_is_job`), its `acked` moved by one as the
 answer was read (`_receive_one`). A line read is published after the session
@@ -39,6 +40,9 @@ class EngineConsole(EngineLink):
         session = self.session
         stream = session.stream
         acked = stream.acked if stream is not None else 0
+        # Asked before the line is taken: an answer is the session's own poll's only
+        # while that poll is still unanswered (grbl's `$G`, `status_traffic`).
+        status = session.status_traffic(line, False)
         try:
             session.receive(line)
         except Exception as exc:
@@ -46,7 +50,7 @@ class EngineConsole(EngineLink):
         job = stream is not None and stream.acked == acked + 1
         if job and not self.console:
             return
-        self._publish_console("rx", channel, line, job)
+        self._publish_console("rx", channel, line, job, status and not job)
 
     def _all_data_is_job(self, writes: list[tuple[Lane, bytes]]) -> bool:
         """Whether every data-lane line of these writes is a line of the running job.
@@ -82,13 +86,15 @@ class EngineConsole(EngineLink):
                     self._log.debug("tx", lane=lane.value, line=line)
         if self.console or (self.console_but_job and not job):
             channel = Channel.CONTROL if lane is not Lane.DATA and link.dual else Channel.DATA
+            status = self.session.status_traffic
             for line in lines:
-                self._publish_console("tx", channel, line, job)
+                self._publish_console("tx", channel, line, job, not job and status(line, True))
 
     def _publish_console(
-        self, direction: str, channel: Channel, line: bytes, job: bool = False
+        self, direction: str, channel: Channel, line: bytes, job: bool, status: bool
     ) -> None:
-        status = not job and self.session.status_traffic(line, direction == "tx")
+        """A `Console` event for a line, unless it is status traffic (`status`: the
+        session's word, never said of a job's line) and no console subscriber wants it."""
         if status and not self.console_status:
             return
         text = line.rstrip(b"\n").decode("utf-8", "backslashreplace")

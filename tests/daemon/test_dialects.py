@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from tests.daemon.conftest import G2, GRBL, Rpc, Running
-from tests.daemon.test_api import fails, job_end
+from tests.daemon.test_api import _drained, fails, job_end
 
 pytestmark = pytest.mark.asyncio
 
@@ -103,3 +103,41 @@ async def test_the_host_opens_a_grbl_boards_safety_door(both: tuple[Running, Rpc
     )
     err = await fails(-32602, rpc.call("machine.safety_door", machine="sim1"))
     assert "no safety-door command" in err.message
+
+
+async def test_a_grbl_console_without_status_traffic_leaves_out_the_daemons_modes_poll(
+    both: tuple[Running, Rpc],
+) -> None:
+    """After a client's G-code line the daemon asks grbl `$G` (its modes are reported
+    nowhere else). An operator whose console leaves out status traffic (the dashboard's
+    *status reports* box unticked) did not send that `$G` and sees none of it: not the
+    line, not its `[GC:...]`, not its `ok`. A `$G` the operator typed is shown, with
+    its answer, like any line they sent."""
+    running, rpc = both
+    quiet = await running.client()
+    try:
+        await rpc.call("subscribe", topics=["console"], machine=GRBL)
+        await quiet.call("subscribe", topics=["console"], machine=GRBL, status_traffic=False)
+        await rpc.call("machine.send", machine=GRBL, line="G0 X1")  # then the daemon's `$G`
+        await rpc.call("machine.send", machine=GRBL, line="$G")  # the operator's
+        await rpc.call("machine.send", machine=GRBL, line="$I")  # where both are cut
+        full = await _drained(rpc, until="[OPT:")
+        kept = await _drained(quiet, until="[OPT:")
+    finally:
+        await quiet.close()
+    texts = [(n["direction"], n["text"]) for n in full]
+    assert texts.count(("tx", "$G")) == 2, texts  # the daemon's, then the operator's
+    own = texts.index(("tx", "$G"))
+    modes = next(i for i in range(own, len(texts)) if texts[i][1].startswith("[GC:"))
+    answer = texts.index(("rx", "ok"), modes)
+    assert texts.index(("tx", "G0 X1")) < own  # the poll follows the line it is for
+
+    def status(i: int) -> bool:
+        direction, text = texts[i]
+        return text == "?" if direction == "tx" else text.startswith("<")
+
+    expected = [n for i, n in enumerate(full) if i not in (own, modes, answer) and not status(i)]
+    assert kept == expected
+    shown = [(n["direction"], n["text"]) for n in kept]
+    assert ("tx", "$G") in shown and any(t.startswith("[GC:") for _, t in shown)
+    assert ("tx", "G0 X1") in shown

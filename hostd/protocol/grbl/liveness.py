@@ -12,7 +12,7 @@ due. Which lines are the poll and its reports: `status_traffic`.
 from __future__ import annotations
 
 from hostd.protocol.grbl import codec
-from hostd.protocol.grbl.books import SILENT_QUERIES
+from hostd.protocol.grbl.books import SILENT_QUERIES, _Own
 from hostd.protocol.grbl.connection import GrblConnection
 from hostd.protocol.grbl.words import homing_time_bound
 from hostd.protocol.states import MachineState
@@ -23,16 +23,32 @@ from hostd.protocol.vocabulary import Phase
 # erases a flash sector in 1-2 s.
 STORAGE_QUIET = 2.5
 
+_MODES_POLL = codec.encode("$G")
+
 
 class GrblLiveness(GrblConnection):
     """Polls, heartbeat and silence (see `GrblSession`)."""
 
     def status_traffic(self, line: bytes, written: bool) -> bool:
         """`?` (grbl.h CMD_STATUS_REPORT) and the `<...>` report that answers it
-        (report.c report_realtime_status)."""
+        (report.c report_realtime_status); and the session's own `$G` after a client's
+        line or a job (`_modes_changed`), its `[GC:...]` and its `ok`: a poll of the
+        modes the status topic shows, not a line anyone sent. A client's own `$G` is
+        not: the written line must be the one booked for the session, and a line read
+        is asked about before it is taken, while that `$G` is the oldest unanswered.
+        """
         if written:
+            if line == _MODES_POLL:  # one comparison first: a client's lines are not
+                return any(e.line is line and e.source is _Own.MODES for e in self._inflight)
             return line.strip() == codec.STATUS
-        return line[:1] == b"<" and line.rstrip()[-1:] == b">"
+        if line[:1] == b"<":
+            return line.rstrip()[-1:] == b">"
+        inflight = self._inflight
+        return (
+            bool(inflight)
+            and inflight[0].source is _Own.MODES
+            and (line == b"ok" or line.startswith(b"[GC:"))
+        )
 
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
