@@ -487,12 +487,23 @@ async def test_the_laser_console_leaves_out_the_status_polls(
         page = await browser.new_page()
         await log_in(page, web)
         await expect(page.locator("#console-hidden")).to_contain_text("hidden")
-        await page.fill("#send-line", "$G")
-        await page.click("#send button")
-        await expect(page.locator("#console")).to_contain_text("→ $G")
+        for line, shown in (("G0 X1", "← ok"), ("$G", "← [GC:"), ("G4 P0", "→ G4 P0")):
+            # After `G0 X1`'s `ok` the daemon polls grbl's modes, `$G`; the board answers
+            # in order, so once `G4 P0` is shown every line before it is too.
+            await page.fill("#send-line", line)
+            await page.click("#send button")
+            await expect(page.locator("#console")).to_contain_text(shown)
         text = await page.locator("#console").inner_text()
         assert "<Idle" not in text
         assert "→ ?" not in text.splitlines()
+        before = text.splitlines()[: text.splitlines().index("→ G4 P0")]
+        # Only the operator's own `$G` and its answer: not the daemon's poll.
+        assert before.count("→ $G") == 1, text
+        assert sum(line.startswith("← [GC:") for line in before) == 1, text
+        # The board's lines, and nothing the board did not print: the answers' `ok`s and
+        # `[GC:...]` are above, not again as the API's JSON.
+        assert not [line for line in text.splitlines() if "{" in line], text
+        await screenshot(page, tmp_path, "console-laser")
         await page.check("#console-polls")  # asked for: shown
         await expect(page.locator("#console")).to_contain_text("<Idle")
 
@@ -677,3 +688,27 @@ async def test_a_g2core_spindle_started_from_the_page_shows_as_it_runs(
         await screenshot(page, tmp_path, "g2core-spindle")
         await page.click("[data-spindle=off]")
         await expect(page.locator("#spindle")).to_have_text("off · S12000")
+
+
+async def test_a_status_poll_typed_while_status_reports_are_off_shows_its_answer(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """g2core: `{sr:n}` and its answer are status traffic, which the console leaves out
+    unless *status reports* is ticked; the operator who typed it still sees the report,
+    once, as the daemon's answer (`=`), not as a line the board printed."""
+    async with running_web(tmp_path) as web:
+        page = await browser.new_page()
+        await log_in(page, web)
+        await expect(page.locator("#console-hidden")).to_contain_text("hidden")
+        await page.fill("#send-line", "{sr:n}")
+        await page.click("#send button")
+        await expect(page.locator("#console")).to_contain_text('= {"sr":{')
+        await page.fill("#send-line", "{fbc:n}")  # not status traffic: the board's line
+        await page.click("#send button")
+        await expect(page.locator("#console")).to_contain_text('= {"fbc":')
+        lines = (await page.locator("#console").inner_text()).splitlines()
+        assert "→ {\"fbc\":null}" in lines and any(
+            line.startswith('← {"r":{"fbc":') for line in lines
+        ), lines
+        assert not [line for line in lines if line.startswith('← {"status"')], lines
+        assert not [line for line in lines if line.startswith(("→ {\"sr\"", '← {"r":{"sr"'))]

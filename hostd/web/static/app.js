@@ -715,7 +715,8 @@ const visible = (text) =>
 
 function showConsole(params) {
   if (params.machine !== view.machine) return;
-  view.console.push(`${params.direction === "tx" ? "→" : "←"} ${visible(params.text)}`);
+  const arrow = { tx: "→", rx: "←" }[params.direction] || "=";
+  view.console.push(`${arrow} ${visible(params.text)}`);
   if (view.console.length > 300) view.console.splice(0, view.console.length - 300);
   const pre = $("console");
   const atEnd = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
@@ -1075,7 +1076,15 @@ function wire() {
     const line = $("send-line").value.trim();
     if (!line) return;
     const answer = await act("machine.send", { machine: view.machine, line });
-    if (answer) { $("send-line").value = ""; showConsole({ machine: view.machine, direction: "rx", text: JSON.stringify(answer) }); }
+    if (!answer) return;
+    $("send-line").value = "";
+    // The board's own lines are already in the console (its `ok`, grbl's `[GC:...]`: the
+    // answer's `lines`); the answer's values are shown once, as the daemon's ("="), for
+    // what the console may have left out: `{sr:n}`'s report while status reports are off.
+    const { lines, ...values } = answer.r || {};
+    if (Object.keys(values).length) {
+      showConsole({ machine: view.machine, direction: "answer", text: JSON.stringify(values) });
+    }
   });
   $("console-polls").addEventListener("change", subscribeConsole);
   $("console-job").addEventListener("change", subscribeConsole);
