@@ -707,8 +707,8 @@ async def test_a_status_poll_typed_while_status_reports_are_off_shows_its_answer
         await page.click("#send button")
         await expect(page.locator("#console")).to_contain_text('= {"fbc":')
         lines = (await page.locator("#console").inner_text()).splitlines()
-        assert "→ {\"fbc\":null}" in lines and any(
+        assert '→ {"fbc":null}' in lines and any(
             line.startswith('← {"r":{"fbc":') for line in lines
         ), lines
         assert not [line for line in lines if line.startswith('← {"status"')], lines
-        assert not [line for line in lines if line.startswith(("→ {\"sr\"", '← {"r":{"sr"'))]
+        assert not [line for line in lines if line.startswith(('→ {"sr"', '← {"r":{"sr"'))]
