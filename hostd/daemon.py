@@ -117,11 +117,15 @@ class Daemon:
         await asyncio.to_thread(self._make_dirs)
         self.store = await asyncio.to_thread(JobStore, self.state_dir / DB_NAME)
         try:
-            for job in await self.store.recover():
-                log.warning("job interrupted by a daemon stop", job=job.id, machine=job.machine)
+            recovered = await self.store.recover()
             for machine_config in self.config.machines:
                 effective = await self._plug_in(machine_config)
                 self.machines[effective.id] = Machine(effective, self.store, self.jobs_dir)
+            for job in recovered:
+                log.warning("job interrupted by a daemon stop", job=job.id, machine=job.machine)
+                machine = self.machines.get(job.machine)
+                if machine is not None:  # what its board does now is looked at as it connects
+                    machine.ran_unwatched(f"job {job.id} was under way when the daemon stopped")
             async with asyncio.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(m.serve(), name=f"machine-{m.id}")
@@ -134,6 +138,10 @@ class Daemon:
                 if ready is not None:
                     await ready()
                 await self._stop.wait()
+                # A job still running is stopped on its board before the ports close: left
+                # alone, the board would run the lines it holds unwatched, then stand with
+                # its spindle or beam on (docs/operations.md, "When the daemon stops").
+                await asyncio.gather(*(m.stop_for_shutdown() for m in self.machines.values()))
                 for task in tasks:
                     task.cancel()
         finally:

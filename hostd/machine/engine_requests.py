@@ -190,6 +190,18 @@ class EngineRequests(EngineDelivery):
     def _stop_stream(self, code: int, text: str) -> None:
         self.session.stop_stream(code, text)
 
+    def kill_job(self) -> None:
+        """The dialect's job kill, as a cancel writes it, with no job of ours streaming:
+        the board drops what it holds and stops its spindle (a board found running an
+        interrupted operation's lines). Given while the Machine hears an event, it runs
+        once the events are handed out."""
+        self._command(lambda: self.session.realtime(Realtime.JOB_KILL))
+
+    def interrupt_stream(self, code: int, text: str) -> None:
+        """End the running job interrupted, and kill it on the board (the daemon stops)."""
+        self.session.interrupt_stream(code, text)
+        self._deliver()
+
     # -- views -----------------------------------------------------------
 
     def out_of_hold(self) -> bool:

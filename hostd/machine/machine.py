@@ -37,7 +37,8 @@ This module keeps `Machine` and `NoSuchFile` where every importer finds them.
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+import contextlib
+from typing import Any, Final
 
 from hostd.machine.jobfile import NoSuchFile
 from hostd.machine.jobstore import Job, ToolChange
@@ -47,8 +48,12 @@ from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.toolchange import ToolChanger
 from hostd.protocol.commands import Realtime
-from hostd.protocol.errors import Busy
+from hostd.protocol.errors import Busy, MachineError
 from hostd.protocol.messages import Response
+
+# Seconds the daemon's stop waits for a running job's kill to bring its board to rest
+# (a few times a hold's deceleration; the unit's TimeoutStopSec is 20).
+SHUTDOWN_STOP_WAIT: Final = 5.0
 
 __all__ = ["Machine", "NoSuchFile"]
 
@@ -186,6 +191,26 @@ class Machine(MachineOperations):
         # Another client started a job once this one ended: answer for the one cancelled
         # (its row is on disk: the end is told only once written).
         return await self.store.get(cancelled) or self.job
+
+    async def stop_for_shutdown(self, wait: float = SHUTDOWN_STOP_WAIT) -> None:
+        """The daemon is stopping: a job still streaming ends interrupted (1002) and is
+        killed on the board as a cancel kills it, and the board's stop is awaited for at
+        most `wait` seconds, so that its port closes on a board at rest with its spindle
+        off, not one running the job's lines unwatched."""
+        stream = self._live_stream()
+        if stream is None:
+            return
+        try:
+            self.engine.interrupt_stream(
+                1002, "the daemon stopped during the job (the board's job was killed)"
+            )
+        except MachineError:
+            return  # the link is gone: nothing can reach the board
+        session = self.engine.session
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                await asyncio.shield(stream.result)
+                await self.engine.wait_for(lambda: not session.flushing())
 
     def _live_stream(self) -> JobStream | None:
         """The stream of the running operation, while it streams; None once it ended."""

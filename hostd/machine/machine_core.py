@@ -74,6 +74,9 @@ class MachineCore:
         self._signal_values: dict[str, Any] = {}  # the last value of every signal key
         self._signals: dict[str, bool] = {}
         self._disconnect_asked = False
+        # An operation of ours ended without its end reaching the board (the daemon died,
+        # the link was lost): what the board is found doing at the next connect is checked.
+        self._unwatched: str | None = None
         self._log = log.bind(machine=self.id)
         self.tools = self._tool_changer()  # the job's M6s, by the tool_change policy
 
@@ -118,7 +121,12 @@ class MachineCore:
         if isinstance(event, LinkChanged):
             if event.up and self.supervisor.can(SupEvent.CONNECT):
                 self.supervisor.fire(SupEvent.CONNECT)
+                self._stop_unwatched()
             elif not event.up and self.supervisor.state is not SupState.DISCONNECTED:
+                if self.supervisor.state in (SupState.OPERATION, SupState.PAUSED):
+                    self.ran_unwatched(
+                        f"an operation was under way when the link went: {event.reason}"
+                    )
                 asked = self._disconnect_asked
                 self.supervisor.fire(SupEvent.DISCONNECT if asked else SupEvent.DISCONNECTED)
             self._settle()
@@ -143,6 +151,38 @@ class MachineCore:
         # before the job streams or while a settings batch or a jog runs.
         self.engine.set_operation(t.target in (SupState.OPERATION, SupState.PAUSED))
         self.hub.publish(SupervisorChanged(self.id, t.source.value, t.target.value, t.event.value))
+
+    # -- a board left running -------------------------------------------------
+
+    def ran_unwatched(self, why: str) -> None:
+        """An operation of ours ended without its end reaching the board: the daemon died
+        during it (`Daemon.run` passes the rows it recovered) or the link was lost. The
+        board ran on with what it held, and may still be running it, or stand with the
+        spindle or beam the operation left on; at the next connect it is stopped if so
+        (`_stop_unwatched`)."""
+        self._unwatched = why
+
+    def _stop_unwatched(self) -> None:
+        """At a connect after `ran_unwatched`: a board still moving or holding moves (not
+        at rest, not in a lockout, which drained it), or standing with its spindle on,
+        gets the dialect's job kill, as a cancel would (docs/operations.md, "When the
+        daemon stops"). Nobody is watching those lines, and the job that sent them is
+        already interrupted; a board at rest with its spindle off is left as it is."""
+        why, self._unwatched = self._unwatched, None
+        model = self.engine.model
+        state = model.state
+        if why is None or state is None or state.is_lockout:
+            return
+        spindle = (model.spindle or {}).get("state")
+        if state.is_resting and spindle not in ("cw", "ccw"):
+            return
+        self._log.warning(
+            "stopping the board: it ran on unwatched",
+            why=why,
+            state=state.name,
+            spindle=spindle,
+        )
+        self.engine.kill_job()
 
     # -- faults ------------------------------------------------------------
 

@@ -499,6 +499,17 @@ class SessionBase(Words):
         if self.phase is not Phase.CLOSED:
             self._stop_board()
 
+    def interrupt_stream(self, code: int, text: str) -> None:
+        """The daemon stops during the job: it ends interrupted, and the board is stopped
+        as a cancel stops it (the dialect's job kill: it holds, drops what it holds, and
+        turns the spindle off), so that it neither runs the job's lines unwatched nor
+        stands with the spindle or beam on (docs/operations.md, "When the daemon stops")."""
+        if self.stream is None or self.stream.done:
+            return
+        self._end_stream(self.stream, StreamEnd.INTERRUPTED, code, text)
+        if self.phase is not Phase.CLOSED:
+            self.realtime(Realtime.JOB_KILL)  # admitted as a cancel's is
+
     def halt(self, text: str) -> None:
         """The daemon broke one of its own invariants: write nothing more until reset."""
         self.halted = True

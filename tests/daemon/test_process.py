@@ -528,3 +528,69 @@ async def test_the_daemon_on_asyncios_own_loop_runs_a_job_pauses_and_stops_clean
             assert process.proc.stderr is not None
             logs = [json.loads(line) for line in (await process.proc.stderr.read()).splitlines()]
         assert [r["loop"] for r in logs if r["event"] == "hostd ready"] == ["asyncio"]
+
+
+@contextlib.asynccontextmanager
+async def board_process(path: Path) -> AsyncIterator[None]:
+    """A simulated g2core in a process of its own (`python -m hostd.sim`), as a real board
+    outlives the daemon: its port at `path`, its moves at twice real speed."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "hostd.sim",
+        "--data",
+        str(path),
+        "--speed-factor",
+        "2",
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.DEVNULL,
+    )
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(60):  # its imports, on a loaded machine
+            assert (await proc.stdout.readline()).startswith(b"data ")
+        yield
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+        await proc.wait()
+
+
+async def test_after_a_sigkill_mid_job_the_restart_stops_the_board_still_running_it(
+    tmp_path: Path,
+) -> None:
+    """The daemon dies mid-job; the board, which does not, runs on through the lines it
+    holds and would then stand with its spindle on, nobody watching. The next daemon stops
+    it as it connects (docs/operations.md, "When the daemon stops")."""
+    port = tmp_path / "ttyACM0"
+    config = write_config(tmp_path)
+    config.write_text(config.read_text().replace('data_port = "sim"', f'data_port = "{port}"'))
+    # 50 mm moves at F3000: half a second each on this board, for 200 of them.
+    program = "G21 G90 M3 S8000\n" + "".join(
+        f"G1 X{(i % 2) * 50} Y{i * 0.1:.1f} F3000\n" for i in range(400)
+    )
+    async with board_process(port):
+        async with daemon_process(tmp_path, config) as process:
+            rpc = await ready_client(process)
+            await rpc.call("file.upload", name="part.gcode", data=program)
+            await rpc.call("subscribe", topics=["job"], machine="sim1")
+            job_id = (await rpc.call("job.start", machine="sim1", file="part.gcode"))["job"]
+            await follow_until_acked(rpc, job_id, 8)
+            process.proc.kill()
+            await process.proc.wait()
+            await rpc.close()
+
+        async with daemon_process(tmp_path, config) as process:
+            rpc = await ready_client(process)  # idle: at rest, not 200 s of moves later
+            status = await rpc.call("machine.status", machine="sim1")
+            assert status["state"]["name"] in ("PROGRAM_STOP", "PROGRAM_END"), status
+            assert (await rpc.call("job.get", job=job_id))["state"] == "interrupted"
+            async with asyncio.timeout(10):
+                while (status.get("spindle") or {}).get("state") != "off":
+                    status = (await rpc.notification(lambda n: n["method"] == "status"))["params"][
+                        "snapshot"
+                    ]
+            process.proc.send_signal(signal.SIGTERM)
+            await rpc.close()
+            async with asyncio.timeout(EXIT_WAIT):
+                assert await process.proc.wait() == 0
