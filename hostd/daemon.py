@@ -125,7 +125,8 @@ class Daemon:
                 log.warning("job interrupted by a daemon stop", job=job.id, machine=job.machine)
                 machine = self.machines.get(job.machine)
                 if machine is not None:  # what its board does now is looked at as it connects
-                    machine.ran_unwatched(f"job {job.id} was under way when the daemon stopped")
+                    why = f"job {job.id} was under way when the daemon stopped"
+                    machine.ran_unwatched(why, job.id if job.kind == "make" else None)
             async with asyncio.TaskGroup() as tg:
                 tasks = [
                     tg.create_task(m.serve(), name=f"machine-{m.id}")

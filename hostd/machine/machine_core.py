@@ -24,6 +24,7 @@ from hostd.machine.events import (
     FaultChanged,
     FaultDetected,
     Hub,
+    JobChanged,
     LinkChanged,
     StatusChanged,
     SupervisorChanged,
@@ -76,7 +77,8 @@ class MachineCore:
         self._disconnect_asked = False
         # An operation of ours ended without its end reaching the board (the daemon died,
         # the link was lost): what the board is found doing at the next connect is checked.
-        self._unwatched: str | None = None
+        self._unwatched: tuple[str, int | None] | None = None  # why, and the job's id
+        self._group: asyncio.TaskGroup | None = None  # `serve`'s, while it runs
         self._log = log.bind(machine=self.id)
         self.tools = self._tool_changer()  # the job's M6s, by the tool_change policy
 
@@ -89,8 +91,12 @@ class MachineCore:
         writes its job's end) and returns only once every one has.
         """
         async with asyncio.TaskGroup() as group:
-            with self.jobs.serving(group):
-                await self.engine.serve()
+            self._group = group
+            try:
+                with self.jobs.serving(group):
+                    await self.engine.serve()
+            finally:
+                self._group = None
 
     @property
     def job(self) -> Job | None:
@@ -124,8 +130,10 @@ class MachineCore:
                 self._stop_unwatched()
             elif not event.up and self.supervisor.state is not SupState.DISCONNECTED:
                 if self.supervisor.state in (SupState.OPERATION, SupState.PAUSED):
+                    job = self.job
                     self.ran_unwatched(
-                        f"an operation was under way when the link went: {event.reason}"
+                        f"an operation was under way when the link went: {event.reason}",
+                        job.id if job is not None and job.kind == "make" else None,
                     )
                 asked = self._disconnect_asked
                 self.supervisor.fire(SupEvent.DISCONNECT if asked else SupEvent.DISCONNECTED)
@@ -154,13 +162,14 @@ class MachineCore:
 
     # -- a board left running -------------------------------------------------
 
-    def ran_unwatched(self, why: str) -> None:
+    def ran_unwatched(self, why: str, job: int | None = None) -> None:
         """An operation of ours ended without its end reaching the board: the daemon died
         during it (`Daemon.run` passes the rows it recovered) or the link was lost. The
         board ran on with what it held, and may still be running it, or stand with the
         spindle or beam the operation left on; at the next connect it is stopped if so
-        (`_stop_unwatched`)."""
-        self._unwatched = why
+        (`_stop_unwatched`). `job`: the make job that was under way, whose row then
+        learns how far the board got (`_note_line_reached`)."""
+        self._unwatched = (why, job)
 
     def _stop_unwatched(self) -> None:
         """At a connect after `ran_unwatched`: a board still moving or holding moves (not
@@ -168,14 +177,20 @@ class MachineCore:
         gets the dialect's job kill, as a cancel would (docs/operations.md, "When the
         daemon stops"). Nobody is watching those lines, and the job that sent them is
         already interrupted; a board at rest with its spindle off is left as it is."""
-        why, self._unwatched = self._unwatched, None
+        unwatched, self._unwatched = self._unwatched, None
         model = self.engine.model
         state = model.state
-        if why is None or state is None or state.is_lockout:
+        if unwatched is None or state is None:
+            return
+        why, job = unwatched
+        if state.is_lockout:
             return
         spindle = (model.spindle or {}).get("state")
         if state.is_resting and spindle not in ("cw", "ccw"):
             return
+        if job is not None and not state.is_resting and model.line is not None:
+            assert self._group is not None  # a link comes up only while `serve` runs
+            self._group.create_task(self._note_line_reached(job, model.line))
         self._log.warning(
             "stopping the board: it ran on unwatched",
             why=why,
@@ -183,6 +198,25 @@ class MachineCore:
             spindle=spindle,
         )
         self.engine.kill_job()
+
+    async def _note_line_reached(self, job_id: int, line: int) -> None:
+        """The board ran on past the interrupted job's `line_executed` (written at most 1 s
+        or 100 lines apart, and never after the daemon died or the link went): the line
+        its first report says it is running, found still moving, is where a resume
+        begins, not lines it already ran (a laser would burn them twice). Only then: at
+        rest a board reports the last line it read, which something may have flushed
+        unrun. Only ever forward, and only on a row that numbers its lines (it has a
+        `line_executed`)."""
+        row = await self.store.get(job_id)
+        if row is None or row.state != "interrupted" or row.line_executed is None:
+            return
+        if line <= row.line_executed:
+            return
+        updated = await self.store.update(job_id, line_executed=line)
+        self._log.info(
+            "interrupted job: the board got further", job=job_id, line=line, was=row.line_executed
+        )
+        self.hub.publish(JobChanged(self.id, updated.model_dump(mode="json")))
 
     # -- faults ------------------------------------------------------------
 

@@ -125,6 +125,13 @@ class SimController(SimShell[Board, MachineState]):
         return self._board.state
 
     @property
+    def line(self) -> int:
+        """The line number its reports give as `line`: the block it runs, else the last read."""
+        board = self._board
+        active = board.active
+        return active.block.n if active is not None else board.interp.line
+
+    @property
     def position(self) -> dict[str, float]:
         """Machine position in mm, where the tool is right now."""
         return self._board.tool_position(time.monotonic())

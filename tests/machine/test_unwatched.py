@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from hostd.machine.events import JobChanged
 from hostd.machine.supervisor import State as Sup
 from hostd.protocol.states import MachineState as S
 from hostd.sim.config import SimConfig
@@ -101,19 +102,34 @@ async def test_a_board_left_running_by_an_unplug_is_stopped_when_it_is_back(
         bench.write("part.nc", SPINDLE_JOB)
         job = await bench.machine.start_make("part.nc")
         await spindle(bench, "cw")
-        await bench.sim.wait_state(S.RUN)
+        await bench.recorder.wait_for(  # the row knows a line the board ran
+            lambda e: isinstance(e, JobChanged) and (e.job.get("line_executed") or 0) >= 2
+        )
         await bench.sim.unplug()
         row = await bench.job_ended(job.id)
-        assert row.state == "interrupted"
+        assert row.state == "interrupted" and row.line_executed is not None
         await bench.supervisor(Sup.DISCONNECTED)
         assert bench.sim.state is S.RUN  # it runs on with what it holds, unwatched
         assert kills(bench) == 0
+        # It runs at least two lines more while nobody watches.
+        await bench.sim.wait_for(lambda: bench.sim.line > row.line_executed + 1)
         await bench.sim.replug()
         # Killed as soon as the link is back: idle at once, not 200 lines later.
         await bench.supervisor(Sup.IDLE)
         await at_rest(bench)
         await spindle(bench, "off")
         assert kills(bench) >= 1
+        # The row's resume line is where the board was found running, not where the link
+        # went: a resume does not run again the lines it ran meanwhile.
+        told = await bench.recorder.wait_for(
+            lambda e: isinstance(e, JobChanged)
+            and e.job["id"] == job.id
+            and (e.job["line_executed"] or 0) > (row.line_executed or 0)
+        )
+        assert isinstance(told, JobChanged) and told.job["state"] == "interrupted"
+        assert told.job["line_executed"] >= row.line_executed + 2
+        stored = await bench.store.get(job.id)
+        assert stored is not None and stored.line_executed == told.job["line_executed"]
 
 
 async def test_a_spindle_the_operator_left_on_is_left_on_across_an_unplug(
