@@ -188,9 +188,10 @@ class MachineCore:
         spindle = (model.spindle or {}).get("state")
         if state.is_resting and spindle not in ("cw", "ccw"):
             return
-        if job is not None and not state.is_resting and model.line is not None:
+        line = self.engine.session.line_running()
+        if job is not None and not state.is_resting and line is not None:
             assert self._group is not None  # a link comes up only while `serve` runs
-            self._group.create_task(self._note_line_reached(job, model.line))
+            self._group.create_task(self._note_line_reached(job, line))
         self._log.warning(
             "stopping the board: it ran on unwatched",
             why=why,
@@ -202,11 +203,11 @@ class MachineCore:
     async def _note_line_reached(self, job_id: int, line: int) -> None:
         """The board ran on past the interrupted job's `line_executed` (written at most 1 s
         or 100 lines apart, and never after the daemon died or the link went): the line
-        its first report says it is running, found still moving, is where a resume
-        begins, not lines it already ran (a laser would burn them twice). Only then: at
-        rest a board reports the last line it read, which something may have flushed
-        unrun. Only ever forward, and only on a row that numbers its lines (it has a
-        `line_executed`)."""
+        its first report says it is executing (the dialect's word, `line_running`), found
+        still moving, is where a resume begins, not lines it already ran (a laser would
+        burn them twice). Only then: at rest, or in a hold on g2core, a board reports the
+        last line it read, which something may have flushed unrun. Only ever forward,
+        and only on a row that numbers its lines (it has a `line_executed`)."""
         row = await self.store.get(job_id)
         if row is None or row.state != "interrupted" or row.line_executed is None:
             return

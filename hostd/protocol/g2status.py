@@ -117,6 +117,15 @@ class G2Status(G2Kills):
         ):
             stream.executing(int(line))
 
+    def line_running(self) -> int | None:
+        """`line` from a report of RUN with a speed (`_track_executed`'s rule: stopped, in
+        a hold or before the first block moves, `line` is the last line *read*)."""
+        model = self.model
+        line, speed = model.line, model.velocity
+        if model.state is MachineState.RUN and line and line > 0 and speed and speed > 0:
+            return line
+        return None
+
     def _on_probe(self, report: dict[str, Any]) -> None:
         """A probe cycle's result (cycle_probing.cpp `_send_probe_report`): kept and told."""
         probe = self.model.apply_probe(report)

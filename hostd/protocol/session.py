@@ -257,6 +257,13 @@ class SessionBase(Words):
         with `status_traffic: false` leaves them out (docs/api.md)."""
         return False
 
+    def line_running(self) -> int | None:
+        """The file line the board's last report says it is executing, where its dialect
+        can tell (docs/api.md, "How exact `line_executed` is"); None where it cannot.
+        Asked of a board found moving with no job of ours streaming (machine_core.py
+        `_stop_unwatched`)."""
+        return None
+
     def tick(self) -> None:
         """A deadline passed (or the engine woke early: nothing is due then)."""
         raise NotImplementedError

@@ -280,6 +280,14 @@ class GrblSession(GrblLiveness):
             if ran is not None and ran > 0:
                 stream.executing(ran)
 
+    def line_running(self) -> int | None:
+        """`Ln:` (`_track_executed`): the block being executed, or on grblHAL with the
+        planner empty the parser's last, which ran. None without it (classic grbl built
+        without USE_LINE_NUMBERS): `Bf:` bounds a job's line only from the job's own
+        answers."""
+        line = self.model.line
+        return line if line is not None and line > 0 else None
+
     def _at_rest(self) -> bool:
         """Idle with blocks still planned is the instant before a cycle starts (Bf says)."""
         planner_empty = (
