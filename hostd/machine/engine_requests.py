@@ -198,9 +198,12 @@ class EngineRequests(EngineDelivery):
         self._command(lambda: self.session.realtime(Realtime.JOB_KILL))
 
     def interrupt_stream(self, code: int, text: str) -> None:
-        """End the running job interrupted, and kill it on the board (the daemon stops)."""
-        self.session.interrupt_stream(code, text)
-        self._deliver()
+        """End the running job interrupted, and kill it on the board (the daemon stops).
+        The job's end is handed out even if the kill is refused (a lockout drained it)."""
+        try:
+            self.session.interrupt_stream(code, text)
+        finally:
+            self._deliver()
 
     # -- views -----------------------------------------------------------
 
