@@ -59,6 +59,18 @@ from tests.protocol.test_g2core_write_gates import moves
 KILL_REPORT = '{"er":{"fb":%s,"st":207,"msg":"Kill job - Job killed by ^d"}}'
 
 
+def move_then(fb: float, command: Realtime) -> tuple[Wire, object]:
+    """A ready board, a client's `G0 X1` written to it, then `command`; and the token the
+    client's answer is settled with."""
+    wire = ready(fb)
+    token = object()
+    wire.session.send("G0 X1", token)
+    wire.pump()
+    wire.session.realtime(command)
+    wire.pump()
+    return wire, token
+
+
 def state(wire: Wire) -> S | None:
     """The state the session shows now (read afresh: each call may follow a change)."""
     return wire.session.model.state
@@ -127,12 +139,7 @@ def test_a_ready_report_after_a_flush_proves_nothing_and_the_line_still_runs(
 
     Guards: g2kills.py `_FLUSH_CONFIRMED` (stat 3 and 4 only).
     """
-    wire = ready(fb)
-    token = object()
-    wire.session.send("G0 X1", token)
-    wire.pump()
-    wire.session.realtime(Realtime.QUEUE_FLUSH)
-    wire.pump()
+    wire, token = move_then(fb, Realtime.QUEUE_FLUSH)
     wire.report(stat=1)
     assert wire.session.flushing()
     assert wire.settled(token) is None
@@ -150,12 +157,7 @@ def test_a_line_a_kill_threw_away_is_settled_with_the_kills_code(fb: float) -> N
 
     Guards: g2kills.py `_discarded` (207 for a kill).
     """
-    wire = ready(fb)
-    token = object()
-    wire.session.send("G0 X1", token)
-    wire.pump()
-    wire.session.realtime(Realtime.JOB_KILL)
-    wire.pump()
+    wire, token = move_then(fb, Realtime.JOB_KILL)
     wire.answer(FENCE, {"stat": 4})  # read after the ^D: G0 X1 is gone
     settled = wire.settled(token)
     assert settled is not None and isinstance(settled.outcome, ControllerError)
@@ -170,12 +172,7 @@ def test_a_line_a_flush_threw_away_is_settled_as_the_flushs_not_a_kills(fb: floa
 
     Guards: g2kills.py `_confirm_flush` (settled with the `%`'s own reason).
     """
-    wire = ready(fb)
-    token = object()
-    wire.session.send("G0 X1", token)
-    wire.pump()
-    wire.session.realtime(Realtime.QUEUE_FLUSH)
-    wire.pump()
+    wire, token = move_then(fb, Realtime.QUEUE_FLUSH)
     wire.report(stat=3)
     settled = wire.settled(token)
     assert settled is not None and isinstance(settled.outcome, ControllerError)
