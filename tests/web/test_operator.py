@@ -480,6 +480,13 @@ async def test_resume_from_a_line_shows_the_plan_of_the_cli_then_starts_there(
         await rpc.close()
 
 
+async def typed(page: playwright.Page, line: str, shown: str) -> None:
+    """The operator sends `line` from the console's field; until the console shows `shown`."""
+    await page.fill("#send-line", line)
+    await page.click("#send button")
+    await expect(page.locator("#console")).to_contain_text(shown)
+
+
 async def test_the_laser_console_leaves_out_the_status_polls(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:
@@ -490,9 +497,7 @@ async def test_the_laser_console_leaves_out_the_status_polls(
         for line, shown in (("G0 X1", "← ok"), ("$G", "← [GC:"), ("G4 P0", "→ G4 P0")):
             # After `G0 X1`'s `ok` the daemon polls grbl's modes, `$G`; the board answers
             # in order, so once `G4 P0` is shown every line before it is too.
-            await page.fill("#send-line", line)
-            await page.click("#send button")
-            await expect(page.locator("#console")).to_contain_text(shown)
+            await typed(page, line, shown)
         text = await page.locator("#console").inner_text()
         assert "<Idle" not in text
         assert "→ ?" not in text.splitlines()
@@ -534,9 +539,7 @@ async def test_the_laser_console_leaves_out_a_jobs_own_lines_and_their_oks(
         )
         assert end["params"]["job"]["state"] == "completed"
         await expect(page.locator("#history tbody tr").first).to_contain_text("completed")
-        await page.fill("#send-line", "$G")  # the operator's own line, and its answer
-        await page.click("#send button")
-        await expect(page.locator("#console")).to_contain_text("→ $G")
+        await typed(page, "$G", "→ $G")  # the operator's own line, and its answer
         await expect(page.locator("#console")).to_contain_text("← [GC:")
         await expect(page.locator("#console")).to_contain_text("← ok")
         lines = (await page.locator("#console").inner_text()).splitlines()
@@ -700,12 +703,8 @@ async def test_a_status_poll_typed_while_status_reports_are_off_shows_its_answer
         page = await browser.new_page()
         await log_in(page, web)
         await expect(page.locator("#console-hidden")).to_contain_text("hidden")
-        await page.fill("#send-line", "{sr:n}")
-        await page.click("#send button")
-        await expect(page.locator("#console")).to_contain_text('= {"sr":{')
-        await page.fill("#send-line", "{fbc:n}")  # not status traffic: the board's line
-        await page.click("#send button")
-        await expect(page.locator("#console")).to_contain_text('= {"fbc":')
+        await typed(page, "{sr:n}", '= {"sr":{')
+        await typed(page, "{fbc:n}", '= {"fbc":')  # not status traffic: the board's line
         lines = (await page.locator("#console").inner_text()).splitlines()
         assert '→ {"fbc":null}' in lines and any(
             line.startswith('← {"r":{"fbc":') for line in lines
