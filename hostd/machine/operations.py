@@ -32,6 +32,7 @@ from hostd.machine.workers import WorkerPool
 from hostd.protocol.commands import InvalidCommand
 from hostd.protocol.errors import Busy, ControllerError, ControllerTimeout, NotConnected
 from hostd.protocol.gcode import axes_words, short_number
+from hostd.protocol.gcodestate.state import MM_PER_INCH
 from hostd.protocol.refusals import Refusal
 from hostd.protocol.states import MachineState
 
@@ -112,15 +113,21 @@ async def _fresh_report(machine: Machine) -> None:
     await machine.engine.send(line, timeout=ANSWER_WAIT)
 
 
-def goto_zero_lines(axes: list[str] | None, safe_z: float | None) -> list[str]:
+def goto_zero_lines(
+    axes: list[str] | None, safe_z: float | None, *, z_now: float | None, inches: bool
+) -> list[str]:
     """Z up to the safe height in machine coordinates first (if known) whenever X or Y
     moves, asked or not; then X and Y; then Z down to its work zero, if asked: the
-    tool never crosses the work low."""
+    tool never crosses the work low. Never *down* to it: a tool already at or above it
+    (`z_now`, machine mm) crosses where it is, as a frame's and a tool change's do.
+    `safe_z` is mm; the line is in the board's units (`inches`: G20), which it leaves
+    as they are."""
     chosen = axes or ["x", "y", "z"]
     lines: list[str] = []
     flat = [a for a in chosen if a != "z"]
-    if flat and safe_z is not None:
-        lines.append(f"G53 G0 Z{short_number(safe_z)}")
+    if flat and safe_z is not None and (z_now is None or z_now < safe_z):
+        height = safe_z / MM_PER_INCH if inches else safe_z
+        lines.append(f"G53 G0 Z{short_number(height)}")
     if flat:
         lines.append(f"G90 G0 {axes_words(flat)}")
     if "z" in chosen:
@@ -133,7 +140,13 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
     engine = machine.engine
     async with _operation(machine):
         safe = machine.config.safe_z  # the board's Z travel is not read here (a query)
-        for line in goto_zero_lines(axes, safe):
+        # Where Z is and the board's units, as they are now: a `G20` answered a moment
+        # ago shows in g2core's next report (grbl's `$G` after it is answered before the
+        # machine is idle again, which this operation waits for).
+        await _fresh_report(machine)
+        here, _ = machine.positions_mm()
+        inches = engine.model.units == "in"
+        for line in goto_zero_lines(axes, safe, z_now=here.get("z"), inches=inches):
             await engine.send(line, timeout=ANSWER_WAIT)
         # A board answers a move as it queues it, and may report rest until its
         # planner starts: at rest *at zero* is the end (or a lockout, or an error).

@@ -2,9 +2,9 @@
 test_operations.py, test_power.py and test_laser_power_bound.py leave open (a hand-run
 mutation campaign on hostd/machine/operations.py, machine_operations.py, preflight.py
 and guard.py found each of these unpinned). One is not a gap but a fault the campaign
-came across: `machine.goto_zero` drives Z *down* to `safe_z` before it crosses when the
-tool stands above it (test_goto_zero_from_above_the_safe_height_crosses_where_the_tool_is
-fails until operations.py's goto_zero_lines keeps a higher Z, as the frame does).
+came across, now fixed: `machine.goto_zero` drove Z *down* to `safe_z` before it crossed
+when the tool stood above it (test_goto_zero_from_above_the_safe_height_crosses_where_the_
+tool_is), and in G20 went to `safe_z` inches.
 
 A real daemon with a simulated g2core (sim1) and a simulated grbl (sim2) on real ptys,
 reached through the real socket.
@@ -365,6 +365,20 @@ async def test_goto_zero_from_above_the_safe_height_crosses_where_the_tool_is(
             (m.start, m.move.target) for m in moves
         ]
         assert moves[-1].move.target == pytest.approx({"x": 0, "y": 0, "z": 0}, abs=1e-3)
+
+
+async def test_goto_zero_in_g20_rises_to_the_safe_height_in_millimetres(tmp_path: Path) -> None:
+    """`safe_z` is millimetres; a board left in G20 by an inch program reads a `G53 G0
+    Z5` as 5 inches (127 mm). The lift goes to 5 mm, written in the board's units, and
+    the board stays in G20."""
+    async with _daemon(tmp_path, g2={"safe_z": 5.0}) as (hostd, rpc):
+        await rpc.call("machine.send", machine=G2, line="G20")
+        before = len(traced(hostd, G2))
+        assert await rpc.call("machine.goto_zero", machine=G2) == {}
+        moves = traced(hostd, G2)[before:]
+        top = max(max(m.start["z"], m.move.target["z"]) for m in moves)
+        assert top == pytest.approx(5.0, abs=0.005), [(m.start, m.move.target) for m in moves]
+        assert (await rpc.call("machine.status", machine=G2))["units"] == "in"
 
 
 # -- job.start: the travel check and the row -------------------------------------

@@ -177,11 +177,13 @@ async def test_goto_zero_raises_z_to_the_safe_height_first(tmp_path: Path) -> No
         rpc = await hostd.client()
         await rpc.call("subscribe", topics=["job"])
         await hostd.idle(rpc)
+        await jog_to(hostd, rpc, G2, {"z": -5})  # below the safe height
         assert await rpc.call("machine.goto_zero", machine=G2) == {}
         sent = lines_sent(hostd, G2)
         moves = [line for line in sent if line.startswith((b"G53", b"G90 G0"))]
         assert moves[-3:] == [b"G53 G0 Z-1", b"G90 G0 X0 Y0", b"G90 G0 Z0"]
         # X alone: Z still rises first, and stays up.
+        await jog_to(hostd, rpc, G2, {"z": -5})
         assert await rpc.call("machine.goto_zero", machine=G2, axes=["x"]) == {}
         sent = lines_sent(hostd, G2)
         moves = [line for line in sent if line.startswith((b"G53", b"G90 G0"))]
