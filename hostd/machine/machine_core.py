@@ -32,7 +32,7 @@ from hostd.machine.events import (
 from hostd.machine.faults import Fault, FaultTable
 from hostd.machine.jobrunner import JobRunner
 from hostd.machine.jobstore import Job, JobStore
-from hostd.machine.signals import fault_conditions
+from hostd.machine.signals import fault_conditions, fault_readings
 from hostd.machine.supervisor import Event as SupEvent
 from hostd.machine.supervisor import State as SupState
 from hostd.machine.supervisor import Supervisor, Transition
@@ -231,9 +231,14 @@ class MachineCore:
         # The controller's SHUTDOWN (its e-stop input) is always an e-stop source.
         shutdown = self.engine.model.state is MachineState.SHUTDOWN
         conditions["estop"] = conditions.get("estop", False) or shutdown
+        readings = fault_readings(signals, self._signal_values)
         now_ = time.time()
         for fault_id, active in conditions.items():
-            self._fault_changed(self.faults.set(fault_id, active, now=now_))
+            # A coolant fault's value is the reading that raised it, kept while it lasts: a
+            # reading that moves every report would otherwise be a change told each time.
+            fault = self.faults.get(fault_id)
+            value = fault.value if fault.active else readings.get(fault_id)
+            self._fault_changed(self.faults.set(fault_id, active, value=value, now=now_))
 
     def _fault_changed(self, fault: Fault | None) -> None:
         """Publish a change and apply its effect on a running job."""

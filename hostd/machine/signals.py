@@ -150,6 +150,27 @@ class SignalsConfig(_Strict):
         }
 
 
+# The faults whose value is a reading (behaviour.md: every fault has a value), by the
+# signal whose key gives it: the coolant's flow and temperature as the board reports them.
+READINGS: dict[str, str] = {"water_flow": "coolant_flow_low", "water_temp": "coolant_temp_high"}
+
+
+def fault_readings(config: SignalsConfig, values: Mapping[str, Any]) -> dict[str, float]:
+    """Each reading fault's reading now: the last number of its signal's key, where the
+    signal is a measure against a threshold (`above`, `below`); a switch (`equals`)
+    reads 0 or 1, which says nothing the fault's name does not."""
+    sources = config.sources()
+    readings: dict[str, float] = {}
+    for fault, signal in READINGS.items():
+        source = sources.get(signal)
+        if source is None or source.equals is not None:
+            continue
+        reading = values.get(source.key)
+        if isinstance(reading, int | float) and not isinstance(reading, bool):
+            readings[fault] = reading
+    return readings
+
+
 def fault_conditions(signals: Mapping[str, bool]) -> dict[str, bool]:
     """The faults the signals decide (behaviour.md "Faults"), only those configured."""
     faults: dict[str, bool] = {}

@@ -157,6 +157,9 @@ async def test_coolant_flow_stops_a_running_job_with_1007(laser: Laser) -> None:
     laser.sim.set_analog(1, 0.2)  # flow below the minimum
     fault = await laser.fault("water_flow", True)
     assert fault["severity"] == "hardware"
+    # Its value is the reading that raised it (behaviour.md: each fault has a value).
+    assert fault["value"] == pytest.approx(0.2)
+    assert fault["message"] == "coolant flow low (0.2)"
     job = await laser.job_end(job_id)
     assert job["state"] == "failed"
     assert job["error"]["code"] == 1007 and "water_flow" in job["error"]["message"]

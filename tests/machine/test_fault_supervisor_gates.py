@@ -172,15 +172,50 @@ async def test_the_coolant_temperature_fault_holds_until_a_degree_below_its_limi
 
 
 async def test_a_signal_fault_says_what_it_means_without_a_reading(tmp_path: Path) -> None:
-    """The operator reads "coolant flow stopped or below minimum", not a value the
-    daemon never had ("coolant flow low (None)")."""
-    signals = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
+    """A flow *switch* (an input that opens when flow stops) has no reading: the
+    operator reads "coolant flow stopped or below minimum", not a value the daemon never
+    had ("coolant flow low (None)"), nor the switch's 0."""
+    signals = {"coolant_flow_low": {"key": "in6", "equals": 0}}
     async with bench_for(tmp_path, signals=signals) as bench:
-        bench.sim.set_analog(1, 0.2)
+        bench.sim.set_input(6, 1)
+        bench.sim.set_input(6, 0)
         event = await bench.recorder.wait_for(fault_became("water_flow", True))
         assert isinstance(event, FaultChanged)
         assert event.fault["message"] == "coolant flow stopped or below minimum"
+        assert event.fault["value"] is None
         assert bench.machine.snapshot()["faults"][0]["message"] == event.fault["message"]
+
+
+async def test_a_coolant_fault_keeps_the_reading_that_raised_it(tmp_path: Path) -> None:
+    """A flow meter's fault says the flow that raised it ("coolant flow low (0.2)"), and
+    keeps it while the reading moves below the limit: a change told at every report
+    would only repeat the fault."""
+    signals = {"coolant_flow_low": {"key": "ain1", "below": 1.0}}
+    async with bench_for(tmp_path, signals=signals) as bench:
+        bench.sim.set_analog(1, 2.0)  # flowing (the simulated meter starts at 0)
+        await bench.recorder.wait_for(fault_became("water_flow", False))
+        bench.sim.set_analog(1, 0.2)
+        raised = fault_became("water_flow", True)
+        event = await bench.recorder.wait_for(lambda e: raised(e) and e.fault["value"] != 0)
+        assert isinstance(event, FaultChanged)
+        assert (event.fault["value"], event.fault["message"]) == (0.2, "coolant flow low (0.2)")
+        told = len(bench.recorder.events)
+        bench.sim.set_analog(1, 0.3)
+        await bench.recorder.wait_for(  # the machine has read the new flow
+            lambda e: isinstance(e, StatusChanged) and e.report.get("ain1") == 0.3
+        )
+        bench.sim.set_analog(1, 2.0)  # flowing again
+        cleared = fault_became("water_flow", False)
+        events = bench.recorder.events
+        await bench.recorder.wait_for(
+            lambda e: cleared(e) and any(e is later for later in events[told:])
+        )
+        changes = [
+            e
+            for e in bench.recorder.events[told:]
+            if isinstance(e, FaultChanged) and e.fault["id"] == "water_flow"
+        ]
+        assert [c.fault["active"] for c in changes] == [False], changes
 
 
 # -- software faults: when they began, what clears them ------------------------------------

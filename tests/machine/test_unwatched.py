@@ -122,9 +122,11 @@ async def test_a_board_left_running_by_an_unplug_is_stopped_when_it_is_back(
         # The row's resume line is where the board was found running, not where the link
         # went: a resume does not run again the lines it ran meanwhile.
         told = await bench.recorder.wait_for(
-            lambda e: isinstance(e, JobChanged)
-            and e.job["id"] == job.id
-            and (e.job["line_executed"] or 0) > (row.line_executed or 0)
+            lambda e: (
+                isinstance(e, JobChanged)
+                and e.job["id"] == job.id
+                and (e.job["line_executed"] or 0) > (row.line_executed or 0)
+            )
         )
         assert isinstance(told, JobChanged) and told.job["state"] == "interrupted"
         assert told.job["line_executed"] >= row.line_executed + 2
