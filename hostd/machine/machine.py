@@ -37,7 +37,6 @@ This module keeps `Machine` and `NoSuchFile` where every importer finds them.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from typing import Any, Final
 
 from hostd.machine.jobfile import NoSuchFile
@@ -202,15 +201,19 @@ class Machine(MachineOperations):
             return
         try:
             self.engine.interrupt_stream(
-                1002, "the daemon stopped during the job (the board's job was killed)"
+                1002, "the daemon stopped during the job (it stopped the board as a cancel does)"
             )
         except MachineError:
             return  # the link is gone: nothing can reach the board
         session = self.engine.session
-        with contextlib.suppress(TimeoutError):
+        try:
             async with asyncio.timeout(wait):
                 await asyncio.shield(stream.result)
                 await self.engine.wait_for(lambda: not session.flushing())
+        except (TimeoutError, MachineError):
+            # A board that does not answer, or a grbl held rather than reset (a startup
+            # block that moves): it may still hold the job's lines.
+            self._log.warning("the board did not show its stop before the daemon stopped")
 
     def _live_stream(self) -> JobStream | None:
         """The stream of the running operation, while it streams; None once it ended."""
