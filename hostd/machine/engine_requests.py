@@ -22,6 +22,7 @@ from hostd.protocol.commands import Realtime
 from hostd.protocol.errors import (
     ControllerError,
     ControllerTimeout,
+    MachineError,
     NotConnected,
 )
 from hostd.protocol.messages import Response
@@ -195,7 +196,13 @@ class EngineRequests(EngineDelivery):
         the board drops what it holds and stops its spindle (a board found running an
         interrupted operation's lines). Given while the Machine hears an event, it runs
         once the events are handed out."""
-        self._command(lambda: self.session.realtime(Realtime.JOB_KILL))
+        self._command(self._kill_job)
+
+    def _kill_job(self) -> None:
+        try:
+            self.session.realtime(Realtime.JOB_KILL)
+        except MachineError as exc:  # run from the delivery loop: never out of it
+            self._log.warning("job kill not written", reason=exc.message)
 
     def interrupt_stream(self, code: int, text: str) -> None:
         """End the running job interrupted, and kill it on the board (the daemon stops).

@@ -16,7 +16,10 @@ import pytest
 
 from hostd.machine.events import JobChanged
 from hostd.machine.supervisor import State as Sup
+from hostd.protocol.commands import Realtime
+from hostd.protocol.errors import Rejected
 from hostd.protocol.states import MachineState as S
+from hostd.protocol.status import Status
 from hostd.sim.config import SimConfig
 from hostd.sim.grbl import GrblConfig
 from tests.machine.conftest import Bench, bench_for
@@ -172,3 +175,25 @@ async def test_after_a_crash_a_board_still_running_is_stopped_and_one_at_rest_is
         await bench.machine.connect()
         await bench.supervisor(Sup.IDLE)
         assert kills(bench) == before  # at rest, spindle off: nothing to stop
+
+
+async def test_a_kill_the_session_refuses_at_the_connect_leaves_the_link_up(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The kill runs from the engine's delivery loop, after the events of the connect: a
+    refusal there is logged, and the machine stays connected and answers."""
+    async with bench_for(tmp_path, sim_config=SLOW, auto_connect=True) as bench:
+        bench.write("part.nc", SPINDLE_JOB)
+        await bench.machine.start_make("part.nc")
+        await bench.sim.wait_state(S.RUN)
+        await bench.machine.disconnect()
+        session = bench.machine.engine.session
+
+        def refused(command: Realtime) -> None:
+            raise Rejected(Status.COMMAND_REJECTED_BY_ALARM, "refused for the test")
+
+        monkeypatch.setattr(session, "realtime", refused)
+        await bench.machine.connect()
+        assert (await bench.machine.engine.send("{fbc:n}")).ok  # still connected
+        assert kills(bench) == 0
+        assert bench.machine.supervisor.state is not Sup.DISCONNECTED
