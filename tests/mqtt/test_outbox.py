@@ -36,6 +36,21 @@ async def test_events_are_bounded_and_the_oldest_go_first() -> None:
     assert [p for _, p in taken(outbox)] == [b"7", b"8", b"9"]
 
 
+async def test_a_failed_event_past_the_bound_is_the_oldest_and_goes_first() -> None:
+    """The broker went while an event was being published, and newer events filled the
+    outbox meanwhile: past `max_events` the oldest goes, as for any event (docs/mqtt.md),
+    and the failed one is the oldest. The newest are never the ones lost."""
+    outbox = Outbox(max_events=3)
+    outbox.event("p/m/exception", b"0")
+    first = outbox.take(0.0)
+    assert isinstance(first, Outgoing)
+    for i in range(1, 4):
+        outbox.event("p/m/exception", str(i).encode())
+    outbox.failed(first)
+    assert outbox.dropped == 1
+    assert [p for _, p in taken(outbox)] == [b"1", b"2", b"3"]
+
+
 async def test_a_limited_topic_waits_its_interval_and_then_sends_the_latest() -> None:
     outbox = Outbox()
     outbox.limit("s", 0.25)

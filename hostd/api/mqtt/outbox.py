@@ -129,8 +129,10 @@ class Outbox:
         if message.retain:
             self._dirty.setdefault(message.topic, None)
         else:
+            # Back at the front, as the oldest: past the bound the oldest goes, as in
+            # `event` (docs/mqtt.md), and that is this one.
             self._events.appendleft(_Event(message.topic, message.payload, message.correlation))
             while len(self._events) > self._max_events:
-                self._events.pop()
+                self._events.popleft()
                 self.dropped += 1
         self.ready.set()
