@@ -11,6 +11,7 @@ test where a bound is the point, so a command sent just past the bound is past i
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from pathlib import Path
 from typing import Any, cast
@@ -66,6 +67,21 @@ def deliver(bench: Bench, request_id: str, payload: bytes = b"{}", retain: bool 
     bench.commands.take(message, bench.tasks)
 
 
+def clocked(
+    tmp_path: Path, broker: Broker, now: list[float], method: str
+) -> contextlib.AbstractAsyncContextManager[Any]:
+    """A bridge whose wall clock is `now[0]` (the test moves it), `command_max_age` 5 s,
+    commands on, `method` alone allowed."""
+    return bridged(
+        tmp_path,
+        broker,
+        wall=lambda: now[0],
+        command_max_age=5,
+        commands=True,
+        allow=[method],
+    )
+
+
 @pytest.mark.asyncio
 async def test_a_command_just_past_command_max_age_is_refused_in_the_past_and_the_future(
     tmp_path: Path, broker: Broker
@@ -77,14 +93,7 @@ async def test_a_command_just_past_command_max_age_is_refused_in_the_past_and_th
     was 10 s past the bound); and with either bound at 2 x command_max_age."""
     now = [time.time()]  # the bridge's wall clock, held
     async with (
-        bridged(
-            tmp_path,
-            broker,
-            wall=lambda: now[0],
-            command_max_age=5,
-            commands=True,
-            allow=["daemon.info"],
-        ),
+        clocked(tmp_path, broker, now, "daemon.info"),
         watching(broker, "test/h1/online") as caller,
     ):
         await online(caller)
@@ -108,14 +117,7 @@ async def test_a_request_id_run_is_refused_for_command_max_age_after_it_ran_even
     (commands.py `_remember`): the command, 4 s old when it ran, ran again 2 s later."""
     now = [time.time()]  # the bridge's wall clock, moved on by the test
     async with (
-        bridged(
-            tmp_path,
-            broker,
-            wall=lambda: now[0],
-            command_max_age=5,
-            commands=True,
-            allow=["machine.send"],
-        ) as b,
+        clocked(tmp_path, broker, now, "machine.send") as b,
         watching(broker, "test/h1/online") as caller,
     ):
         rpc = await b.running.client()
