@@ -208,12 +208,16 @@ class MachineCore:
         burn them twice). Only then: at rest, or in a hold on g2core, a board reports the
         last line it read, which something may have flushed unrun. Only ever forward,
         and only on a row that numbers its lines (it has a `line_executed`)."""
-        row = await self.store.get(job_id)
-        if row is None or row.state != "interrupted" or row.line_executed is None:
+        try:
+            row = await self.store.get(job_id)
+            if row is None or row.state != "interrupted" or row.line_executed is None:
+                return
+            if line <= row.line_executed:
+                return
+            updated = await self.store.update(job_id, line_executed=line)
+        except Exception:  # in `serve`'s group: a failed write must not end the machine
+            self._log.exception("interrupted job: its line could not be written", job=job_id)
             return
-        if line <= row.line_executed:
-            return
-        updated = await self.store.update(job_id, line_executed=line)
         self._log.info(
             "interrupted job: the board got further", job=job_id, line=line, was=row.line_executed
         )

@@ -197,3 +197,29 @@ async def test_a_kill_the_session_refuses_at_the_connect_leaves_the_link_up(
         assert (await bench.machine.engine.send("{fbc:n}")).ok  # still connected
         assert kills(bench) == 0
         assert bench.machine.supervisor.state is not Sup.DISCONNECTED
+
+
+async def test_a_resume_line_that_cannot_be_written_leaves_the_machine_serving(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The row's new line is written by a task of the machine's own: a store that fails
+    then (a full disk) is logged, and the machine, its board stopped, goes on."""
+    async with bench_for(tmp_path, sim_config=SLOW, auto_connect=True) as bench:
+        bench.write("part.nc", SPINDLE_JOB)
+        job = await bench.machine.start_make("part.nc")
+        await bench.recorder.wait_for(
+            lambda e: isinstance(e, JobChanged) and (e.job.get("line_executed") or 0) >= 2
+        )
+        await bench.sim.unplug()
+        row = await bench.job_ended(job.id)
+        assert row.line_executed is not None  # the board runs on past it, unwatched:
+        await bench.sim.wait_for(lambda: bench.sim.line > row.line_executed + 1)
+
+        async def full(*args: object, **kwargs: object) -> None:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(bench.store, "update", full)
+        await bench.sim.replug()
+        await bench.supervisor(Sup.IDLE)
+        await spindle(bench, "off")
+        assert (await bench.machine.engine.send("{fbc:n}")).ok  # still serving
