@@ -209,6 +209,9 @@ class Machine(MachineOperations):
         try:
             async with asyncio.timeout(wait):
                 await asyncio.shield(stream.result)
+                # Its row's end written and told before the machine's tasks are cancelled,
+                # as a cancel waits for it: a follower cancelled mid-end told nobody.
+                await self.jobs.followed(timeout=wait)
                 await self.engine.wait_for(lambda: not session.flushing())
         except (TimeoutError, MachineError):
             # A board that does not answer, or a grbl held rather than reset (a startup
