@@ -113,20 +113,25 @@ async def _fresh_report(machine: Machine) -> None:
     await machine.engine.send(line, timeout=ANSWER_WAIT)
 
 
-def goto_zero_lines(
-    axes: list[str] | None, safe_z: float | None, *, z_now: float | None, inches: bool
-) -> list[str]:
-    """Z up to the safe height in machine coordinates first (if known) whenever X or Y
-    moves, asked or not; then X and Y; then Z down to its work zero, if asked: the
-    tool never crosses the work low. Never *down* to it: a tool already at or above it
-    (`z_now`, machine mm) crosses where it is, as a frame's and a tool change's do.
-    `safe_z` is mm; the line is in the board's units (`inches`: G20), which it leaves
-    as they are."""
+def rise_to(safe_z: float | None, z_now: float | None) -> float | None:
+    """The height (machine mm) to rise to before crossing: `safe_z`, unless none is known
+    or the tool is already at or above it, where it crosses as it is: Z never goes
+    *down* to cross (a go-to-zero, a frame; a tool change's own `max`)."""
+    if safe_z is None or (z_now is not None and z_now >= safe_z):
+        return None
+    return safe_z
+
+
+def goto_zero_lines(axes: list[str] | None, rise: float | None, *, inches: bool) -> list[str]:
+    """Z up to `rise` in machine coordinates first (`rise_to`: None, no rise) whenever X
+    or Y moves, asked or not; then X and Y; then Z down to its work zero, if asked: the
+    tool never crosses the work low. `rise` is mm; the line is in the board's units
+    (`inches`: G20), which it leaves as they are."""
     chosen = axes or ["x", "y", "z"]
     lines: list[str] = []
     flat = [a for a in chosen if a != "z"]
-    if flat and safe_z is not None and (z_now is None or z_now < safe_z):
-        height = safe_z / MM_PER_INCH if inches else safe_z
+    if flat and rise is not None:
+        height = rise / MM_PER_INCH if inches else rise
         lines.append(f"G53 G0 Z{short_number(height)}")
     if flat:
         lines.append(f"G90 G0 {axes_words(flat)}")
@@ -146,7 +151,7 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
         await _fresh_report(machine)
         here, _ = machine.positions_mm()
         inches = engine.model.units == "in"
-        for line in goto_zero_lines(axes, safe, z_now=here.get("z"), inches=inches):
+        for line in goto_zero_lines(axes, rise_to(safe, here.get("z")), inches=inches):
             await engine.send(line, timeout=ANSWER_WAIT)
         # A board answers a move as it queues it, and may report rest until its
         # planner starts: at rest *at zero* is the end (or a lockout, or an error).
@@ -380,8 +385,7 @@ async def frame(
         if top > safe_z:
             log.info("frame: above the safe height, at the program's top", z=top, safe_z=safe_z)
             safe_z = top
-    if safe_z is not None and z_now is not None and z_now >= safe_z:
-        safe_z = None  # already at or above it: Z never goes down
+    safe_z = rise_to(safe_z, z_now)
     model = machine.engine.model
     speed = await full_power(machine) * power / 100.0 if power > 0 else None
     lines = frame_lines(
