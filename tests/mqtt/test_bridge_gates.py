@@ -44,6 +44,14 @@ async def online(caller: Watcher) -> None:
     await caller.state("test/h1/online", lambda payload: payload == "online")
 
 
+async def ready_to_move(b: Bridged, caller: Watcher) -> None:
+    """Until the machine is idle and the bridge online: a command may move the board."""
+    rpc = await b.running.client()
+    await b.running.idle(rpc)
+    await rpc.close()
+    await online(caller)
+
+
 def moves(b: Bridged, marker: bytes) -> list[bytes]:
     """The lines the simulated board got that carry `marker`."""
     return [r.data for r in list(b.running.daemon.sims["sim1"].received) if marker in r.data]
@@ -120,10 +128,7 @@ async def test_a_request_id_run_is_refused_for_command_max_age_after_it_ran_even
         clocked(tmp_path, broker, now, "machine.send") as b,
         watching(broker, "test/h1/online") as caller,
     ):
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        await rpc.close()
-        await online(caller)
+        await ready_to_move(b, caller)
         move = {"line": "G0 X4.25"}
         first = await caller.request(SEND, move, b"first", request_id="retry", sent_at=now[0] - 4)
         assert "result" in first, first
@@ -146,10 +151,7 @@ async def test_a_request_id_of_none_or_over_128_characters_never_moves_the_machi
         bridged(tmp_path, broker, commands=True, allow=["machine.send"]) as b,
         watching(broker, "test/h1/online") as caller,
     ):
-        rpc = await b.running.client()
-        await b.running.idle(rpc)
-        await rpc.close()
-        await online(caller)
+        await ready_to_move(b, caller)
         move = {"line": "G0 X3.5"}
         for n, request_id in enumerate(("", "r" * 200, "r" * 200)):
             user = [("request_id", request_id), ("sent_at", f"{time.time():.3f}")]
