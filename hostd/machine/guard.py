@@ -16,10 +16,14 @@ dialect; this module is the policy, for one machine:
 
 from __future__ import annotations
 
+import contextlib
+
 import structlog
 
 from hostd.machine.machine import Machine
+from hostd.machine.rest import at_rest
 from hostd.protocol.commands import InvalidCommand, Refusal
+from hostd.protocol.errors import ControllerError
 from hostd.protocol.maintenance import Kind, Maintenance, absurd_jog
 from hostd.protocol.messages import Response
 
@@ -94,7 +98,11 @@ async def send_maintenance(machine: Machine, line: str, timeout: float) -> Respo
     log.warning("maintenance command", machine=machine.id, line=line, kind=found.kind.value)
     response = await machine.engine.send(line, timeout=timeout)
     if found.kind is Kind.STARTUP_BLOCK:
-        await machine.engine.send("$N", timeout=timeout)  # the reset guard reads them anew
+        # The reset guard reads them anew. grbl runs a block once as it stores it, and
+        # answers `$N` only at rest (gnea/grbl system.c:237; grblHAL system.c:726).
+        with contextlib.suppress(ControllerError):  # ended in a lockout: read there too
+            await at_rest(machine, timeout=timeout, what="the stored startup block")
+        await machine.engine.send("$N", timeout=timeout)
     return response
 
 

@@ -118,7 +118,8 @@ async def test_a_grbl_console_without_status_traffic_leaves_out_the_daemons_mode
     try:
         await rpc.call("subscribe", topics=["console"], machine=GRBL)
         await quiet.call("subscribe", topics=["console"], machine=GRBL, status_traffic=False)
-        await rpc.call("machine.send", machine=GRBL, line="G0 X1")  # then the daemon's `$G`
+        # No move: grbl answers `$I` only at rest (error:8 while one runs).
+        await rpc.call("machine.send", machine=GRBL, line="G21")  # then the daemon's `$G`
         await rpc.call("machine.send", machine=GRBL, line="$G")  # the operator's
         await rpc.call("machine.send", machine=GRBL, line="$I")  # where both are cut
         full = await _drained(rpc, until="[OPT:")
@@ -130,7 +131,7 @@ async def test_a_grbl_console_without_status_traffic_leaves_out_the_daemons_mode
     own = texts.index(("tx", "$G"))
     modes = next(i for i in range(own, len(texts)) if texts[i][1].startswith("[GC:"))
     answer = texts.index(("rx", "ok"), modes)
-    assert texts.index(("tx", "G0 X1")) < own  # the poll follows the line it is for
+    assert texts.index(("tx", "G21")) < own  # the poll follows the line it is for
 
     def status(i: int) -> bool:
         direction, text = texts[i]
@@ -140,4 +141,4 @@ async def test_a_grbl_console_without_status_traffic_leaves_out_the_daemons_mode
     assert kept == expected
     shown = [(n["direction"], n["text"]) for n in kept]
     assert ("tx", "$G") in shown and any(t.startswith("[GC:") for _, t in shown)
-    assert ("tx", "G0 X1") in shown
+    assert ("tx", "G21") in shown

@@ -50,9 +50,10 @@ async def test_machine_send_refuses_maintenance_commands(
 
 async def test_a_sane_jog_and_the_views_still_pass(both: tuple[Running, Rpc]) -> None:
     _, rpc = both
-    assert (await rpc.call("machine.send", machine=GRBL, line="$J=G91 X-5 F600"))["status"] == 0
+    # `$N` first: grbl answers it only at rest (error:8 while the jog runs).
     found = await rpc.call("machine.send", machine=GRBL, line="$N")
     assert found["r"]["lines"] == ["$N0=", "$N1="]
+    assert (await rpc.call("machine.send", machine=GRBL, line="$J=G91 X-5 F600"))["status"] == 0
     status = await rpc.call("machine.status", machine=GRBL)
     assert status["startup_blocks"] == []  # read at connect: none stored
 

@@ -63,10 +63,16 @@ def execute_line(board: GrblBoard, line: str) -> Error | None:
             board._emit(text)
         return Error.OK
     if cmd == "I":
+        # Only at rest: gnea/grbl system.c:172-175 (the IDLE/ALARM block, `$I` at :205);
+        # grblHAL core system.c:635 build_info (Idle, Alarm, EStop, Sleep, Check).
+        if not (idle or (board.hal and state == "Sleep")):
+            return Error.IDLE_ERROR
         for text in reports.build_info(board):
             board._emit(text)
         return Error.OK
     if cmd == "N":
+        if not idle:  # gnea/grbl system.c:237 (the IDLE/ALARM block); grblHAL :726
+            return Error.IDLE_ERROR
         for n, text in enumerate(board.startup_lines):
             board._emit(f"$N{n}={text}")  # report_startup_line
         return Error.OK

@@ -316,6 +316,28 @@ async def test_hold_and_resume(tmp_path: Path) -> None:
         assert sim.position["x"] == -3
 
 
+@pytest.mark.parametrize("flavour", ["grbl", "grblhal"])
+async def test_build_info_and_startup_lines_are_refused_while_moving(
+    tmp_path: Path, flavour: str
+) -> None:
+    """`$I` and `$N` only in Idle and Alarm: gnea/grbl system.c:172-175 (`$I` :205, `$N`
+    :237); grblHAL core system.c:635 and :726. `$G` any time."""
+    timed = GrblConfig(flavour=flavour, speed_factor=1.0, feedhold_decel=0.02)
+    async with Board(tmp_path, timed) as (sim, host):
+        host.send(b"G1 X-3 F600\n")  # classic grbl: after its reset's second banner
+        await host.until(lambda s: s == "ok")
+        await sim.wait_state("Run")
+        assert await host.ask(b"$I\n") == ["error:8"]
+        assert await host.ask(b"$N\n") == ["error:8"]
+        assert (await host.ask(b"$G\n"))[-1] == "ok"
+        host.send(b"!")
+        await sim.wait_state("Hold:0")
+        host.send(b"$I\n")  # held: read by no main-loop pass, and a reset empties it
+        host.send(b"\x18")
+        await host.until(lambda s: s.startswith(("Grbl ", "GrblHAL ")))
+        assert (await host.ask(b"$I\n"))[-1] == "ok"
+
+
 async def test_door_stops_then_resumes_when_closed(tmp_path: Path) -> None:
     async with Board(tmp_path, TIMED_HAL) as (sim, host):
         assert await host.ask(b"G1 X-3 F600\n") == ["ok"]
