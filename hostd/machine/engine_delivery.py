@@ -26,6 +26,7 @@ from hostd.link import Link
 from hostd.machine.engine_console import EngineConsole
 from hostd.machine.engine_state import LinkState
 from hostd.machine.events import (
+    BoardOccupied,
     ExceptionRaised,
     FaultDetected,
     ProbeReported,
@@ -38,6 +39,7 @@ from hostd.protocol.vocabulary import (
     Event,
     Excepted,
     Lane,
+    Occupied,
     Probed,
     Ready,
     Reported,
@@ -183,6 +185,11 @@ class EngineDelivery(EngineConsole):
             self._up(ExceptionRaised(self.id, event.fields))
         elif isinstance(event, Detected):
             self._up(FaultDetected(self.id, event.fault, event.value, event.message))
+        elif isinstance(event, Occupied):
+            # A connect waiting for the handshake learns why it waits, and the link stays
+            # open: the handshake goes on until the board is through (or stopped).
+            self._end_attempt(event.message)
+            self._up(BoardOccupied(self.id, event.board_state))
         elif isinstance(event, Probed):
             self._up(ProbeReported(self.id, event.report, event.probe))
         elif isinstance(event, Ready):

@@ -95,6 +95,17 @@ class FaultDetected:
 
 
 @dataclass(frozen=True, slots=True)
+class BoardOccupied:
+    """Found while connecting: the board runs or holds moves it was given before this
+    link, and the handshake waits for them (the session's `Occupied`; the operator
+    is told by its `ExceptionRaised`). Told to the Machine only (an `EngineEvent`):
+    after `ran_unwatched` it stops the board."""
+
+    machine: str
+    board_state: str
+
+
+@dataclass(frozen=True, slots=True)
 class FaultChanged:
     machine: str
     fault: dict[str, Any]
@@ -102,7 +113,13 @@ class FaultChanged:
 
 # What an engine tells its Machine (hostd/machine/engine.py `on_event`).
 EngineEvent = (
-    StatusChanged | ExceptionRaised | ProbeReported | Console | LinkChanged | FaultDetected
+    StatusChanged
+    | ExceptionRaised
+    | ProbeReported
+    | Console
+    | LinkChanged
+    | FaultDetected
+    | BoardOccupied
 )
 # What a Machine publishes to the hub's subscribers (the API, MQTT, systemd's status).
 Event = (

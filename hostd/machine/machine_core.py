@@ -20,6 +20,7 @@ import structlog
 from hostd.machine.config import MachineConfig
 from hostd.machine.engine import Engine
 from hostd.machine.events import (
+    BoardOccupied,
     EngineEvent,
     FaultChanged,
     FaultDetected,
@@ -123,6 +124,9 @@ class MachineCore:
                 self.faults.raise_(event.fault, value=event.value, message=event.message, now=now_)
             )
             return
+        if isinstance(event, BoardOccupied):
+            self._stop_unwatched()  # if it was left running: else the handshake waits
+            return
         self.hub.publish(event)
         if isinstance(event, LinkChanged):
             if event.up and self.supervisor.can(SupEvent.CONNECT):
@@ -172,7 +176,9 @@ class MachineCore:
         self._unwatched = (why, job)
 
     def _stop_unwatched(self) -> None:
-        """At a connect after `ran_unwatched`: a board still moving or holding moves (not
+        """At a connect after `ran_unwatched`, or sooner where the handshake waits on a
+        board busy with its moves (`BoardOccupied`: grbl reads no line until they end):
+        a board still moving or holding moves (not
         at rest, not in a lockout, which drained it), or standing with its spindle on,
         gets the dialect's job kill, as a cancel would (docs/operations.md, "When the
         daemon stops"). Nobody is watching those lines, and the job that sent them is

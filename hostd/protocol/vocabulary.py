@@ -113,6 +113,17 @@ class Ready:
 
 
 @dataclass(frozen=True, slots=True)
+class Occupied:
+    """Found while connecting: the board runs or holds moves it was given before this
+    link (a status report says so, and it has not answered the handshake's lines,
+    which wait behind them). The handshake waits for them, however long it takes;
+    `board_state` is the report's state as the board wrote it."""
+
+    board_state: str
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
 class Closing:
     """The session cannot go on over this link (a failed handshake, a reboot, silence).
 
@@ -133,7 +144,7 @@ class StreamEnded:
     result: StreamResult
 
 
-Event = Settled | Reported | Excepted | Probed | Detected | Ready | Closing | StreamEnded
+Event = Settled | Reported | Excepted | Probed | Detected | Ready | Occupied | Closing | StreamEnded
 
 
 class OwnLine:

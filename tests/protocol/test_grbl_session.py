@@ -80,9 +80,11 @@ class Grbl:
         self.session.open()
         if hal:  # grblHAL on native USB: no banner; `$I` says what it is
             self.at(self.now + BANNER_WAIT)
+            self.feed(report)  # the `?` asked with `$I`
             self.feed("[VER:1.1f.20240101:]", f"[OPT:{opt}]", "[FIRMWARE:grblHAL]", "ok")
         else:
             self.feed("", "Grbl 1.1h ['$' for help]")
+            self.feed(report)  # the `?` asked with `$I`
             self.feed("[VER:1.1h.20190830:]", f"[OPT:{opt}]", "ok")
         self.feed("$32=1", "$110=500.000", "$130=300.000", *settings, "ok")
         self.feed(f"$N0={startup[0]}", f"$N1={startup[1]}", "ok")
@@ -111,6 +113,8 @@ def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> Non
     assert grbl.pump() == []  # nothing before the banner (an Arduino is still booting)
     grbl.feed("Grbl 1.1h ['$' for help]")
     assert grbl.lines() == [b"$I\n"]
+    assert grbl.realtime() == [b"?"]  # a board busy with moves of before answers only it
+    grbl.feed(IDLE)
     grbl.feed("[VER:1.1h.20190830:]", "[OPT:V,15,128]", "ok")
     assert grbl.lines()[-1] == b"$$\n"
     grbl.feed("$32=1", "ok")
@@ -118,7 +122,8 @@ def test_the_handshake_reads_the_build_settings_and_modes_then_a_report() -> Non
     grbl.feed("$N0=G54", "$N1=", "ok")
     assert grbl.lines()[-1] == b"$G\n"
     grbl.feed("[GC:G0 G55 G17 G20 G91 G94 M5 M9 T2 F0 S0]", "ok")
-    assert grbl.realtime() == [b"?"]
+    assert grbl.realtime() == [b"?", b"?"]
+    assert Ready() not in grbl.events  # the first report came before `$I`'s answer
     grbl.feed("<Idle|WPos:1.000,2.000,0.000|FS:0,0|WCO:10.000,0.000,0.000>")
     assert grbl.events[-1] == Ready()
     model = grbl.session.model

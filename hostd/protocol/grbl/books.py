@@ -127,6 +127,9 @@ class GrblBooks(GrblWords, SessionBase):
         self._needs_reset: int | None = None  # a critical alarm: no line until a reset
         self._resync = False  # the handshake after a reset: only `$G` and a report
         self._asked_build = False  # the handshake asked `$I`
+        self._occupied: str | None = None  # the busy state the board was found in (Occupied)
+        self._build_refused = False  # a handshake line answered error:8: `$I` again at rest
+        self._stale_answers = 0  # `ok`s of before this link, dropped while connecting
         self._first_report = False  # the handshake waits for its first report
         self._banner_deadline: float | None = None
         self._handshake_deadline: float | None = None

@@ -51,6 +51,8 @@ ALARM_STATE: dict[int, MachineState] = dict.fromkeys(ALARMS, MachineState.ALARM)
 CRITICAL = frozenset({1, 2, 10, 17, 20})
 # Alarms after which the machine position is no longer known.
 POSITION_LOST = frozenset({1, 3, 6, 7, 8, 9, 10, 15, 18})
+# error:8: a `$` command refused because the board is not at rest (STATUS_IDLE_ERROR).
+IDLE_ERROR = 8
 
 ERRORS: dict[int, str] = {
     1: "G-code words consist of a letter and a value. Letter was not found.",

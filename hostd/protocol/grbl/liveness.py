@@ -1,8 +1,9 @@
 """GrblSession's clock: the status polls, the heartbeat and the link's liveness.
 
 A layer of `GrblSession` (session.py). grbl pushes no status: `tick` asks `?`
-every `status_interval`, asks again a `?` unanswered within `heartbeat`, ends
-a handshake that took too long, and gives the link up only after
+every `status_interval` (and while a board found busy holds the handshake
+back), asks again a `?` unanswered within `heartbeat`, ends a handshake that
+took too long, and gives the link up only after
 `link_silence` seconds without a byte and SILENT_QUERIES unanswered `?`s
 (`_lost_at`); more while a line writes EEPROM or flash (STORAGE_QUIET) or the
 board homes (`_silence_allowed`). `next_deadline` says when `tick` is next
@@ -57,6 +58,8 @@ class GrblLiveness(GrblConnection):
         for d in (self._banner_deadline, self._handshake_deadline, self._stopping):
             if d is not None and (deadline is None or d < deadline):
                 deadline = d
+        if self._occupied is not None and (deadline is None or self._next_poll < deadline):
+            deadline = self._next_poll  # the polls of a board found busy (`_connecting_report`)
         if self.phase is Phase.READY:
             asked = self._asked_at
             poll = self._next_poll if asked is None else asked + self.heartbeat
@@ -81,6 +84,8 @@ class GrblLiveness(GrblConnection):
         if self._stopping is not None and now >= self._stopping:
             self._stop_reset(timed_out=True)
         if self.phase is not Phase.READY:
+            if self._occupied is not None and now >= self._next_poll:
+                self._ask_report()
             return
         lost = self._lost_at()
         if lost is not None and now >= lost:

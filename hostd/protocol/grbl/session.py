@@ -71,6 +71,7 @@ from hostd.protocol.grbl.books import _REFUSED_BY_ALARM, _Own
 from hostd.protocol.grbl.codes import (
     ALARM_STATE,
     CRITICAL,
+    IDLE_ERROR,
     LOCKOUT_ERRORS,
     POSITION_LOST,
     alarm_text,
@@ -83,6 +84,9 @@ from hostd.protocol.messages import Response
 from hostd.protocol.states import MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Excepted, Phase, Probed, Reported, StreamEnd
+
+# What each of the handshake's lines prints before its `ok` (`_stale`).
+_PRINTOUT = {_Own.BUILD: "[VER:", _Own.SETTINGS: "$", _Own.STARTUP: "$N", _Own.MODES: "[GC:"}
 
 # s between `?`s once a job's every line is answered and its end waits for a report of
 # the board at rest: grbl pushes no report when its planner runs dry, so at the poll's
@@ -124,6 +128,8 @@ class GrblSession(GrblLiveness):
         self._lines_in += 1
 
     def _answered(self, msg: codec.Ok | codec.Error) -> None:
+        if self.phase is Phase.HANDSHAKE and self._stale(msg):
+            return
         if not self._inflight:
             self._job_log().warning("answer with no line waiting", answer=msg)
             self._detected("lexical", None, f"an answer with no line waiting: {msg!r}")
@@ -161,6 +167,27 @@ class GrblSession(GrblLiveness):
             self._settle(source, response)
             if status == 0 and entry.line[:1] != b"$":
                 self._modes_changed()
+
+    def _stale(self, msg: codec.Ok | codec.Error) -> bool:
+        """An answer read while connecting that answers a line of before this link: the
+        board went on answering the lines it held (a job's, after a lost link or a
+        dead daemon), and the port kept what it printed. The handshake's own lines
+        each print before their `ok` (`$I` its `[VER:]`, `$$` and `$N` their `$`
+        lines, `$G` its `[GC:]`), so an `ok` without that printout is not theirs:
+        taken as `$I`'s, it would make the board's build and settings unknown. An
+        `error:` likewise, but error:8, the refusal of a busy board
+        (`_own_answered`)."""
+        if isinstance(msg, codec.Error) and msg.code == IDLE_ERROR:
+            return False
+        if self._inflight:
+            printout = _PRINTOUT.get(self._inflight[0].source)
+            if printout is None or any(said.startswith(printout) for said in self._said):
+                return False
+        self._said = []
+        self._stale_answers += 1
+        if self._stale_answers == 1:
+            self._job_log().info("answers from before this link are dropped")
+        return True
 
     def _modes_changed(self) -> None:
         """A client's G-code line ran, or a job completed: `$G`, since grbl reports its
@@ -257,6 +284,8 @@ class GrblSession(GrblLiveness):
                 self._poll_soon(END_POLL)  # (not while held: a resume asks for itself)
         if self._first_report:
             self._ready()
+        elif self.phase is Phase.HANDSHAKE:
+            self._connecting_report(report)
 
     def _track_executed(self, fields: dict[str, Any]) -> None:
         """Which file line runs: `Ln:`, else what the planner can still hold.
@@ -324,7 +353,10 @@ class GrblSession(GrblLiveness):
     def _on_welcome(self, welcome: codec.Welcome) -> None:
         self.flavour, self.version = welcome.flavour, welcome.version
         if self.phase is Phase.HANDSHAKE and not self._resync:
-            self._ask_build()
+            if self._resetting:  # ours, before the handshake was through: it forgot `$I`
+                self._restart_handshake()
+            else:
+                self._ask_build()
             return
         # A reset: ours (a cancel, machine.reset) or the board's own. It forgot every line.
         ours = self._resetting

@@ -22,7 +22,7 @@ from hostd.protocol.grbl.books import _REFUSED_BY_SHUTDOWN
 from hostd.protocol.grbl.overrides import GrblOverrides
 from hostd.protocol.maintenance import startup_blocks
 from hostd.protocol.states import MachineState
-from hostd.protocol.vocabulary import Context, Excepted, Lane, Queued, StreamEnd
+from hostd.protocol.vocabulary import Context, Excepted, Lane, Phase, Queued, StreamEnd
 
 STOP_TIMEOUT = 2.0  # s for a feedhold to bring motion to rest before the reset goes anyway
 
@@ -70,19 +70,31 @@ class GrblStops(GrblOverrides):
         """The reset that ends a stop (a cancel, a failed job, a fault) once motion rests.
 
         Not while a startup block would move the machine (or start its spindle) at
-        the reset, unless the config allows it: the board stays in its feedhold,
-        nothing more is written (`flushing`), and the operator decides, with
-        machine.reset, which runs the block.
+        the reset, or may (unread, stopped while connecting), unless the config
+        allows it: the board stays in its feedhold, nothing more is written
+        (`flushing`), and the operator decides, with machine.reset, which runs the
+        block.
         """
         moving = [b for b in self.model.startup_blocks or () if b["acts"]]
-        if moving and not self.startup_motion:
+        # Stopped while connecting (`_connecting_report`): `$N` waits behind the moves.
+        unread = self.model.startup_blocks is None and self.phase is Phase.HANDSHAKE
+        if (moving or unread) and not self.startup_motion:
             self._stopping = None
             blocks = "; ".join(f"$N{b['n']}={b['line']} {b['acts']}" for b in moving)
+            if moving:
+                why = f"the startup block {blocks} at every reset; machine.reset runs it"
+            else:
+                why = (
+                    "its startup blocks are not read yet, and may act at a reset; "
+                    "machine.reset empties it and runs them"
+                )
             self._held = (
-                f"{self.id} is held instead of reset: the startup block {blocks} at every "
-                "reset; machine.reset runs it, or allow it with startup_motion = true"
+                f"{self.id} is held instead of reset: {why}, or allow it with startup_motion = true"
             )
-            self._job_log().warning("stop held: a startup block would act", blocks=blocks)
+            self._job_log().warning(
+                "stop held: a startup block would act" if moving else "stop held: blocks unread",
+                blocks=blocks,
+            )
             report = {"msg": self._held, "startup_blocks": moving}
             self.model.last_exception = report
             self._events.append(Excepted(report))
