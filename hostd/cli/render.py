@@ -127,6 +127,7 @@ _CLI_WORDS = {
     "machine.home": "hostd home",
     "machine.reset": "hostd reset",
     "machine.cycle_start": "hostd resume",
+    "machine.feedhold": "hostd hold",
 }
 _API_METHOD = re.compile(r"machine\.\w+")
 
@@ -140,6 +141,15 @@ def lockout(snapshot: dict[str, Any]) -> str:
     clear = _API_METHOD.sub(lambda m: _CLI_WORDS.get(m[0], m[0]), str(lock.get("clear") or ""))
     text = state if message.lower() in ("", state.lower()) else f"{state}: {message}"
     return f"{text} (to end it: {clear})" if clear else text
+
+
+def _occupied(snapshot: dict[str, Any]) -> list[tuple[str, str]]:
+    """A row while the link waits on a board busy with moves of before (docs/api.md)."""
+    busy = snapshot.get("occupied")
+    if not isinstance(busy, dict):
+        return []
+    message = _API_METHOD.sub(lambda m: _CLI_WORDS.get(m[0], m[0]), str(busy.get("message")))
+    return [("connecting", message)]
 
 
 def _tool_change(snapshot: dict[str, Any]) -> list[tuple[str, str]]:
@@ -287,6 +297,7 @@ def snapshot(console: Console, snap: dict[str, Any]) -> None:
         [
             ("machine", f"{snap.get('id')} ({snap.get('dialect')})"),
             ("supervisor", str(snap.get("supervisor"))),
+            *_occupied(snap),
             ("state", state_name(snap) + code),
             ("lockout", lockout(snap)),
             ("position", position(snap.get("position"), work_units(snap))),

@@ -288,6 +288,7 @@ class Machine(MachineOperations):
             supervisor=self.supervisor.state.value,
             indicator=self.faults.indicator().value,
             lockout=self.engine.session.lockout(),
+            occupied=self.engine.session.occupied(),
             faults=[f.to_json() for f in self.faults.active()],
             job=self.jobs.current_json(),
             tool_change=self.tools.snapshot(),

@@ -283,6 +283,12 @@ class SessionBase(Words):
         """0x18: the board restarts; so do the session's books."""
         raise NotImplementedError
 
+    def occupied(self) -> dict[str, str] | None:
+        """While connecting: the board was found busy with moves it was given before
+        this link, and the handshake waits for them (`{"state", "message"}`); None
+        otherwise. A dialect whose handshake passes while its board runs never is."""
+        return None
+
     def lockout(self) -> dict[str, str] | None:
         """The lockout the board is in, in words an operator acts on; None outside one.
 

@@ -137,6 +137,32 @@ def test_a_machine_in_a_lockout_says_it_and_how_to_end_it_in_commands() -> None:
     assert render.indicator({"indicator": "alert", "lockout": None}) == "alert"
 
 
+def test_a_machine_connecting_to_a_busy_board_says_so_in_commands() -> None:
+    """`hostd status` while the link waits on a board busy with moves of before: a
+    `connecting` row with what the board does and the commands that end it."""
+    console, buffer = plain()
+    console.width = 300
+    message = (
+        "hal is Hold, busy with moves it was given before this connection: hostd "
+        "connects once they end. machine.feedhold holds it; machine.reset empties it"
+    )
+    snap = {
+        "id": "hal",
+        "dialect": "grbl",
+        "supervisor": "disconnected",
+        "state": {"code": 6, "name": "HOLD"},
+        "occupied": {"state": "Hold", "message": message},
+    }
+    render.snapshot(console, snap)
+    fields = dict(line.split(None, 1) for line in buffer.getvalue().splitlines())
+    assert fields["connecting"] == message.replace("machine.feedhold", "hostd hold").replace(
+        "machine.reset", "hostd reset"
+    )
+    console, buffer = plain()
+    render.snapshot(console, {**snap, "occupied": None})
+    assert "connecting" not in buffer.getvalue()
+
+
 def test_a_machine_waiting_for_a_tool_change_says_which_tool_and_how_to_go_on() -> None:
     console, buffer = plain()
     console.width = 200

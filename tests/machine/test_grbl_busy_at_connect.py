@@ -94,10 +94,13 @@ async def test_without_startup_motion_it_is_held_until_the_operator_resets_it(
             await engine.wait_for(lambda: engine.model.board_state == "Hold:0")
         assert bench.board.state == "Hold:0"
         assert bench.machine.supervisor.state is Sup.DISCONNECTED
+        occupied = bench.machine.snapshot()["occupied"]  # what the dashboard shows
+        assert occupied["state"] == "Hold" and "held instead of reset" in occupied["message"]
         await bench.machine.reset()  # the operator's: the board drops what it held
         await bench.supervisor(Sup.IDLE)
         assert bench.board.state == "Idle"
         assert bench.board.position["x"] < END_X - 10
+        assert bench.machine.snapshot()["occupied"] is None
 
 
 async def test_moves_no_operation_of_ours_sent_are_left_to_end_and_it_connects_then(

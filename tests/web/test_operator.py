@@ -5,6 +5,7 @@ without status polls, and the page at 1280 and 390 px."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,7 @@ import pytest
 
 from hostd import daemon
 from tests.daemon.conftest import Rpc, RpcFailure
+from tests.sim.grbl.conftest import GrblHost
 from tests.web.conftest import Web, log_in, running_web, screenshot
 
 pytestmark = pytest.mark.asyncio(loop_scope="session")  # `browser` (conftest)
@@ -711,3 +713,50 @@ async def test_a_status_poll_typed_while_status_reports_are_off_shows_its_answer
         ), lines
         assert not [line for line in lines if line.startswith('← {"status"')], lines
         assert not [line for line in lines if line.startswith(('→ {"sr"', '← {"r":{"sr"'))]
+
+
+async def test_a_grbl_board_found_holding_moves_shows_amber_with_reset_as_the_way_out(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """A board another sender left holding moves (here: written to its port while hostd
+    let go of it) reads no handshake line: the page says why it is still connecting,
+    with Hold and Reset usable, and Reset ends it (docs/dialects.md, "A board busy at
+    connect")."""
+    async with running_web(tmp_path, machine=GRBL) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await web.hostd.idle(rpc)
+        await rpc.call("machine.disconnect", machine="sim1")
+        sim.flash(replace(sim.config, reset_on_open=False))  # native USB: an open resets none
+        other = GrblHost(sim.path)
+        try:
+            other.send(b"G1 X150 F100\n")
+            await sim.wait_state("Run")
+            other.send(b"!")
+            await sim.wait_state("Hold:0")
+        finally:
+            other.close()
+        with pytest.raises(RpcFailure, match="busy with moves it was given before"):
+            await rpc.call("machine.connect", machine="sim1")
+        await expect(page.locator("#indicator-text")).to_have_text("connecting: Hold")
+        await expect(page.locator("#indicator")).to_have_attribute("data-level", "warning")
+        await expect(page.locator("#lockout-message")).to_contain_text(
+            "sim1 is Hold, busy with moves it was given before this connection"
+        )
+        await expect(page.locator("#lockout-message")).to_contain_text("Reset empties it")
+        await expect(page.locator("#supervisor")).to_have_text("disconnected")
+        await expect(page.locator("[data-action=reset]")).to_be_enabled()
+        await expect(page.locator("[data-action=reset]")).to_have_class("danger needed")
+        await expect(page.locator("[data-action=hold]")).to_be_enabled()
+        await expect(page.locator("#home")).to_be_disabled()
+        await expect(page.locator("[data-action=resume]")).to_be_disabled()
+        await screenshot(page, tmp_path, "busy-at-connect")
+        await page.click("[data-action=reset]")
+        await page.click("#confirm-yes")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await expect(page.locator("#lockout")).to_be_hidden()
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        assert sim.position["x"] < 150  # the held move was dropped, not run
+        await rpc.close()

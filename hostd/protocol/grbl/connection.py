@@ -133,6 +133,13 @@ class GrblConnection(GrblStops):
         self._events.append(Excepted(told))
         self._events.append(Occupied(state, message))
 
+    def occupied(self) -> dict[str, str] | None:
+        state = self._occupied
+        if state is None:
+            return None
+        exception = self.model.last_exception or {}
+        return {"state": state, "message": str(exception.get("msg") or state)}
+
     def _restart_handshake(self) -> None:
         """Our reset before the handshake was through: the board emptied its input, the
         `$I` with it (gnea/grbl main.c: serial_reset_read_buffer). Ask anew."""

@@ -127,6 +127,9 @@ const LOCKOUTS = ["ALARM", "SHUTDOWN", "PANIC"];
 
 function needs(snap) {
   const connected = Boolean(snap) && snap.supervisor !== "disconnected";
+  // Still connecting, the board found busy with moves of before: its realtime bytes go
+  // (hold, reset), nothing else until the handshake is through (docs/web.md).
+  const reachable = connected || Boolean(snap && snap.occupied);
   const lockout = connected ? snap.lockout : null;
   const locked = Boolean(lockout && LOCKOUTS.includes(lockout.state));
   const idle = connected && snap.supervisor === "idle" && !lockout;
@@ -143,8 +146,8 @@ function needs(snap) {
   const move = !connected ? notConnected : lockout ? lockedText : why(idle, busy);
   return {
     connected: why(connected, notConnected),
-    hold: why(connected, notConnected),
-    reset: why(connected, notConnected),
+    hold: why(reachable, notConnected),
+    reset: why(reachable, notConnected),
     move,
     // Home is a move, but the daemon also takes it in a lockout whose first way out names
     // machine.home (grbl's `$H` in ALARM, where its `$22` homes; never g2core's G28.2,
@@ -188,7 +191,7 @@ function updateEnabled() {
 
 // --- drawing the machine ------------------------------------------------------------
 
-const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume", home: "Home" };
+const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume", home: "Home", feedhold: "Hold" };
 
 function lockoutExit(lockout) {
   return lockout.clear.replace(/machine\.(\w+)/g, (_, m) => EXITS[m] || m);
@@ -203,7 +206,7 @@ function showSnapshot(snap) {
   $("tool").textContent = typeof snap.tool === "number" ? `T${snap.tool}` : "–";
   const spindle = snap.spindle;
   $("spindle").textContent = spindle
-    ? `${spindle.state}${typeof spindle.speed === "number" ? ` · S${fmt(spindle.speed, 0)}` : ""}`
+    ? `${spindle.state ?? "–"}${typeof spindle.speed === "number" ? ` · S${fmt(spindle.speed, 0)}` : ""}`
     : "–";
   $("feed").textContent = fmt(snap.feed, 0);
   $("velocity").textContent = fmt(snap.velocity, 0);
@@ -227,15 +230,21 @@ function showSnapshot(snap) {
   // A controller lockout (ALARM, SHUTDOWN, PANIC, INTERLOCK) outranks the fault table: the
   // light goes red, and says why and what ends it.
   const lockout = snap.lockout;
-  const level = lockout ? "alert" : snap.indicator || "normal";
+  // The link waits on a board busy with moves it was given before (a daemon that died
+  // mid-job): amber, what the board does, and what ends it.
+  const occupied = !lockout && snap.supervisor === "disconnected" ? snap.occupied : null;
+  const level = lockout ? "alert" : occupied ? "warning" : snap.indicator || "normal";
   $("indicator").dataset.level = level;
-  $("indicator-text").textContent = lockout ? lockout.state : level;
-  $("lockout").hidden = !lockout;
-  $("lockout-message").textContent = lockout ? lockout.message : "";
-  $("lockout-clear").textContent = lockout ? `To end it: ${lockoutExit(lockout)}` : "";
+  $("indicator-text").textContent = lockout ? lockout.state : occupied ? `connecting: ${occupied.state}` : level;
+  $("lockout").hidden = !(lockout || occupied);
+  $("lockout").classList.toggle("waiting", Boolean(occupied));
+  $("lockout-message").textContent = lockout ? lockout.message : occupied ? lockoutExit({ clear: occupied.message }) : "";
+  $("lockout-clear").textContent = lockout ? `To end it: ${lockoutExit(lockout)}`
+    : occupied ? "To end it: Reset (the board drops those moves), or wait for them to end" : "";
   for (const action of ["clear", "reset"]) {
     const button = document.querySelector(`[data-action=${action}]`);
-    if (button) button.classList.toggle("needed", Boolean(lockout && lockout.clear.includes(`machine.${action}`)));
+    const needed = lockout ? lockout.clear.includes(`machine.${action}`) : Boolean(occupied) && action === "reset";
+    if (button) button.classList.toggle("needed", needed);
   }
   const faults = $("faults");
   faults.replaceChildren(...(snap.faults || []).map((fault) => {
