@@ -38,6 +38,9 @@ class Start:
     # The file as it was before the checks read it: the job streams this version or
     # nothing (`start_make`'s `version`; jobfile.py).
     version: Version
+    # That version's SHA-256, if the travel check hashed it: the job's row keeps it, and
+    # a start on a homed machine need not read the file a second time for it.
+    sha256: str | None = None
 
 
 async def prepare_start(
@@ -93,12 +96,14 @@ async def prepare_start(
         counted = found.lines
     limits = await machine.known_limits() if not force or start_line > 1 else None
     offset = work_offset(machine)
+    digest = None
     if not force and limits is not None and limits.travel and offset:
         # Only a check that can run is worth reading the file for: the travel
         # is known and so is the work offset (the machine is homed).
         check = await analyze_file(
             path, machine.config.spec, limits, offset, pool=pool, version=version
         )
+        digest = check.sha256
         if check.beyond:
             raise OutOfTravel(
                 f"{path.name} leaves {machine.id}'s travel: " + "; ".join(check.beyond),
@@ -107,4 +112,4 @@ async def prepare_start(
     preamble = None
     if start_line > 1 and restore:
         preamble = (await plan_with(machine, path, start_line, limits, pool, version)).lines
-    return Start(preamble, counted, version)
+    return Start(preamble, counted, version, digest)

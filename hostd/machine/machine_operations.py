@@ -41,6 +41,7 @@ class MachineOperations(MachineCore):
         *,
         counted: int | None = None,
         version: Version | None = None,
+        sha256: str | None = None,
     ) -> Job:
         """Stream a file of the jobs directory (its name is checked by the API layer).
 
@@ -50,13 +51,13 @@ class MachineOperations(MachineCore):
         the file's sendable lines from `start_line`, if the job's check just counted
         them on a worker (jobstart.prepare_start); else they are counted here.
         `version`: the file's version those checks read; another is not streamed
-        (FileChanged, jobfile.py).
+        (FileChanged, jobfile.py). `sha256`: that version's, if a check hashed it.
         """
         path = self.jobs_dir / file
         # NoSuchFile unless a regular file; FileChanged unless `version`, when given.
         handle = await asyncio.to_thread(open_text, path, version)
         try:
-            sha256, total = await asyncio.to_thread(_survey, handle, start_line, counted)
+            digest, total = await asyncio.to_thread(_survey, handle, start_line, counted, sha256)
         except BaseException:
             handle.close()
             raise
@@ -70,7 +71,7 @@ class MachineOperations(MachineCore):
                 handle,
                 start_line=start_line if start_line > 1 or preamble else None,
                 preamble=preamble,
-                file_sha256=sha256,
+                file_sha256=digest,
             )
         except BaseException:
             handle.close()
@@ -225,13 +226,18 @@ class MachineOperations(MachineCore):
         self._settle()
 
 
-def _survey(handle: TextIO, start_line: int, counted: int | None) -> tuple[str, int]:
+def _survey(
+    handle: TextIO, start_line: int, counted: int | None, known: str | None
+) -> tuple[str, int]:
     """The SHA-256 of the file open in `handle` (the row keeps it: a resume of the job
-    must find these bytes) and its sendable lines from `start_line` (`counted` if the
-    check counted them), read from the one open file the job streams, which is left at
-    its start again: whatever the name is now."""
-    digest = sha256(handle.buffer)
-    handle.seek(0)
+    must find these bytes; `known` if a check hashed the same version) and its sendable
+    lines from `start_line` (`counted` if the check counted them), read from the one
+    open file the job streams, which is left at its start again: whatever the name is
+    now."""
+    digest = known
+    if digest is None:
+        digest = sha256(handle.buffer)
+        handle.seek(0)
     if counted is not None:
         return digest, counted
     count = sum(map(len, program_blocks(handle, start_line)))  # a block at a time, not a line

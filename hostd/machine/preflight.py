@@ -85,6 +85,7 @@ class Preflight:
     # `beyond` for the program's X and Y only: where its frame (`machine.frame`, the XY
     # box, Z never lowered) would leave the travel
     frame_beyond: list[str] = field(default_factory=list)
+    sha256: str | None = None  # the bytes analysed (the version read): a job keeps it
 
     def to_json(self) -> dict[str, Any]:
         """file.analyze's answer: api.md's keys (`duration_s`, `warnings` as text) and ours.
@@ -201,7 +202,8 @@ async def analyze_file(
 
     velocity = tuple(sorted(limits.velocity.items())) if limits else ()
     acceleration = tuple(sorted(limits.acceleration.items())) if limits else ()
-    key = (path, await asyncio.to_thread(digest), dialect.name, velocity, acceleration)
+    file_sha256 = await asyncio.to_thread(digest)
+    key = (path, file_sha256, dialect.name, velocity, acceleration)
     analysis = _analyses.get(key)
     if analysis is None:
         try:
@@ -229,7 +231,9 @@ async def analyze_file(
         beyond = beyond_travel(bounds, offset, limits.travel, lines)
         box = {axis: bounds[axis] for axis in FRAMED if axis in bounds}
         frame_beyond = beyond_travel(box, offset, limits.travel, lines)
-    return Preflight(analysis, limits, beyond, checked, frame_beyond=frame_beyond)
+    return Preflight(
+        analysis, limits, beyond, checked, frame_beyond=frame_beyond, sha256=file_sha256
+    )
 
 
 async def check_file(

@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from hostd.machine import jobfile, machine_operations, preflight
 from hostd.protocol.states import MachineState
 from hostd.sim import SimController
 from tests.daemon.conftest import G2, GRBL, Rpc, Running, running_daemon
@@ -432,3 +434,29 @@ async def test_file_analyze_finds_a_line_grbl_cannot_take_once_numbered(tmp_path
             assert refused.data["problems"] == found["problems"]
         finally:
             await rpc.close()
+
+
+async def test_a_homed_start_reads_the_files_hash_once_and_the_row_keeps_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a homed machine the travel check hashes the file (its analysis is kept by its
+    bytes); the job keeps that hash in its row rather than reading the file again for
+    it. A large file is read once less at every start."""
+    hashed: list[str] = []
+
+    def counting(file: Any) -> str:
+        hashed.append(digest := jobfile.sha256(file))
+        return digest
+
+    monkeypatch.setattr(preflight, "sha256", counting)
+    monkeypatch.setattr(machine_operations, "sha256", counting)
+    async with _daemon(tmp_path) as (hostd, rpc):
+        assert await rpc.call("machine.home", machine=G2) == {}
+        program = "G21 G90\n" + "".join(f"G1 X{i % 50} Y{i % 40} F900\n" for i in range(300))
+        (hostd.jobs / "part.nc").write_text(program)
+        await rpc.call("subscribe", topics=["job"], machine=G2)
+        job_id = (await rpc.call("job.start", machine=G2, file="part.nc"))["job"]
+        await rpc.call("job.cancel", machine=G2)
+        row = await rpc.call("job.get", job=job_id)
+        assert row["file_sha256"] == hashlib.sha256(program.encode()).hexdigest()
+        assert hashed == [row["file_sha256"]]  # once: the check's, kept by the row

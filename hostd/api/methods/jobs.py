@@ -71,7 +71,12 @@ class JobMethods:
             notes=warnings,
         )
         job = await machine.start_make(
-            p.file, p.start_line, start.preamble, counted=start.lines, version=start.version
+            p.file,
+            p.start_line,
+            start.preamble,
+            counted=start.lines,
+            version=start.version,
+            sha256=start.sha256,
         )
         answer: dict[str, Any] = {"job": job.id, "preamble": start.preamble}
         if warnings:  # what the job does that the file does not say (M6s ignored)
