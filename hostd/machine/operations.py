@@ -60,9 +60,27 @@ async def _operation(machine: Machine) -> AsyncIterator[None]:
         raise Busy(f"{machine.id} is {state.value}: wait until it is idle")
     _running.add(machine.id)
     try:
+        await modes_known(machine)
         yield
     finally:
         _running.discard(machine.id)
+
+
+async def modes_known(machine: Machine) -> None:
+    """Until the modes the model shows are the board's: a poll of them in flight is
+    answered first (grbl's `$G` after a client's line, `modes_pending`; the machine is
+    idle meanwhile, since a query keeps it quiet). A jog's bound, a go-to-zero's lift
+    and a frame's lines are written in the units and distance mode in force: a `G20`
+    not read yet would have inches taken for millimetres."""
+    engine = machine.engine
+    session = engine.session
+    if not session.modes_pending():
+        return
+    try:
+        async with asyncio.timeout(ANSWER_WAIT):
+            await engine.wait_for(lambda: not session.modes_pending())
+    except TimeoutError:
+        raise ControllerTimeout(f"{machine.id}: its modes were not answered") from None
 
 
 async def home(machine: Machine, axes: list[str] | None) -> None:
@@ -146,8 +164,8 @@ async def goto_zero(machine: Machine, axes: list[str] | None) -> None:
     async with _operation(machine):
         safe = machine.config.safe_z  # the board's Z travel is not read here (a query)
         # Where Z is and the board's units, as they are now: a `G20` answered a moment
-        # ago shows in g2core's next report (grbl's `$G` after it is answered before the
-        # machine is idle again, which this operation waits for).
+        # ago shows in g2core's next report, and in grbl's `$G` after it, which
+        # `_operation` waited for (`modes_known`).
         await _fresh_report(machine)
         here, _ = machine.positions_mm()
         inches = engine.model.units == "in"
@@ -376,6 +394,7 @@ async def frame(
             f"{machine.id} is not a laser and its safe height is unknown: set safe_z"
             + ("" if homed else ", or home it (the Z travel's top means nothing before)"),
         )
+    await modes_known(machine)  # its lines are written in the units and distance in force
     here, work = machine.positions_mm()
     z_now, z_work = here.get("z"), work.get("z")
     if safe_z is not None and "z" in bounds and z_now is not None and z_work is not None:

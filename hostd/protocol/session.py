@@ -283,6 +283,12 @@ class SessionBase(Words):
         """0x18: the board restarts; so do the session's books."""
         raise NotImplementedError
 
+    def modes_pending(self) -> bool:
+        """A poll of the board's modes is in flight whose answer the model will take (grbl's
+        `$G` after a client's line: its units and distance mode are reported nowhere
+        else). False where the reports carry them."""
+        return False
+
     def occupied(self) -> dict[str, str] | None:
         """While connecting: the board was found busy with moves it was given before
         this link, and the handshake waits for them (`{"state", "message"}`); None

@@ -164,6 +164,7 @@ class MachineMethods:
         machine = self.api.machine(p.machine)
 
         with refused():
+            await operations.modes_known(machine)  # an absurd `$J=` is judged in the units in force
             check_send(machine, p.line)  # maintenance commands: machine.maintenance only
             response = await machine.send(p.line, timeout=p.timeout)
         return {"status": response.status, "r": response.body}
@@ -211,6 +212,7 @@ class MachineMethods:
         machine = self.api.machine(p.machine)
 
         with refused():
+            await operations.modes_known(machine)  # its bound is checked in the units in force
             check_jog(machine, p.axes)
         job = await machine.jog(p.axes, p.feed)
         return {"job": job.id}

@@ -51,6 +51,10 @@ class GrblLiveness(GrblConnection):
             and (line == b"ok" or line.startswith(b"[GC:"))
         )
 
+    def modes_pending(self) -> bool:
+        """The session's own `$G` (`_modes_changed`) is not answered yet."""
+        return any(e.source is _Own.MODES for e in self._inflight)
+
     def next_deadline(self) -> float | None:
         if self._closing_reason is not None:
             return None
