@@ -1,7 +1,8 @@
 """`python -m hostd.sim --data PATH [--control PATH]`: run a simulated board until stopped.
 
 For tests and demos that need the board in another process. It prints the
-port paths once they exist, then runs until SIGINT or SIGTERM.
+port paths once they exist, then runs until SIGINT or SIGTERM. A g2core by
+default; `--grbl grbl` or `--grbl grblhal` a grbl board (one port).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import structlog
 
 from hostd.sim.config import SimConfig
 from hostd.sim.controller import SimController
+from hostd.sim.grbl import GrblConfig, GrblSimController
 
 
 def _parse(argv: list[str] | None) -> argparse.Namespace:
@@ -33,15 +35,37 @@ def _parse(argv: list[str] | None) -> argparse.Namespace:
         help="firmware build to be (100.26, 101.03, 101.06...): kills, flushes, alarms "
         "and holds follow that build (docs/protocol.md, Firmware builds)",
     )
-    return parser.parse_args(argv)
+    parser.add_argument(
+        "--grbl",
+        choices=("grbl", "grblhal"),
+        help="a grbl board of this flavour instead of a g2core (one port: no --control)",
+    )
+    parser.add_argument(
+        "--laser", action="store_true", help="grbl: laser mode on ($32=1) at power-up"
+    )
+    args = parser.parse_args(argv)
+    if args.grbl and args.control:
+        parser.error("a grbl board has one port: --control is g2core's")
+    return args
 
 
 async def _serve(args: argparse.Namespace) -> None:
-    config = SimConfig(speed_factor=args.speed_factor, instant=args.instant, fb=args.fb)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    if args.grbl:
+        board = GrblConfig(
+            flavour=args.grbl,
+            speed_factor=args.speed_factor,
+            instant=args.instant,
+            laser_mode=args.laser,
+        )
+        async with GrblSimController(args.data, board) as grbl:
+            print(f"data {grbl.path}", flush=True)
+            await stop.wait()
+        return
+    config = SimConfig(speed_factor=args.speed_factor, instant=args.instant, fb=args.fb)
     async with SimController(args.data, control_path=args.control, config=config) as sim:
         print(f"data {sim.data_path}", flush=True)
         if sim.control_path is not None:

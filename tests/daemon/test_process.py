@@ -531,9 +531,10 @@ async def test_the_daemon_on_asyncios_own_loop_runs_a_job_pauses_and_stops_clean
 
 
 @contextlib.asynccontextmanager
-async def board_process(path: Path) -> AsyncIterator[None]:
+async def board_process(path: Path, *board: str) -> AsyncIterator[None]:
     """A simulated g2core in a process of its own (`python -m hostd.sim`), as a real board
-    outlives the daemon: its port at `path`, its moves at twice real speed."""
+    outlives the daemon: its port at `path`, its moves at twice real speed. `board`:
+    more of its options (`--grbl grblhal`: a grblHAL board instead)."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
@@ -542,6 +543,7 @@ async def board_process(path: Path) -> AsyncIterator[None]:
         str(path),
         "--speed-factor",
         "2",
+        *board,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.DEVNULL,
     )
@@ -590,6 +592,51 @@ async def test_after_a_sigkill_mid_job_the_restart_stops_the_board_still_running
                     status = (await rpc.notification(lambda n: n["method"] == "status"))["params"][
                         "snapshot"
                     ]
+            process.proc.send_signal(signal.SIGTERM)
+            await rpc.close()
+            async with asyncio.timeout(EXIT_WAIT):
+                assert await process.proc.wait() == 0
+
+
+async def test_after_a_sigkill_a_grblhal_board_busy_with_the_job_is_stopped_while_connecting(
+    tmp_path: Path,
+) -> None:
+    """A grblHAL board left with its 1,024-byte buffer full of the job's moves answers `?`
+    but no handshake line until they end. The next daemon does not wait for them, nor
+    time out and reopen the port again and again: it stops the board as a cancel does
+    (here `startup_motion = true`: the reset at rest), then connects (docs/dialects.md,
+    "A board busy at connect")."""
+    port = tmp_path / "ttyACM0"
+    config = write_config(tmp_path)
+    config.write_text(
+        config.read_text().replace(
+            'data_port = "sim"',
+            f'data_port = "{port}"\ndialect = "grbl"\nstartup_motion = true',
+        )
+    )
+    # 2 mm moves at F3000, 20 ms each at twice real speed: 400 of them take 8 s, and the
+    # board's buffer and planner hold some 160 (3 s), more than a daemon's restart.
+    program = "G21 G90 M3 S800\n" + "".join(
+        f"G1 X{(i % 2) * 2} Y{i * 0.5:.1f} F3000\n" for i in range(1, 401)
+    )
+    async with board_process(port, "--grbl", "grblhal", "--laser"):
+        async with daemon_process(tmp_path, config) as process:
+            rpc = await ready_client(process)
+            await rpc.call("file.upload", name="raster.gcode", data=program)
+            await rpc.call("subscribe", topics=["job"], machine="sim1")
+            job_id = (await rpc.call("job.start", machine="sim1", file="raster.gcode"))["job"]
+            await follow_until_acked(rpc, job_id, 150)  # the board's buffer is full
+            process.proc.kill()
+            await process.proc.wait()
+            await rpc.close()
+
+        async with daemon_process(tmp_path, config) as process:
+            rpc = await ready_client(process)  # idle: stopped, not 5 s of moves later
+            status = await rpc.call("machine.status", machine="sim1")
+            assert status["board_state"] == "Idle" and status["occupied"] is None, status
+            assert status["position"]["y"] < 190, status  # not at the job's end (Y200)
+            assert (status.get("spindle") or {}).get("state") in (None, "off"), status
+            assert (await rpc.call("job.get", job=job_id))["state"] == "interrupted"
             process.proc.send_signal(signal.SIGTERM)
             await rpc.close()
             async with asyncio.timeout(EXIT_WAIT):
