@@ -21,7 +21,8 @@ from hostd.api.rpc import RpcError
 from hostd.machine import operations
 from hostd.machine.machine import Machine
 from hostd.protocol.errors import Busy, ControllerTimeout
-from tests.machine.test_grbl import GRBL, GrblBench, grbl_bench
+from tests.machine.test_grbl import GRBL, grbl_bench
+from tests.machine.test_grbl_modes_race import g20_with_its_modes_poll_held
 
 pytestmark = pytest.mark.asyncio
 
@@ -38,24 +39,6 @@ class _Api:
 
 def methods(machine: Machine) -> MachineMethods:
     return MachineMethods(_Api(machine))  # type: ignore[arg-type]
-
-
-async def g20_with_its_modes_poll_held(bench: GrblBench) -> None:
-    """`G20` answered, and the session's `$G` after it written but not yet read.
-
-    (As tests/machine/test_grbl_modes_race.py's, but the board's input is let go only
-    once the whole `G20` line waits in it: hostd's write is not the board's read, and a
-    line split across the release would be held again, never answered.)"""
-    engine = bench.machine.engine
-    sim = bench.board
-    sim.queue_input(True)
-    sent = asyncio.ensure_future(engine.send("G20"))
-    await sim.wait_for(lambda: b"G20\n" in bytes(sim.board.queued or b""))
-    sim.queue_input(False)  # the board reads `G20` and answers it...
-    sim.queue_input(True)  # ...and holds what comes next: the session's `$G`
-    assert (await sent).ok
-    assert engine.session.modes_pending()
-    assert engine.model.units == "mm"  # what the model knew before
 
 
 async def still_waiting(task: asyncio.Future[Any]) -> None:

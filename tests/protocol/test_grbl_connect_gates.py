@@ -334,6 +334,29 @@ def test_startup_blocks_refused_after_a_reset_go_on_to_the_modes() -> None:
     assert occupied(grbl) == []
 
 
+def test_a_startup_block_moving_after_our_reset_is_not_told_as_moves_of_before() -> None:
+    """A report of the block's move read while the re-sync's `$N` or `$G` is out: the
+    board was just emptied by the reset, so nothing is "busy with moves it was given
+    before", no exception says so, and a Machine told of an unwatched run must not stop
+    the block (no `Occupied`)."""
+    grbl = Grbl(startup_motion=True)
+    grbl.connect(startup=("G0 X10", ""))
+    grbl.session.reset()
+    grbl.pump()
+    grbl.feed(BANNER)
+    grbl.feed("error:8")  # `$N`, refused while the block moves
+    grbl.feed(RUN)  # read before `$G` is answered
+    assert occupied(grbl) == []
+    assert grbl.session.occupied() is None
+    assert not any(
+        isinstance(e, Excepted) and "moves it was given before" in str(e.fields)
+        for e in grbl.events
+    )
+    grbl.feed(*MODES)
+    grbl.feed(RUN)
+    assert grbl.events[-1] == Ready()
+
+
 def test_the_modes_are_pending_while_any_poll_of_them_is_out() -> None:
     """A jog or an operation waits for the `$G` after a client's `G20` (`modes_known`),
     wherever it is among the lines in flight."""

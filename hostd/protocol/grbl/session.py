@@ -284,7 +284,9 @@ class GrblSession(GrblLiveness):
                 self._poll_soon(END_POLL)  # (not while held: a resume asks for itself)
         if self._first_report:
             self._ready()
-        elif self.phase is Phase.HANDSHAKE:
+        elif self.phase is Phase.HANDSHAKE and not self._resync:
+            # Not in the re-sync after a reset: the board was just emptied, and what moves
+            # then is a startup block, not moves of before this link.
             self._connecting_report(report)
 
     def _track_executed(self, fields: dict[str, Any]) -> None:
