@@ -770,6 +770,8 @@ class GrblController(Controller):
             return GRBL_SETTINGS
         if line == b"$G":
             return GRBL_MODES
+        if line == b"$N":  # gnea/grbl report.c report_startup_line, N_STARTUP_LINE 2
+            return b"$N0=\r\n$N1=\r\nok\r\n"
         if line == b"$X":
             return b"[MSG:Caution: Unlocked]\r\nok\r\n"
         return OK

@@ -169,3 +169,21 @@ def test_answers_of_before_this_link_are_not_taken_for_the_handshakes() -> None:
     grbl.feed(IDLE)
     assert grbl.events[-1] == Ready()
     assert not [e for e in grbl.events if isinstance(e, Detected)]
+
+
+def test_a_build_with_no_startup_lines_answers_n_with_a_bare_ok_and_connects() -> None:
+    """Only `$I`'s answer must show its printout (`[VER:]`): every answer of before this
+    link comes ahead of it, and the lines after it are answered in order. A build whose
+    `$N` prints no line (no startup lines) still connects."""
+    grbl = Grbl()
+    grbl.session.open()
+    grbl.feed(BANNER)
+    grbl.feed("ok")  # of before: dropped
+    grbl.feed("[VER:1.1h.20190830:]", "[OPT:V,15,128]", "ok")
+    grbl.feed("$32=0", "ok")
+    assert grbl.lines()[-1] == b"$N\n"
+    grbl.feed("ok")  # no `$N0=` line
+    assert grbl.lines()[-1] == b"$G\n"
+    grbl.feed("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]", "ok")
+    grbl.feed(IDLE)
+    assert grbl.events[-1] == Ready()

@@ -85,8 +85,8 @@ from hostd.protocol.states import MachineState
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import Excepted, Phase, Probed, Reported, StreamEnd
 
-# What each of the handshake's lines prints before its `ok` (`_stale`).
-_PRINTOUT = {_Own.BUILD: "[VER:", _Own.SETTINGS: "$", _Own.STARTUP: "$N", _Own.MODES: "[GC:"}
+# What `$I` prints before its `ok` (`_stale`): `[VER:...]` (report.c report_build_info).
+_BUILD_PRINTOUT = "[VER:"
 
 # s between `?`s once a job's every line is answered and its end waits for a report of
 # the board at rest: grbl pushes no report when its planner runs dry, so at the poll's
@@ -171,17 +171,19 @@ class GrblSession(GrblLiveness):
     def _stale(self, msg: codec.Ok | codec.Error) -> bool:
         """An answer read while connecting that answers a line of before this link: the
         board went on answering the lines it held (a job's, after a lost link or a
-        dead daemon), and the port kept what it printed. The handshake's own lines
-        each print before their `ok` (`$I` its `[VER:]`, `$$` and `$N` their `$`
-        lines, `$G` its `[GC:]`), so an `ok` without that printout is not theirs:
-        taken as `$I`'s, it would make the board's build and settings unknown. An
-        `error:` likewise, but error:8, the refusal of a busy board
-        (`_own_answered`)."""
+        dead daemon), and the port kept what it printed. All of them come before the
+        answer to the handshake's first line, `$I`, which prints `[VER:...]` before
+        its `ok`: an answer without it is not `$I`'s (taken as `$I`'s, it would make
+        the board's build and settings unknown), nor is one with no line of ours out.
+        An `error:` likewise, but error:8, the refusal of a busy board
+        (`_own_answered`). The lines after `$I` are answered in order behind it, and
+        are taken as they come (a build with no startup lines prints none for `$N`)."""
         if isinstance(msg, codec.Error) and msg.code == IDLE_ERROR:
             return False
         if self._inflight:
-            printout = _PRINTOUT.get(self._inflight[0].source)
-            if printout is None or any(said.startswith(printout) for said in self._said):
+            if self._inflight[0].source is not _Own.BUILD:
+                return False
+            if any(said.startswith(_BUILD_PRINTOUT) for said in self._said):
                 return False
         self._said = []
         self._stale_answers += 1
