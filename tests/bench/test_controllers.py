@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from bench.client import DaemonProcess, program
 from bench.instant_controller import Controller, GrblController, woken_at
 from bench.procs import ControllerProcess
 
@@ -373,3 +374,29 @@ def test_a_grbl_read_led_by_a_realtime_byte_credits_no_line(tmp_path: Path) -> N
         assert pair.dumped()["credited"] == 1
     finally:
         pair.close()
+
+
+@pytest.mark.parametrize("dialect", ["grbl", "g2core"])
+def test_a_real_daemon_connects_to_the_bench_board_and_runs_a_job(
+    tmp_path: Path, dialect: str
+) -> None:
+    """The daemon's handshake goes through with each bench board, as `make bench` needs:
+    a grbl board that answered `$N` with a bare `ok` was never connected to once the
+    handshake asked for `$N`'s printout (performance-log.md, 2026-11-29 10:35)."""
+    board = ControllerProcess(str(tmp_path / "ttyB"), dialect)
+    daemon = DaemonProcess(tmp_path, board.link, window=4, dialects={"bench": dialect})
+    try:
+        daemon.start()  # idle, or TimeoutError: the handshake never finished
+        client = daemon.client()
+        try:
+            client.upload("p.gcode", program(200))
+            client.call("subscribe", topics=["job"], machine="bench")
+            board.expect(200)
+            job_id = client.call("job.start", machine="bench", file="p.gcode")["job"]
+            job = client.wait_job_end(job_id, timeout=60)
+            assert job["state"] == "completed" and job["lines_acked"] == 200, job
+        finally:
+            client.close()
+    finally:
+        daemon.stop()
+        board.close()
