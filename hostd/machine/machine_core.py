@@ -178,11 +178,11 @@ class MachineCore:
     def _stop_unwatched(self) -> None:
         """At a connect after `ran_unwatched`, or sooner where the handshake waits on a
         board busy with its moves (`BoardOccupied`: grbl reads no line until they end):
-        a board still moving or holding moves (not
-        at rest, not in a lockout, which drained it), or standing with its spindle on,
-        gets the dialect's job kill, as a cancel would (docs/operations.md, "When the
-        daemon stops"). Nobody is watching those lines, and the job that sent them is
-        already interrupted; a board at rest with its spindle off is left as it is."""
+        a board still moving or holding moves (not at rest, not in a lockout, which
+        drained it), or standing with its spindle on, gets the dialect's job kill, as a
+        cancel would (docs/operations.md, "When the daemon stops"). Nobody is watching
+        those lines, and the job that sent them is already interrupted; a board at rest
+        with its spindle off is left as it is."""
         unwatched, self._unwatched = self._unwatched, None
         model = self.engine.model
         state = model.state
