@@ -95,6 +95,16 @@ def test_home_assistant_discovery_names_every_entity_once() -> None:
             "ON",
             "ALARM: Limit hit",
         ),
+        (  # connecting to a grbl board busy with moves of before (docs/dialects.md)
+            {
+                "indicator": "normal",
+                "lockout": None,
+                "occupied": {"state": "Hold", "message": "m1 is Hold, busy with moves"},
+            },
+            "ON",
+            "connecting, Hold: m1 is Hold, busy with moves",
+        ),
+        ({"indicator": "normal", "lockout": None, "occupied": None}, "OFF", "none"),
     ],
 )
 def test_home_assistant_shows_a_controller_lockout_as_a_problem(

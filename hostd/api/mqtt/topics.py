@@ -177,10 +177,12 @@ def discovery(
                 "name": "Fault",
                 "device_class": "problem",
                 "state_topic": status,
-                # A controller lockout is a problem too, whatever the fault table says.
+                # A controller lockout is a problem too, whatever the fault table says, and
+                # so is a board found busy with moves of before while connecting.
                 "value_template": (
                     "{{ 'ON' if value_json.snapshot.indicator == 'alert'"
-                    " or value_json.snapshot.lockout else 'OFF' }}"
+                    " or value_json.snapshot.lockout"
+                    " or value_json.snapshot.get('occupied') else 'OFF' }}"
                 ),
             },
         ),
@@ -193,7 +195,9 @@ def discovery(
                 "state_topic": status,
                 "value_template": (
                     "{% set l = value_json.snapshot.lockout %}"
-                    "{{ l.state ~ ': ' ~ l.message if l else 'none' }}"
+                    "{% set o = value_json.snapshot.get('occupied') %}"
+                    "{{ l.state ~ ': ' ~ l.message if l"
+                    " else 'connecting, ' ~ o.state ~ ': ' ~ o.message if o else 'none' }}"
                 ),
                 # Its state, reason and what ends it (`clear`), as the dashboard shows them.
                 "json_attributes_topic": status,
