@@ -760,3 +760,39 @@ async def test_a_grbl_board_found_holding_moves_shows_amber_with_reset_as_the_wa
         await expect(page.locator("#supervisor")).to_have_text("idle")
         assert sim.position["x"] < 150  # the held move was dropped, not run
         await rpc.close()
+
+
+async def test_a_grbl_board_found_in_door_at_connect_is_resumed_from_the_page(
+    browser: playwright.BrowserContext, tmp_path: Path
+) -> None:
+    """A board whose door was opened while hostd let go of it reads no handshake line
+    until the door is closed and it is resumed. The page says so with the way out, and
+    its Resume, enabled though the machine is still connecting, ends it."""
+    async with running_web(tmp_path, machine=GRBL) as web:
+        sim = web.hostd.daemon.sims["sim1"]
+        page = await browser.new_page()
+        await log_in(page, web)
+        rpc = await web.hostd.client()
+        await web.hostd.idle(rpc)
+        await rpc.call("machine.disconnect", machine="sim1")
+        sim.flash(replace(sim.config, reset_on_open=False))
+        sim.door(True)
+        await sim.wait_state("Door:1")
+        with pytest.raises(RpcFailure, match="is in Door"):
+            await rpc.call("machine.connect", machine="sim1")
+        await expect(page.locator("#indicator-text")).to_have_text("INTERLOCK")
+        await expect(page.locator("#lockout-clear")).to_have_text(
+            "To end it: close the door, then Resume"
+        )
+        await expect(page.locator("#lockout-message")).to_contain_text(
+            "closed and Resume resumes it (it runs on with any moves it holds; Reset drops them)"
+        )
+        await expect(page.locator("#supervisor")).to_have_text("disconnected")
+        await expect(page.locator("[data-action=resume]")).to_be_enabled()
+        await expect(page.locator("#home")).to_be_disabled()
+        await screenshot(page, tmp_path, "door-at-connect")
+        sim.door(False)
+        await page.click("[data-action=resume]")
+        await expect(page.locator("#supervisor")).to_have_text("idle")
+        await expect(page.locator("#indicator-text")).to_have_text("normal")
+        await rpc.close()

@@ -118,8 +118,9 @@ class GrblConnection(GrblStops):
         if state == "Door":
             message = (
                 f"{self.id} is in Door: its safety door is open, or was opened, and it reads "
-                "no command until the door is closed and machine.cycle_start resumes it. "
-                "hostd connects then"
+                "no command until the door is closed and machine.cycle_start resumes it "
+                "(it runs on with any moves it holds; machine.reset drops them). hostd "
+                "connects then"
             )
         else:
             message = (

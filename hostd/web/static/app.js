@@ -157,7 +157,10 @@ function needs(snap) {
       || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
     "jog-stop": why(connected, notConnected) || why(!toolChange, "refused while a tool change waits: press Done"),
     job: move || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
-    resume: !connected ? notConnected : locked ? lockedText
+    // A board found in Door while connecting reads nothing until it is resumed: Resume
+    // is its way out then too (the daemon takes `~` while connecting).
+    resume: !connected ? (snap && snap.occupied && snap.occupied.state === "Door" ? null : notConnected)
+      : locked ? lockedText
       : toolChange ? "a tool change waits: press Done"
       : why(held || (lockout && lockout.state === "INTERLOCK"), "nothing is held"),
     cancel: why(Boolean(job), "no job is running"),
@@ -238,7 +241,9 @@ function showSnapshot(snap) {
   $("indicator-text").textContent = lockout ? lockout.state : occupied ? `connecting: ${occupied.state}` : level;
   $("lockout").hidden = !(lockout || occupied);
   $("lockout").classList.toggle("waiting", Boolean(occupied));
-  $("lockout-message").textContent = lockout ? lockout.message : occupied ? lockoutExit({ clear: occupied.message }) : "";
+  // In the page's words: a message of hostd's own names API methods (machine.reset: Reset).
+  const said = lockout ? lockout.message : occupied ? occupied.message : "";
+  $("lockout-message").textContent = lockoutExit({ clear: said });
   $("lockout-clear").textContent = lockout ? `To end it: ${lockoutExit(lockout)}`
     : occupied ? "To end it: Reset (the board drops those moves), or wait for them to end" : "";
   for (const action of ["clear", "reset"]) {
