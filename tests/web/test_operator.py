@@ -13,6 +13,7 @@ import playwright.async_api as playwright
 import pytest
 
 from hostd import daemon
+from hostd.sim.grbl import GrblSimController
 from tests.daemon.conftest import Rpc, RpcFailure
 from tests.sim.grbl.conftest import GrblHost
 from tests.web.conftest import Web, log_in, running_web, screenshot
@@ -715,6 +716,22 @@ async def test_a_status_poll_typed_while_status_reports_are_off_shows_its_answer
         assert not [line for line in lines if line.startswith(('→ {"sr"', '← {"r":{"sr"'))]
 
 
+async def let_go_of_the_board(
+    web: Web, browser: playwright.BrowserContext
+) -> tuple[GrblSimController, playwright.Page, Rpc]:
+    """The page open on the grbl machine, which hostd has let go of (machine.disconnect):
+    its board on native USB (an open resets none), for another sender to leave busy."""
+    sim = web.hostd.daemon.sims["sim1"]
+    assert isinstance(sim, GrblSimController)
+    page = await browser.new_page()
+    await log_in(page, web)
+    rpc = await web.hostd.client()
+    await web.hostd.idle(rpc)
+    await rpc.call("machine.disconnect", machine="sim1")
+    sim.flash(replace(sim.config, reset_on_open=False))
+    return sim, page, rpc
+
+
 async def test_a_grbl_board_found_holding_moves_shows_amber_with_reset_as_the_way_out(
     browser: playwright.BrowserContext, tmp_path: Path
 ) -> None:
@@ -723,13 +740,7 @@ async def test_a_grbl_board_found_holding_moves_shows_amber_with_reset_as_the_wa
     with Hold and Reset usable, and Reset ends it (docs/dialects.md, "A board busy at
     connect")."""
     async with running_web(tmp_path, machine=GRBL) as web:
-        sim = web.hostd.daemon.sims["sim1"]
-        page = await browser.new_page()
-        await log_in(page, web)
-        rpc = await web.hostd.client()
-        await web.hostd.idle(rpc)
-        await rpc.call("machine.disconnect", machine="sim1")
-        sim.flash(replace(sim.config, reset_on_open=False))  # native USB: an open resets none
+        sim, page, rpc = await let_go_of_the_board(web, browser)
         other = GrblHost(sim.path)
         try:
             other.send(b"G1 X150 F100\n")
@@ -769,13 +780,7 @@ async def test_a_grbl_board_found_in_door_at_connect_is_resumed_from_the_page(
     until the door is closed and it is resumed. The page says so with the way out, and
     its Resume, enabled though the machine is still connecting, ends it."""
     async with running_web(tmp_path, machine=GRBL) as web:
-        sim = web.hostd.daemon.sims["sim1"]
-        page = await browser.new_page()
-        await log_in(page, web)
-        rpc = await web.hostd.client()
-        await web.hostd.idle(rpc)
-        await rpc.call("machine.disconnect", machine="sim1")
-        sim.flash(replace(sim.config, reset_on_open=False))
+        sim, page, rpc = await let_go_of_the_board(web, browser)
         sim.door(True)
         await sim.wait_state("Door:1")
         with pytest.raises(RpcFailure, match="is in Door"):
