@@ -196,8 +196,13 @@ function updateEnabled() {
 
 const EXITS = { clear: "Clear", reset: "Reset", cycle_start: "Resume", home: "Home", feedhold: "Hold" };
 
+// The API's method names in a text, as the page's buttons are named (machine.reset: Reset).
+function pageWords(text) {
+  return text.replace(/machine\.(\w+)/g, (_, m) => EXITS[m] || m);
+}
+
 function lockoutExit(lockout) {
-  return lockout.clear.replace(/machine\.(\w+)/g, (_, m) => EXITS[m] || m);
+  return pageWords(lockout.clear);
 }
 
 function showSnapshot(snap) {
@@ -241,9 +246,8 @@ function showSnapshot(snap) {
   $("indicator-text").textContent = lockout ? lockout.state : occupied ? `connecting: ${occupied.state}` : level;
   $("lockout").hidden = !(lockout || occupied);
   $("lockout").classList.toggle("waiting", Boolean(occupied));
-  // In the page's words: a message of hostd's own names API methods (machine.reset: Reset).
-  const said = lockout ? lockout.message : occupied ? occupied.message : "";
-  $("lockout-message").textContent = lockoutExit({ clear: said });
+  // A message of hostd's own names API methods: said in the page's words.
+  $("lockout-message").textContent = pageWords(lockout ? lockout.message : occupied ? occupied.message : "");
   $("lockout-clear").textContent = lockout ? `To end it: ${lockoutExit(lockout)}`
     : occupied ? "To end it: Reset (the board drops those moves), or wait for them to end" : "";
   for (const action of ["clear", "reset"]) {
