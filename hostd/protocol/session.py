@@ -20,10 +20,10 @@ import structlog
 from hostd.protocol.classes import CommandClass, classify_realtime
 from hostd.protocol.commands import InvalidCommand, Realtime, Refusal
 from hostd.protocol.errors import Busy, FaultActive, MachineError, NotConnected, Rejected
-from hostd.protocol.linemode import InFlight
 from hostd.protocol.messages import Response
 from hostd.protocol.model import MachineModel
 from hostd.protocol.states import MachineState
+from hostd.protocol.steady import SteadyRead
 from hostd.protocol.stream import Stream
 from hostd.protocol.vocabulary import (
     Closing,
@@ -43,14 +43,16 @@ from hostd.protocol.words import Words
 log = structlog.get_logger(__name__)
 
 
-class SessionBase(Words):
+class SessionBase(SteadyRead, Words):
     """The rules of behaviour.md that hold over every dialect; a dialect fills in the rest.
 
     A dialect gives: `_admit` (its command class table), `_pump` (its flow
     control), `_query_status`, `_stop_board` (a fault's stop), `_realtime`
     (how a realtime command goes on its wire), `flushing`, `no_data_in_flight`
-    and `unanswered`; its words for jobs, jogs and settings (`Words`, words.py:
-    `encode_job_line`, `jog_lines`, `settings_*`, ...); and it
+    and `unanswered`; the steady read's four words (`SteadyRead`, steady.py:
+    `_take_answers`, `_writes_wait`, `_job_lines_wait`, `_take_run`); its words
+    for jobs, jogs and settings (`Words`, words.py: `encode_job_line`,
+    `jog_lines`, `settings_*`, ...); and it
     takes the board's lines, the timers and the requests that differ
     (`receive`, `tick`, `next_deadline`, `send`, `clear`, `reset`, `open`,
     `close`).
@@ -160,95 +162,6 @@ class SessionBase(Words):
     def receive(self, line: bytes) -> None:
         """One line the board printed (without its line end)."""
         raise NotImplementedError
-
-    # The steady state's fast path (issue 30): a read of nothing but plain answers to
-    # the job's lines is taken in one pass, and the job's plain lines are written in one.
-    # Off, every line takes the general path: the property tests compare the two.
-    fast_path = True
-
-    def receive_plain(self, lines: list[bytes], start: int) -> int:
-        """Take `lines` from `start` on, in one pass, while each is a plain answer to the
-        running job's oldest line (what `receive` would do with it, done in bulk); the
-        index of the first line left, which the caller gives to `receive`. A dialect
-        without this fast path takes none."""
-        stream = self._steady_stream()
-        if stream is None:
-            return start
-        return self._take_answers(lines, start, stream)
-
-    def _take_answers(
-        self, lines: list[bytes], start: int, stream: Stream, *, whole: bool = False
-    ) -> int:
-        """The dialect's: `receive_plain`'s pass over the lines from `start` on, the job's
-        position given; with `whole`, all of them or none (`express`)."""
-        return start
-
-    def express(self, lines: list[bytes]) -> list[bytes] | None:
-        """A job's steady state in one call (the engine's express step, issue 30): a read
-        of nothing but plain answers to the job's oldest lines, at a time when nothing
-        but the job's next plain lines is to be written (no event, no other line
-        waiting, the job in its steady state, nothing the dialect holds its writes
-        for). Every answer is taken, then the job's next plain lines that the flow
-        control has room for, taken and booked, are returned for one write: the
-        writer's loop, run after them, would write nothing more and change nothing.
-
-        None, and nothing taken, otherwise: the engine reads the lines in full and
-        runs its delivery loop. An empty list: the answers are taken, and the rest
-        of the step is the delivery loop's (the run stopped short of its room, at a
-        line the writer's loop must look at, which `data_to_send` hands out after
-        what this took; or nothing fitted). Plain answers change none of the
-        conditions, so they are checked before the answers are taken.
-        """
-        stream = self._steady_stream()
-        if (
-            stream is None
-            or self.phase is not Phase.READY
-            or self.halted
-            or self._outbox
-            or self._out
-            or self._events
-            or self._writes_wait()
-            or self._job_lines_wait(stream, self.model.state)
-            or not self._take_answers(lines, 0, stream, whole=True)  # 0: none taken
-        ):
-            return None
-        taken = self._take_run(stream)
-        due = [entry.line for entry in taken]
-        if not stream.full:  # the writer's loop goes on from there: the general step
-            data = Lane.DATA
-            self._out.extend([(data, line) for line in due])
-            return []
-        return due
-
-    def _writes_wait(self) -> bool:
-        """The dialect's: it writes nothing now, or only what its own loop must see (a
-        flush awaiting its proof, a line writing EEPROM, a client's query waiting)."""
-        return True
-
-    def _job_lines_wait(self, stream: Stream, state: MachineState | None) -> bool:
-        """The dialect's: none of the job's lines may be written now (`_pump`'s test)."""
-        return True
-
-    def _take_run(self, stream: Stream) -> list[InFlight]:
-        """The dialect's: the job's plain lines ahead that its flow control has room for,
-        taken and booked (`Stream.take_run`); asked only once `_writes_wait` and
-        `_job_lines_wait` said no."""
-        raise NotImplementedError
-
-    def _steady_stream(self) -> Stream | None:
-        """The running job, if its answers may take the fast path: not at its end (its
-        input ended, or a refused line's turn came: each answer then checks whether the
-        job is complete)."""
-        stream = self.stream
-        if (
-            stream is None
-            or stream.done
-            or stream.input_ended
-            or stream.refused is not None
-            or not self.fast_path
-        ):
-            return None
-        return stream
 
     def status_traffic(self, line: bytes, written: bool) -> bool:
         """Whether a line written (`written`) or read is status traffic: the host's own
