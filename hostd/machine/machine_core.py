@@ -273,7 +273,9 @@ class MachineCore:
             self._fault_changed(fault)
         return fault
 
-    def _refuse_if_faulted(self) -> None:
+    def refuse_if_faulted(self) -> None:
+        """1007 while a fault that blocks a job is active and not overridden: for a job,
+        a jog, a settings batch, and an operation that moves or powers (operations.py)."""
         blocking = self.faults.blocking()
         if blocking:
             ids = [f.id for f in blocking]

@@ -217,7 +217,7 @@ class MachineOperations(MachineCore):
         """An operation may begin: a locked-out board is the first thing to say
         (204/205/206), then a fault (1007), then "busy" (1003, unless idle)."""
         self.engine.admit_action()
-        self._refuse_if_faulted()
+        self.refuse_if_faulted()
         self.supervisor.fire(SupEvent.START_OPERATION)
 
     def _operation_stopped(self) -> None:

@@ -8,6 +8,13 @@ lockout: then the command class decides, which gives 204/205/206, or lets grbl's
 `$H` through in ALARM (gnea/grbl system.c: `$H` is one of the two commands
 ALARM accepts). One operation at a time per machine: a second one is 1003.
 
+An operation that moves the machine or powers its spindle or beam (home, go to
+zero, spindle on, a laser's test-fire, probe) is refused with 1007 while a fault
+that blocks a job is active and not overridden, as a job and a jog are: a lid
+open on a laser must not let the beam be fired from the dashboard. Setting work
+zero moves nothing and turning the spindle off only makes safe: those are not
+refused (docs/operations.md, "Faults").
+
 Why not a job row (like a jog)? api.md fixes the job kinds to make/jog/settings,
 and these are single commands an operator gives, as `machine.send` is; the
 history of what moved the machine is its console.
@@ -49,15 +56,20 @@ _running: set[str] = set()  # machines with an operation of this module under wa
 
 
 @contextlib.asynccontextmanager
-async def _operation(machine: Machine) -> AsyncIterator[None]:
-    """Admit one operation: connected, idle (or locked out: the command class decides)."""
+async def _operation(machine: Machine, *, powered: bool = True) -> AsyncIterator[None]:
+    """Admit one operation: connected, idle (or locked out: the command class decides);
+    and, if it moves the machine or powers its spindle or beam (`powered`), no fault
+    that blocks a job (1007, as for a job or a jog)."""
     state = machine.supervisor.state
     if state is SupState.DISCONNECTED or not machine.engine.ready:
         raise NotConnected(f"{machine.id} is not connected")
     if machine.id in _running:
         raise Busy(f"{machine.id} is already running an operation")
-    if not machine.engine.session.locked() and state is not SupState.IDLE:
+    locked = machine.engine.session.locked()
+    if not locked and state is not SupState.IDLE:
         raise Busy(f"{machine.id} is {state.value}: wait until it is idle")
+    if powered and not locked:  # locked: the lockout's code (204/205/206) first, at a line
+        machine.refuse_if_faulted()
     _running.add(machine.id)
     try:
         await modes_known(machine)
@@ -89,6 +101,10 @@ async def home(machine: Machine, axes: list[str] | None) -> None:
     session = engine.session
     lines = session.home_lines(axes)
     async with _operation(machine):
+        if session.locked():
+            # A lockout may take the homing line (grbl's `$H` in ALARM): not with a
+            # fault that blocks motion (1007), whatever the lockout would say.
+            machine.refuse_if_faulted()
         before = engine.model.last_exception
         if session.homing_answered_at_end:
             await engine.send(lines[0], timeout=HOMING_WAIT)
@@ -114,7 +130,7 @@ async def home(machine: Machine, axes: list[str] | None) -> None:
 async def zero(machine: Machine, axes: Mapping[str, float]) -> None:
     """Set work zero: each axis named reads the value given, now, in the active WCS."""
     engine = machine.engine
-    async with _operation(machine):
+    async with _operation(machine, powered=False):  # moves nothing
         line = engine.session.zero_line(engine.model.modal.get("wcs"), axes)
         await engine.send(line, timeout=ANSWER_WAIT)
         # The position reports follow the offset; ask for one now so the answer's
@@ -192,8 +208,8 @@ async def spindle(machine: Machine, state: str, speed: float | None) -> None:
     """M3/M4/M5 (with S): answered once a report read after the line says the board
     rests again, so the next operation finds the machine idle (grbl syncs the
     spindle with the planner: the line runs as a block, and the board is busy
-    until it has)."""
-    async with _operation(machine):
+    until it has). Off is never refused for a fault: it makes safe."""
+    async with _operation(machine, powered=state != "off"):
         await machine.engine.send(spindle_line(state, speed), timeout=ANSWER_WAIT)
         await _at_rest(machine)
 

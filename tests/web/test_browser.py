@@ -75,6 +75,15 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
         sim.set_analog(1, 0.2)  # the coolant stops: an alert
         await expect(page.locator("#indicator")).not_to_have_attribute("data-level", "normal")
         await expect(page.locator("#faults")).to_contain_text("water_flow")
+        # What moves the machine or powers its spindle is refused while it lasts (1007),
+        # as a job and a jog are; setting zero and the spindle's Off are not.
+        for powered in ("#home", "#goto-zero", "#probe", "[data-spindle=cw]", "[data-jog]"):
+            button = page.locator(powered).first
+            await expect(button).to_be_disabled()
+            why = re.compile("fault is active: water_flow")
+            await expect(button).to_have_attribute("title", why)
+        for safe in ("[data-zero=xyz]", "[data-spindle=off]"):
+            await expect(page.locator(safe)).to_be_enabled()
         await screenshot(page, tmp_path, "fault")
 
         await page.set_viewport_size({"width": 390, "height": 844})

@@ -144,6 +144,9 @@ function needs(snap) {
   const lockedText = lockout ? `refused in ${lockout.state}: ${lockoutExit(lockout)}` : "";
   const busy = connected ? `refused while the machine is ${snap.supervisor}` : notConnected;
   const move = !connected ? notConnected : lockout ? lockedText : why(idle, busy);
+  // A fault that blocks a job also refuses what moves the machine or powers its spindle
+  // or beam (1007), after the lockout's own code; setting zero and Off stay (docs/web.md).
+  const faulted = why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`);
   return {
     connected: why(connected, notConnected),
     hold: why(reachable, notConnected),
@@ -152,11 +155,12 @@ function needs(snap) {
     // Home is a move, but the daemon also takes it in a lockout whose first way out names
     // machine.home (grbl's `$H` in ALARM, where its `$22` homes; never g2core's G28.2,
     // which its ALARM refuses): the board's own rule, as the lockout's `clear` says it.
-    home: connected && lockout && lockout.clear.split(", then ")[0].includes("machine.home") ? null : move,
-    jog: (toolChange && !lockout ? null : move)
-      || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    home: (connected && lockout && lockout.clear.split(", then ")[0].includes("machine.home") ? null : move)
+      || faulted,
+    powered: move || faulted,
+    jog: (toolChange && !lockout ? null : move) || faulted,
     "jog-stop": why(connected, notConnected) || why(!toolChange, "refused while a tool change waits: press Done"),
-    job: move || why(!blocking.length, `refused while a fault is active: ${blocking.map((f) => f.id).join(", ")}`),
+    job: move || faulted,
     // A board found in Door while connecting reads nothing until it is resumed: Resume
     // is its way out then too (the daemon takes `~` while connecting).
     resume: !connected ? (snap && snap.occupied && snap.occupied.state === "Door" ? null : notConnected)
