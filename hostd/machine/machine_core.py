@@ -79,6 +79,10 @@ class MachineCore:
         # An operation of ours ended without its end reaching the board (the daemon died,
         # the link was lost): what the board is found doing at the next connect is checked.
         self._unwatched: tuple[str, int | None] | None = None  # why, and the job's id
+        # The task of an operation that moves or powers (operations.py), while it runs,
+        # and the 1007 it ends with once a fault stopped it (`_stop_powered_operation`).
+        self.powered_operation: asyncio.Task[Any] | None = None
+        self.operation_fault: FaultActive | None = None
         self._group: asyncio.TaskGroup | None = None  # `serve`'s, while it runs
         self._log = log.bind(machine=self.id)
         self.tools = self._tool_changer()  # the job's M6s, by the tool_change policy
@@ -251,15 +255,32 @@ class MachineCore:
             self._fault_changed(self.faults.set(fault_id, active, value=value, now=now_))
 
     def _fault_changed(self, fault: Fault | None) -> None:
-        """Publish a change and apply its effect on a running job."""
+        """Publish a change and apply its effect on a running job, or on an operation that
+        moves the machine or powers its spindle or beam."""
         if fault is None:
             return
         self._log.warning("fault", fault=fault.id, active=fault.active, value=fault.value)
         self.hub.publish(FaultChanged(self.id, fault.to_json()))
         blocking = self.faults.blocking()
-        if blocking and self.jobs.live() is not None:
-            ids = ", ".join(f.id for f in blocking)
-            self.engine.stop_stream(FaultActive.code, f"fault active: {ids}")
+        if not blocking:
+            return
+        ids = [f.id for f in blocking]
+        if self.jobs.live() is not None:
+            self.engine.stop_stream(FaultActive.code, f"fault active: {', '.join(ids)}")
+        self._stop_powered_operation(ids)
+
+    def _stop_powered_operation(self, ids: list[str]) -> None:
+        """A fault that blocks a job, become active while an operation moves the machine or
+        powers its spindle or beam (a test-fire, a go-to-zero, a homing, a probe): the
+        board gets the dialect's job kill, as a stopped job's board does, and the
+        operation's task is cancelled; it ends with this 1007 (operations.py)."""
+        task = self.powered_operation
+        if task is None or task.done() or self.operation_fault is not None:
+            return
+        self.operation_fault = FaultActive(f"{self.id}: fault active: {', '.join(ids)}", ids)
+        self._log.warning("stopping the operation: a fault is active", faults=ids)
+        self.engine.kill_job()
+        task.cancel()
 
     def override_fault(self, fault_id: str, on: bool) -> Fault:
         fault = self.faults.override(fault_id, on)

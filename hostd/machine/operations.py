@@ -13,7 +13,9 @@ zero, spindle on, a laser's test-fire, probe) is refused with 1007 while a fault
 that blocks a job is active and not overridden, as a job and a jog are: a lid
 open on a laser must not let the beam be fired from the dashboard. Setting work
 zero moves nothing and turning the spindle off only makes safe: those are not
-refused (docs/operations.md, "Faults").
+refused (docs/operations.md, "Faults"). Such a fault that becomes active while
+one of them runs stops it as it stops a job: the board gets the dialect's job
+kill, and the operation ends with 1007.
 
 Why not a job row (like a jog)? api.md fixes the job kinds to make/jog/settings,
 and these are single commands an operator gives, as `machine.send` is; the
@@ -71,11 +73,32 @@ async def _operation(machine: Machine, *, powered: bool = True) -> AsyncIterator
     if powered and not locked:  # locked: the lockout's code (204/205/206) first, at a line
         machine.refuse_if_faulted()
     _running.add(machine.id)
+    if powered:  # a fault that becomes active stops it (MachineCore._stop_powered_operation)
+        machine.powered_operation = asyncio.current_task()
     try:
         await modes_known(machine)
         yield
+    except BaseException:
+        _stopped_for_fault(machine)
+        raise
+    else:
+        _stopped_for_fault(machine)  # its waits swallowed the cancel: it still failed
     finally:
+        machine.powered_operation = machine.operation_fault = None
         _running.discard(machine.id)
+
+
+def _stopped_for_fault(machine: Machine) -> None:
+    """The operation was stopped by a fault that became active (the board killed, its
+    task cancelled): it ends with that 1007, not with the cancel or the error that the
+    kill made of its line or its wait."""
+    fault = machine.operation_fault
+    if fault is None:
+        return
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        task.uncancel()  # the cancel was ours, and is answered by the 1007
+    raise fault from None
 
 
 async def modes_known(machine: Machine) -> None:
@@ -328,6 +351,8 @@ async def laser_test(machine: Machine, power: float, seconds: float) -> None:
             for task in sends:
                 if not task.done():
                     task.cancel()
+                elif not task.cancelled():
+                    task.exception()  # seen: a line a kill discarded is the call's outcome
 
 
 async def _answered(task: asyncio.Future[Any], wait: float) -> bool:
