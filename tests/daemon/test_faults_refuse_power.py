@@ -21,7 +21,7 @@ import pytest
 from tests.daemon.conftest import G2, GRBL, Rpc, Running
 from tests.daemon.test_api import fails
 from tests.daemon.test_faults import SIGNALS, fault_became
-from tests.daemon.test_operation_gates import _daemon, g2_sim
+from tests.daemon.test_operation_gates import _daemon, g2_sim, grbl_alarm_after_a_hard_limit
 from tests.daemon.test_operations import lines_sent
 from tests.daemon.test_power import grbl_board, grbl_sim
 
@@ -103,22 +103,11 @@ async def test_homing_out_of_a_grbl_alarm_is_refused_while_a_fault_blocks(
     tmp_path: Path,
 ) -> None:
     """grbl takes `$H` in ALARM (its way out where it homes): a blocking fault refuses it
-    all the same (1007), and a test-fire in the same ALARM is the lockout's code first
-    (204), as every request the lockout itself refuses."""
+    all the same (1007), and the spindle turned on in the same ALARM is the lockout's
+    code first (204), as every request the lockout itself refuses."""
     async with _daemon(tmp_path) as (hostd, rpc):
-        await rpc.call("settings.set", machine=GRBL, values={"22": 1, "21": 1})
-        await hostd.idle(rpc, GRBL)
-        await rpc.call("subscribe", topics=["status", "fault"], machine=GRBL)
-        sim = grbl_sim(hostd)
-        sim.limit_switch("x")
-        await rpc.notification(
-            lambda n: (
-                n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == "ALARM"
-            )
-        )
-        sim.limit_switch("x", active=False)
-        await rpc.call("machine.reset", machine=GRBL)
-        assert (await rpc.call("machine.status", machine=GRBL))["state"]["name"] == "ALARM"
+        await rpc.call("subscribe", topics=["fault"], machine=GRBL)
+        sim = await grbl_alarm_after_a_hard_limit(hostd, rpc)
         sim.inject_garbage(b"\xff\xfe\x01 noise\n")
         await fault_became(rpc, "serial", True)
         before = len(lines_sent(hostd, GRBL))

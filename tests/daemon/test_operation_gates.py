@@ -24,6 +24,7 @@ import pytest
 from hostd.machine import jobfile, machine_operations, preflight
 from hostd.protocol.states import MachineState
 from hostd.sim import SimController
+from hostd.sim.grbl.controller import GrblSimController
 from tests.daemon.conftest import G2, GRBL, Rpc, Running, running_daemon
 from tests.daemon.test_api import fails, job_end
 from tests.daemon.test_guard import reached
@@ -304,26 +305,30 @@ async def test_a_laser_test_of_two_seconds_the_bound_itself_is_taken(tmp_path: P
         assert b"G4 P2" in lines_sent(hostd, GRBL)
 
 
-async def test_a_laser_test_in_an_alarm_is_its_code_and_touches_nothing(tmp_path: Path) -> None:
+async def grbl_alarm_after_a_hard_limit(hostd: Running, rpc: Rpc) -> GrblSimController:
     """A hard limit tripped and was reset: grbl, with homing on, stays in ALARM until
-    homed or unlocked. A test-fire is refused with the lockout's code (204) before any
+    homed or unlocked. Its sim, the board in that ALARM; `rpc` is told its status."""
+    # Homing switches and hard limits on, as the board's owner would set them.
+    await rpc.call("settings.set", machine=GRBL, values={"22": 1, "21": 1})
+    await hostd.idle(rpc, GRBL)
+    await rpc.call("subscribe", topics=["status"], machine=GRBL)
+    sim = grbl_sim(hostd)
+    sim.limit_switch("x")
+    await rpc.notification(
+        lambda n: n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == "ALARM"
+    )
+    sim.limit_switch("x", active=False)
+    await rpc.call("machine.reset", machine=GRBL)
+    assert (await rpc.call("machine.status", machine=GRBL))["state"]["name"] == "ALARM"
+    return sim
+
+
+async def test_a_laser_test_in_an_alarm_is_its_code_and_touches_nothing(tmp_path: Path) -> None:
+    """A test-fire in a grbl ALARM is refused with the lockout's code (204) before any
     line of it is written: no beam line, and no reset of the board either (a reset runs
     its startup blocks, and ends the alarm the operator must read)."""
     async with _daemon(tmp_path, grbl={"laser": True}) as (hostd, rpc):
-        # Homing switches and hard limits on, as the board's owner would set them.
-        await rpc.call("settings.set", machine=GRBL, values={"22": 1, "21": 1})
-        await hostd.idle(rpc, GRBL)
-        await rpc.call("subscribe", topics=["status"], machine=GRBL)
-        sim = grbl_sim(hostd)
-        sim.limit_switch("x")
-        await rpc.notification(
-            lambda n: (
-                n["method"] == "status" and n["params"]["snapshot"]["state"]["name"] == "ALARM"
-            )
-        )
-        sim.limit_switch("x", active=False)
-        await rpc.call("machine.reset", machine=GRBL)
-        assert (await rpc.call("machine.status", machine=GRBL))["state"]["name"] == "ALARM"
+        sim = await grbl_alarm_after_a_hard_limit(hostd, rpc)
         before = len(sim.received)
         await fails(204, rpc.call("machine.laser_test", machine=GRBL, power=5, duration_s=0.5))
         written = b"".join(r.data for r in list(sim.received)[before:])
