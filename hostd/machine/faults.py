@@ -133,6 +133,9 @@ class Fault:
             "since": self.since,
             "value": self.value,
             "message": self.message,
+            # Added (api.md's fault object): how it ends, so that a client can offer
+            # the way out: "signal", "software" (fault.clear) or "reset" (machine.reset).
+            "clears": RULES[self.id].clears.value,
         }
 
 

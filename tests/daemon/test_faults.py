@@ -115,6 +115,20 @@ async def test_the_table_lists_every_fault_inactive_at_first(laser: Laser) -> No
     ]
     assert not any(f["active"] for f in faults)
     assert {f["id"]: f["severity"] for f in faults}["water_flow"] == "hardware"
+    # How each ends (an addition to api.md's fault object), as the table in
+    # docs/operations.md says: the dashboard offers Clear by it.
+    assert {f["id"]: f["clears"] for f in faults} == {
+        "estop": "signal",
+        "lid_open": "signal",
+        "lid_closed": "signal",
+        "water_flow": "signal",
+        "water_temp": "signal",
+        "serial": "software",
+        "lexical": "software",
+        "syntax": "reset",
+        "underflow": "software",
+        "internal": "reset",
+    }
     assert await laser.indicator() == "normal"
 
 

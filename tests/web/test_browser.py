@@ -84,7 +84,26 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
             await expect(button).to_have_attribute("title", why)
         for safe in ("[data-zero=xyz]", "[data-spindle=off]"):
             await expect(page.locator(safe)).to_be_enabled()
+        row = page.locator("#faults li", has_text="water_flow")
+        await expect(row).to_have_class(re.compile(r"\balert\b"))
         await screenshot(page, tmp_path, "fault")
+
+        # Its way out is on the page: Override, asked first; then its removal.
+        await row.get_by_role("button", name="Override").click()
+        await expect(page.locator("#confirm")).to_be_visible()
+        await page.click("#confirm-yes")
+        await expect(row).to_contain_text("(overridden)")
+        await expect(row).to_have_class(re.compile(r"\bwarning\b"))
+        await expect(page.locator("#home")).to_be_enabled()  # no longer refused for it
+        await row.get_by_role("button", name="Remove override").click()
+        await expect(row).not_to_contain_text("(overridden)")
+        await expect(page.locator("#home")).to_be_disabled()
+        # One that software clears has Clear: unparseable output, a lexical fault.
+        sim.inject_garbage(b'{"r":{"broken"\n')
+        lexical = page.locator("#faults li", has_text="lexical")
+        await lexical.get_by_role("button", name="Clear").click()
+        await expect(lexical).to_have_count(0)
+        await expect(page.locator("#faults li", has_text="water_flow")).to_have_count(1)
 
         await page.set_viewport_size({"width": 390, "height": 844})
         await screenshot(page, tmp_path, "phone")

@@ -73,6 +73,7 @@ const view = {
   macros: [],
   preview: { mode: "top", zoom: 1, panX: 0, panY: 0, toCanvas: null },
   keyJog: null, // the key whose continuous jog runs ("hold key" step)
+  faultsShown: null, // the fault list drawn, as JSON: redrawn only when it changes
 };
 
 function toast(text, bad = false) {
@@ -175,6 +176,50 @@ function needs(snap) {
   };
 }
 
+// An active fault with its way out, where the page can give it (docs/web.md, "Faults"):
+// Clear for one that software clears, Override (asked first) or its removal for one that
+// may be overridden; one that only a reset clears says so. Red while it blocks or alerts,
+// amber once overridden, as the indicator's rule has it.
+function faultItem(fault) {
+  const li = document.createElement("li");
+  li.className = `fault ${fault.overridden ? "warning" : "alert"}`;
+  const text = document.createElement("span");
+  text.textContent = `${fault.id}: ${fault.message || fault.severity}${fault.overridden ? " (overridden)" : ""}`;
+  li.append(text);
+  if (fault.clears === "reset") li.append(" · Reset clears it");
+  if (fault.clears === "software") li.append(faultButton(fault.id, "clear", "Clear"));
+  if (fault.overridable) {
+    const button = faultButton(fault.id, "override", fault.overridden ? "Remove override" : "Override");
+    button.dataset.override = fault.overridden ? "off" : "on";
+    li.append(button);
+  }
+  return li;
+}
+
+function faultButton(id, kind, label) {
+  const button = document.createElement("button");
+  button.className = "small control";
+  button.textContent = label;
+  button.dataset.fault = id;
+  button.dataset.faultAction = kind;
+  return button;
+}
+
+async function faultAction(button) {
+  const id = button.dataset.fault;
+  const machine = view.machine;
+  if (button.dataset.faultAction === "clear") {
+    if (await act("fault.clear", { machine, fault: id })) toast(`${id}: cleared`);
+    return;
+  }
+  const on = button.dataset.override === "on";
+  const question = `Override ${id}? While it lasts, jobs, jogs and what moves the machine or powers its spindle or beam are no longer refused for it.`;
+  if (on && !(await confirmFirst(question))) return;
+  if (await act("fault.override", { machine, fault: id, override: on })) {
+    toast(`${id}: ${on ? "overridden" : "override removed"}`);
+  }
+}
+
 function updateEnabled() {
   const snap = view.snapshots.get(view.machine);
   const reasons = needs(snap);
@@ -259,13 +304,11 @@ function showSnapshot(snap) {
     const needed = lockout ? lockout.clear.includes(`machine.${action}`) : Boolean(occupied) && action === "reset";
     if (button) button.classList.toggle("needed", needed);
   }
-  const faults = $("faults");
-  faults.replaceChildren(...(snap.faults || []).map((fault) => {
-    const li = document.createElement("li");
-    li.className = `fault ${fault.severity}`;
-    li.textContent = `${fault.id}: ${fault.message || fault.severity}${fault.overridden ? " (overridden)" : ""}`;
-    return li;
-  }));
+  const faultsNow = JSON.stringify(snap.faults || []);
+  if (faultsNow !== view.faultsShown) { // redrawn on a change only: a click must land
+    view.faultsShown = faultsNow;
+    $("faults").replaceChildren(...(snap.faults || []).map(faultItem));
+  }
   const overrides = snap.overrides || {};
   for (const key of ["feed", "spindle", "rapid"]) {
     $(`ov-${key}`).textContent = typeof overrides[key] === "number" ? `${Math.round(overrides[key])}%` : "–";
@@ -1076,6 +1119,10 @@ function wire() {
     });
   }
   $("jog-stop").addEventListener("click", () => act("machine.jog_stop", { machine: view.machine }));
+  $("faults").addEventListener("click", (event) => {
+    const button = event.target.closest("button[data-fault]");
+    if (button) faultAction(button);
+  });
   $("machine").addEventListener("change", () => {
     stopKeyJog();
     view.machine = $("machine").value;
