@@ -449,6 +449,7 @@ async def test_faults_are_listed(rpc: Rpc) -> None:
         "since",
         "value",
         "message",
+        "clears",  # added: how it ends (docs/api.md)
     }
     await fails(-32602, rpc.call("fault.clear", machine="sim1", fault="nope"))
 

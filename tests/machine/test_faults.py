@@ -103,6 +103,7 @@ def test_a_fault_object_is_the_api_md_one() -> None:
         "since": T0_ISO,
         "value": 1234,
         "message": "serial link error after 1234 lines processed",
+        "clears": "software",  # added to api.md's: fault.clear ends it
     }
 
 
