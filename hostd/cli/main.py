@@ -186,9 +186,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--machine", "-m", metavar="M")
     p.add_argument("--limit", type=_at_least_one, default=50, metavar="N")
 
-    p = client("faults", "faults", "a machine's active faults")
+    p = client("faults", "faults", "a machine's active faults; one cleared or overridden first")
     p.add_argument("machine", metavar="MACHINE")
     p.add_argument("--all", action="store_true", help="every fault of the table, active or not")
+    way = p.add_mutually_exclusive_group()
+    way.add_argument("--clear", metavar="FAULT", help="clear it (serial, lexical, underflow)")
+    way.add_argument(
+        "--override", metavar="FAULT", help="run as if it were not active (lid, coolant)"
+    )
+    way.add_argument("--remove-override", metavar="FAULT", help="take its override back")
 
     p = client("watch", "watch", "status, exceptions and supervisor changes live, until Ctrl-C")
     p.add_argument("machine", nargs="?", metavar="MACHINE")

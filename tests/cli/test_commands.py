@@ -239,6 +239,28 @@ def test_faults_of_a_healthy_machine_is_an_empty_list(idle: Daemon) -> None:
     assert len(faults) == 10 and not any(f["active"] for f in faults)
 
 
+def test_a_fault_is_cleared_or_overridden_from_the_cli(idle: Daemon) -> None:
+    def table() -> dict[str, dict[str, object]]:
+        listed = idle.cli("faults", MACHINE, "--all", "--json")
+        assert listed.returncode == 0, listed.stderr
+        return {f["id"]: f for f in json.loads(listed.stdout)}
+
+    try:
+        assert idle.cli("faults", MACHINE, "--override", "water_flow").returncode == 0
+        assert table()["water_flow"]["overridden"] is True
+        assert idle.cli("faults", MACHINE, "--remove-override", "water_flow").returncode == 0
+        assert table()["water_flow"]["overridden"] is False
+    finally:
+        idle.call("fault.override", machine=MACHINE, fault="water_flow", override=False)
+    assert idle.cli("faults", MACHINE, "--clear", "serial").returncode == 0
+    refused = idle.cli("faults", MACHINE, "--clear", "lid_open")
+    assert refused.returncode == 1 and "condition goes away" in refused.stderr, refused.stderr
+    refused = idle.cli("faults", MACHINE, "--override", "serial")
+    assert refused.returncode == 1 and "cannot be overridden" in refused.stderr
+    both = idle.cli("faults", MACHINE, "--clear", "serial", "--override", "water_flow")
+    assert both.returncode != 0 and "not allowed with" in both.stderr
+
+
 # -- machine actions -------------------------------------------------------------------
 
 

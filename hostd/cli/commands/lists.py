@@ -29,8 +29,17 @@ async def jobs(c: Client, args: argparse.Namespace, out: Output) -> int:
 
 
 async def faults(c: Client, args: argparse.Namespace, out: Output) -> int:
-    """The active faults (fault.list answers the whole table; --all shows it)."""
-    rows = await c.call("fault.list", machine=args.machine)
+    """The active faults (fault.list answers the whole table; --all shows it); first,
+    one cleared (--clear: fault.clear) or its override set or removed (--override,
+    --remove-override: fault.override), where the fault table allows it."""
+    machine = args.machine
+    if args.clear is not None:
+        await c.call("fault.clear", machine=machine, fault=args.clear)
+    elif args.override is not None:
+        await c.call("fault.override", machine=machine, fault=args.override, override=True)
+    elif args.remove_override is not None:
+        await c.call("fault.override", machine=machine, fault=args.remove_override, override=False)
+    rows = await c.call("fault.list", machine=machine)
     if not args.all:
         rows = [row for row in rows if row.get("active")]
     listing(out, rows, render.faults, f"{args.machine}: no active faults")
