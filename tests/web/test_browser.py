@@ -95,6 +95,7 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
         await expect(row).to_contain_text("(overridden)")
         await expect(row).to_have_class(re.compile(r"\bwarning\b"))
         await expect(page.locator("#home")).to_be_enabled()  # no longer refused for it
+        await screenshot(page, tmp_path, "fault-overridden")
         await row.get_by_role("button", name="Remove override").click()
         await expect(row).not_to_contain_text("(overridden)")
         await expect(page.locator("#home")).to_be_disabled()
