@@ -59,6 +59,7 @@ async def test_log_in_upload_start_hold_resume_and_see_a_fault(
         await expect(page.locator("#confirm")).to_be_visible()
         await page.click("#confirm-yes")
         await expect(page.locator("#history tbody tr").first).to_contain_text("cancelled")
+        await expect(page.locator("#job-rate")).to_have_text("–")  # a running job's only
         # The job kill, 0x04, is named as g2core names it ("Job killed by ^d"), not a box.
         await expect(page.locator("#console")).to_contain_text("→ ^D\n")
         assert "\x04" not in await page.text_content("#console")

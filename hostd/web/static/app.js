@@ -361,7 +361,9 @@ function showJob(job) {
     view.rate.at = now;
   }
   const perSecond = view.rate.perSecond;
-  $("job-rate").textContent = perSecond === null ? "–" : `${perSecond.toFixed(1)} lines/s`;
+  // A rate is a running job's: an ended or paused one shows none, not its last.
+  $("job-rate").textContent =
+    job.state !== "running" || perSecond === null ? "–" : `${perSecond.toFixed(1)} lines/s`;
   // Every line answered is not the end: the board still runs what its planner holds, and
   // the job is running until it rests. Said so, not "0 s".
   const left = total - job.lines_acked;
