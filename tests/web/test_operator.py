@@ -5,6 +5,7 @@ without status polls, and the page at 1280 and 390 px."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -497,6 +498,9 @@ async def test_the_laser_console_leaves_out_the_status_polls(
         page = await browser.new_page()
         await log_in(page, web)
         await expect(page.locator("#console-hidden")).to_contain_text("hidden")
+        # The box's example is grbl's, not g2core's JSON.
+        example = re.compile(r"e\.g\. \$G or")
+        await expect(page.locator("#send-line")).to_have_attribute("placeholder", example)
         for line, shown in (("G0 X1", "← ok"), ("$G", "← [GC:"), ("G4 P0", "→ G4 P0")):
             # After `G0 X1`'s `ok` the daemon polls grbl's modes, `$G`; the board answers
             # in order, so once `G4 P0` is shown every line before it is too.

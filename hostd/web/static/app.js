@@ -314,6 +314,8 @@ function showSnapshot(snap) {
     $(`ov-${key}`).textContent = typeof overrides[key] === "number" ? `${Math.round(overrides[key])}%` : "–";
   }
   $("laser-set").hidden = !(snap.laser_mode || snap.laser);
+  // The example in the console's box in the board's own words (grbl has no JSON).
+  $("send-line").placeholder = `a line for the controller, e.g. ${snap.dialect === "grbl" ? "$G" : "{sr:n}"} or G0 X10`;
   showToolChange(snap);
   document.body.dataset.supervisor = snap.supervisor;
   if (view.program && analysisKey(view.program.name) !== view.analyzed) analyzeProgram(view.program.name);
