@@ -95,6 +95,7 @@ async def send_maintenance(machine: Machine, line: str, timeout: float) -> Respo
             f"{found.why}: maintenance commands are off for {machine.id} "
             "(set maintenance = true in its [[machines]] table)",
         )
+    machine.refuse_line_if_faulted(line)  # a startup block that acts runs as it is stored
     log.warning("maintenance command", machine=machine.id, line=line, kind=found.kind.value)
     response = await machine.engine.send(line, timeout=timeout)
     if found.kind is Kind.STARTUP_BLOCK:

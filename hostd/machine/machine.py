@@ -98,7 +98,10 @@ class Machine(MachineOperations):
         """One line, through the same admission as any other; its answer.
 
         While a job waits at a tool change the line goes as the job's own (the operator
-        works inside it), still through the command-class admission."""
+        works inside it), still through the command-class admission. A line that moves
+        the machine or starts its spindle or beam is refused (1007) while a fault that
+        blocks a job is active, as a jog is."""
+        self.refuse_line_if_faulted(line)
         if self.tools.holding() and not self.tools.operator_may_move():
             raise Busy(f"{self.id} is measuring the new tool: wait until it is done")
         if self.tools.holding():

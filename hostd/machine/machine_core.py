@@ -294,6 +294,23 @@ class MachineCore:
             self._fault_changed(fault)
         return fault
 
+    def refuse_line_if_faulted(self, line: str) -> None:
+        """1007 for a line a client sends (machine.send, machine.maintenance) that moves
+        the machine or starts its spindle or beam (the dialect's `powered`) while a fault
+        that blocks a job is active and not overridden, as a jog is refused."""
+        blocking = self.faults.blocking()
+        if not blocking:
+            return
+        does = self.config.spec.powered(line)
+        if does is None:
+            return
+        ids = [f.id for f in blocking]
+        raise FaultActive(
+            f"{self.id}: fault active: {', '.join(ids)}: the line {does}; "
+            "clear or override the fault first",
+            ids,
+        )
+
     def refuse_if_faulted(self) -> None:
         """1007 while a fault that blocks a job is active and not overridden: for a job,
         a jog, a settings batch, and an operation that moves or powers (operations.py)."""

@@ -105,6 +105,10 @@ def _no_maintenance(text: str, travel: Travel, inches: bool) -> Maintenance | No
     return None
 
 
+def _powers_nothing(text: str) -> str | None:
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class DialectSpec:
     """One dialect, as it registers itself.
@@ -118,6 +122,9 @@ class DialectSpec:
       past `max_bytes` (its LF included) or where the board must never read it.
     - `maintenance`: the maintenance command a line is on this board, or None
       (maintenance.py; `travel` in mm, `inches` the board's modal units).
+    - `powered`: what a line a client sends would do that a fault blocking a
+      job forbids (moves the machine, starts its spindle or beam), or None
+      (maintenance.py); `machine.send` and `machine.maintenance` refuse it.
     - `realtime`: the single bytes it reads out of the stream, by hostd's name.
     - `simulator`: "module:factory" of a simulated board (hostd/sim), imported
       only when a machine says `data_port = "sim"`, so that protocol never
@@ -137,6 +144,7 @@ class DialectSpec:
     encode_line: Callable[[str, int], bytes]
     simulator: str
     maintenance: Callable[[str, Travel, bool], Maintenance | None] = _no_maintenance
+    powered: Callable[[str], str | None] = _powers_nothing
     realtime: Mapping[Realtime, bytes] = field(default_factory=dict)
     options: type[DialectOptions] = NoOptions
     ports: int = 1

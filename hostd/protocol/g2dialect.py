@@ -18,7 +18,7 @@ from hostd.protocol.commands import InvalidCommand, Realtime, Refusal, encode_li
 from hostd.protocol.dialects import DialectOptions, DialectSpec, SessionSettings, Words, register
 from hostd.protocol.g2core import G2Session
 from hostd.protocol.gcodestate.dialects import G2CORE
-from hostd.protocol.maintenance import g2core_maintenance
+from hostd.protocol.maintenance import g2core_maintenance, g2core_powered
 from hostd.protocol.states import MachineState
 from hostd.protocol.status import MESSAGES
 
@@ -63,6 +63,7 @@ G2CORE_DIALECT = register(
         gcode=G2CORE,
         encode_line=encode_job_line,
         maintenance=g2core_maintenance,
+        powered=g2core_powered,
         realtime={command: encode_realtime(command) for command in Realtime},
         simulator="hostd.sim.factories:g2core",
         options=G2Options,

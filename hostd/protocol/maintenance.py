@@ -30,6 +30,11 @@ record and for the same error.
 `startup_block_acts` says what a grbl startup block does that a reset must
 not do unasked: move (a motion word, or an axis word in the G0 the board
 starts in), or start the spindle or laser (M3, M4) or coolant (M7, M8).
+
+`grbl_powered` and `g2core_powered` say what a line a client sends would do
+that a fault blocking a job forbids (machine.send, machine.maintenance): move
+the machine, home it, or start its spindle or beam. Coolant is not among them:
+turning it on makes nothing less safe.
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
+
+from hostd.protocol.relaxed import parse_relaxed
 
 # A jog further than this (mm; degrees for A, B, C) is absurd when the travel is not
 # known: 10 m is beyond the travel of any machine hostd drives on one axis.
@@ -52,8 +59,9 @@ _BLANK = re.compile(r"\s+")
 _WORD = re.compile(r"([A-Z])([^A-Z]*)")
 _AXES = frozenset("XYZABCUVW")
 # G codes that take axis words without moving to them (grbl gcode.c: the "axis command"
-# of non-modal group 0 and G43.1).
-_AXIS_NOT_MOTION = frozenset({"G10", "G28.1", "G30.1", "G92", "G43.1"})
+# of non-modal group 0 and G43.1; and g2core's G28.3, which sets the origin where the
+# machine is, gcode_parser.cpp's NEXT_ACTION_SET_ABSOLUTE_ORIGIN).
+_AXIS_NOT_MOTION = frozenset({"G10", "G28.1", "G28.3", "G30.1", "G92", "G43.1"})
 _MOTION = frozenset({"G0", "G1", "G2", "G3", "G38.2", "G38.3", "G38.4", "G38.5", "G28", "G30"})
 _STARTS = {"M3": "starts the spindle or laser", "M4": "starts the spindle or laser"}
 _STARTS |= {"M7": "starts the coolant", "M8": "starts the coolant"}
@@ -210,7 +218,11 @@ def _code(number: str) -> str:
 
 def startup_block_acts(block: str) -> str | None:
     """What a grbl startup block does at every reset that must not happen unasked, or None."""
-    line = normalized(block)
+    return _acts(normalized(block), _STARTS, ", G0 at reset")
+
+
+def _acts(line: str, starts: Mapping[str, str], mode: str = "") -> str | None:
+    """What a normalized G-code line does: moves the machine, or starts one of `starts`."""
     words = [(m[1], m[2]) for m in _WORD.finditer(line)]
     codes = {f"{letter}{_code(number)}" for letter, number in words if letter in "GM"}
     motion = sorted(codes & _MOTION)
@@ -218,11 +230,45 @@ def startup_block_acts(block: str) -> str | None:
         return f"moves the machine ({', '.join(motion)})"
     axes = [f"{letter}{number}" for letter, number in words if letter in _AXES]
     if axes and not codes & _AXIS_NOT_MOTION:
-        return f"moves the machine ({' '.join(axes)} in the motion mode in force, G0 at reset)"
-    for code, what in _STARTS.items():
+        return f"moves the machine ({' '.join(axes)} in the motion mode in force{mode})"
+    for code, what in starts.items():
         if code in codes:
             return f"{what} ({code})"
     return None
+
+
+# What a fault that blocks a job forbids a sent line to start (coolant is not refused).
+_POWERS = {"M3": _STARTS["M3"], "M4": _STARTS["M4"]}
+
+
+def grbl_powered(text: str) -> str | None:
+    """What a line sent to a grbl board does that a fault blocking a job forbids, or None:
+    a jog (`$J=`), a homing cycle (`$H`), a startup block that acts (grbl runs a block
+    once as it stores it, system.c), or G-code that moves or starts the spindle."""
+    line = normalized(text)
+    if line.startswith("$J="):
+        return "jogs the machine ($J=)"
+    if line.startswith("$H"):
+        return "homes the machine ($H)"
+    if re.fullmatch(r"\$N\d+=.*", line):
+        return _acts(line.partition("=")[2], _POWERS)
+    if line.startswith("$"):
+        return None  # a setting, a query, an unlock: nothing moves
+    return _acts(line, _POWERS)
+
+
+def g2core_powered(text: str) -> str | None:
+    """As `grbl_powered`, for g2core: G-code as text or in a JSON `gc` (a homing cycle is
+    G28.2 with its axes, which moves); a JSON setting or query, or a `$` text command,
+    moves nothing. A line the board would misread is refused anyway (validate_line)."""
+    stripped = text.strip()
+    if stripped.startswith("{"):
+        obj = parse_relaxed(stripped) or {}
+        gcode = next((v for k, v in obj.items() if k.lower() == "gc"), None)
+        return _acts(normalized(gcode), _POWERS) if isinstance(gcode, str) else None
+    if stripped.startswith("$"):
+        return None
+    return _acts(normalized(stripped), _POWERS)
 
 
 @dataclass(frozen=True, slots=True)

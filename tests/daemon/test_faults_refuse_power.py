@@ -119,3 +119,40 @@ async def test_homing_out_of_a_grbl_alarm_is_refused_while_a_fault_blocks(
         await rpc.call("machine.home", machine=GRBL)
         snapshot = await rpc.call("machine.status", machine=GRBL)
         assert snapshot["state"]["name"] == "READY" and snapshot["homed"] is True
+
+
+async def test_the_console_refuses_a_line_that_moves_or_powers_while_a_fault_blocks(
+    tmp_path: Path,
+) -> None:
+    """`machine.send` is the console: a line that moves the machine or starts its spindle
+    or beam is 1007 as a jog is, G-code as text or in g2core's JSON `gc`; what moves
+    nothing, or only makes safe, still goes."""
+    async with _daemon(tmp_path, g2={"signals": SIGNALS}) as (hostd, rpc):
+        await _lid_open(hostd, rpc)
+        before = len(lines_sent(hostd, G2))
+        for line in ("G1 X10 F100", "X5", '{"gc":"M3 S500"}', "G28.2 X0"):
+            err = await fails(1007, rpc.call("machine.send", machine=G2, line=line))
+            assert err.data == ["lid_open"] and "the line" in err.message, (line, err.message)
+        assert _moving(lines_sent(hostd, G2)[before:]) == []
+        for line in ("M5", "G90", "{sr:n}", "G10 L20 P1 X0", "M8", "M9"):
+            await rpc.call("machine.send", machine=G2, line=line)
+        await rpc.call("fault.override", machine=G2, fault="lid_open", override=True)
+        await rpc.call("machine.send", machine=G2, line="G0 X1")
+
+
+async def test_grbl_jogs_homing_and_a_moving_startup_block_are_refused_while_a_fault_blocks(
+    tmp_path: Path,
+) -> None:
+    async with _daemon(tmp_path, grbl={"maintenance": True}) as (hostd, rpc):
+        await rpc.call("subscribe", topics=["fault"], machine=GRBL)
+        grbl_sim(hostd).inject_garbage(b"\xff\xfe\x01 noise\n")
+        await fault_became(rpc, "serial", True)
+        before = len(lines_sent(hostd, GRBL))
+        for line in ("$J=G91 X1 F100", "$H", "G0 X1"):
+            await fails(1007, rpc.call("machine.send", machine=GRBL, line=line))
+        # grbl runs a startup block once as it stores it: one that moves is refused.
+        err = await fails(1007, rpc.call("machine.maintenance", machine=GRBL, line="$N0=G0 X5"))
+        assert "moves the machine" in err.message, err.message
+        written = lines_sent(hostd, GRBL)[before:]
+        assert not [ln for ln in written if ln.startswith((b"$J", b"$H", b"G0", b"$N0"))]
+        await rpc.call("machine.send", machine=GRBL, line="$G")  # a query goes

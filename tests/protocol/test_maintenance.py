@@ -7,6 +7,8 @@ import pytest
 from hostd.protocol.maintenance import (
     SANE_JOG_MM,
     Kind,
+    g2core_powered,
+    grbl_powered,
     maintenance_command,
     startup_block_acts,
     startup_blocks,
@@ -112,3 +114,63 @@ def test_a_long_adversarial_line_is_read_in_linear_time() -> None:
     # Word patterns whose classes do not overlap: no backtracking, whatever the input.
     line = "$J=" + "X" * 50_000 + "1" * 50_000 + "(" * 10_000
     assert maintenance_command("grbl", line, travel=TRAVEL) is not None
+
+
+# -- what a fault that blocks a job forbids a sent line (machine.send, .maintenance) --
+
+
+@pytest.mark.parametrize(
+    ("line", "does"),
+    [
+        ("G1 X10 F100", "moves the machine (G1)"),
+        ("x10", "moves the machine (X10 in the motion mode in force)"),
+        ("G53 G0 Z-1", "moves the machine (G0)"),
+        ("G38.2 Z-10 F50", "moves the machine (G38.2)"),
+        ("M3 S1000", "starts the spindle or laser (M3)"),
+        ("m4", "starts the spindle or laser (M4)"),
+        ("$J=G91 X1 F100", "jogs the machine ($J=)"),
+        ("$H", "homes the machine ($H)"),
+        ("$HX", "homes the machine ($H)"),
+        ("$N0=G0 X5", "moves the machine (G0)"),  # run once as it is stored
+        ("$N0=G54", None),
+        ("M5", None),  # stopping only makes safe
+        ("M8", None),  # coolant on makes nothing less safe
+        ("G10 L20 P1 X0", None),  # setting zero moves nothing
+        ("G92 X0", None),
+        ("G90 G21", None),
+        ("(G1 X10)", None),  # a comment
+        ("$G", None),
+        ("$X", None),
+        ("$$", None),
+        ("?", None),
+    ],
+)
+def test_what_a_line_sent_to_grbl_does_that_a_fault_forbids(line: str, does: str | None) -> None:
+    assert grbl_powered(line) == does
+
+
+@pytest.mark.parametrize(
+    ("line", "does"),
+    [
+        ("G0 X10", "moves the machine (G0)"),
+        ('{"gc":"G1 X1 F100"}', "moves the machine (G1)"),
+        ('{gc:"m3 s500"}', "starts the spindle or laser (M3)"),
+        ('{"GC":"G28.2 X0"}', "moves the machine (X0 in the motion mode in force)"),
+        ('{"gc":"G28.3 X0"}', None),  # sets the position: nothing moves
+        ("{sr:n}", None),
+        ('{"xvm":6000}', None),
+        ('{"gc":"M5"}', None),
+        ('{"gc":"G10 L20 P1 X0"}', None),
+        ("$xvm=6000", None),
+        ("{gc:", None),  # misread JSON: refused on its own (validate_line)
+        ("M5", None),
+    ],
+)
+def test_what_a_line_sent_to_g2core_does_that_a_fault_forbids(line: str, does: str | None) -> None:
+    assert g2core_powered(line) == does
+
+
+def test_a_long_adversarial_sent_line_is_judged_in_linear_time() -> None:
+    line = "G1" + "X" * 50_000 + "1" * 50_000 + "(" * 10_000
+    assert grbl_powered(line) is not None
+    assert g2core_powered('{"gc":"' + line + '"}') is not None

@@ -20,7 +20,7 @@ from hostd.protocol.grbl import codec
 from hostd.protocol.grbl.codes import ALARMS, ERRORS
 from hostd.protocol.grbl.report import STATES
 from hostd.protocol.grbl.session import GrblSession
-from hostd.protocol.maintenance import grbl_maintenance
+from hostd.protocol.maintenance import grbl_maintenance, grbl_powered
 
 
 class GrblOptions(DialectOptions):
@@ -65,6 +65,7 @@ GRBL_DIALECT = register(
         gcode=GRBL,
         encode_line=encode_job_line,
         maintenance=grbl_maintenance,
+        powered=grbl_powered,
         realtime={
             Realtime.FEEDHOLD: codec.FEEDHOLD,
             Realtime.CYCLE_START: codec.CYCLE_START,
