@@ -62,7 +62,10 @@ _AXES = frozenset("XYZABCUVW")
 # of non-modal group 0 and G43.1; and g2core's G28.3, which sets the origin where the
 # machine is, gcode_parser.cpp's NEXT_ACTION_SET_ABSOLUTE_ORIGIN).
 _AXIS_NOT_MOTION = frozenset({"G10", "G28.1", "G28.3", "G30.1", "G92", "G43.1"})
-_MOTION = frozenset({"G0", "G1", "G2", "G3", "G38.2", "G38.3", "G38.4", "G38.5", "G28", "G30"})
+# With g2core's homing cycles (G28.2, and G28.4 which sets no coordinates).
+_MOTION = frozenset(
+    {"G0", "G1", "G2", "G3", "G38.2", "G38.3", "G38.4", "G38.5", "G28", "G30", "G28.2", "G28.4"}
+)
 _STARTS = {"M3": "starts the spindle or laser", "M4": "starts the spindle or laser"}
 _STARTS |= {"M7": "starts the coolant", "M8": "starts the coolant"}
 

@@ -155,7 +155,7 @@ def test_what_a_line_sent_to_grbl_does_that_a_fault_forbids(line: str, does: str
         ("G0 X10", "moves the machine (G0)"),
         ('{"gc":"G1 X1 F100"}', "moves the machine (G1)"),
         ('{gc:"m3 s500"}', "starts the spindle or laser (M3)"),
-        ('{"GC":"G28.2 X0"}', "moves the machine (X0 in the motion mode in force)"),
+        ('{"GC":"G28.2 X0"}', "moves the machine (G28.2)"),  # a homing cycle
         ('{"gc":"G28.3 X0"}', None),  # sets the position: nothing moves
         ("{sr:n}", None),
         ('{"xvm":6000}', None),
