@@ -327,12 +327,16 @@ def _job_long(job: Any) -> str:
     return text
 
 
+# How a fault ends (the fault object's `clears`), as the command that ends it.
+_CLEARS = {"signal": "its condition", "software": "--clear", "reset": "hostd reset"}
+
 FAULT_HEADERS = (
     "FAULT",
     "SEVERITY",
     "ACTIVE",
     "OVERRIDDEN",
     "OVERRIDABLE",
+    "CLEARS",
     "SINCE",
     "VALUE",
     "MESSAGE",
@@ -350,6 +354,7 @@ def faults(console: Console, rows: Sequence[dict[str, Any]]) -> None:
                 _yes_no(f.get("active")),
                 _yes_no(f.get("overridden")),
                 _yes_no(f.get("overridable")),
+                _CLEARS.get(str(f.get("clears")), "-"),
                 when(f.get("since")),
                 json_line(f.get("value")),
                 str(f.get("message") or ""),
