@@ -45,6 +45,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 
+from hostd.protocol.gcodewords import strip_comments
 from hostd.protocol.relaxed import parse_relaxed
 
 # A jog further than this (mm; degrees for A, B, C) is absurd when the travel is not
@@ -52,7 +53,6 @@ from hostd.protocol.relaxed import parse_relaxed
 SANE_JOG_MM = 10_000.0
 MM_PER_INCH = 25.4
 
-_COMMENT = re.compile(r"\([^)]*\)|;.*")
 _BLANK = re.compile(r"\s+")
 # One word: a letter and the number-ish run after it. The two classes do not overlap,
 # so a match never backtracks: linear in the line.
@@ -91,8 +91,14 @@ class Maintenance:
 
 
 def normalized(text: str) -> str:
-    """The line as grbl reads it: comments removed, blanks dropped, letters upper-cased."""
-    return _BLANK.sub("", _COMMENT.sub("", text)).upper()
+    """The line as grbl reads it: comments removed, blanks dropped, letters upper-cased.
+
+    Flat comments, an unclosed one to the end of the line, as protocol.c drops them, in
+    linear time (gcodewords.strip_comments). Until 2026-11-29 this was a regex
+    substitution of a comment that had to be closed, which took quadratic time on a
+    line of `(`s: one `machine.send` of a 100,000-character line held a grbl
+    machine's event loop for 2.6 s, and the socket takes lines of up to 1 MiB."""
+    return _BLANK.sub("", strip_comments(text, "")[0]).upper()
 
 
 def maintenance_command(

@@ -26,7 +26,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hostd.protocol import gcode, gcodewords, textmode
+from hostd.protocol import gcode, gcodewords, maintenance, textmode
 from hostd.protocol.gcodestate import G2CORE, GRBL, GcodeModel, analyze
 from hostd.protocol.gcodestate.model import ProgramError
 from hostd.protocol.grbl import codec
@@ -191,6 +191,18 @@ def _text_command(line: str) -> None:
         textmode.read_text_command("$a=" + line)
 
 
+def _grbl_maintenance(line: str) -> None:
+    maintenance.grbl_maintenance(line, {}, False)  # every machine.send to a grbl board
+
+
+def _powered(line: str) -> None:
+    # What a sent line does that a blocking fault forbids (machine.send, .maintenance).
+    maintenance.grbl_powered(line)
+    maintenance.grbl_powered("$N0=" + line)
+    maintenance.g2core_powered(line)
+    maintenance.g2core_powered('{"gc":"' + line + '"}')
+
+
 READERS: dict[str, Callable[[str], None]] = {
     "model": _model,
     "check_gcode": _check,
@@ -199,6 +211,9 @@ READERS: dict[str, Callable[[str], None]] = {
     "grbl sim": _grbl_board,
     "grbl encode": _grbl_encode,
     "text command": _text_command,
+    # Quadratic on a line of `(`s until 2026-11-29 (maintenance.normalized).
+    "grbl maintenance": _grbl_maintenance,
+    "powered": _powered,
 }
 # Every character class a line can hold, and the pieces that made the old readers slow.
 _CHARS = "GXYZFNMgxy0123456789.-+ \t()(;%*#[]eE$=:|\x00\x7fé"
