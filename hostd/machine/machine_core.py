@@ -277,7 +277,7 @@ class MachineCore:
         task = self.powered_operation
         if task is None or task.done() or self.operation_fault is not None:
             return
-        self.operation_fault = FaultActive(f"{self.id}: fault active: {', '.join(ids)}", ids)
+        self.operation_fault = self._fault_active(ids)
         self._log.warning("stopping the operation: a fault is active", faults=ids)
         self.engine.kill_job()
         task.cancel()
@@ -299,25 +299,22 @@ class MachineCore:
         the machine or starts its spindle or beam (the dialect's `powered`) while a fault
         that blocks a job is active and not overridden, as a jog is refused."""
         blocking = self.faults.blocking()
-        if not blocking:
-            return
-        does = self.config.spec.powered(line)
-        if does is None:
-            return
-        ids = [f.id for f in blocking]
-        raise FaultActive(
-            f"{self.id}: fault active: {', '.join(ids)}: the line {does}; "
-            "clear or override the fault first",
-            ids,
-        )
+        does = self.config.spec.powered(line) if blocking else None
+        if does is not None:
+            ids = [f.id for f in blocking]
+            why = f": the line {does}; clear or override the fault first"
+            raise self._fault_active(ids, why)
 
     def refuse_if_faulted(self) -> None:
         """1007 while a fault that blocks a job is active and not overridden: for a job,
         a jog, a settings batch, and an operation that moves or powers (operations.py)."""
         blocking = self.faults.blocking()
         if blocking:
-            ids = [f.id for f in blocking]
-            raise FaultActive(f"{self.id}: fault active: {', '.join(ids)}", ids)
+            raise self._fault_active([f.id for f in blocking])
+
+    def _fault_active(self, ids: list[str], why: str = "") -> FaultActive:
+        """The 1007 for these blocking faults (`data`: their ids)."""
+        return FaultActive(f"{self.id}: fault active: {', '.join(ids)}{why}", ids)
 
     async def reset(self) -> None:
         """0x18 and re-synchronisation; the back end's own faults are cleared with it."""

@@ -58,10 +58,13 @@ _running: set[str] = set()  # machines with an operation of this module under wa
 
 
 @contextlib.asynccontextmanager
-async def _operation(machine: Machine, *, powered: bool = True) -> AsyncIterator[None]:
+async def _operation(
+    machine: Machine, *, powered: bool = True, fault_first: bool = False
+) -> AsyncIterator[None]:
     """Admit one operation: connected, idle (or locked out: the command class decides);
     and, if it moves the machine or powers its spindle or beam (`powered`), no fault
-    that blocks a job (1007, as for a job or a jog)."""
+    that blocks a job (1007, as for a job or a jog). In a lockout its code comes first,
+    at a line, unless `fault_first`: the request a lockout may take (homing)."""
     state = machine.supervisor.state
     if state is SupState.DISCONNECTED or not machine.engine.ready:
         raise NotConnected(f"{machine.id} is not connected")
@@ -70,7 +73,7 @@ async def _operation(machine: Machine, *, powered: bool = True) -> AsyncIterator
     locked = machine.engine.session.locked()
     if not locked and state is not SupState.IDLE:
         raise Busy(f"{machine.id} is {state.value}: wait until it is idle")
-    if powered and not locked:  # locked: the lockout's code (204/205/206) first, at a line
+    if powered and (fault_first or not locked):
         machine.refuse_if_faulted()
     _running.add(machine.id)
     if powered:  # a fault that becomes active stops it (MachineCore._stop_powered_operation)
@@ -123,11 +126,9 @@ async def home(machine: Machine, axes: list[str] | None) -> None:
     engine = machine.engine
     session = engine.session
     lines = session.home_lines(axes)
-    async with _operation(machine):
-        if session.locked():
-            # A lockout may take the homing line (grbl's `$H` in ALARM): not with a
-            # fault that blocks motion (1007), whatever the lockout would say.
-            machine.refuse_if_faulted()
+    # A lockout may take the homing line (grbl's `$H` in ALARM): not with a fault that
+    # blocks motion (1007), whatever the lockout would say.
+    async with _operation(machine, fault_first=True):
         before = engine.model.last_exception
         if session.homing_answered_at_end:
             await engine.send(lines[0], timeout=HOMING_WAIT)

@@ -54,6 +54,8 @@ SANE_JOG_MM = 10_000.0
 MM_PER_INCH = 25.4
 
 _BLANK = re.compile(r"\s+")
+# grbl's store of a startup block, in a normalized line: `$N0=...` (system.c).
+_STARTUP_STORE = re.compile(r"\$N\d+=")
 # One word: a letter and the number-ish run after it. The two classes do not overlap,
 # so a match never backtracks: linear in the line.
 _WORD = re.compile(r"([A-Z])([^A-Z]*)")
@@ -139,7 +141,7 @@ def _grbl(line: str, travel: Mapping[str, tuple[float, float]], inches: bool) ->
             Kind.RESTORE,
             f"{line} restores the board's {what.get(line[5:], 'stored data')} to defaults",
         )
-    if re.fullmatch(r"\$N\d+=.*", line):
+    if _STARTUP_STORE.match(line):
         return Maintenance(
             Kind.STARTUP_BLOCK,
             f"{line.partition('=')[0]}= stores a startup block, which the board runs at every "
@@ -259,7 +261,7 @@ def grbl_powered(text: str) -> str | None:
         return "jogs the machine ($J=)"
     if line.startswith("$H"):
         return "homes the machine ($H)"
-    if re.fullmatch(r"\$N\d+=.*", line):
+    if _STARTUP_STORE.match(line):
         return _acts(line.partition("=")[2], _POWERS)
     if line.startswith("$"):
         return None  # a setting, a query, an unlock: nothing moves
